@@ -1,0 +1,27 @@
+"""Shapley-value reward reallocation (Han et al.): TU-game core, coalition critic, actors."""
+
+from mapets_rl.shapley.game import (
+    MAX_EXACT_AGENTS,
+    coalition_masks,
+    exact_shapley,
+    in_core,
+    is_convex,
+    is_efficient,
+    permutation_prefix_masks,
+    sample_permutations,
+    sampled_shapley,
+    shapley_matrix,
+)
+
+__all__ = [
+    "MAX_EXACT_AGENTS",
+    "coalition_masks",
+    "exact_shapley",
+    "in_core",
+    "is_convex",
+    "is_efficient",
+    "permutation_prefix_masks",
+    "sample_permutations",
+    "sampled_shapley",
+    "shapley_matrix",
+]
