@@ -1,0 +1,6 @@
+"""Dynamics models: per-agent probabilistic ensembles (MA-PETS sec. IV-A)."""
+
+from mapets_rl.models.ensemble import ProbabilisticEnsemble
+from mapets_rl.models.training import train_ensemble
+
+__all__ = ["ProbabilisticEnsemble", "train_ensemble"]

@@ -1,0 +1,318 @@
+"""Probabilistic ensemble dynamics model of MA-PETS (paper sec. IV-A, PETS).
+
+Every agent ``i`` owns ``B`` bootstrapped probabilistic MLPs
+``P~_{theta_b}^{(i)}(s_{t+1} | s_t, a_t)`` that output the mean and the diagonal log-variance of the
+next-state delta ``s_{t+1} - s_t``. All ``I * B`` MLPs are stored as stacked weights and evaluated
+as one batched matrix product per layer (``torch.baddbmm``): there is no Python loop over agents
+or members.
+
+Two entry points:
+
+* :meth:`ProbabilisticEnsemble.forward` — a ``TensorDictModuleBase`` forward reading
+  ``("agents", "observation")`` ``[*, I, obs]`` and ``("agents", "action")`` ``[*, I, act]`` and
+  writing per-member predictions ``("agents", "delta_mean")`` / ``("agents", "delta_logvar")``
+  ``[*, I, B, obs]``.
+* :meth:`ProbabilisticEnsemble.predict` — the raw-tensor fast path used by the planner: inputs
+  ``[I, B, N, *]`` (``N`` rows per member), outputs ``[I, B, N, obs]``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torch import nn
+from torch.nn import functional as F
+
+__all__ = ["ProbabilisticEnsemble", "check_finite"]
+
+
+def check_finite(name: str, value: torch.Tensor, agent_dim: int) -> None:
+    """Raise ``ValueError`` naming ``name`` and the offending agents if ``value`` has NaN/inf.
+
+    Args:
+        name: the parameter / key name used in the message.
+        value: any tensor with an agent dimension.
+        agent_dim: index of the agent dimension in ``value``.
+    """
+    finite = torch.isfinite(value)
+    if bool(finite.all()):
+        return
+    dims = [d for d in range(value.ndim) if d != agent_dim % value.ndim]
+    bad_agents = (~finite).any(dim=dims) if dims else ~finite
+    agents = torch.nonzero(bad_agents).flatten().tolist()
+    raise ValueError(f"{name} contains NaN or inf values for agent(s) {agents}; clean the batch.")
+
+
+class ProbabilisticEnsemble(TensorDictModuleBase):
+    """Per-agent ensembles of probabilistic MLPs predicting the next-state delta.
+
+    Args:
+        obs_dim: observation size ``S`` (> 0).
+        action_dim: action size ``A`` (> 0).
+        n_agents: number of agents ``I`` (> 0); each owns its own ensemble.
+        ensemble_size: members ``B`` per agent (> 0). Paper: 5.
+        hidden: hidden layer widths (each > 0). Paper: 3 layers of 300-400 units.
+        share_across_agents: if ``True`` all agents use one set of ``B`` MLPs (a centralised
+            model trained on everybody's data); input/output normalisation stays per agent.
+        init_max_logvar / init_min_logvar: initial soft bounds of the normalised log-variance.
+        observation_key / action_key: input keys of the TensorDict forward.
+        mean_key / logvar_key: output keys of the TensorDict forward.
+
+    Shapes: weights of layer ``l`` are ``[G, B, in_l, out_l]`` with ``G = I`` (or 1 when
+    shared). Normalisation statistics are ``[I, 1, 1, dim]`` buffers fitted by
+    :meth:`fit_normalizer` on each agent's own data.
+    """
+
+    def __init__(
+        self,
+        obs_dim: int,
+        action_dim: int,
+        n_agents: int,
+        ensemble_size: int = 5,
+        hidden: Sequence[int] = (200, 200, 200),
+        *,
+        share_across_agents: bool = False,
+        init_max_logvar: float = 0.5,
+        init_min_logvar: float = -10.0,
+        observation_key: NestedKey = ("agents", "observation"),
+        action_key: NestedKey = ("agents", "action"),
+        mean_key: NestedKey = ("agents", "delta_mean"),
+        logvar_key: NestedKey = ("agents", "delta_logvar"),
+    ) -> None:
+        for name, value in (
+            ("obs_dim", obs_dim),
+            ("action_dim", action_dim),
+            ("n_agents", n_agents),
+            ("ensemble_size", ensemble_size),
+        ):
+            if not isinstance(value, int) or value <= 0:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}.")
+        hidden = tuple(hidden)
+        if len(hidden) == 0 or any(not isinstance(h, int) or h <= 0 for h in hidden):
+            raise ValueError(f"hidden must be a non-empty sequence of positive ints, got {hidden}.")
+        if not init_min_logvar < init_max_logvar:
+            raise ValueError(
+                f"init_min_logvar ({init_min_logvar}) must be < "
+                f"init_max_logvar ({init_max_logvar})."
+            )
+        super().__init__()
+        self.obs_dim = obs_dim
+        self.action_dim = action_dim
+        self.n_agents = n_agents
+        self.ensemble_size = ensemble_size
+        self.hidden = hidden
+        self.share_across_agents = share_across_agents
+        self.in_keys = [observation_key, action_key]
+        self.out_keys = [mean_key, logvar_key]
+
+        groups = 1 if share_across_agents else n_agents
+        in_dim = obs_dim + action_dim
+        sizes = (in_dim, *hidden, 2 * obs_dim)
+        self.weights = nn.ParameterList()
+        self.biases = nn.ParameterList()
+        for fan_in, fan_out in zip(sizes[:-1], sizes[1:], strict=True):
+            weight = torch.empty(groups, ensemble_size, fan_in, fan_out)
+            # PETS initialisation: truncated normal with std 1 / (2 sqrt(fan_in)).
+            std = 1.0 / (2.0 * math.sqrt(fan_in))
+            nn.init.trunc_normal_(weight, std=std, a=-2 * std, b=2 * std)
+            self.weights.append(nn.Parameter(weight))
+            self.biases.append(nn.Parameter(torch.zeros(groups, ensemble_size, 1, fan_out)))
+        # Learned soft bounds on the (normalised) log-variance (PETS appendix A.1).
+        self.max_logvar = nn.Parameter(torch.full((groups, 1, 1, obs_dim), float(init_max_logvar)))
+        self.min_logvar = nn.Parameter(torch.full((groups, 1, 1, obs_dim), float(init_min_logvar)))
+
+        self.register_buffer("input_mean", torch.zeros(n_agents, 1, 1, in_dim))
+        self.register_buffer("input_std", torch.ones(n_agents, 1, 1, in_dim))
+        self.register_buffer("output_mean", torch.zeros(n_agents, 1, 1, obs_dim))
+        self.register_buffer("output_std", torch.ones(n_agents, 1, 1, obs_dim))
+        self._cast_cache: tuple[tuple, list[tuple[torch.Tensor, torch.Tensor]]] | None = None
+
+    # ------------------------------------------------------------------ normalisation
+    @torch.no_grad()
+    def fit_normalizer(
+        self,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        next_obs: torch.Tensor,
+        mask: torch.Tensor | None = None,
+    ) -> None:
+        """Fit per-agent input and delta statistics.
+
+        Args:
+            obs: ``[N, I, obs]`` observations of every agent's dataset.
+            action: ``[N, I, act]``.
+            next_obs: ``[N, I, obs]``.
+            mask: optional ``[N, I]`` bool, ``False`` for rows that are padding / invalid for
+                that agent (agents may hold datasets of different sizes).
+        """
+        self._check_batch(obs, action, next_obs, mask)
+        inputs = torch.cat([obs, action], dim=-1).transpose(0, 1)  # [I, N, in]
+        delta = (next_obs - obs).transpose(0, 1)  # [I, N, obs]
+        if mask is None:
+            weight = torch.ones(inputs.shape[:2], dtype=inputs.dtype, device=inputs.device)
+        else:
+            weight = mask.transpose(0, 1).to(inputs.dtype)
+        count = weight.sum(1, keepdim=True).clamp_min(1.0).unsqueeze(-1)  # [I, 1, 1]
+        w = weight.unsqueeze(-1)
+        for data, mean_buf, std_buf in (
+            (inputs, self.input_mean, self.input_std),
+            (delta, self.output_mean, self.output_std),
+        ):
+            mean = (data * w).sum(1, keepdim=True) / count
+            var = ((data - mean).pow(2) * w).sum(1, keepdim=True) / count
+            std = var.sqrt()
+            std = torch.where(std < 1e-6, torch.ones_like(std), std)
+            mean_buf.copy_(mean.unsqueeze(1))
+            std_buf.copy_(std.unsqueeze(1))
+
+    def _check_batch(
+        self,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        next_obs: torch.Tensor | None = None,
+        mask: torch.Tensor | None = None,
+    ) -> None:
+        """Validate ``[N, I, *]`` training tensors (shape and finiteness)."""
+        expected = {"obs": self.obs_dim, "action": self.action_dim, "next_obs": self.obs_dim}
+        tensors = {"obs": obs, "action": action, "next_obs": next_obs}
+        for name, value in tensors.items():
+            if value is None:
+                continue
+            if (
+                value.ndim != 3
+                or value.shape[1] != self.n_agents
+                or value.shape[2] != expected[name]
+            ):
+                raise ValueError(
+                    f"{name} must be shaped [N, n_agents={self.n_agents}, {expected[name]}], "
+                    f"got {tuple(value.shape)}."
+                )
+            if value.shape[0] != obs.shape[0]:
+                raise ValueError(f"{name} has {value.shape[0]} rows, obs has {obs.shape[0]}.")
+        if mask is not None and tuple(mask.shape) != tuple(obs.shape[:2]):
+            raise ValueError(
+                f"mask must be shaped {tuple(obs.shape[:2])}, got {tuple(mask.shape)}."
+            )
+        for name, value in tensors.items():
+            if value is not None:
+                if mask is not None:
+                    value = torch.where(mask.unsqueeze(-1), value, torch.zeros_like(value))
+                check_finite(f"training batch '{name}'", value, agent_dim=1)
+
+    # ------------------------------------------------------------------ core computation
+    def _params(self, dtype: torch.dtype) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Stacked ``(weight, bias)`` per layer, cast to ``dtype`` (cast copies are cached)."""
+        if dtype == self.weights[0].dtype:
+            return list(zip(self.weights, self.biases, strict=True))
+        versions = (dtype, *(p._version for p in self.parameters()), *(id(p) for p in self.weights))
+        if self._cast_cache is None or self._cast_cache[0] != versions:
+            with torch.no_grad():
+                cast = [
+                    (w.detach().to(dtype), b.detach().to(dtype))
+                    for w, b in zip(self.weights, self.biases, strict=True)
+                ]
+            self._cast_cache = (versions, cast)
+        return self._cast_cache[1]
+
+    def normalized_forward(
+        self, x: torch.Tensor, dtype: torch.dtype | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Run the ``I * B`` MLPs on normalised inputs.
+
+        Args:
+            x: normalised inputs ``[I, B, N, obs + act]``.
+            dtype: compute dtype of the matrix products (default: the parameters' dtype);
+                outputs are returned in the parameters' dtype.
+
+        Returns:
+            ``(mean, logvar)`` of the normalised delta, each ``[I, B, N, obs]``; the
+            log-variance is softly bounded by the learned ``max_logvar`` / ``min_logvar``.
+        """
+        n_agents, members, rows, in_dim = x.shape
+        param_dtype = self.weights[0].dtype
+        dtype = param_dtype if dtype is None else dtype
+        params = self._params(dtype)
+        if self.share_across_agents:
+            # [I, B, N, in] -> [B, I*N, in]: one bmm over the B shared members.
+            h = x.transpose(0, 1).reshape(members, n_agents * rows, in_dim).to(dtype)
+            flat = [(w[0], b[0]) for w, b in params]
+        else:
+            h = x.reshape(n_agents * members, rows, in_dim).to(dtype)
+            flat = [(w.flatten(0, 1), b.flatten(0, 1)) for w, b in params]
+        last = len(flat) - 1
+        for layer, (weight, bias) in enumerate(flat):
+            h = torch.baddbmm(bias, h, weight)
+            if layer < last:
+                h = F.silu(h, inplace=not torch.is_grad_enabled())
+        out = h.to(param_dtype)
+        if self.share_across_agents:
+            out = out.reshape(members, n_agents, rows, -1).transpose(0, 1)
+        else:
+            out = out.reshape(n_agents, members, rows, -1)
+        mean, raw_logvar = out.split(self.obs_dim, dim=-1)
+        # PETS soft bounds: logvar = max - softplus(max - raw); logvar = min + softplus(. - min).
+        logvar = self.max_logvar - F.softplus(self.max_logvar - raw_logvar)
+        logvar = self.min_logvar + F.softplus(logvar - self.min_logvar)
+        return mean, logvar
+
+    def normalize_inputs(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """``[I, ..., obs]``, ``[I, ..., act]`` -> normalised inputs ``[I, ..., obs + act]``."""
+        x = torch.cat([obs, action], dim=-1)
+        view = (self.n_agents, *([1] * (x.ndim - 2)), x.shape[-1])
+        return (x - self.input_mean.view(view)) / self.input_std.view(view)
+
+    def predict(
+        self,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        dtype: torch.dtype | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raw-tensor fast path: per-member delta distribution in real units.
+
+        Args:
+            obs: ``[I, B, N, obs]`` (``N`` rows per member; a size-1 member dim broadcasts).
+            action: ``[I, B, N, act]``.
+            dtype: compute dtype of the MLP (e.g. ``torch.bfloat16``); outputs stay in the
+                parameters' dtype.
+
+        Returns:
+            ``(delta_mean, delta_logvar)``, each ``[I, B, N, obs]``.
+        """
+        x = self.normalize_inputs(obs, action)
+        if x.shape[1] != self.ensemble_size:
+            x = x.expand(-1, self.ensemble_size, -1, -1)
+        mean, logvar = self.normalized_forward(x, dtype)
+        delta_mean = mean * self.output_std + self.output_mean
+        delta_logvar = logvar + 2.0 * torch.log(self.output_std)
+        return delta_mean, delta_logvar
+
+    # ------------------------------------------------------------------ TensorDict API
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Write per-member predictions ``[*, I, B, obs]`` for inputs ``[*, I, obs/act]``."""
+        obs = tensordict.get(self.in_keys[0])
+        action = tensordict.get(self.in_keys[1])
+        if obs.ndim < 2 or obs.shape[-2:] != (self.n_agents, self.obs_dim):
+            raise ValueError(
+                f"{self.in_keys[0]} must be shaped [*, {self.n_agents}, {self.obs_dim}], "
+                f"got {tuple(obs.shape)}."
+            )
+        if action.shape[:-1] != obs.shape[:-1] or action.shape[-1] != self.action_dim:
+            raise ValueError(
+                f"{self.in_keys[1]} must be shaped [*, {self.n_agents}, {self.action_dim}], "
+                f"got {tuple(action.shape)}."
+            )
+        batch = obs.shape[:-2]
+        # [*, I, d] -> [I, 1, N, d]
+        flat_obs = obs.reshape(-1, self.n_agents, self.obs_dim).transpose(0, 1).unsqueeze(1)
+        flat_act = action.reshape(-1, self.n_agents, self.action_dim).transpose(0, 1).unsqueeze(1)
+        mean, logvar = self.predict(flat_obs, flat_act)
+        # [I, B, N, obs] -> [*, I, B, obs]
+        shape = (*batch, self.n_agents, self.ensemble_size, self.obs_dim)
+        tensordict.set(self.out_keys[0], mean.permute(2, 0, 1, 3).reshape(shape))
+        tensordict.set(self.out_keys[1], logvar.permute(2, 0, 1, 3).reshape(shape))
+        return tensordict
