@@ -206,4 +206,4 @@ def test_spec_with_wrong_position_shape_raises():
             self.observation_spec["agents", "position"] = Unbounded(shape=(3, 3))
 
     with pytest.raises(ValueError, match="position"):
-        TransformedEnv(Bad3D(), CommunicationRange(10.0)).observation_spec
+        _ = TransformedEnv(Bad3D(), CommunicationRange(10.0)).observation_spec

@@ -179,9 +179,7 @@ class NeighbourDatasets:
         kept.
         """
         if not isinstance(transitions, TensorDictBase):
-            raise ValueError(
-                f"transitions must be a TensorDict, got {type(transitions).__name__}"
-            )
+            raise ValueError(f"transitions must be a TensorDict, got {type(transitions).__name__}")
         shape = transitions.batch_size
         if len(shape) < 1 or shape[-1] != self.n_agents:
             raise ValueError(
@@ -211,9 +209,7 @@ class NeighbourDatasets:
         self._evict(agent, position)
         # Evictions freed at least as many slots as are written (see module docstring).
         slots = torch.nonzero(self._refcount == 0).squeeze(1)[: item.numel()]
-        uid = torch.arange(
-            self._next_uid, self._next_uid + item.numel(), device=self.device
-        )
+        uid = torch.arange(self._next_uid, self._next_uid + item.numel(), device=self.device)
         self._next_uid += item.numel()
         self.storage.set(slots, flat[item])
         self._owner[slots] = owner[item]
@@ -319,9 +315,7 @@ class NeighbourDatasets:
         if not shape or any(int(s) < 1 for s in shape):
             raise ValueError(f"batch_size must be positive, got {batch_size}")
         self._check_nonempty()
-        u = torch.rand(
-            (self.n_agents, *shape), generator=self.generator, device=self.device
-        )
+        u = torch.rand((self.n_agents, *shape), generator=self.generator, device=self.device)
         size = self._size.view(-1, *([1] * len(shape)))
         position = torch.clamp((u * size).long(), max=size - 1)
         return self._gather(position)
