@@ -1,0 +1,402 @@
+"""Figure-eight scenario (MA-PETS paper; SPEC section 2a).
+
+CAVs (learning agents) and human-driven vehicles (IDM/MOBIL with a first-come-first-served
+crossing rule) share a ~480 m figure-eight loop whose two straights cross at one unsignalised
+intersection. Each step lasts 0.1 s.
+
+CAV observation (7): ``(v, x, y, v_ahead, v_behind, gap_ahead, gap_behind)``; speeds in m/s,
+position in metres, gaps bumper-to-bumper along the lane in ``[0, 75]`` m (75 and neighbour speed
+0 when nobody is within 75 m). CAV action: target speed in ``[0, 13.89]`` m/s, plus on two lanes
+a lane-change flag in ``[0, 1]`` (> 0.5 requests a change to the other lane). Reward (paper eq.
+26): ``r = v + v_ahead + v_behind + beta`` with ``beta = -10`` on collision.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from highway_env.envs.common.action import ActionType
+
+from mapets_rl.envs.figure_eight_road import FigureEightGeometry
+from mapets_rl.envs.road import SortedNeighbourRoad
+from mapets_rl.envs.traffic import AgentObservation, MultiAgentTrafficEnv, require
+from mapets_rl.envs.vehicles import HumanVehicle, TargetSpeedVehicle, idm_acceleration
+from mapets_rl.metrics import agility, safety
+
+MAX_SPEED = 13.89
+"""Speed limit of the figure-eight [m/s] (50 km/h)."""
+GAP_RANGE = 75.0
+"""Sensing range of the gap observations [m]."""
+OBS_DIM = 7
+COLLISION_REWARD = -10.0
+
+
+class FigureEightRoad(SortedNeighbourRoad):
+    """The figure-eight road with a first-come-first-served rule at the crossing.
+
+    Each simulation step every vehicle within ``approach`` metres before the conflict zone of
+    its branch (``zone_half`` metres either side of the crossing point) is queued by the step at
+    which it arrived (ties: nearer first). A queued vehicle must stop before the zone while a
+    vehicle of the other branch is inside the zone or is queued ahead of it.
+    """
+
+    def __init__(
+        self,
+        geometry: FigureEightGeometry,
+        zone_half: float = 7.0,
+        approach: float = 40.0,
+        stock_neighbour_search: bool = False,
+        np_random: np.random.Generator | None = None,
+    ) -> None:
+        super().__init__(
+            geometry.network,
+            coordinate=geometry.coordinate,
+            period=geometry.length,
+            n_lanes=geometry.lanes,
+            stock_neighbour_search=stock_neighbour_search,
+            np_random=np_random,
+        )
+        self.geometry = geometry
+        self.zone_half = zone_half
+        self.approach = approach
+        self.clock = 0
+        self._arrival: dict[tuple[int, int], int] = {}
+        self._stop: dict[int, float] = {}
+
+    def candidate_lanes(self, lane_index: tuple) -> list[tuple]:
+        """Lanes a vehicle on ``lane_index`` can be on after one simulation step."""
+        return self.geometry.next_segment_lanes(lane_index)
+
+    def refresh(self) -> None:
+        """Neighbour tables (even in stock-search mode: the crossing rule needs coordinates)."""
+        super().refresh()
+        self.clock += 1
+        self._update_crossing()
+
+    def act(self) -> None:
+        self.refresh()
+        for vehicle in self.vehicles:
+            vehicle.act()
+
+    def _update_crossing(self) -> None:
+        z, d, period = self.zone_half, self.approach, self.period
+        occupied = [False, False]
+        queued: list[tuple[tuple[int, float], int, int, float]] = []
+        arrivals: dict[tuple[int, int], int] = {}
+        for vehicle in self.vehicles:
+            s = self._coord[id(vehicle)]
+            for branch, crossing in enumerate(self.geometry.crossing_coordinates):
+                r = (s - crossing + period / 2) % period - period / 2
+                if -z <= r <= z:
+                    occupied[branch] = True
+                elif -z - d <= r < -z:
+                    key = (id(vehicle), branch)
+                    arrivals[key] = self._arrival.get(key, self.clock)
+                    queued.append(((arrivals[key], -r), branch, id(vehicle), r))
+        self._arrival = arrivals
+        first = [min((q[0] for q in queued if q[1] == b), default=None) for b in (0, 1)]
+        self._stop = {}
+        for priority, branch, vid, r in queued:
+            other = 1 - branch
+            if occupied[other] or (first[other] is not None and first[other] < priority):
+                # Virtual standing car 5 m inside the zone: the front bumper stops before it.
+                self._stop[vid] = -r - z + 5.0
+
+    def stop_distance(self, vehicle: object) -> float | None:
+        """Distance [m] to the virtual obstacle ``vehicle`` must stop for, ``None`` if free."""
+        return self._stop.get(id(vehicle))
+
+
+class TargetSpeedAction(ActionType):
+    """Continuous per-CAV action: target speed (+ lane-change flag on two lanes).
+
+    Action array ``[I, 1]`` (``[I, 2]`` on two lanes) with bounds ``[0, max_speed]`` (and
+    ``[0, 1]`` for the flag). Out-of-bound, wrong-shaped or non-finite actions raise ValueError.
+    """
+
+    def __init__(self, env: FigureEightEnv, **kwargs: Any) -> None:
+        super().__init__(env)
+        n, lanes = env.config["n_cavs"], env.config["lanes"]
+        high = [env.config["max_speed"]] + ([1.0] if lanes == 2 else [])
+        self.low = np.zeros((n, len(high)), dtype=np.float32)
+        self.high = np.tile(np.array(high, dtype=np.float32), (n, 1))
+
+    def space(self) -> spaces.Box:
+        return spaces.Box(self.low, self.high, dtype=np.float32)
+
+    @property
+    def vehicle_class(self) -> type:
+        return TargetSpeedVehicle
+
+    def validate(self, action: Any) -> None:
+        """Raise ValueError unless ``action`` has shape ``[I, act_dim]`` and is within bounds."""
+        action = np.asarray(action, dtype=np.float64)
+        require(
+            action.shape == self.low.shape,
+            f"action must have shape {self.low.shape} (n_cavs, act_dim), got {action.shape}",
+        )
+        require(bool(np.isfinite(action).all()), "action must be finite (got NaN or inf)")
+        tol = 1e-4
+        require(
+            bool(((action >= self.low - tol) & (action <= self.high + tol)).all()),
+            f"action out of bounds: target speed must be in [0, {self.high[0, 0]:.2f}] m/s"
+            + (" and the lane-change flag in [0, 1]" if self.low.shape[1] == 2 else "")
+            + f", got min {action.min(0)} max {action.max(0)}",
+        )
+
+    def act(self, action: np.ndarray) -> None:
+        action = np.clip(np.asarray(action, dtype=np.float64), self.low, self.high)
+        env = self.env
+        for i, cav in enumerate(env.cavs):
+            if not env.alive[i]:
+                continue
+            cav.target_speed = float(action[i, 0])
+            if action.shape[1] == 2 and action[i, 1] > 0.5:
+                _from, _to, lane = cav.lane_index
+                cav.request_lane_change((_from, _to, 1 - lane))
+
+
+class FigureEightEnv(MultiAgentTrafficEnv):
+    """Figure-eight loop with ``n_cavs`` CAVs and a random number of human-driven vehicles.
+
+    Config keys (with defaults): ``n_cavs=8``, ``n_hvs=(8, 20)`` (inclusive range drawn per
+    episode, or an int), ``lanes=1`` (1 or 2), ``length=480.0`` m, ``horizon=200`` steps,
+    ``policy_frequency=10`` Hz, ``simulation_frequency=10`` Hz, ``max_speed=13.89`` m/s,
+    ``initial_speed=(4.0, 8.0)`` m/s, ``hv_target_speed=(10.0, 13.89)`` m/s,
+    ``min_spacing=12.0`` m (initial bumper-to-bumper spacing >= 7 m), ``collision_reward=-10``,
+    ``stock_neighbour_search=False`` (True uses highway-env's stock search; benchmark reference).
+    """
+
+    obs_dim = OBS_DIM
+
+    @classmethod
+    def default_config(cls) -> dict:
+        config = super().default_config()
+        config.update(
+            {
+                "n_cavs": 8,
+                "n_hvs": (8, 20),
+                "lanes": 1,
+                "length": 480.0,
+                "horizon": 200,
+                "max_speed": MAX_SPEED,
+                "initial_speed": (4.0, 8.0),
+                "hv_target_speed": (10.0, MAX_SPEED),
+                "min_spacing": 12.0,
+                "collision_reward": COLLISION_REWARD,
+                "screen_width": 640,
+                "screen_height": 400,
+                "scaling": 3.2,
+                "centering_position": [0.5, 0.5],
+            }
+        )
+        return config
+
+    @classmethod
+    def validate_config(cls, config: dict) -> None:
+        super().validate_config(config)
+        require(config["lanes"] in (1, 2), f"lanes must be 1 or 2, got {config['lanes']!r}")
+        require(config["length"] > 0, f"length must be > 0 m, got {config['length']!r}")
+        require(
+            config["min_spacing"] >= 7.0,
+            f"min_spacing must be >= 7.0 m (vehicle length 5 m + 2 m), got {config['min_spacing']}",
+        )
+        lo, hi = cls.hv_range(config["n_hvs"])
+        require(
+            0 <= lo <= hi,
+            f"n_hvs must be an int >= 0 or a range (lo, hi) with 0 <= lo <= hi, got "
+            f"{config['n_hvs']!r}",
+        )
+        capacity = cls.capacity(config)
+        require(
+            config["n_cavs"] + hi <= capacity,
+            f"n_cavs + max n_hvs = {config['n_cavs'] + hi} vehicles do not fit on a "
+            f"{config['lanes']}-lane loop of {config['length']} m at min_spacing="
+            f"{config['min_spacing']} m: n_cavs + n_hvs must be <= {capacity}",
+        )
+
+    @staticmethod
+    def hv_range(n_hvs: int | tuple[int, int]) -> tuple[int, int]:
+        """``(lo, hi)`` of the human-driven vehicle count."""
+        if isinstance(n_hvs, int | np.integer):
+            return int(n_hvs), int(n_hvs)
+        lo, hi = n_hvs
+        return int(lo), int(hi)
+
+    @staticmethod
+    def spawn_slots(geometry: FigureEightGeometry, spacing: float) -> np.ndarray:
+        """Route coordinates where vehicles may start: evenly spaced, clear of the crossing."""
+        slots = np.arange(0.0, geometry.length - spacing / 2, spacing)
+        r = (slots[:, None] - geometry.crossing_coordinates[None, :]) % geometry.length
+        r = np.minimum(r, geometry.length - r)
+        return slots[(r > 20.0).all(axis=1)]
+
+    @classmethod
+    def capacity(cls, config: dict) -> int:
+        """Number of vehicles that fit at ``min_spacing`` on all lanes."""
+        geometry = FigureEightGeometry(config["length"], config["lanes"])
+        return len(cls.spawn_slots(geometry, config["min_spacing"])) * config["lanes"]
+
+    def define_spaces(self) -> None:
+        self.observation_type = AgentObservation(self, OBS_DIM)
+        self.action_type = TargetSpeedAction(self)
+        self.observation_space = self.observation_type.space()
+        self.action_space = self.action_type.space()
+
+    def _make_road(self) -> FigureEightRoad:
+        if getattr(self, "_geometry_key", None) != (self.config["length"], self.config["lanes"]):
+            self.geometry = FigureEightGeometry(self.config["length"], self.config["lanes"])
+            self._geometry_key = (self.config["length"], self.config["lanes"])
+        return FigureEightRoad(
+            self.geometry,
+            stock_neighbour_search=self.config["stock_neighbour_search"],
+            np_random=self.np_random,
+        )
+
+    def _spawn_vehicles(self) -> list[TargetSpeedVehicle]:
+        cfg, rng, geometry = self.config, self.np_random, self.geometry
+        lo, hi = self.hv_range(cfg["n_hvs"])
+        n_hvs = int(rng.integers(lo, hi + 1))
+        n_cavs = cfg["n_cavs"]
+        slots = [
+            (s, lane)
+            for lane in range(cfg["lanes"])
+            for s in self.spawn_slots(geometry, cfg["min_spacing"])
+        ]
+        chosen = rng.choice(len(slots), size=n_cavs + n_hvs, replace=False)
+        is_cav = np.zeros(n_cavs + n_hvs, dtype=bool)
+        is_cav[rng.choice(n_cavs + n_hvs, size=n_cavs, replace=False)] = True
+        cavs = []
+        for k, slot in enumerate(chosen):
+            s, lane = slots[slot]
+            lane_index, longitudinal = geometry.lane_at(s, lane)
+            lane_obj = geometry.network.get_lane(lane_index)
+            kwargs = dict(
+                road=self.road,
+                position=lane_obj.position(longitudinal, 0.0),
+                heading=lane_obj.heading_at(longitudinal),
+                speed=float(rng.uniform(*cfg["initial_speed"])),
+                target_lane_index=lane_index,
+            )
+            if is_cav[k]:
+                vehicle = TargetSpeedVehicle(target_speed=kwargs["speed"], **kwargs)
+                cavs.append(vehicle)
+            else:
+                vehicle = HumanVehicle(
+                    target_speed=float(rng.uniform(*cfg["hv_target_speed"])),
+                    enable_lane_change=cfg["lanes"] > 1,
+                    **kwargs,
+                )
+                vehicle.randomize_behavior()
+            vehicle.lane_index = lane_index
+            vehicle.lane = lane_obj
+            vehicle.MAX_SPEED = cfg["max_speed"]
+            self.road.vehicles.append(vehicle)
+        return cavs
+
+    def _neighbour_features(self, cav: TargetSpeedVehicle) -> tuple[float, float, float, float]:
+        front, rear = self.road.neighbour_vehicles(cav)
+        out = []
+        for other, sign in ((front, 1.0), (rear, -1.0)):
+            if other is None:
+                out.append((0.0, GAP_RANGE))
+                continue
+            distance = sign * self.road.longitudinal_distance(cav, other)
+            if distance < 0:  # stock search may return cars behind as "front"
+                distance += self.road.period
+            gap = distance - 0.5 * (cav.LENGTH + other.LENGTH)
+            if gap > GAP_RANGE:
+                out.append((0.0, GAP_RANGE))
+            else:
+                out.append((float(other.speed), float(np.clip(gap, 0.0, GAP_RANGE))))
+        (v_ahead, gap_ahead), (v_behind, gap_behind) = out
+        return v_ahead, v_behind, gap_ahead, gap_behind
+
+    def observe_agents(self) -> np.ndarray:
+        obs = np.zeros((len(self.cavs), OBS_DIM), dtype=np.float32)
+        for i, cav in enumerate(self.cavs):
+            if self.alive[i]:
+                obs[i] = (cav.speed, *cav.position, *self._neighbour_features(cav))
+        return obs
+
+    def agent_rewards(self, action: Any) -> np.ndarray:
+        """Paper eq. (26) on the current observation, ``beta`` for CAVs that crashed this step."""
+        obs = self.observe_agents()
+        rewards = obs[:, 0] + obs[:, 3] + obs[:, 4]
+        rewards = rewards + self.config["collision_reward"] * self._crashed_now
+        return (rewards * (self.alive | self._crashed_now)).astype(np.float32)
+
+    def episode_metrics(self) -> dict[str, float]:
+        """Agility and safety (paper eqs. 27-28) and mean speed of the episode so far."""
+        distances = np.stack(self._episode_distances, axis=0) if self._episode_distances else None
+        horizon = self.config["horizon"]
+        steps = max(len(self._episode_distances), 1)
+        collision_steps = np.where(self.alive, horizon, self.collision_step)
+        return {
+            "agility": float(agility(distances, collision_steps)) if distances is not None else 0.0,
+            "safety": float(safety(collision_steps, horizon)),
+            "collisions": int((~self.alive).sum()),
+            "mean_speed": float(
+                np.stack(self._episode_distances).sum() / steps / self.dt / len(self.cavs)
+            )
+            if distances is not None
+            else 0.0,
+        }
+
+    # --- scripted policy ---------------------------------------------------------------------
+    def scripted_action(self) -> np.ndarray:
+        """A crash-free scripted CAV action ``[I, act_dim]``: IDM + the crossing rule.
+
+        Each CAV drives like a human-driven vehicle (IDM towards ``max_speed`` and first come,
+        first served at the crossing) and outputs the target speed that makes its speed
+        controller produce that acceleration. Never changes lanes.
+        """
+        action = np.zeros(self.action_space.shape, dtype=np.float32)
+        for i, cav in enumerate(self.cavs):
+            if not self.alive[i]:
+                continue
+            front, _ = self.road.neighbour_vehicles(cav)
+            distance = self.road.longitudinal_distance(cav, front) if front else None
+            if distance is not None and distance < 0:
+                distance += self.road.period
+            acc = idm_acceleration(
+                cav.speed,
+                self.config["max_speed"],
+                distance,
+                front.speed if front else 0.0,
+            )
+            stop = self.road.stop_distance(cav)
+            if stop is not None:
+                acc = min(acc, idm_acceleration(cav.speed, self.config["max_speed"], stop))
+            target = cav.speed + acc / cav.KP_A
+            action[i, 0] = np.clip(target, 0.0, self.config["max_speed"])
+        return action
+
+
+def figure_eight_reward(
+    obs: torch.Tensor,
+    action: torch.Tensor,
+    next_obs: torch.Tensor,
+    collision_gap: float = 0.5,
+    collision_reward: float = COLLISION_REWARD,
+) -> torch.Tensor:
+    """Known figure-eight reward for planning (paper eq. 26), vectorised.
+
+    ``r = v' + v_ahead' + v_behind' + beta`` on the (predicted) next observation, with
+    ``beta = collision_reward`` when the predicted gap ahead or behind falls below
+    ``collision_gap`` metres (a predicted collision).
+
+    Args:
+        obs: ``[..., 7]`` current observation (unused: the reward depends on the outcome).
+        action: ``[..., act_dim]`` action (unused).
+        next_obs: ``[..., 7]`` (predicted) next observation.
+
+    Returns:
+        ``[...]`` rewards.
+    """
+    speed_terms = next_obs[..., 0] + next_obs[..., 3] + next_obs[..., 4]
+    gap = torch.minimum(next_obs[..., 5], next_obs[..., 6])
+    return speed_terms + collision_reward * (gap < collision_gap).to(speed_terms.dtype)

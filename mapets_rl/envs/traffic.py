@@ -1,0 +1,216 @@
+"""Common machinery of the multi-agent traffic scenarios (a highway-env ``AbstractEnv``).
+
+Stock multi-agent highway-env returns one scalar reward and ends the episode on
+``controlled_vehicles[0]``. ``MultiAgentTrafficEnv`` keeps per-CAV bookkeeping instead: each
+CAV has its own observation row, reward, termination on collision and travelled distance.
+Crashed vehicles (CAVs and human-driven alike) leave the road at the end of the step in which
+they crashed; a crashed CAV stays in the arrays with a zero observation row and ``alive=False``.
+
+The gymnasium interface is array-valued: observation ``[I, obs_dim]``, action ``[I, act_dim]``
+(or ``[I]`` discrete), scalar reward = mean of the per-CAV rewards, and the per-CAV signals in
+``info`` (``agent_rewards``, ``agent_terminated``, ``positions``, ``distance``, ``speed``,
+``collided``, ``alive``). At the end of an episode ``info["episode"]`` holds the episode metrics.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from highway_env.envs.common.abstract import AbstractEnv
+from highway_env.envs.common.graphics import EnvViewer
+from highway_env.envs.common.observation import ObservationType
+from highway_env.vehicle.kinematics import Vehicle
+
+from mapets_rl.envs.road import SortedNeighbourRoad
+
+
+def require(condition: bool, message: str) -> None:
+    """Raise ``ValueError(message)`` unless ``condition`` holds."""
+    if not condition:
+        raise ValueError(message)
+
+
+class AgentObservation(ObservationType):
+    """Adapter that lets highway-env's ``AbstractEnv`` ask the scenario for observations."""
+
+    def __init__(self, env: MultiAgentTrafficEnv, obs_dim: int) -> None:
+        super().__init__(env)
+        self.obs_dim = obs_dim
+
+    def space(self) -> spaces.Space:
+        n = self.env.config["n_cavs"]
+        return spaces.Box(-np.inf, np.inf, shape=(n, self.obs_dim), dtype=np.float32)
+
+    def observe(self) -> np.ndarray:
+        return self.env.observe_agents()
+
+
+class _Origin:
+    """A fixed point for the viewer to centre on (the scene, not the first CAV)."""
+
+    def __init__(self, position: np.ndarray) -> None:
+        self.position = position
+
+
+class MultiAgentTrafficEnv(AbstractEnv):
+    """Base class: per-CAV rewards, terminations, distances and episode bookkeeping.
+
+    Subclasses implement ``validate_config``, ``_make_road``, ``_spawn_vehicles``,
+    ``observe_agents``, ``agent_rewards``, ``define_spaces`` and ``episode_metrics``.
+    """
+
+    obs_dim: int
+    view_centre = np.zeros(2)
+
+    def __init__(self, config: dict | None = None, render_mode: str | None = None) -> None:
+        merged = self.default_config()
+        merged.update(config or {})
+        self.validate_config(merged)
+        self.cavs: list[Vehicle] = []
+        self.alive = np.zeros(0, dtype=bool)
+        super().__init__(config, render_mode)
+
+    @classmethod
+    def default_config(cls) -> dict:
+        config = super().default_config()
+        config.update(
+            {
+                "n_cavs": 8,
+                "horizon": 200,
+                "simulation_frequency": 10,
+                "policy_frequency": 10,
+                "collision_reward": -10.0,
+                "stock_neighbour_search": False,
+                "offscreen_rendering": True,
+            }
+        )
+        return config
+
+    @classmethod
+    def validate_config(cls, config: dict) -> None:
+        """Raise ``ValueError`` naming the first invalid key of ``config``."""
+        require(
+            isinstance(config["n_cavs"], int | np.integer) and config["n_cavs"] >= 1,
+            f"n_cavs must be an integer >= 1, got {config['n_cavs']!r}",
+        )
+        require(
+            isinstance(config["horizon"], int | np.integer) and config["horizon"] >= 1,
+            f"horizon must be an integer >= 1, got {config['horizon']!r}",
+        )
+        policy, sim = config["policy_frequency"], config["simulation_frequency"]
+        require(
+            isinstance(policy, int | np.integer) and policy >= 1,
+            f"policy_frequency must be an integer >= 1 [Hz], got {policy!r}",
+        )
+        require(
+            isinstance(sim, int | np.integer) and sim >= policy and sim % policy == 0,
+            f"simulation_frequency must be a positive multiple of policy_frequency={policy} "
+            f"[Hz] (otherwise simulated time is silently lost), got {sim!r}",
+        )
+
+    # --- scene -------------------------------------------------------------------------------
+    def _reset(self) -> None:
+        self.road = self._make_road()
+        self.cavs = self._spawn_vehicles()
+        self.controlled_vehicles = list(self.cavs)
+        n = len(self.cavs)
+        self.alive = np.ones(n, dtype=bool)
+        self.collision_step = np.full(n, self.config["horizon"], dtype=np.int64)
+        self.distance_total = np.zeros(n)
+        self._distance_step = np.zeros(n)
+        self._crashed_now = np.zeros(n, dtype=bool)
+        self._episode_distances: list[np.ndarray] = []
+        self.road.refresh()
+
+    def _make_road(self) -> SortedNeighbourRoad:
+        raise NotImplementedError
+
+    def _spawn_vehicles(self) -> list[Vehicle]:
+        raise NotImplementedError
+
+    def observe_agents(self) -> np.ndarray:
+        """Per-CAV observations ``[I, obs_dim]`` (zero rows for crashed CAVs)."""
+        raise NotImplementedError
+
+    def agent_rewards(self, action: Any) -> np.ndarray:
+        """Per-CAV rewards ``[I]`` for the step just simulated (0 for CAVs already gone)."""
+        raise NotImplementedError
+
+    def episode_metrics(self) -> dict[str, float]:
+        """Metrics of the episode so far."""
+        raise NotImplementedError
+
+    # --- stepping ----------------------------------------------------------------------------
+    @property
+    def dt(self) -> float:
+        """Duration of one environment step [s]."""
+        return 1.0 / self.config["policy_frequency"]
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """Advance all vehicles by one policy step; see the module docstring for the outputs."""
+        self.action_type.validate(action)
+        self.time += self.dt
+        self._simulate(action)
+        self.road.refresh()
+        obs = self.observe_agents()
+        rewards = self.agent_rewards(action)
+        crashed_now = self._crashed_now.copy()
+        self.collision_step[crashed_now] = self.steps_taken
+        self.alive &= ~crashed_now
+        self.road.vehicles = [v for v in self.road.vehicles if not v.crashed]
+        self._episode_distances.append(self._distance_step.copy())
+        terminated = bool(not self.alive.any())
+        truncated = self.steps_taken >= self.config["horizon"]
+        info = self._info(obs, action)
+        info.update(agent_rewards=rewards, agent_terminated=~self.alive, collided=crashed_now)
+        if terminated or truncated:
+            info["episode"] = self.episode_metrics()
+        return obs, float(rewards.mean()), terminated, truncated, info
+
+    @property
+    def steps_taken(self) -> int:
+        """Policy steps taken in the current episode."""
+        return int(round(self.time * self.config["policy_frequency"]))
+
+    def _simulate(self, action: Any = None) -> None:
+        frames = self.config["simulation_frequency"] // self.config["policy_frequency"]
+        dt = 1.0 / self.config["simulation_frequency"]
+        self._distance_step[:] = 0.0
+        self._crashed_now[:] = False
+        if action is not None:
+            self.action_type.act(action)
+        for _ in range(frames):
+            self.road.act()
+            self.road.step(dt)
+            self.steps += 1
+            for i, cav in enumerate(self.cavs):
+                if self.alive[i] and not self._crashed_now[i]:
+                    self._distance_step[i] += cav.speed * dt
+                    self._crashed_now[i] = cav.crashed
+        self.distance_total += self._distance_step
+
+    def _info(self, obs: np.ndarray, action: Any = None) -> dict:
+        return {
+            "positions": np.array([cav.position for cav in self.cavs], dtype=np.float32),
+            "speed": np.array([cav.speed for cav in self.cavs], dtype=np.float32) * self.alive,
+            "distance": self._distance_step.astype(np.float32),
+            "alive": self.alive.copy(),
+        }
+
+    def _is_terminated(self) -> bool:
+        return bool(not self.alive.any())
+
+    def _is_truncated(self) -> bool:
+        return self.steps_taken >= self.config["horizon"]
+
+    def _reward(self, action: Any) -> float:
+        return float(self.agent_rewards(action).mean())
+
+    # --- rendering ---------------------------------------------------------------------------
+    def render(self) -> np.ndarray | None:
+        if self.viewer is None and self.render_mode is not None:
+            self.viewer = EnvViewer(self)
+            self.viewer.observer_vehicle = _Origin(self.view_centre)
+        return super().render()

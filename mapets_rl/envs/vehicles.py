@@ -1,0 +1,153 @@
+"""Vehicles of the traffic scenarios, built on highway-env's vehicle classes.
+
+- ``RouteVehicleMixin``: longitudinal distances along the road's route coordinate (correct across
+  segment boundaries and around a loop) and lane tracking restricted to the current and next
+  segment when the road provides them (stock tracking tests every lane of the network and, at
+  the figure-eight crossing, must rely on the heading penalty alone).
+- ``HumanVehicle``: highway-env IDM/MOBIL driver that additionally obeys a crossing rule (it
+  brakes for a virtual stop line when the road says it must yield).
+- ``TargetSpeedVehicle``: a CAV whose action is a target speed (plus an optional lane change),
+  tracked by a proportional controller with physically bounded acceleration.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from highway_env import utils
+from highway_env.road.road import LaneIndex
+from highway_env.vehicle.behavior import IDMVehicle
+from highway_env.vehicle.controller import ControlledVehicle
+from highway_env.vehicle.kinematics import Vehicle
+
+ACC_MIN = -6.0
+"""Maximum braking of every vehicle [m/s^2] (highway-env's IDM ``ACC_MAX`` is 6)."""
+ACC_MAX = 3.0
+"""Maximum acceleration of a CAV [m/s^2] (IDM comfortable acceleration)."""
+
+
+def idm_acceleration(
+    speed: float,
+    target_speed: float,
+    distance: float | None = None,
+    front_speed: float = 0.0,
+    params: type[IDMVehicle] | IDMVehicle = IDMVehicle,
+) -> float:
+    """Intelligent Driver Model acceleration [m/s^2], as in ``IDMVehicle.acceleration``.
+
+    Args:
+        speed: own speed [m/s].
+        target_speed: desired free-road speed [m/s].
+        distance: centre-to-centre distance to the obstacle ahead [m], ``None`` if free road.
+        front_speed: speed of the obstacle ahead [m/s] (0 for a standing one).
+        params: object or class carrying the IDM constants (``COMFORT_ACC_MAX``, ``DELTA``, ...).
+    """
+    v = max(speed, 0.0)
+    acceleration = params.COMFORT_ACC_MAX * (
+        1.0 - np.power(v / abs(utils.not_zero(target_speed)), params.DELTA)
+    )
+    if distance is not None:
+        ab = -params.COMFORT_ACC_MAX * params.COMFORT_ACC_MIN
+        desired = (
+            params.DISTANCE_WANTED
+            + v * params.TIME_WANTED
+            + v * (v - front_speed) / (2 * np.sqrt(ab))
+        )
+        acceleration -= (
+            params.COMFORT_ACC_MAX * (desired / utils.not_zero(max(distance, 1e-3))) ** 2
+        )
+    return float(acceleration)
+
+
+def idm_stop_acceleration(vehicle: IDMVehicle, distance: float) -> float:
+    """IDM acceleration of ``vehicle`` towards a standing obstacle ``distance`` metres ahead."""
+    return idm_acceleration(vehicle.speed, vehicle.target_speed, distance, 0.0, vehicle)
+
+
+class RouteVehicleMixin:
+    """Route-coordinate distances and segment-local lane tracking (see module docstring)."""
+
+    road: object
+    MIN_SPEED = 0.0
+
+    def lane_distance_to(self, other: Vehicle, lane: object = None) -> float:
+        if other is None:
+            return np.nan
+        return self.road.longitudinal_distance(self, other)
+
+    def on_state_update(self) -> None:
+        candidates = getattr(self.road, "candidate_lanes", None)
+        if candidates is None or self.lane_index is None:
+            super().on_state_update()
+            return
+        indexes = candidates(self.lane_index)
+        network = self.road.network
+        distances = [
+            network.get_lane(index).distance_with_heading(self.position, self.heading)
+            for index in indexes
+        ]
+        self.lane_index = indexes[int(np.argmin(distances))]
+        self.lane = network.get_lane(self.lane_index)
+        if self.road.record_history:
+            self.history.appendleft(self.create_from(self))
+
+
+class HumanVehicle(RouteVehicleMixin, IDMVehicle):
+    """A human-driven vehicle: highway-env IDM + MOBIL, plus a crossing rule.
+
+    The road (``stop_distance(vehicle)``) tells each vehicle, once per simulation step, the
+    distance to the stop line it must not pass (``None`` when it has right of way); the vehicle
+    then brakes as IDM would for a standing car there.
+    """
+
+    ACC_MAX = -ACC_MIN
+
+    def act(self, action: dict | str | None = None) -> None:
+        if self.crashed:
+            return
+        super().act()
+        stop_distance = getattr(self.road, "stop_distance", None)
+        distance = stop_distance(self) if stop_distance is not None else None
+        if distance is not None:
+            self.action["acceleration"] = float(
+                np.clip(
+                    min(self.action["acceleration"], idm_stop_acceleration(self, distance)),
+                    -self.ACC_MAX,
+                    self.ACC_MAX,
+                )
+            )
+
+
+class TargetSpeedVehicle(RouteVehicleMixin, ControlledVehicle):
+    """A connected autonomous vehicle driven by a target speed (and lane-change requests).
+
+    Every simulation step it follows its lane (highway-env steering control) and accelerates by
+    ``KP_A * (target_speed - speed)`` clipped to ``[ACC_MIN, ACC_MAX]``; the stock
+    ``ControlledVehicle.speed_control`` has no such physical bound.
+    """
+
+    ACC_MIN = ACC_MIN
+    ACC_MAX = ACC_MAX
+
+    def act(self, action: dict | str | None = None) -> None:
+        if self.crashed:
+            return
+        self.follow_road()
+        acceleration = self.KP_A * (self.target_speed - self.speed)
+        Vehicle.act(
+            self,
+            {
+                "steering": float(
+                    np.clip(
+                        self.steering_control(self.target_lane_index),
+                        -self.MAX_STEERING_ANGLE,
+                        self.MAX_STEERING_ANGLE,
+                    )
+                ),
+                "acceleration": float(np.clip(acceleration, self.ACC_MIN, self.ACC_MAX)),
+            },
+        )
+
+    def request_lane_change(self, lane_index: LaneIndex) -> None:
+        """Start a lane change to ``lane_index`` unless one is already under way."""
+        if self.lane_index == self.target_lane_index:
+            self.target_lane_index = lane_index
