@@ -151,6 +151,11 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
                 that agent (agents may hold datasets of different sizes).
         """
         self._check_batch(obs, action, next_obs, mask)
+        if mask is not None:  # masked rows may hold anything (NaN padding): zero them out
+            keep = mask.unsqueeze(-1)
+            obs, action, next_obs = (
+                torch.where(keep, v, torch.zeros_like(v)) for v in (obs, action, next_obs)
+            )
         inputs = torch.cat([obs, action], dim=-1).transpose(0, 1)  # [I, N, in]
         delta = (next_obs - obs).transpose(0, 1)  # [I, N, obs]
         if mask is None:

@@ -108,6 +108,12 @@ class EnsembleNLLLoss(LossModule):
         if mask is not None:
             mask = mask.reshape(*batch, model.n_agents).reshape(-1, model.n_agents).bool()
         model._check_batch(obs, action, next_obs, mask)
+        if mask is not None:
+            # Masked rows may hold anything (e.g. NaN of removed agents): zero them out.
+            keep = mask.unsqueeze(-1)
+            obs, action, next_obs = (
+                torch.where(keep, v, torch.zeros_like(v)) for v in (obs, action, next_obs)
+            )
         return obs, action, next_obs, mask
 
     def fit_normalizer(self, tensordict: TensorDictBase) -> None:

@@ -156,6 +156,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         self.register_buffer("action_low", low[:, None, None, :])
         self.register_buffer("action_high", high[:, None, None, :])
         self._mean: torch.Tensor | None = None  # [I, M, H, act] warm start
+        self._solution: torch.Tensor | None = None  # [I, M, H, act] last optimised mean
         self._batch_shape: torch.Size | None = None
         self.last_iterations = 0
 
@@ -163,16 +164,26 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
     def reset(self) -> None:
         """Forget the warm start (call at episode start)."""
         self._mean = None
+        self._solution = None
         self._batch_shape = None
+
+    def _to_batch_layout(self, plan: torch.Tensor | None) -> torch.Tensor | None:
+        """``[I, M, H, act]`` -> ``[*, I, H, act]``."""
+        if plan is None:
+            return None
+        return plan.transpose(0, 1).reshape(
+            *self._batch_shape, self.model.n_agents, self.horizon, self.model.action_dim
+        )
 
     @property
     def warm_start_mean(self) -> torch.Tensor | None:
         """The shifted plan that seeds the next call, ``[*, I, horizon, act]`` (or ``None``)."""
-        if self._mean is None:
-            return None
-        return self._mean.transpose(0, 1).reshape(
-            *self._batch_shape, self.model.n_agents, self.horizon, self.model.action_dim
-        )
+        return self._to_batch_layout(self._mean)
+
+    @property
+    def last_solution(self) -> torch.Tensor | None:
+        """The last call's optimised mean sequence, ``[*, I, horizon, act]`` (or ``None``)."""
+        return self._to_batch_layout(self._solution)
 
     def _initial_mean(self, envs: int) -> torch.Tensor:
         """``[I, M, H, act]`` centre of the action box."""
@@ -236,6 +247,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             if bool(std.max() < self.epsilon):
                 break
         self.last_iterations = iterations
+        self._solution = mu
         action = torch.clamp(mu[:, :, 0], self.action_low[:, 0], self.action_high[:, 0])
         # Warm start: shift the plan by one step, pad with the centre of the box.
         self._mean = torch.cat([mu[:, :, 1:], self._initial_mean(envs)[:, :, :1]], dim=2)

@@ -1,0 +1,198 @@
+"""TrajectorySamplingCEM on problems with known answers (point mass, exact linear dynamics)."""
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from mapets_rl.models import ProbabilisticEnsemble
+from mapets_rl.planning import CPU_PRESET, PAPER_PRESET, PlannerConfig, TrajectorySamplingCEM
+
+DT = 0.1
+RHO = 0.1
+
+
+def point_mass_matrix(gain: float = 1.0) -> torch.Tensor:
+    """Delta map M with delta = M [pos, vel, a]: pos' = pos + dt vel, vel' = vel + dt gain a."""
+    return torch.tensor([[0.0, DT, 0.0], [0.0, 0.0, DT * gain]])
+
+
+@torch.no_grad()
+def linear_ensemble(matrices: list[torch.Tensor], members: int = 5) -> ProbabilisticEnsemble:
+    """An ensemble whose every member predicts delta = M_i [s, a] exactly, with ~zero variance.
+
+    Uses silu(z) - silu(-z) = z: hidden units hold (z, -z), so the MLP is exactly linear.
+    """
+    n_agents = len(matrices)
+    out, inp = matrices[0].shape
+    width = 2 * out
+    model = ProbabilisticEnsemble(
+        out, inp - out, n_agents, members, (width, width), init_min_logvar=-40.0
+    )
+    eye = torch.eye(out)
+    mid = torch.cat([torch.cat([eye, -eye], 1), torch.cat([-eye, eye], 1)], 0)
+    last = torch.zeros(width, 2 * out)
+    last[:, :out] = torch.cat([eye, -eye], 0)
+    for i, m in enumerate(matrices):
+        model.weights[0][i] = torch.cat([m.T, -m.T], 1)
+        model.weights[1][i] = mid
+        model.weights[2][i] = last
+    for bias in model.biases:
+        bias.zero_()
+    model.biases[2][..., out:] = -60.0
+    return model
+
+
+def quadratic_reward(obs, action, next_obs):
+    """r = -(|s'|^2 + rho a^2)."""
+    return -(next_obs.pow(2).sum(-1) + RHO * action.pow(2).sum(-1))
+
+
+def lq_optimal_first_action(s0: torch.Tensor, gain: float, horizon: int) -> float:
+    """Unconstrained finite-horizon LQ optimum by least squares on the stacked rollout."""
+    a_mat = torch.tensor([[1.0, DT], [0.0, 1.0]], dtype=torch.float64)
+    b_vec = torch.tensor([[0.0], [DT * gain]], dtype=torch.float64)
+    rows, rhs = [], []
+    for t in range(horizon):  # s_{t+1} = A^{t+1} s0 + sum_k A^{t-k} B a_k
+        row = torch.zeros(2, horizon, dtype=torch.float64)
+        for k in range(t + 1):
+            row[:, k : k + 1] = torch.linalg.matrix_power(a_mat, t - k) @ b_vec
+        rows.append(row)
+        rhs.append(-torch.linalg.matrix_power(a_mat, t + 1) @ s0.double())
+    design = torch.cat(rows + [RHO**0.5 * torch.eye(horizon, dtype=torch.float64)], 0)
+    target = torch.cat(rhs + [torch.zeros(horizon, dtype=torch.float64)], 0)
+    return torch.linalg.lstsq(design, target.unsqueeze(-1)).solution[0, 0].item()
+
+
+PLAN = dict(horizon=5, population=200, elites=20, iterations=8, particles=5)
+
+
+def make_planner(model, **kwargs):
+    options = {**PLAN, "seed": 0, **kwargs}
+    return TrajectorySamplingCEM(model, quadratic_reward, -20.0, 20.0, **options)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+@pytest.mark.parametrize("propagation", ["ts_inf", "ts1", "expectation"])
+def test_optimal_first_action(dtype, propagation):
+    gains = [1.0, 2.0]
+    model = linear_ensemble([point_mass_matrix(g) for g in gains])
+    obs = torch.tensor([[1.0, 0.5], [-2.0, 1.0]])
+    planner = make_planner(model, dtype=dtype, propagation=propagation)
+    action = planner(TensorDict({("agents", "observation"): obs}))["agents", "action"]
+    assert action.shape == (2, 1)
+    for i, gain in enumerate(gains):
+        best = lq_optimal_first_action(obs[i], gain, PLAN["horizon"])
+        assert abs(best) > 1.0  # non-trivial optimum
+        assert action[i, 0].item() == pytest.approx(best, abs=0.06 * abs(best) + 0.05)
+
+
+def test_batched_agents_equal_single_agent_calls():
+    gains = [1.0, 0.5, 2.0]
+    obs = torch.tensor([[1.0, 0.5], [-2.0, 1.0], [0.3, -0.7]])
+    batched = make_planner(linear_ensemble([point_mass_matrix(g) for g in gains]), seed=3)
+    joint = batched.plan(obs)
+    for i, gain in enumerate(gains):
+        single = make_planner(linear_ensemble([point_mass_matrix(gain)]), seed=3)
+        torch.testing.assert_close(single.plan(obs[i : i + 1]), joint[i : i + 1])
+
+
+def test_env_batch_and_warm_start_shift():
+    model = linear_ensemble([point_mass_matrix(), point_mass_matrix(0.5)])
+    planner = make_planner(model)
+    obs = torch.randn(3, 2, 2)  # [envs, I, obs]
+    action = planner.plan(obs)
+    assert action.shape == (3, 2, 1)
+    solution, warm = planner.last_solution, planner.warm_start_mean
+    assert warm.shape == solution.shape == (3, 2, PLAN["horizon"], 1)
+    torch.testing.assert_close(action, solution[..., 0, :])
+    torch.testing.assert_close(warm[..., :-1, :], solution[..., 1:, :])
+    assert bool((warm[..., -1, :] == 0.0).all())  # centre of [-20, 20]
+    planner.reset()
+    assert planner.warm_start_mean is None
+
+
+def push_up(obs, action, next_obs):
+    return action.sum(-1)
+
+
+def test_is_init_resets_only_that_env():
+    planner = TrajectorySamplingCEM(
+        linear_ensemble([point_mass_matrix()]), push_up, -1.0, 1.0, seed=0, **PLAN
+    )
+    obs = torch.randn(2, 1, 2)
+    planner.plan(obs)  # converges to +1 everywhere: warm start ~ [1, ..., 1, 0]
+    assert bool((planner.warm_start_mean[..., :-1, :] > 0.9).all())
+    # With heavy momentum one iteration barely moves the mean: the result reveals the start.
+    planner.alpha, planner.iterations = 0.99, 1
+    td = TensorDict(
+        {("agents", "observation"): obs, "is_init": torch.tensor([[True], [False]])}, [2]
+    )
+    action = planner(td)["agents", "action"]
+    assert abs(action[0].item()) < 0.05  # restarted from the centre of the box
+    assert action[1].item() > 0.9  # kept its warm start
+
+
+def test_early_stop_when_std_collapses():
+    model = linear_ensemble([point_mass_matrix()])
+    obs = torch.tensor([[1.0, 0.0]])
+    stop = make_planner(model, elites=1, alpha=0.0, iterations=5)
+    stop.plan(obs)
+    assert stop.last_iterations == 1
+    full = make_planner(model, iterations=5)
+    full.plan(obs)
+    assert full.last_iterations == 5
+
+
+def test_actions_clipped_and_nan_safe():
+    model = linear_ensemble([point_mass_matrix()])
+    planner = TrajectorySamplingCEM(model, push_up, -1.0, 1.0, seed=0, **PLAN)
+    action = planner.plan(torch.zeros(1, 2))
+    assert action.item() <= 1.0 and action.item() > 0.95
+
+    def nan_above_half(obs, action, next_obs):
+        r = -(action.sum(-1) - 0.8).pow(2)
+        return torch.where(action.sum(-1) > 0.5, torch.nan, r)
+
+    planner = TrajectorySamplingCEM(model, nan_above_half, -1.0, 1.0, seed=0, **PLAN)
+    action = planner.plan(torch.zeros(1, 2))
+    assert torch.isfinite(action).all()
+    assert 0.3 < action.item() <= 0.5
+
+
+def test_bad_input():
+    model = linear_ensemble([point_mass_matrix()])
+    cases = [
+        (dict(elites=300), "elites"),
+        (dict(horizon=0), "horizon"),
+        (dict(iterations=0), "iterations"),
+        (dict(particles=-1), "particles"),
+        (dict(particles=7), "particles"),
+        (dict(propagation="ts2"), "propagation"),
+        (dict(alpha=1.0), "alpha"),
+        (dict(epsilon=0.0), "epsilon"),
+    ]
+    for kwargs, name in cases:
+        with pytest.raises(ValueError, match=name):
+            make_planner(model, **kwargs)
+    with pytest.raises(ValueError, match="action_low"):
+        TrajectorySamplingCEM(model, quadratic_reward, 1.0, 1.0, **PLAN)
+    with pytest.raises(ValueError, match="action_low"):
+        TrajectorySamplingCEM(model, quadratic_reward, [0.0, 0.0], [1.0, 1.0], **PLAN)
+    planner = make_planner(model)
+    with pytest.raises(ValueError, match="observation"):
+        planner.plan(torch.zeros(1, 3))
+    with pytest.raises(ValueError, match="observation"):
+        planner.plan(torch.zeros(2))
+    with pytest.raises(ValueError, match="ensemble_size"):
+        PlannerConfig(particles=7)
+    with pytest.raises(ValueError, match="elites"):
+        PlannerConfig(elites=500)
+
+
+def test_presets_build_planner_and_model():
+    for preset in (PAPER_PRESET, CPU_PRESET):
+        model = ProbabilisticEnsemble(7, 1, 2, **preset.model_kwargs())
+        planner = TrajectorySamplingCEM(
+            model, quadratic_reward, 0.0, 13.89, **preset.planner_kwargs()
+        )
+        assert planner.horizon == preset.horizon and model.hidden == preset.hidden
