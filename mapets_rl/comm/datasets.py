@@ -141,13 +141,13 @@ class NeighbourDatasets:
         """Ring writes for ``receive`` ``[I, M]`` bool (agent i gets item m, in order of m).
 
         Only the newest ``C`` items per agent are kept. Returns agent, item and ring position of
-        each kept write, and the per-agent count of received items ``[I]``.
+        each kept write (sorted by item), and the per-agent count of received items ``[I]``.
         """
         cap = self.capacity_per_agent
         count = receive.sum(1)
         rank = receive.cumsum(1) - 1
         keep = receive & (rank >= (count - cap).unsqueeze(1))
-        agent, item = keep.nonzero(as_tuple=True)
+        item, agent = keep.T.nonzero(as_tuple=True)  # item-major: keeps insertion order
         position = (self._cursor[agent] + rank[agent, item]) % cap
         return agent, item, position, count
 
