@@ -1,0 +1,103 @@
+"""Experiment machinery shared by every recipe: configs, the run loop, checkpoints, results,
+loggers, comparison plots and the ``mapets-rl`` CLI.
+
+How a recipe plugs in
+---------------------
+1. A config dataclass subclassing :class:`ExperimentConfig` (seed, env, env_config, frame
+   budget, evaluation / checkpoint intervals, logger, ... are inherited). Add fields with type
+   hints and defaults; validate in ``__post_init__`` after ``super().__post_init__()`` with
+   ``check(cond, "field", "allowed range", value)`` (raises :class:`ConfigError`, a ValueError
+   naming the field). YAML loading and ``key=value`` overrides then work for free.
+2. A class subclassing :class:`Experiment` with class attributes ``name = "myalgo"`` and
+   ``Config = MyConfig``, whose ``__init__(self, config, run_dir=None)`` calls
+   ``super().__init__(config, run_dir)`` (which seeds, creates the run dir, writes
+   ``config.yaml`` and builds ``self.env``), then builds, in this order:
+   modules -> ``self.collector = self.make_collector(exploration_policy)`` -> replay buffer ->
+   loss -> optimisers, and sets ``self.eval_policy`` (run under
+   ``ExplorationType.DETERMINISTIC`` for evaluation).
+3. Two methods:
+
+   - ``train_step(batch) -> dict[str, float]``: consume one collected batch ([frames_per_batch]
+     TensorDict with the ``"agents"`` layout): extend buffers, optimise, update targets;
+     return scalar losses to log.
+   - ``stateful_components() -> dict[str, obj]``: everything with ``state_dict`` /
+     ``load_state_dict`` a checkpoint must hold (modules, losses with target params,
+     optimisers, replay buffers, annealing modules).
+
+   Everything else is inherited: ``train()`` (the loop: collect, ``train_step``, log, evaluate
+   every ``eval_interval`` frames, checkpoint every ``checkpoint_interval`` frames),
+   ``evaluate(episodes, video)``, ``state_dict()`` / ``load_state_dict()`` (components +
+   counters + evaluations + python/numpy/torch RNG states), ``from_run_dir(run_dir)``
+   (resume / evaluate a saved run). Override ``episode_metrics`` / ``batch_metrics`` only to
+   add metrics.
+4. Register it for the CLI with one line in ``recipes/_registry.py``:
+   ``"myalgo": "recipes.myalgo:MyAlgo"``.
+
+A recipe whose data flow does not fit a collector (none of ours) can still satisfy the CLI's
+protocol directly: ``Config``, ``__init__(config, run_dir)``, ``train()``,
+``evaluate(episodes, video)``, ``state_dict()`` / ``load_state_dict()`` and ``from_run_dir``.
+
+Run directory layout: ``config.yaml`` (resolved config), ``results.json`` (per evaluation:
+frames and metrics; read by :func:`compare`), ``checkpoints/ckpt_<frames>.pt`` (atomic, the
+newest ``keep_last``), ``logs/`` (torchrl logger), ``videos/`` (GIFs when ``video=true``).
+
+Custom scenarios: ``register_env("name", factory)`` makes ``factory(**env_config)`` available
+to every recipe and to ``--env name``.
+"""
+
+from mapets_rl.experiment.checkpoint import (
+    atomic_torch_save,
+    latest_checkpoint,
+    list_checkpoints,
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    seed_everything,
+    set_rng_state,
+)
+from mapets_rl.experiment.compare import compare, mean_ci95, student_t_quantile
+from mapets_rl.experiment.config import ConfigError, ExperimentConfig, atomic_write_text, check
+from mapets_rl.experiment.results import (
+    ResultsWriter,
+    log_scalars,
+    make_logger,
+    mean_metrics,
+    read_results,
+)
+from mapets_rl.experiment.runner import (
+    Experiment,
+    available_envs,
+    build_env,
+    default_run_dir,
+    register_env,
+    run_recipe_name,
+)
+
+__all__ = [
+    "ConfigError",
+    "Experiment",
+    "ExperimentConfig",
+    "ResultsWriter",
+    "atomic_torch_save",
+    "atomic_write_text",
+    "available_envs",
+    "build_env",
+    "check",
+    "compare",
+    "default_run_dir",
+    "latest_checkpoint",
+    "list_checkpoints",
+    "load_checkpoint",
+    "log_scalars",
+    "make_logger",
+    "mean_ci95",
+    "mean_metrics",
+    "read_results",
+    "register_env",
+    "rng_state",
+    "run_recipe_name",
+    "save_checkpoint",
+    "seed_everything",
+    "set_rng_state",
+    "student_t_quantile",
+]

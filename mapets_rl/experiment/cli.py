@@ -1,0 +1,208 @@
+"""``mapets-rl``: train, resume, evaluate and compare recipes from the command line.
+
+    mapets-rl train RECIPE --env SCENARIO [--seed N] [--config FILE] [--run-dir DIR] [key=value ...]
+    mapets-rl resume RUN_DIR [key=value ...]
+    mapets-rl evaluate RUN_DIR [--episodes N] [--video]
+    mapets-rl compare RUN_DIR... --out DIR [--metrics a,b,...]
+
+Errors in what the user typed (unknown recipe, scenario or config key, a bad value) print one
+line ``mapets-rl: error: ...`` and exit with code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from typing import NoReturn
+
+PROG = "mapets-rl"
+
+
+class _Parser(argparse.ArgumentParser):
+    """ArgumentParser whose errors are a single line and exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{PROG}: error: {message}\n")
+
+
+def _fail(message: str) -> NoReturn:
+    sys.stderr.write(f"{PROG}: error: {message}\n")
+    raise SystemExit(2)
+
+
+def _overrides(items: Sequence[str]) -> list[str]:
+    for item in items:
+        if "=" not in item:
+            _fail(f"expected key=value, got {item!r}")
+    return list(items)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from recipes._registry import RECIPES
+
+    parser = _Parser(prog=PROG, description="Multi-agent RL for connected autonomous vehicles: "
+                     "train, resume, evaluate and compare recipes.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    train = sub.add_parser(
+        "train", help="train a recipe on a scenario",
+        description="Train RECIPE on SCENARIO. The run directory receives config.yaml (the "
+        "resolved config), results.json (per-evaluation metrics), checkpoints/ and logs/.",
+        epilog="Any config field can be set as key=value (value parsed as YAML), e.g. "
+        "total_frames=30000 lr=3e-4 env_config.n_cavs=8 logger=tensorboard video=true. "
+        "`python -c 'from recipes.mappo import MAPPOConfig; help(MAPPOConfig)'` lists a "
+        "recipe's fields.")
+    train.add_argument("recipe", metavar="RECIPE",
+                       help=f"algorithm: one of {', '.join(sorted(RECIPES))}")
+    train.add_argument("--env", required=True, metavar="SCENARIO",
+                       help="scenario name, e.g. figure-eight, figure-eight-multilane, freeway")
+    train.add_argument("--seed", type=int, default=None, metavar="N",
+                       help="seed of all RNGs and environments (default: the config's, 0)")
+    train.add_argument("--config", default=None, metavar="FILE",
+                       help="YAML file of config fields, applied before key=value overrides")
+    train.add_argument("--run-dir", default=None, metavar="DIR",
+                       help="run directory (default: RUNS_ROOT/<recipe>_<env>_seed<N>_<time>)")
+    train.add_argument("--runs-root", default="runs", metavar="RUNS_ROOT",
+                       help="parent of the default run directory (default: runs)")
+    train.add_argument("overrides", nargs="*", metavar="key=value",
+                       help="config overrides, e.g. total_frames=30000 lr=3e-4")
+
+    resume = sub.add_parser(
+        "resume", help="continue a run from its latest checkpoint",
+        description="Continue RUN_DIR from its latest checkpoint with the same config and seed; "
+        "the result is identical to an uninterrupted run.",
+        epilog="Overrides such as total_frames=60000 extend the budget of a finished run.")
+    resume.add_argument("run_dir", metavar="RUN_DIR", help="a directory written by `train`")
+    resume.add_argument("overrides", nargs="*", metavar="key=value",
+                        help="config overrides applied to the saved config")
+
+    evaluate = sub.add_parser(
+        "evaluate", help="evaluate a run's latest checkpoint",
+        description="Run deterministic evaluation episodes with RUN_DIR's latest checkpoint; "
+        "prints the mean metrics as JSON and writes RUN_DIR/evaluation.json.")
+    evaluate.add_argument("run_dir", metavar="RUN_DIR", help="a directory written by `train`")
+    evaluate.add_argument("--episodes", type=int, default=None, metavar="N",
+                          help="evaluation episodes (default: the run's eval_episodes)")
+    evaluate.add_argument("--video", action="store_true",
+                          help="save the first episode as RUN_DIR/videos/eval_<frames>.gif")
+
+    compare = sub.add_parser(
+        "compare", help="learning curves and a final-metrics table over runs",
+        description="Group RUN_DIRs by recipe (and scenario), plot mean learning curves with a "
+        "95%% Student-t confidence band over seeds (learning_curves.png) and write a markdown "
+        "table of final metrics (final_metrics.md) and summary.json into --out.")
+    compare.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="run directories")
+    compare.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    compare.add_argument("--metrics", default=None, metavar="a,b,...",
+                         help="comma-separated metrics to show (default: all common ones)")
+    return parser
+
+
+def _recipe_class(name: str) -> type:
+    from recipes._registry import load_recipe
+
+    try:
+        return load_recipe(name)
+    except ValueError as err:
+        _fail(str(err))
+    except ImportError as err:
+        _fail(f"recipe {name!r} cannot be imported: {err}")
+
+
+def _check_env(name: str) -> None:
+    from mapets_rl.experiment.runner import available_envs
+
+    known = available_envs()
+    if name not in known:
+        _fail(f"unknown scenario {name!r} (choose from: {', '.join(known)})")
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from mapets_rl.experiment.config import ConfigError
+    from mapets_rl.experiment.runner import default_run_dir
+
+    cls = _recipe_class(args.recipe)
+    _check_env(args.env)
+    overrides = [f"env={args.env}"]
+    if args.seed is not None:
+        overrides.append(f"seed={args.seed}")
+    try:
+        config = cls.Config.from_yaml(args.config) if args.config else cls.Config()
+        config = config.with_overrides(overrides + _overrides(args.overrides))
+    except (ConfigError, OSError) as err:
+        _fail(str(err))
+    run_dir = args.run_dir or default_run_dir(cls.name, config.env, config.seed,
+                                              args.runs_root)
+    try:
+        exp = cls(config, run_dir)
+    except ValueError as err:
+        _fail(str(err))
+    exp.train()
+    print(json.dumps({"run_dir": str(exp.run_dir), "frames": exp.frames,
+                      "metrics": exp.latest_metrics}))
+    return 0
+
+
+def _load_run(run_dir: str, overrides: Sequence[str] = ()):
+    from mapets_rl.experiment.runner import run_recipe_name
+
+    try:
+        cls = _recipe_class(run_recipe_name(run_dir))
+        return cls.from_run_dir(run_dir, overrides=list(overrides))
+    except ValueError as err:
+        _fail(str(err))
+
+
+def _cmd_resume(args: argparse.Namespace) -> int:
+    exp = _load_run(args.run_dir, _overrides(args.overrides))
+    exp.train()
+    print(json.dumps({"run_dir": str(exp.run_dir), "frames": exp.frames,
+                      "metrics": exp.latest_metrics}))
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    if args.episodes is not None and args.episodes < 1:
+        _fail(f"--episodes must be >= 1, got {args.episodes}")
+    exp = _load_run(args.run_dir)
+    episodes = args.episodes or exp.config.eval_episodes
+    metrics = exp.evaluate(episodes=episodes, video=args.video)
+    exp.write_evaluation(metrics, episodes)
+    print(json.dumps({"run_dir": str(exp.run_dir), "frames": exp.frames, "episodes": episodes,
+                      "metrics": metrics}))
+    return 0
+
+
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from mapets_rl.experiment.compare import compare
+
+    metrics = [m for m in args.metrics.split(",") if m] if args.metrics else None
+    try:
+        out = compare(args.run_dirs, args.out, metrics)
+    except ValueError as err:
+        _fail(str(err))
+    print(out["table"].read_text(), end="")
+    print(json.dumps({k: str(v) for k, v in out.items()}))
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``mapets-rl`` console script."""
+    parser = build_parser()
+    # key=value overrides may follow options (argparse does not intermix positionals)
+    args, extra = parser.parse_known_args(argv)
+    stray = [x for x in extra if x.startswith("-") or "=" not in x
+             or args.command not in ("train", "resume")]
+    if stray:
+        parser.error(f"unrecognized arguments: {' '.join(stray)}")
+    if extra:
+        args.overrides = [*args.overrides, *extra]
+    commands = {"train": _cmd_train, "resume": _cmd_resume, "evaluate": _cmd_evaluate,
+                "compare": _cmd_compare}
+    return commands[args.command](args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

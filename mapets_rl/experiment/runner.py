@@ -1,0 +1,363 @@
+"""The run loop every recipe shares: collect -> train_step -> log -> evaluate -> checkpoint.
+
+A recipe subclasses :class:`Experiment`; see the package docstring of
+:mod:`mapets_rl.experiment` for the contract.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import time
+from collections.abc import Callable, Mapping
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, ClassVar
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.collectors import Collector, MultiSyncCollector
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+from tqdm import tqdm
+
+from mapets_rl.experiment.checkpoint import (
+    latest_checkpoint,
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    seed_everything,
+    set_rng_state,
+)
+from mapets_rl.experiment.config import ConfigError, ExperimentConfig, atomic_write_text
+from mapets_rl.experiment.results import (
+    ResultsWriter,
+    log_scalars,
+    make_logger,
+    mean_metrics,
+)
+
+CONFIG_FILE = "config.yaml"
+RUN_FILE = "run.json"
+EVAL_SEED_OFFSET = 1_000_003
+BOUNDARY_SEED_STRIDE = 7_919
+
+_ENV_REGISTRY: dict[str, Callable[..., EnvBase]] = {}
+
+
+def register_env(name: str, factory: Callable[..., EnvBase]) -> None:
+    """Make scenario ``name`` available to every recipe and the CLI: ``factory(**env_config)``
+    returns a torchrl EnvBase with the multi-agent ``"agents"`` layout."""
+    if not name:
+        raise ValueError("name must be a non-empty scenario name")
+    _ENV_REGISTRY[name] = factory
+
+
+def available_envs() -> list[str]:
+    """Scenario names: the registered ones plus those of ``mapets_rl.envs``."""
+    names = set(_ENV_REGISTRY)
+    try:
+        from mapets_rl import envs
+
+        names.update(getattr(envs, "SCENARIOS", ()))
+    except ImportError:
+        pass
+    return sorted(names)
+
+
+def build_env(name: str, env_config: Mapping[str, Any] | None = None) -> EnvBase:
+    """``factory(**env_config)`` of a registered scenario, else ``mapets_rl.envs.make_env``."""
+    env_config = dict(env_config or {})
+    if name in _ENV_REGISTRY:
+        return _ENV_REGISTRY[name](**env_config)
+    from mapets_rl.envs import make_env
+
+    return make_env(name, **env_config)
+
+
+def default_run_dir(recipe: str, env: str, seed: int, root: str | os.PathLike = "runs") -> Path:
+    """``runs/<recipe>_<env>_seed<seed>_<UTC timestamp>``."""
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S-%f")
+    return Path(root) / f"{recipe}_{env}_seed{seed}_{stamp}"
+
+
+class Experiment:
+    """Base class of recipes: owns the run directory, seeding, collector, logger, evaluation,
+    checkpoints and results; the recipe supplies modules, losses and one training step.
+
+    Subclasses set ``name`` and ``Config`` and implement :meth:`train_step`,
+    :meth:`stateful_components`; they build their modules in ``__init__`` after
+    ``super().__init__`` and set ``self.collector = self.make_collector(policy)`` and
+    ``self.eval_policy``.
+    """
+
+    name: ClassVar[str] = "experiment"
+    Config: ClassVar[type[ExperimentConfig]] = ExperimentConfig
+
+    def __init__(self, config: ExperimentConfig, run_dir: str | os.PathLike | None = None) -> None:
+        if not isinstance(config, self.Config):
+            raise ValueError(f"config must be a {self.Config.__name__}, got "
+                             f"{type(config).__name__}")
+        self.config = config
+        self.run_dir = Path(run_dir) if run_dir is not None else default_run_dir(
+            self.name, config.env, config.seed)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        config.to_yaml(self.run_dir / CONFIG_FILE)
+        if not (self.run_dir / RUN_FILE).exists():
+            atomic_write_text(self.run_dir / RUN_FILE, json.dumps(
+                {"recipe": self.name, "env": config.env, "seed": config.seed}))
+        seed_everything(config.seed)
+        self.device = torch.device(config.device)
+        self.frames = 0
+        self.batches = 0
+        self.boundaries = 0
+        self.logger = make_logger(config.logger, self.run_dir, f"{self.name}_{config.env}")
+        self.results = ResultsWriter(self.run_dir, self.name, config.env, config.seed,
+                                     config.to_dict())
+        self.env = self.make_env()
+        self.collector: Collector | MultiSyncCollector | None = None
+        self.eval_policy: TensorDictModuleBase | None = None
+        self.latest_metrics: dict[str, float] = {}
+
+    # ------------------------------------------------------------------ recipe-facing helpers
+    def make_env(self) -> EnvBase:
+        """A fresh environment of ``config.env`` with ``config.env_config``."""
+        return build_env(self.config.env, self.config.env_config)
+
+    def make_collector(self, policy: TensorDictModuleBase, **kwargs: Any
+                       ) -> Collector | MultiSyncCollector:
+        """An endless torchrl collector for ``policy`` (``Collector`` in this process when
+        ``num_envs == 1``, else ``MultiSyncCollector`` with one env per process); the run loop
+        stops it at ``total_frames``. Extra ``kwargs`` go to the collector."""
+        cfg = self.config
+        env_fn = functools.partial(build_env, cfg.env, cfg.env_config)
+        common = dict(frames_per_batch=cfg.frames_per_batch, total_frames=-1,
+                      device=self.device, exploration_type=ExplorationType.RANDOM,
+                      auto_register_policy_transforms=False)
+        common.update(kwargs)
+        if cfg.num_envs == 1:
+            collector = Collector(env_fn, policy, **common)
+        else:
+            collector = MultiSyncCollector([env_fn] * cfg.num_envs, policy, **common)
+        return collector
+
+    def train_step(self, batch: TensorDictBase) -> dict[str, float]:
+        """Consume one collected batch (extend buffers, optimise); return scalar losses."""
+        raise NotImplementedError
+
+    def stateful_components(self) -> dict[str, Any]:
+        """Objects with ``state_dict``/``load_state_dict`` that a checkpoint must hold
+        (modules, losses, optimisers, replay buffers, schedulers)."""
+        raise NotImplementedError
+
+    def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
+        """Training metrics of a collected batch: mean per-agent reward and, for episodes
+        that ended in it, the episode metrics the environment reports."""
+        reward = batch.get(("next", "agents", "reward"), None)
+        out = {} if reward is None else {"reward": reward.float().mean().item()}
+        done = batch.get(("next", "done"))
+        info = batch.get(("next", "agents", "episode_metrics"), None) \
+            if done.any() else None
+        if info is not None:
+            ended = done.reshape(done.shape[: batch.ndim])
+            for key, val in info[ended].items():
+                out[key] = val.float().mean().item()
+        return out
+
+    def episode_metrics(self, rollout: TensorDictBase) -> dict[str, float]:
+        """Metrics of one evaluation episode ``rollout`` (shape [T]).
+
+        ``reward``: mean per-agent reward per step; ``return``: per-agent summed reward,
+        averaged over agents; ``length``: steps. When the env exposes
+        ``mapets_rl.metrics.episode_metrics`` it adds the scenario's metrics (agility and
+        safety on the figure-eight, velocity and comfort on the freeway).
+        """
+        reward = rollout.get(("next", "agents", "reward")).float()  # [T, I, 1]
+        out = {"reward": reward.mean().item(),
+               "return": reward.sum(0).mean().item(),
+               "length": float(rollout.shape[0])}
+        try:
+            from mapets_rl.metrics import episode_metrics
+        except ImportError:
+            return out
+        out.update({k: float(v) for k, v in episode_metrics(rollout, self.env).items()})
+        return out
+
+    # --------------------------------------------------------------------------- the loop
+    def train(self) -> list[dict[str, Any]]:
+        """Run (or continue) training to ``config.total_frames``; returns the evaluations."""
+        cfg = self.config
+        if self.collector is None or self.eval_policy is None:
+            raise RuntimeError(f"{type(self).__name__}.__init__ must set self.collector and "
+                               "self.eval_policy")
+        self._reset_collector()
+        bar = tqdm(total=cfg.total_frames, initial=self.frames, disable=not cfg.progress,
+                   desc=f"{self.name} {cfg.env} seed {cfg.seed}", unit="frame")
+        start, start_frames = time.perf_counter(), self.frames
+        while self.frames < cfg.total_frames:
+            batch = self.collector.next()
+            prev = self.frames
+            self.frames += batch.numel()
+            self.batches += 1
+            losses = self.train_step(batch)
+            self.collector.update_policy_weights_()
+            fps = (self.frames - start_frames) / max(time.perf_counter() - start, 1e-9)
+            train_metrics = {**self.batch_metrics(batch), **losses}
+            log_scalars(self.logger, "train", train_metrics, self.frames)
+            log_scalars(self.logger, "timers", {"fps": fps}, self.frames)
+            last = self.frames >= cfg.total_frames
+            if last or _crossed(prev, self.frames, cfg.eval_interval):
+                metrics = self.evaluate()
+                self.results.add(self.frames, metrics)
+                log_scalars(self.logger, "eval", metrics, self.frames)
+                self.latest_metrics = metrics
+            if last or _crossed(prev, self.frames, cfg.checkpoint_interval):
+                self.boundaries += 1
+                self.save_checkpoint()
+                if not last:
+                    self._reset_collector()
+            bar.update(self.frames - prev)
+            bar.set_postfix({"fps": f"{fps:.0f}", **{k: f"{v:.3g}" for k, v in
+                                                     self.latest_metrics.items()}})
+        bar.close()
+        self.collector.shutdown()
+        return self.results.evaluations
+
+    def _reset_collector(self) -> None:
+        """Re-seed and reset the collector's envs: a function of (seed, boundary) only, so a
+        resumed run and an uninterrupted one see the same episodes after a checkpoint."""
+        self.collector.set_seed(self.config.seed + BOUNDARY_SEED_STRIDE * self.boundaries)
+        self.collector.reset()
+
+    # ------------------------------------------------------------------------- evaluation
+    @torch.no_grad()
+    def evaluate(self, episodes: int | None = None, video: bool | None = None
+                 ) -> dict[str, float]:
+        """Mean metrics over ``episodes`` deterministic episodes (default
+        ``config.eval_episodes``) on the evaluation env, re-seeded identically every call.
+        With ``video`` the first episode is saved as ``videos/eval_<frames>.gif``."""
+        episodes = self.config.eval_episodes if episodes is None else episodes
+        if episodes < 1:
+            raise ValueError(f"episodes must be >= 1, got {episodes}")
+        video = self.config.video if video is None else video
+        self.env.set_seed(self.config.seed + EVAL_SEED_OFFSET)
+        per_episode = []
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            for ep in range(episodes):
+                frames: list[Any] | None = [] if (video and ep == 0) else None
+                rollout = self._eval_episode(frames)
+                per_episode.append(self.episode_metrics(rollout))
+                if frames:
+                    self._write_video(frames)
+        return mean_metrics(per_episode)
+
+    def _eval_episode(self, frames: list[Any] | None) -> TensorDictBase:
+        """One episode until the root ``done``; returns the stacked steps [T]."""
+        td = self.env.reset()
+        steps = []
+        while True:
+            td = self.eval_policy(td)
+            td = self.env.step(td)
+            steps.append(td.clone())
+            if frames is not None:
+                frame = self._render()
+                if frame is not None:
+                    frames.append(frame)
+            if td.get(("next", "done")).any():
+                break
+            td = step_mdp(td, reward_keys=self.env.reward_keys, done_keys=self.env.done_keys,
+                          action_keys=self.env.action_keys)
+        return torch.stack(steps)
+
+    def _render(self) -> Any:
+        render = getattr(self.env, "render", None)
+        return render() if callable(render) else None
+
+    def _write_video(self, frames: list[Any]) -> Path:
+        import imageio.v2 as imageio
+
+        path = self.run_dir / "videos" / f"eval_{self.frames:012d}.gif"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp.gif")
+        imageio.mimsave(tmp, frames, duration=0.1)
+        os.replace(tmp, path)
+        return path
+
+    # ----------------------------------------------------------------------- checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        """Whole training state: components, counters, evaluations and RNG states."""
+        return {
+            "recipe": self.name,
+            "frames": self.frames,
+            "batches": self.batches,
+            "boundaries": self.boundaries,
+            "evaluations": json.dumps(self.results.evaluations),
+            "rng": rng_state(),
+            "components": {k: v.state_dict() for k, v in self.stateful_components().items()},
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        if state.get("recipe") != self.name:
+            raise ValueError(f"checkpoint is of recipe {state.get('recipe')!r}, not {self.name!r}")
+        components = self.stateful_components()
+        missing = sorted(set(components) - set(state["components"]))
+        if missing:
+            raise ValueError(f"checkpoint lacks components {missing}")
+        for key, obj in components.items():
+            obj.load_state_dict(state["components"][key])
+        self.frames = int(state["frames"])
+        self.batches = int(state["batches"])
+        self.boundaries = int(state["boundaries"])
+        self.results.evaluations = json.loads(state["evaluations"])
+        self.latest_metrics = (self.results.evaluations[-1]["metrics"]
+                               if self.results.evaluations else {})
+        set_rng_state(state["rng"])
+
+    def save_checkpoint(self) -> Path:
+        return save_checkpoint(self.state_dict(), self.run_dir, self.frames,
+                               self.config.keep_last)
+
+    @classmethod
+    def from_run_dir(cls, run_dir: str | os.PathLike, overrides: list[str] | None = None,
+                     load: bool = True) -> Experiment:
+        """Rebuild from ``run_dir/config.yaml`` (+ overrides) and load the latest checkpoint."""
+        run_dir = Path(run_dir)
+        if not (run_dir / CONFIG_FILE).is_file():
+            raise ValueError(f"run_dir {str(run_dir)!r} has no {CONFIG_FILE}")
+        config = cls.Config.from_yaml(run_dir / CONFIG_FILE)
+        if overrides:
+            config = config.with_overrides(overrides)
+        exp = cls(config, run_dir)
+        if load:
+            ckpt = latest_checkpoint(run_dir)
+            if ckpt is None:
+                raise ValueError(f"run_dir {str(run_dir)!r} has no checkpoint to load")
+            exp.load_state_dict(load_checkpoint(ckpt, map_location=exp.device))
+            exp.results.write()
+        return exp
+
+    def write_evaluation(self, metrics: Mapping[str, float], episodes: int) -> Path:
+        """Save a standalone evaluation as ``run_dir/evaluation.json``."""
+        path = self.run_dir / "evaluation.json"
+        atomic_write_text(path, json.dumps({"frames": self.frames, "episodes": episodes,
+                                            "metrics": dict(metrics)}, indent=1))
+        return path
+
+
+def run_recipe_name(run_dir: str | os.PathLike) -> str:
+    """The recipe name recorded in ``run_dir/run.json`` (ValueError if it is not a run)."""
+    path = Path(run_dir) / RUN_FILE
+    if not path.is_file():
+        raise ValueError(f"run_dir {str(run_dir)!r} is not a run directory (no {RUN_FILE})")
+    return json.loads(path.read_text())["recipe"]
+
+
+def _crossed(prev: int, now: int, interval: int) -> bool:
+    """True when a multiple of ``interval`` lies in (prev, now]; never for interval 0."""
+    return interval > 0 and now // interval > prev // interval
+
+
+__all__ = ["ConfigError", "Experiment", "available_envs", "build_env", "default_run_dir",
+           "register_env", "run_recipe_name"]

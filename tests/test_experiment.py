@@ -1,0 +1,239 @@
+"""mapets_rl.experiment: config, checkpoints, the run loop (with a small real learner on a toy
+multi-agent env), exact resume, results and compare."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.data import Bounded, Composite, LazyTensorStorage, TensorDictReplayBuffer, Unbounded
+from torchrl.data.tensor_specs import Categorical
+from torchrl.envs import EnvBase
+from torchrl.modules import AdditiveGaussianModule
+
+from mapets_rl.experiment import (
+    ConfigError,
+    Experiment,
+    ExperimentConfig,
+    check,
+    compare,
+    latest_checkpoint,
+    list_checkpoints,
+    load_checkpoint,
+    read_results,
+    register_env,
+    save_checkpoint,
+)
+
+
+class ToyAgentsEnv(EnvBase):
+    """I agents on a line; each should drive its position x to 0. obs (x, t/H) [I, 2],
+    action [I, 1] in [-1, 1], x' = x + 0.5 a + 0.05 noise, reward -x'^2, horizon H."""
+
+    def __init__(self, n_agents: int = 3, horizon: int = 10) -> None:
+        super().__init__(batch_size=torch.Size([]))
+        self.n_agents, self.horizon = n_agents, horizon
+        i = n_agents
+        self.observation_spec = Composite(agents=Composite(
+            observation=Unbounded((i, 2)), shape=(i,)))
+        self.action_spec = Composite(agents=Composite(
+            action=Bounded(-1.0, 1.0, (i, 1)), shape=(i,)))
+        self.reward_spec = Composite(agents=Composite(reward=Unbounded((i, 1)), shape=(i,)))
+        self.done_spec = Composite(
+            done=Categorical(2, (1,), dtype=torch.bool),
+            terminated=Categorical(2, (1,), dtype=torch.bool),
+            truncated=Categorical(2, (1,), dtype=torch.bool))
+        self.rng = torch.Generator().manual_seed(0)
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.rng.manual_seed(int(seed or 0))
+
+    def _obs(self) -> torch.Tensor:
+        t = torch.full((self.n_agents, 1), self.t / self.horizon)
+        return torch.cat([self.x, t], -1)
+
+    def _reset(self, td=None) -> TensorDict:
+        self.t = 0
+        self.x = torch.rand(self.n_agents, 1, generator=self.rng) * 4 - 2
+        false = torch.zeros(1, dtype=torch.bool)
+        agents = TensorDict({"observation": self._obs()}, [self.n_agents])
+        return TensorDict({"agents": agents, "done": false,
+                           "terminated": false.clone(), "truncated": false.clone()})
+
+    def _step(self, td: TensorDict) -> TensorDict:
+        a = td["agents", "action"].clamp(-1, 1)
+        self.x = self.x + 0.5 * a + 0.05 * torch.randn(self.x.shape, generator=self.rng)
+        self.t += 1
+        trunc = torch.tensor([self.t >= self.horizon])
+        agents = TensorDict({"observation": self._obs(), "reward": -self.x.pow(2)},
+                            [self.n_agents])
+        return TensorDict({"agents": agents, "done": trunc, "truncated": trunc.clone(),
+                           "terminated": torch.zeros(1, dtype=torch.bool)})
+
+
+register_env("toy", ToyAgentsEnv)
+
+
+@dataclasses.dataclass
+class ToyConfig(ExperimentConfig):
+    env: str = "toy"
+    lr: float = 0.05
+    batch_size: int = 16
+    sigma: float = 0.3
+    total_frames: int = 60
+    frames_per_batch: int = 10
+    eval_interval: int = 20
+    checkpoint_interval: int = 20
+    progress: bool = False
+    logger: str = "none"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(self.lr > 0, "lr", "> 0", self.lr)
+        check(self.batch_size >= 1, "batch_size", ">= 1", self.batch_size)
+
+
+class ToyLearner(Experiment):
+    """A real small learner: a linear policy regressed (from replayed observations) onto the
+    action that zeroes the position, with Gaussian exploration noise during collection."""
+
+    name = "toy"
+    Config = ToyConfig
+
+    def __init__(self, config: ToyConfig, run_dir=None) -> None:
+        super().__init__(config, run_dir)
+        self.actor = TensorDictModule(nn.Linear(2, 1), [("agents", "observation")],
+                                      [("agents", "action")])
+        noise = AdditiveGaussianModule(self.env.full_action_spec_unbatched[("agents", "action")],
+                                       sigma_init=config.sigma, sigma_end=config.sigma,
+                                       action_key=("agents", "action"))
+        self.collector = self.make_collector(TensorDictSequential(self.actor, noise))
+        self.eval_policy = self.actor
+        self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(200),
+                                             batch_size=config.batch_size)
+        self.optim = torch.optim.Adam(self.actor.parameters(), lr=config.lr)
+
+    def train_step(self, batch):
+        self.buffer.extend(batch.reshape(-1).select(("agents", "observation")))
+        sample = self.buffer.sample()
+        obs = sample["agents", "observation"]
+        target = (-obs[..., :1] / 0.5).clamp(-1, 1)
+        loss = (self.actor.module(obs) - target).pow(2).mean()
+        self.optim.zero_grad()
+        loss.backward()
+        self.optim.step()
+        return {"loss": loss.item()}
+
+    def stateful_components(self):
+        return {"actor": self.actor, "optim": self.optim, "buffer": self.buffer}
+
+
+# ------------------------------------------------------------------------------- config
+def test_config_overrides_and_yaml_roundtrip(tmp_path: Path) -> None:
+    cfg = ToyConfig().with_overrides(["lr=3e-4", "seed=7", "env_config.n_agents=2",
+                                      "video=true", "total_frames=100.0"])
+    assert cfg.lr == pytest.approx(3e-4) and isinstance(cfg.lr, float)
+    assert cfg.seed == 7 and cfg.env_config == {"n_agents": 2} and cfg.video is True
+    assert cfg.total_frames == 100 and isinstance(cfg.total_frames, int)
+    cfg.to_yaml(tmp_path / "c.yaml")
+    assert ToyConfig.from_yaml(tmp_path / "c.yaml") == cfg
+
+
+@pytest.mark.parametrize("override, field", [
+    ("nope=1", "nope"), ("lr=-1", "lr"), ("seed=abc", "seed"), ("logger=xml", "logger"),
+    ("frames_per_batch=0", "frames_per_batch"), ("video=maybe", "video"), ("lr", "lr"),
+])
+def test_config_errors_name_the_field(override: str, field: str) -> None:
+    with pytest.raises(ConfigError, match=field):
+        ToyConfig().with_overrides([override])
+
+
+# -------------------------------------------------------------------------- checkpoints
+def test_checkpoint_keep_last_and_safe_load(tmp_path: Path) -> None:
+    for step in (10, 20, 30):
+        save_checkpoint({"w": torch.full((2,), float(step)), "step": step}, tmp_path, step,
+                        keep_last=2)
+    names = [p.name for p in list_checkpoints(tmp_path)]
+    assert names == ["ckpt_000000000020.pt", "ckpt_000000000030.pt"]
+    assert load_checkpoint(latest_checkpoint(tmp_path))["step"] == 30
+
+    class Evil:
+        def __reduce__(self):
+            return (os.system, ("echo pwned",))
+
+    torch.save({"x": Evil()}, tmp_path / "checkpoints" / "ckpt_000000000099.pt")
+    with pytest.raises(Exception, match="(?i)weights_only|unsupported|global"):
+        load_checkpoint(tmp_path / "checkpoints" / "ckpt_000000000099.pt")
+
+
+def test_truncated_write_never_replaces_good_checkpoint(tmp_path: Path, monkeypatch) -> None:
+    good = save_checkpoint({"w": torch.ones(3)}, tmp_path, 5)
+    real_save = torch.save
+
+    def crash_mid_write(obj, fh, *a, **k):
+        real_save(obj, fh, *a, **k)
+        fh.truncate(7)  # half a file on disk, then the process dies
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torch, "save", crash_mid_write)
+    with pytest.raises(KeyboardInterrupt):
+        save_checkpoint({"w": torch.zeros(3)}, tmp_path, 5)
+    monkeypatch.undo()
+    assert list_checkpoints(tmp_path) == [good]
+    assert sorted(p.name for p in good.parent.iterdir()) == [good.name]  # temp file cleaned
+    assert torch.equal(load_checkpoint(good)["w"], torch.ones(3))
+
+
+# --------------------------------------------------------------------- run loop + resume
+def _params(exp: ToyLearner) -> torch.Tensor:
+    return torch.cat([p.detach().flatten() for p in exp.actor.parameters()])
+
+
+def test_toy_learner_trains_and_writes_run_dir(tmp_path: Path) -> None:
+    exp = ToyLearner(ToyConfig(total_frames=200, logger="csv"), tmp_path / "run")
+    before = exp.evaluate()["return"]
+    p0 = _params(exp).clone()
+    evals = exp.train()
+    assert not torch.equal(p0, _params(exp))
+    assert [e["frames"] for e in evals] == list(range(20, 201, 20))
+    assert evals[-1]["metrics"]["return"] > before  # it learns to drive x to 0
+    run = tmp_path / "run"
+    assert (run / "config.yaml").is_file() and (run / "logs").is_dir()
+    assert read_results(run)["evaluations"] == evals
+    assert len(list_checkpoints(run)) == 2
+
+
+def test_resume_reproduces_uninterrupted_run(tmp_path: Path) -> None:
+    full = ToyLearner(ToyConfig(), tmp_path / "full")
+    full_evals = full.train()
+
+    part = ToyLearner(ToyConfig(total_frames=40), tmp_path / "part")
+    part.train()
+    # continue the stopped run with the full budget (as `mapets-rl resume` would)
+    resumed = ToyLearner.from_run_dir(tmp_path / "part", overrides=["total_frames=60"])
+    assert resumed.frames == 40
+    evals = resumed.train()
+    assert evals == full_evals
+    assert torch.equal(_params(resumed), _params(full))
+
+
+# -------------------------------------------------------------------------------- compare
+def test_compare_writes_plot_and_table(tmp_path: Path) -> None:
+    runs = []
+    for seed in (0, 1):
+        exp = ToyLearner(ToyConfig(seed=seed), tmp_path / f"toy{seed}")
+        exp.train()
+        runs.append(exp.run_dir)
+    out = compare(runs, tmp_path / "cmp")
+    assert out["plot"].is_file() and out["plot"].stat().st_size > 1000
+    table = out["table"].read_text()
+    assert "| toy |" in table and "return" in table and "n=2" in table
+    data = json.loads(out["summary"].read_text())
+    assert data["toy"]["return"]["n"] == 2
