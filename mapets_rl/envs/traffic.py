@@ -62,6 +62,7 @@ class MultiAgentTrafficEnv(AbstractEnv):
     """
 
     obs_dim: int
+    min_cavs = 1
     view_centre = np.zeros(2)
 
     def __init__(self, config: dict | None = None, render_mode: str | None = None) -> None:
@@ -92,8 +93,8 @@ class MultiAgentTrafficEnv(AbstractEnv):
     def validate_config(cls, config: dict) -> None:
         """Raise ``ValueError`` naming the first invalid key of ``config``."""
         require(
-            isinstance(config["n_cavs"], int | np.integer) and config["n_cavs"] >= 1,
-            f"n_cavs must be an integer >= 1, got {config['n_cavs']!r}",
+            isinstance(config["n_cavs"], int | np.integer) and config["n_cavs"] >= cls.min_cavs,
+            f"n_cavs must be an integer >= {cls.min_cavs}, got {config['n_cavs']!r}",
         )
         require(
             isinstance(config["horizon"], int | np.integer) and config["horizon"] >= 1,
@@ -161,13 +162,13 @@ class MultiAgentTrafficEnv(AbstractEnv):
         self.alive &= ~crashed_now
         self.road.vehicles = [v for v in self.road.vehicles if not v.crashed]
         self._episode_distances.append(self._distance_step.copy())
-        terminated = bool(not self.alive.any())
+        terminated = self._is_terminated()
         truncated = self.steps_taken >= self.config["horizon"]
         info = self._info(obs, action)
         info.update(agent_rewards=rewards, agent_terminated=~self.alive, collided=crashed_now)
         if terminated or truncated:
             info["episode"] = self.episode_metrics()
-        return obs, float(rewards.mean()), terminated, truncated, info
+        return obs, float(rewards.mean()) if rewards.size else 0.0, terminated, truncated, info
 
     @property
     def steps_taken(self) -> int:
@@ -185,11 +186,15 @@ class MultiAgentTrafficEnv(AbstractEnv):
             self.road.act()
             self.road.step(dt)
             self.steps += 1
-            for i, cav in enumerate(self.cavs):
-                if self.alive[i] and not self._crashed_now[i]:
-                    self._distance_step[i] += cav.speed * dt
-                    self._crashed_now[i] = cav.crashed
+            self._on_substep(dt)
         self.distance_total += self._distance_step
+
+    def _on_substep(self, dt: float) -> None:
+        """Bookkeeping after each simulation sub-step: distances and new collisions."""
+        for i, cav in enumerate(self.cavs):
+            if self.alive[i] and not self._crashed_now[i]:
+                self._distance_step[i] += cav.speed * dt
+                self._crashed_now[i] = cav.crashed
 
     def _info(self, obs: np.ndarray, action: Any = None) -> dict:
         return {
@@ -200,13 +205,14 @@ class MultiAgentTrafficEnv(AbstractEnv):
         }
 
     def _is_terminated(self) -> bool:
-        return bool(not self.alive.any())
+        return bool(len(self.cavs) > 0 and not self.alive.any())
 
     def _is_truncated(self) -> bool:
         return self.steps_taken >= self.config["horizon"]
 
     def _reward(self, action: Any) -> float:
-        return float(self.agent_rewards(action).mean())
+        rewards = self.agent_rewards(action)
+        return float(rewards.mean()) if rewards.size else 0.0
 
     # --- rendering ---------------------------------------------------------------------------
     def render(self) -> np.ndarray | None:

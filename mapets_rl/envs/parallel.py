@@ -1,0 +1,175 @@
+"""PettingZoo ``ParallelEnv`` views of the traffic scenarios.
+
+Agents are named ``cav_0 .. cav_{I-1}``. A CAV that collides is terminated and removed from
+``agents`` (PettingZoo convention). Per-agent ``infos`` hold ``position`` (``[2]``, metres),
+``distance`` (travelled this step, m), ``speed`` (m/s) and ``collided`` (this step); the
+freeway adds ``traffic_velocity`` and ``traffic_comfort`` (means over all vehicles this step).
+Episode metrics (agility/safety or velocity/comfort) are in ``last_episode_metrics`` after an
+episode ends.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+from mapets_rl.envs.figure_eight import FigureEightEnv
+from mapets_rl.envs.freeway import FreewayEnv
+from mapets_rl.envs.traffic import MultiAgentTrafficEnv, require
+
+
+class TrafficParallelEnv(ParallelEnv):
+    """Wraps a ``MultiAgentTrafficEnv`` as a PettingZoo ``ParallelEnv``."""
+
+    metadata = {"render_modes": ["rgb_array"], "name": "traffic_v0", "is_parallelizable": True}
+
+    def __init__(self, env: MultiAgentTrafficEnv, render_mode: str | None = None) -> None:
+        self.env = env
+        self.render_mode = render_mode
+        n = env.config["n_cavs"]
+        self.possible_agents = [f"cav_{i}" for i in range(n)]
+        self.agents: list[str] = []
+        self._index = {name: i for i, name in enumerate(self.possible_agents)}
+        self.last_episode_metrics: dict[str, float] = {}
+        self._observation_space = spaces.Box(
+            -np.inf, np.inf, shape=(env.obs_dim,), dtype=np.float32
+        )
+        joint = env.action_space
+        if isinstance(joint, spaces.MultiDiscrete):
+            self._action_space: spaces.Space = spaces.Discrete(int(joint.nvec[0]))
+            self._default_action = np.zeros(joint.shape, dtype=np.int64)
+        else:
+            self._action_space = spaces.Box(joint.low[0], joint.high[0], dtype=np.float32)
+            self._default_action = np.array(joint.low, dtype=np.float32)
+
+    @functools.cache  # noqa: B019 - spaces must be the same object each call
+    def observation_space(self, agent: str) -> spaces.Box:
+        return self._observation_space
+
+    @functools.cache  # noqa: B019
+    def action_space(self, agent: str) -> spaces.Space:
+        return self._action_space
+
+    def _agent_infos(self, info: dict, agents: list[str]) -> dict[str, dict[str, Any]]:
+        collided = info.get("collided", np.zeros(len(self.possible_agents), dtype=bool))
+        infos = {}
+        for agent in agents:
+            i = self._index[agent]
+            entry = {
+                "position": info["positions"][i].astype(np.float32),
+                "distance": np.float32(info["distance"][i]),
+                "speed": np.float32(info["speed"][i]),
+                "collided": bool(collided[i]),
+            }
+            if "traffic_velocity" in info:
+                entry["traffic_velocity"] = np.float32(info["traffic_velocity"])
+                entry["traffic_comfort"] = np.float32(info["traffic_comfort"])
+            infos[agent] = entry
+        return infos
+
+    def reset(
+        self, seed: int | None = None, options: dict | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+        obs, info = self.env.reset(seed=seed, options=options)
+        self.agents = list(self.possible_agents)
+        return {a: obs[self._index[a]] for a in self.agents}, self._agent_infos(info, self.agents)
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        unknown = set(actions) - set(self.agents)
+        require(not unknown, f"actions given for agents that are not acting: {sorted(unknown)}")
+        joint = self._default_action.copy()
+        for agent, action in actions.items():
+            value = np.asarray(action)
+            if isinstance(self._action_space, spaces.Discrete):
+                require(
+                    value.size == 1,
+                    f"action of {agent} must be one integer in [0, {self._action_space.n - 1}]",
+                )
+                joint[self._index[agent]] = int(value.reshape(()))
+            else:
+                require(
+                    value.shape == self._action_space.shape,
+                    f"action of {agent} must have shape {self._action_space.shape}, "
+                    f"got {value.shape}",
+                )
+                joint[self._index[agent]] = value
+        obs, _, _, truncated, info = self.env.step(joint)
+        acting = self.agents
+        rewards = {a: float(info["agent_rewards"][self._index[a]]) for a in acting}
+        terminations = {a: bool(info["agent_terminated"][self._index[a]]) for a in acting}
+        truncations = {a: bool(truncated) and not terminations[a] for a in acting}
+        observations = {a: obs[self._index[a]] for a in acting}
+        infos = self._agent_infos(info, acting)
+        self.agents = [a for a in acting if not (terminations[a] or truncations[a])]
+        if "episode" in info:
+            self.last_episode_metrics = info["episode"]
+        return observations, rewards, terminations, truncations, infos
+
+    def render(self) -> np.ndarray | None:
+        return self.env.render()
+
+    def close(self) -> None:
+        self.env.close()
+
+
+class FigureEightParallelEnv(TrafficParallelEnv):
+    """Figure-eight scenario as a PettingZoo ``ParallelEnv``.
+
+    Args:
+        n_cavs: number of CAVs (agents), >= 1 (paper: 8 single-lane, 22 two-lane).
+        n_hvs: human-driven vehicles, an int or an inclusive range drawn per episode.
+        lanes: 1 or 2.
+        render_mode: ``None`` or ``"rgb_array"``.
+        **config: further ``FigureEightEnv`` config keys (``horizon``, ``length``, ...). The
+            horizon defaults to 200 steps on one lane and 400 on two.
+    """
+
+    metadata = {**TrafficParallelEnv.metadata, "name": "figure_eight_v0"}
+
+    def __init__(
+        self,
+        n_cavs: int = 8,
+        n_hvs: int | tuple[int, int] = (8, 20),
+        lanes: int = 1,
+        render_mode: str | None = None,
+        **config: Any,
+    ) -> None:
+        config.setdefault("horizon", 400 if lanes == 2 else 200)
+        env = FigureEightEnv(
+            {"n_cavs": n_cavs, "n_hvs": n_hvs, "lanes": lanes, **config}, render_mode=render_mode
+        )
+        super().__init__(env, render_mode)
+
+
+class FreewayParallelEnv(TrafficParallelEnv):
+    """Freeway scenario as a PettingZoo ``ParallelEnv``.
+
+    Args:
+        n_vehicles: vehicles in total, >= 1 (paper: 30).
+        cav_ratio: fraction of CAVs in ``[0, 1]``; at least one CAV is needed for agents.
+        render_mode: ``None`` or ``"rgb_array"``.
+        **config: further ``FreewayEnv`` config keys.
+    """
+
+    metadata = {**TrafficParallelEnv.metadata, "name": "freeway_v0"}
+
+    def __init__(
+        self,
+        n_vehicles: int = 30,
+        cav_ratio: float = 1.0,
+        render_mode: str | None = None,
+        **config: Any,
+    ) -> None:
+        env = FreewayEnv(
+            {"n_vehicles": n_vehicles, "cav_ratio": cav_ratio, **config}, render_mode=render_mode
+        )
+        require(
+            env.config["n_cavs"] >= 1,
+            f"cav_ratio={cav_ratio} with n_vehicles={n_vehicles} gives no CAV; the multi-agent "
+            "env needs cav_ratio * n_vehicles >= 0.5 (use FreewayEnv for all-human traffic)",
+        )
+        super().__init__(env, render_mode)
