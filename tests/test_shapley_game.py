@@ -239,3 +239,24 @@ def test_bad_input():
         in_core(torch.zeros(2), torch.zeros(8), 3)
     with pytest.raises(ValueError, match="values"):
         is_convex(torch.zeros(9), 3)
+
+
+def test_sampled_chunked_calls_match_single_call():
+    n = 6
+    v = _random_game(n, 3, seed=15)
+
+    def value_fn(masks):
+        sizes.append(masks.shape[0])
+        return v[..., (masks.long() << torch.arange(n)).sum(-1)]
+
+    sizes = []
+    one = sampled_shapley(value_fn, n, 20, torch.Generator().manual_seed(1))
+    assert sizes == [20 * (n + 1)]
+    sizes = []
+    chunked = sampled_shapley(
+        value_fn, n, 20, torch.Generator().manual_seed(1), max_coalitions_per_call=30
+    )
+    assert sizes == [28] * 5  # whole orderings per call: 4 * (n + 1) masks
+    assert torch.equal(one[0], chunked[0]) and torch.equal(one[1], chunked[1])
+    with pytest.raises(ValueError, match="max_coalitions_per_call"):
+        sampled_shapley(value_fn, n, 20, max_coalitions_per_call=3)

@@ -1,5 +1,7 @@
 """Shapley-value reward reallocation (Han et al.): TU-game core, coalition critic, actors."""
 
+from mapets_rl.shapley.actor import CoalitionObservation, make_coalition_actor
+from mapets_rl.shapley.critic import CoalitionCritic
 from mapets_rl.shapley.game import (
     MAX_EXACT_AGENTS,
     coalition_masks,
@@ -14,6 +16,9 @@ from mapets_rl.shapley.game import (
 )
 
 __all__ = [
+    "CoalitionCritic",
+    "CoalitionObservation",
+    "make_coalition_actor",
     "MAX_EXACT_AGENTS",
     "coalition_masks",
     "exact_shapley",

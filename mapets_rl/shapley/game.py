@@ -160,6 +160,7 @@ def sampled_shapley(
     generator: torch.Generator | None = None,
     *,
     antithetic: bool = True,
+    max_coalitions_per_call: int | None = None,
     device: torch.device | str | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Monte-Carlo permutation estimate of the Shapley value, with its standard error.
@@ -170,12 +171,14 @@ def sampled_shapley(
     Args:
         value_fn: maps bool masks ``[K, n]`` to values ``[..., K]`` (any leading batch shape,
             e.g. one game per state). Called once with all ``num_permutations * (n + 1)``
-            prefix coalitions of all orderings.
+            prefix coalitions of all orderings (or in chunks, see below).
         n: number of agents (>= 1, no upper limit).
         num_permutations: orderings to sample, >= 2 (even and >= 4 with ``antithetic``).
         generator: optional ``torch.Generator`` for reproducibility.
         antithetic: pair every ordering with its reverse (variance reduction); the standard
             error is then computed over the pair means.
+        max_coalitions_per_call: bound on ``K`` per ``value_fn`` call to cap memory; the masks
+            are then split into consecutive chunks (whole orderings each). ``None``: one call.
         device: device of the masks handed to ``value_fn``.
 
     Returns:
@@ -191,6 +194,13 @@ def sampled_shapley(
             f"num_permutations must be >= {min_perms} (antithetic={antithetic}) to estimate a "
             f"standard error, got {num_permutations}"
         )
+    if max_coalitions_per_call is not None and (
+        not isinstance(max_coalitions_per_call, int) or max_coalitions_per_call < n + 1
+    ):
+        raise ValueError(
+            f"max_coalitions_per_call must be None or an int >= n + 1 = {n + 1}, "
+            f"got {max_coalitions_per_call!r}"
+        )
     perms = sample_permutations(
         num_permutations, n, antithetic=antithetic, generator=generator, device=device
     )
@@ -198,12 +208,19 @@ def sampled_shapley(
     steps = torch.arange(n + 1, device=perms.device)
     pos = perms.argsort(dim=-1)  # [P, n]
     prefixes = pos.unsqueeze(1) < steps.view(1, n + 1, 1)  # [P, n+1, n]
-    values = value_fn(prefixes.reshape(-1, n))
-    if values.shape[-1] != num_permutations * (n + 1):
-        raise ValueError(
-            f"value_fn must return values [..., K] with K = {num_permutations * (n + 1)} "
-            f"(one per mask), got shape {tuple(values.shape)}"
-        )
+    flat = prefixes.reshape(-1, n)
+    chunk = flat.shape[0] if max_coalitions_per_call is None else max_coalitions_per_call
+    chunk = (chunk // (n + 1)) * (n + 1)
+    parts = []
+    for masks in flat.split(chunk):
+        part = value_fn(masks)
+        if part.ndim < 1 or part.shape[-1] != masks.shape[0]:
+            raise ValueError(
+                f"value_fn must return values [..., K] with K = {masks.shape[0]} "
+                f"(one per mask), got shape {tuple(part.shape)}"
+            )
+        parts.append(part)
+    values = torch.cat(parts, dim=-1)
     values = values.unflatten(-1, (num_permutations, n + 1))
     marginal_by_pos = values[..., 1:] - values[..., :-1]  # [..., P, n] by position
     idx = pos.expand(*marginal_by_pos.shape[:-2], -1, -1)

@@ -1,0 +1,309 @@
+"""Shapley-value reward reallocation actor-critic loss (Han et al., Algorithm 1)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
+from torchrl.objectives import LossModule
+from torchrl.objectives.utils import distance_loss
+
+from mapets_rl.shapley.critic import CoalitionCritic
+from mapets_rl.shapley.game import (
+    coalition_masks,
+    permutation_prefix_masks,
+    sample_permutations,
+    shapley_matrix,
+)
+
+__all__ = ["ShapleyActorCriticLoss"]
+
+
+class ShapleyActorCriticLoss(LossModule):
+    """Characteristic-function TD loss + Shapley deterministic policy gradient.
+
+    Critic (Algorithm 1 lines 10-11): ``v(s, a, C)`` regresses onto
+    ``y = R(C) + gamma * v'(s', a', C')`` with ``R(C) = sum_{i in C} r_i`` (paper eq. 10 and
+    Proposition 2), ``a' = pi'(s'^C)`` from the target actors, ``v'`` the target critic and
+    ``C' = C`` minus the agents terminated at ``s'`` (a terminated agent earns no future reward;
+    ``v(empty) = 0``). Target parameters are refreshed with ``torchrl.objectives.SoftUpdate``.
+
+    Actor (lines 12-13): ``loss_actor = -mean_i phi_i(s, a)`` where ``phi_i`` is the Shapley value
+    (eq. 3) of the critic's game at the sampled state, with ``a_i = pi_i(s^C)`` and the other
+    agents' actions taken from the batch. The gradient reaches agent ``i``'s policy only through
+    ``a_i`` in ``phi_i``: coalitions without ``i`` do not depend on ``a_i`` (its inputs are zeroed)
+    and are evaluated without gradient, coalitions with ``i`` are evaluated with agent ``i``'s own
+    action substituted, ``n`` joint actions per state in one batched critic call. Discrete actions
+    are relaxed with straight-through Gumbel-softmax.
+
+    ``phi`` is exact for ``n <= exact_max_agents`` (``n * 2**(n-1) + 2**n`` coalition values per
+    state) and otherwise a permutation estimate with ``num_permutations`` antithetic orderings
+    (``2 * n * num_permutations`` values per state).
+
+    Args:
+        actor_network: deterministic per-agent policy reading the observation and coalition keys
+            and writing ``logits`` (discrete) or ``action`` (continuous), e.g.
+            :func:`mapets_rl.shapley.make_coalition_actor`.
+        critic_network: a :class:`~mapets_rl.shapley.CoalitionCritic`.
+        action_space: ``"discrete"`` (one-hot actions) or ``"continuous"``.
+        gamma: discount in ``[0, 1]``.
+        exact_max_agents: largest ``n`` computed exactly (``1..20``, default 10).
+        num_permutations: orderings per update on the sampled path (even, ``>= 2``).
+        gumbel_temperature: Gumbel-softmax temperature (``> 0``).
+        loss_function: ``"l2"``, ``"l1"`` or ``"smooth_l1"`` for the TD loss.
+        delay_actor, delay_value: keep target copies of the actor / critic parameters.
+
+    Keys (``set_keys``): ``observation`` ``[*, n, obs]``, ``action`` ``[*, n, act]``, ``logits``
+    ``[*, n, act]`` (actor output, discrete), ``coalition`` ``[*, n]`` bool, ``reward``
+    ``("next", reward) [*, n, 1]``, ``terminated`` ``("next", terminated) [*, n, 1]`` or
+    ``[*, 1]``.
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable tensordict keys (see class docstring for shapes).
+
+        Attributes:
+            observation: per-agent observations. Defaults to ``("agents", "observation")``.
+            action: per-agent actions (one-hot if discrete). Defaults to ``("agents", "action")``.
+            logits: actor logits for discrete actions. Defaults to ``("agents", "logits")``.
+            coalition: coalition membership mask. Defaults to ``("agents", "coalition")``.
+            reward: per-agent reward, read under ``"next"``. Defaults to ``("agents", "reward")``.
+            terminated: termination flag, read under ``"next"``. Defaults to
+                ``("agents", "terminated")``.
+        """
+
+        observation: NestedKey = ("agents", "observation")
+        action: NestedKey = ("agents", "action")
+        logits: NestedKey = ("agents", "logits")
+        coalition: NestedKey = ("agents", "coalition")
+        reward: NestedKey = ("agents", "reward")
+        terminated: NestedKey = ("agents", "terminated")
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+    default_value_estimator = None
+    out_keys = [
+        "loss_actor",
+        "loss_value",
+        "pred_value",
+        "target_value",
+        "td_error",
+        "shapley_value",
+    ]
+
+    actor_network: TensorDictModule
+    critic_network: CoalitionCritic
+    actor_network_params: TensorDictParams
+    critic_network_params: TensorDictParams
+    target_actor_network_params: TensorDictParams
+    target_critic_network_params: TensorDictParams
+
+    def __init__(
+        self,
+        actor_network: TensorDictModule,
+        critic_network: CoalitionCritic,
+        *,
+        action_space: str = "discrete",
+        gamma: float = 0.99,
+        exact_max_agents: int = 10,
+        num_permutations: int = 32,
+        gumbel_temperature: float = 1.0,
+        loss_function: str = "l2",
+        delay_actor: bool = True,
+        delay_value: bool = True,
+    ) -> None:
+        if not isinstance(critic_network, CoalitionCritic):
+            raise ValueError(
+                f"critic_network must be a CoalitionCritic, got {type(critic_network).__name__}"
+            )
+        if action_space not in ("discrete", "continuous"):
+            raise ValueError(
+                f"action_space must be 'discrete' or 'continuous', got {action_space!r}"
+            )
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+        if not isinstance(exact_max_agents, int) or not 1 <= exact_max_agents <= 20:
+            raise ValueError(f"exact_max_agents must be an int in [1, 20], got {exact_max_agents}")
+        if not isinstance(num_permutations, int) or num_permutations < 2 or num_permutations % 2:
+            raise ValueError(f"num_permutations must be an even int >= 2, got {num_permutations!r}")
+        if not gumbel_temperature > 0:
+            raise ValueError(f"gumbel_temperature must be > 0, got {gumbel_temperature}")
+        if loss_function not in ("l2", "l1", "smooth_l1"):
+            raise ValueError(
+                f"loss_function must be 'l2', 'l1' or 'smooth_l1', got {loss_function!r}"
+            )
+        super().__init__()
+        self.n_agents = critic_network.n_agents
+        self.action_space = action_space
+        self.gamma = gamma
+        self.exact_max_agents = exact_max_agents
+        self.num_permutations = num_permutations
+        self.gumbel_temperature = gumbel_temperature
+        self.loss_function = loss_function
+        self.delay_actor = delay_actor
+        self.delay_value = delay_value
+        self.convert_to_functional(actor_network, "actor_network", create_target_params=delay_actor)
+        self.convert_to_functional(
+            critic_network, "critic_network", create_target_params=delay_value
+        )
+        n = self.n_agents
+        self.register_buffer("_eye", torch.eye(n, dtype=torch.bool), persistent=False)
+        if n <= exact_max_agents:
+            # Coalitions containing each agent i, [n, 2**(n-1), n], and their eq. 3 weights.
+            masks = coalition_masks(n)
+            m = shapley_matrix(n, dtype=torch.float32)
+            with_i = masks.T.nonzero()[:, 1].view(n, 2 ** (n - 1))  # coalition ids with bit i
+            self.register_buffer("_masks_with", masks[with_i], persistent=False)
+            self.register_buffer("_weights_with", m.T.gather(1, with_i), persistent=False)
+            self.register_buffer("_m_without", m.clamp(max=0.0), persistent=False)
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        keys = self.tensor_keys
+        return [
+            keys.observation,
+            keys.action,
+            keys.coalition,
+            ("next", keys.observation),
+            ("next", keys.reward),
+            ("next", keys.terminated),
+        ]
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        """The coalition TD target is computed in place; there is no value estimator to update."""
+
+    def make_value_estimator(self, value_type=None, **hyperparams) -> ShapleyActorCriticLoss:
+        """Only ``gamma`` can be set: the TD(0) coalition target is built into the loss."""
+        if value_type is not None:
+            raise ValueError(
+                "value_type must be None: ShapleyActorCriticLoss uses its own TD(0) target "
+                "y = R(C) + gamma * v'(s', a', C')"
+            )
+        unknown = set(hyperparams) - {"gamma"}
+        if unknown:
+            raise ValueError(f"hyperparams may only contain 'gamma', got {sorted(unknown)}")
+        if "gamma" in hyperparams:
+            gamma = float(hyperparams["gamma"])
+            if not 0.0 <= gamma <= 1.0:
+                raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+            self.gamma = gamma
+        return self
+
+    def _check_shapes(self, obs: torch.Tensor, coalition: torch.Tensor) -> None:
+        n = self.n_agents
+        if obs.shape[-2] != n:
+            raise ValueError(
+                f"observation must have shape [*, n_agents={n}, obs], got {tuple(obs.shape)}"
+            )
+        if coalition.shape[-1] != n:
+            raise ValueError(
+                f"coalition must have shape [*, n_agents={n}], got {tuple(coalition.shape)}"
+            )
+
+    def _policy_action(
+        self, params: TensorDictBase, obs: torch.Tensor, coalition: torch.Tensor, greedy: bool
+    ) -> torch.Tensor:
+        """``pi(s^C)`` under ``params``: ``[*, n, act]`` (one-hot if discrete)."""
+        keys = self.tensor_keys
+        td = TensorDict(
+            {keys.observation: obs, keys.coalition: coalition}, batch_size=obs.shape[:-2]
+        )
+        with params.to_module(self.actor_network, preserve_module_state=False):
+            td = self.actor_network(td)
+        if self.action_space == "continuous":
+            return td.get(keys.action)
+        logits = td.get(keys.logits)
+        if greedy:
+            return torch.nn.functional.one_hot(logits.argmax(-1), logits.shape[-1]).to(logits.dtype)
+        return torch.nn.functional.gumbel_softmax(logits, tau=self.gumbel_temperature, hard=True)
+
+    def loss_value(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
+        """TD loss of the characteristic function (Algorithm 1 lines 10-11)."""
+        keys = self.tensor_keys
+        obs = tensordict.get(keys.observation)
+        coalition = tensordict.get(keys.coalition).bool()
+        self._check_shapes(obs, coalition)
+        action = tensordict.get(keys.action).to(obs.dtype)
+        with self.critic_network_params.to_module(self.critic_network, preserve_module_state=False):
+            pred = self.critic_network.coalition_values(obs, action, coalition.unsqueeze(-2))
+        pred = pred.squeeze(-1)  # [*]
+        with torch.no_grad():
+            next_obs = tensordict.get(("next", keys.observation))
+            reward = tensordict.get(("next", keys.reward)).reshape(*coalition.shape)
+            terminated = tensordict.get(("next", keys.terminated)).bool()
+            terminated = terminated.reshape(*terminated.shape[: coalition.ndim - 1], -1)
+            next_coalition = coalition & ~terminated.expand_as(coalition)
+            coalition_reward = (reward * coalition.to(reward.dtype)).sum(-1)  # R(C), eq. 10
+            next_action = self._policy_action(
+                self.target_actor_network_params, next_obs, coalition, greedy=True
+            )
+            with self.target_critic_network_params.to_module(
+                self.critic_network, preserve_module_state=False
+            ):
+                next_value = self.critic_network.coalition_values(
+                    next_obs, next_action, next_coalition.unsqueeze(-2)
+                ).squeeze(-1)
+            target = coalition_reward.to(pred.dtype) + self.gamma * next_value
+        loss = distance_loss(pred, target, loss_function=self.loss_function).mean()
+        td_error = (pred - target).detach().pow(2)
+        meta = {
+            "pred_value": pred.detach().mean(),
+            "target_value": target.mean(),
+            "td_error": td_error.mean(),
+        }
+        return loss, meta
+
+    def shapley_values(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """``phi_i(s, a)`` with ``a_i = pi_i(s^C)``, differentiable through ``a_i`` only.
+
+        Returns ``[*, n]``. Gradients reach the actor parameters, not the critic's.
+        """
+        keys = self.tensor_keys
+        obs = tensordict.get(keys.observation)
+        coalition = tensordict.get(keys.coalition).bool()
+        self._check_shapes(obs, coalition)
+        a_batch = tensordict.get(keys.action).to(obs.dtype)
+        a_pol = self._policy_action(self.actor_network_params, obs, coalition, greedy=False)
+        # joint[..., i, j] = a_pol_j if i == j else a_batch_j: agent i's own action substituted.
+        joint = torch.where(self._eye.unsqueeze(-1), a_pol.unsqueeze(-3), a_batch.unsqueeze(-3))
+        obs_i = obs.unsqueeze(-3)  # [*, 1, n, obs], broadcast over the substituted agent i
+        critic = self.critic_network
+        with self.critic_network_params.detach().to_module(critic, preserve_module_state=False):
+            if self.n_agents <= self.exact_max_agents:
+                # eq. 3: phi_i = sum_{C ∌ i} w(|C|) v(C + i) - sum_{C ∌ i} w(|C|) v(C)
+                v_with = critic.coalition_values(obs_i, joint, self._masks_with)  # [*, n, 2**(n-1)]
+                phi = (v_with * self._weights_with.to(v_with.dtype)).sum(-1)
+                with torch.no_grad():
+                    v_all = critic.all_coalition_values(obs, a_batch)  # [*, 2**n]
+                    phi_without = v_all @ self._m_without.to(v_all.dtype)
+            else:
+                perms = sample_permutations(
+                    self.num_permutations, self.n_agents, antithetic=True, device=obs.device
+                )
+                before = permutation_prefix_masks(perms).transpose(0, 1)  # [n, P, n]
+                with_i = before | self._eye.unsqueeze(-2)
+                v_with = critic.coalition_values(obs_i, joint, with_i)  # [*, n, P]
+                phi = v_with.mean(-1)
+                with torch.no_grad():
+                    v_before = critic.coalition_values(obs_i, a_batch.unsqueeze(-3), before)
+                    phi_without = -v_before.mean(-1)
+        return phi + phi_without
+
+    def loss_actor(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
+        """Shapley deterministic policy gradient (Algorithm 1 lines 12-13)."""
+        phi = self.shapley_values(tensordict)
+        return -phi.mean(), {"shapley_value": phi.detach().mean()}
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """``tensordict [*B]`` from the replay buffer -> TensorDict with ``loss_value``,
+        ``loss_actor`` and detached diagnostics (scalars)."""
+        loss_value, meta = self.loss_value(tensordict)
+        loss_actor, meta_actor = self.loss_actor(tensordict)
+        return TensorDict(
+            {"loss_actor": loss_actor, "loss_value": loss_value, **meta, **meta_actor},
+            batch_size=[],
+        )

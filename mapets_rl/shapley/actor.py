@@ -1,0 +1,130 @@
+"""Coalition-aware actors: agent ``i`` acts on ``s^C`` (Han et al., Algorithm 1 line 7)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.modules import MultiAgentMLP, TanhModule
+
+__all__ = ["CoalitionObservation", "make_coalition_actor"]
+
+
+class CoalitionObservation(TensorDictModuleBase):
+    """Builds every agent's view ``s^C`` of the joint state.
+
+    Agent ``i`` in coalition ``C`` sees the observations of all members of ``C``; an agent outside
+    ``C`` sees only its own. Unseen observations are zeroed (paper sec. VI) and the visibility bits
+    are appended so that a zero observation and an unseen one differ.
+
+    Reads ``observation [*, n, obs]`` and ``coalition [*, n]`` (bool); writes
+    ``out_key [*, n, n * (obs + 1)]`` (row ``i`` = agent ``i``'s flattened view).
+    """
+
+    def __init__(
+        self,
+        n_agents: int,
+        *,
+        observation_key: NestedKey = ("agents", "observation"),
+        coalition_key: NestedKey = ("agents", "coalition"),
+        out_key: NestedKey = ("agents", "coalition_observation"),
+    ) -> None:
+        if not isinstance(n_agents, int) or n_agents < 1:
+            raise ValueError(f"n_agents must be an int >= 1, got {n_agents!r}")
+        super().__init__()
+        self.n_agents = n_agents
+        self.in_keys = [observation_key, coalition_key]
+        self.out_keys = [out_key]
+        self.register_buffer("_eye", torch.eye(n_agents, dtype=torch.bool), persistent=False)
+
+    def view(self, observation: torch.Tensor, coalition: torch.Tensor) -> torch.Tensor:
+        """``[..., n, obs], [..., n] -> [..., n, n * (obs + 1)]``."""
+        n = self.n_agents
+        if observation.shape[-2] != n:
+            raise ValueError(
+                f"observation must have shape [..., n_agents={n}, obs], "
+                f"got {tuple(observation.shape)}"
+            )
+        if coalition.shape[-1] != n:
+            raise ValueError(
+                f"coalition must have shape [..., n_agents={n}], got {tuple(coalition.shape)}"
+            )
+        coalition = coalition.bool()
+        visible = (coalition.unsqueeze(-1) & coalition.unsqueeze(-2)) | self._eye  # [..., n, n]
+        seen = observation.unsqueeze(-3) * visible.unsqueeze(-1).to(observation.dtype)
+        view = torch.cat([seen, visible.unsqueeze(-1).to(observation.dtype)], dim=-1)
+        return view.flatten(-2)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        obs_key, coalition_key = self.in_keys
+        tensordict.set(
+            self.out_keys[0], self.view(tensordict.get(obs_key), tensordict.get(coalition_key))
+        )
+        return tensordict
+
+
+def _one_hot_argmax(logits: torch.Tensor) -> torch.Tensor:
+    return nn.functional.one_hot(logits.argmax(-1), logits.shape[-1]).to(logits.dtype)
+
+
+def make_coalition_actor(
+    n_agents: int,
+    observation_dim: int,
+    action_dim: int,
+    *,
+    discrete: bool,
+    num_cells: Sequence[int] = (64, 64),
+    activation_class: type[nn.Module] = nn.Tanh,
+    share_params: bool = False,
+    action_low: float = -1.0,
+    action_high: float = 1.0,
+    observation_key: NestedKey = ("agents", "observation"),
+    coalition_key: NestedKey = ("agents", "coalition"),
+    action_key: NestedKey = ("agents", "action"),
+    logits_key: NestedKey = ("agents", "logits"),
+    device: torch.device | str | None = None,
+) -> TensorDictSequential:
+    """Deterministic per-agent actors ``pi_i(s^C)`` (torchrl ``MultiAgentMLP``, one set of
+    parameters per agent unless ``share_params``).
+
+    Discrete: writes ``logits_key [*, n, act]`` and the greedy one-hot ``action_key [*, n, act]``
+    (order for the freeway: KL, CL, CR, ES). Continuous: writes ``action_key [*, n, act]`` squashed
+    into ``[action_low, action_high]`` with ``TanhModule``.
+    """
+    for name, val in (
+        ("n_agents", n_agents),
+        ("observation_dim", observation_dim),
+        ("action_dim", action_dim),
+    ):
+        if not isinstance(val, int) or val < 1:
+            raise ValueError(f"{name} must be an int >= 1, got {val!r}")
+    if not discrete and not action_low < action_high:
+        raise ValueError(f"action_low must be < action_high, got {action_low}, {action_high}")
+    view_key = ("agents", "coalition_observation")
+    view = CoalitionObservation(
+        n_agents, observation_key=observation_key, coalition_key=coalition_key, out_key=view_key
+    )
+    net = MultiAgentMLP(
+        n_agent_inputs=n_agents * (observation_dim + 1),
+        n_agent_outputs=action_dim,
+        n_agents=n_agents,
+        centralized=False,
+        share_params=share_params,
+        num_cells=list(num_cells),
+        activation_class=activation_class,
+        device=device,
+    )
+    if discrete:
+        head = TensorDictModule(net, in_keys=[view_key], out_keys=[logits_key])
+        greedy = TensorDictModule(_one_hot_argmax, in_keys=[logits_key], out_keys=[action_key])
+        return TensorDictSequential(view, head, greedy)
+    param_key = ("agents", "param")
+    head = TensorDictModule(net, in_keys=[view_key], out_keys=[param_key])
+    squash = TanhModule(
+        in_keys=[param_key], out_keys=[action_key], low=action_low, high=action_high
+    )
+    return TensorDictSequential(view, head, squash)

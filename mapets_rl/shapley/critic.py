@@ -1,0 +1,160 @@
+"""Characteristic-function critic ``v(s, a, C)`` (Han et al., sec. V-VI, Algorithm 1 line 11)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.modules import MLP
+
+from mapets_rl.shapley.game import coalition_masks
+
+__all__ = ["CoalitionCritic"]
+
+
+class CoalitionCritic(TensorDictModuleBase):
+    """Neural characteristic function ``v(s, a, C)`` of the TU game over ``n`` agents.
+
+    Mathematically this is an MLP on ``[s^C, a^C, 1_C]``: the joint state and action with the
+    entries of agents outside ``C`` set to zero (paper sec. VI, "we simply set the missing input
+    of the neural network to be zero") and the ``n``-bit coalition indicator. Because zeroed
+    inputs contribute nothing to the first (linear) layer, that layer is computed per agent,
+    ``h_j = W_j [s_j, a_j] + u_j`` (``u_j`` is the weight of the indicator bit ``j``), and a
+    coalition's pre-activation is ``z_C = sum_{j in C} h_j + b`` -- a ``[K, n] @ [n, H]`` matrix
+    product. Evaluating all ``2**n`` coalitions for a batch of states is therefore one call that
+    never materialises ``2**n`` copies of the joint input. ``v(empty) = 0`` holds exactly
+    (paper sec. IV).
+
+    Args:
+        n_agents: number of agents ``n``.
+        observation_dim: per-agent observation size.
+        action_dim: per-agent action size (one-hot width for discrete actions).
+        num_cells: hidden sizes; the first is the width of the per-agent layer.
+        activation_class: hidden activation.
+        observation_key, action_key, coalition_key, out_key: keys used by :meth:`forward`:
+            ``observation [*, n, obs]``, ``action [*, n, act]``, ``coalition [*, n]`` (bool)
+            -> ``out_key [*, 1]``.
+        device: parameter device.
+    """
+
+    def __init__(
+        self,
+        n_agents: int,
+        observation_dim: int,
+        action_dim: int,
+        *,
+        num_cells: Sequence[int] = (128, 128),
+        activation_class: type[nn.Module] = nn.ReLU,
+        observation_key: NestedKey = ("agents", "observation"),
+        action_key: NestedKey = ("agents", "action"),
+        coalition_key: NestedKey = ("agents", "coalition"),
+        out_key: NestedKey = "coalition_value",
+        device: torch.device | str | None = None,
+    ) -> None:
+        for name, val in (
+            ("n_agents", n_agents),
+            ("observation_dim", observation_dim),
+            ("action_dim", action_dim),
+        ):
+            if not isinstance(val, int) or val < 1:
+                raise ValueError(f"{name} must be an int >= 1, got {val!r}")
+        num_cells = list(num_cells)
+        if not num_cells or any(not isinstance(c, int) or c < 1 for c in num_cells):
+            raise ValueError(f"num_cells must be a non-empty list of ints >= 1, got {num_cells}")
+        super().__init__()
+        self.n_agents = n_agents
+        self.observation_dim = observation_dim
+        self.action_dim = action_dim
+        self.observation_key = observation_key
+        self.action_key = action_key
+        self.coalition_key = coalition_key
+        self.in_keys = [observation_key, action_key, coalition_key]
+        self.out_keys = [out_key]
+        in_dim = observation_dim + action_dim
+        hidden = num_cells[0]
+        # Same initialisation as nn.Linear on the concatenated [s^C, a^C, 1_C] input.
+        bound = 1.0 / math.sqrt(n_agents * (in_dim + 1))
+        self.agent_weight = nn.Parameter(
+            torch.empty(n_agents, in_dim, hidden, device=device).uniform_(-bound, bound)
+        )
+        self.membership = nn.Parameter(
+            torch.empty(n_agents, hidden, device=device).uniform_(-bound, bound)
+        )
+        self.bias = nn.Parameter(torch.empty(hidden, device=device).uniform_(-bound, bound))
+        self.head = nn.Sequential(
+            activation_class(),
+            MLP(
+                in_features=hidden,
+                out_features=1,
+                num_cells=num_cells[1:],
+                activation_class=activation_class,
+                device=device,
+            ),
+        )
+
+    def embed(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Per-agent first-layer terms ``h_j``: ``[..., n, obs], [..., n, act] -> [..., n, H]``."""
+        n = self.n_agents
+        if observation.shape[-2:] != (n, self.observation_dim):
+            raise ValueError(
+                f"observation must have shape [..., {n}, {self.observation_dim}], "
+                f"got {tuple(observation.shape)}"
+            )
+        if action.shape[-2:] != (n, self.action_dim):
+            raise ValueError(
+                f"action must have shape [..., {n}, {self.action_dim}], got {tuple(action.shape)}"
+            )
+        shape = torch.broadcast_shapes(observation.shape[:-1], action.shape[:-1])
+        observation, action = observation.expand(*shape, -1), action.expand(*shape, -1)
+        x = torch.cat([observation, action.to(observation.dtype)], dim=-1)
+        return torch.einsum("...ni,nih->...nh", x, self.agent_weight) + self.membership
+
+    def coalition_values(
+        self, observation: torch.Tensor, action: torch.Tensor, masks: torch.Tensor
+    ) -> torch.Tensor:
+        """``v(s, a, C)`` for ``K`` coalitions per state.
+
+        Args:
+            observation: ``[..., n, obs]``; action: ``[..., n, act]``.
+            masks: bool ``[..., K, n]`` (broadcast against the leading dims).
+
+        Returns:
+            ``[..., K]``; zero for the empty coalition.
+        """
+        if masks.shape[-1] != self.n_agents or masks.ndim < 2:
+            raise ValueError(
+                f"masks must have shape [..., K, n_agents={self.n_agents}], "
+                f"got {tuple(masks.shape)}"
+            )
+        h = self.embed(observation, action)  # [..., n, H]
+        z = masks.to(h.dtype) @ h + self.bias  # [..., K, H]
+        value = self.head(z).squeeze(-1)
+        return value * masks.any(-1).to(value.dtype)
+
+    def all_coalition_values(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """``v(s, a, C_k)`` for all ``2**n`` coalitions: ``-> [..., 2**n]`` (encoding of
+        :func:`~mapets_rl.shapley.coalition_masks`), one batched call."""
+        masks = coalition_masks(self.n_agents, device=self.bias.device)
+        return self.coalition_values(observation, action, masks)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Reads observation ``[*, n, obs]``, action ``[*, n, act]``, coalition ``[*, n]``;
+        writes ``out_key [*, 1]``."""
+        coalition = tensordict.get(self.coalition_key)
+        if coalition.shape[-1] != self.n_agents:
+            raise ValueError(
+                f"coalition ({self.coalition_key}) must have shape [*, n_agents={self.n_agents}], "
+                f"got {tuple(coalition.shape)}"
+            )
+        value = self.coalition_values(
+            tensordict.get(self.observation_key),
+            tensordict.get(self.action_key),
+            coalition.bool().unsqueeze(-2),
+        )
+        tensordict.set(self.out_keys[0], value)
+        return tensordict

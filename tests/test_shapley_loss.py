@@ -1,0 +1,209 @@
+"""CoalitionCritic, coalition actors and ShapleyActorCriticLoss."""
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.objectives import LossModule, SoftUpdate
+
+from mapets_rl.objectives import ShapleyActorCriticLoss
+from mapets_rl.shapley import (
+    CoalitionCritic,
+    CoalitionObservation,
+    coalition_masks,
+    exact_shapley,
+    make_coalition_actor,
+)
+
+N, OBS, ACT, B = 4, 3, 4, 16
+
+
+def _batch(n=N, act=ACT, b=B, seed=0, discrete=True):
+    g = torch.Generator().manual_seed(seed)
+    if discrete:
+        action = torch.nn.functional.one_hot(torch.randint(act, (b, n), generator=g), act)
+    else:
+        action = torch.rand(b, n, act, generator=g) * 2 - 1
+    return TensorDict(
+        {
+            ("agents", "observation"): torch.randn(b, n, OBS, generator=g),
+            ("agents", "action"): action.float(),
+            ("agents", "coalition"): torch.rand(b, n, generator=g) > 0.4,
+            "next": {
+                ("agents", "observation"): torch.randn(b, n, OBS, generator=g),
+                ("agents", "reward"): torch.rand(b, n, 1, generator=g),
+                ("agents", "terminated"): torch.zeros(b, n, 1, dtype=torch.bool),
+            },
+        },
+        [b],
+    )
+
+
+def _loss(discrete=True, n=N, **kwargs):
+    torch.manual_seed(0)
+    actor = make_coalition_actor(n, OBS, ACT, discrete=discrete, num_cells=(16,))
+    critic = CoalitionCritic(n, OBS, ACT, num_cells=(32, 32))
+    space = "discrete" if discrete else "continuous"
+    return ShapleyActorCriticLoss(actor, critic, action_space=space, **kwargs)
+
+
+def test_critic_equals_mlp_on_zeroed_inputs():
+    torch.manual_seed(1)
+    critic = CoalitionCritic(N, OBS, ACT, num_cells=(8, 8))
+    obs, act = torch.randn(5, N, OBS), torch.randn(5, N, ACT)
+    values = critic.all_coalition_values(obs, act)
+    assert values.shape == (5, 2**N)
+    assert (values[:, 0] == 0).all()  # v(empty) = 0
+    masks = coalition_masks(N)
+    # Dense first layer on [s^C, a^C, 1_C] (non-members zeroed), rebuilt from the parameters.
+    w = torch.cat([critic.agent_weight.reshape(-1, 8), critic.membership], dim=0)
+    for k in (3, 10, 15):
+        m = masks[k].float()
+        x = torch.cat([(torch.cat([obs, act], -1) * m[:, None]).flatten(1), m.expand(5, N)], -1)
+        dense = critic.head(x @ w + critic.bias).squeeze(-1)
+        assert torch.allclose(values[:, k], dense, atol=1e-5)
+        td = TensorDict(
+            {
+                ("agents", "observation"): obs,
+                ("agents", "action"): act,
+                ("agents", "coalition"): masks[k].expand(5, N),
+            },
+            [5],
+        )
+        assert torch.allclose(critic(td)["coalition_value"].squeeze(-1), values[:, k])
+    with pytest.raises(ValueError, match="masks"):
+        critic.coalition_values(obs, act, torch.ones(2, N + 1, dtype=torch.bool))
+    with pytest.raises(ValueError, match="coalition"):
+        critic(td.set(("agents", "coalition"), torch.ones(5, N + 1, dtype=torch.bool)))
+
+
+def test_coalition_observation_views():
+    module = CoalitionObservation(3)
+    obs = torch.arange(1.0, 7.0).view(1, 3, 2)
+    view = module.view(obs, torch.tensor([[True, False, True]])).view(1, 3, 3, 3)
+    # agent 0 (in C) sees agents 0 and 2; agent 1 (outside C) sees only itself
+    assert view[0, 0].tolist() == [[1, 2, 1], [0, 0, 0], [5, 6, 1]]
+    assert view[0, 1].tolist() == [[0, 0, 0], [3, 4, 1], [0, 0, 0]]
+    assert view[0, 2].tolist() == [[1, 2, 1], [0, 0, 0], [5, 6, 1]]
+
+
+def test_is_loss_module_with_keys():
+    loss = _loss()
+    assert isinstance(loss, LossModule)
+    out = loss(_batch())
+    assert {"loss_actor", "loss_value"} <= set(out.keys())
+    assert all(out[k].shape == () for k in out.keys())
+    assert ("next", ("agents", "reward")) in loss.in_keys
+
+
+def test_critic_td_error_falls_on_fixed_batch():
+    loss = _loss()
+    updater = SoftUpdate(loss, tau=0.05)
+    td = _batch(b=64)
+    opt = torch.optim.Adam(loss.critic_network_params.values(True, True), lr=3e-3)
+    first = loss(td)["td_error"].item()
+    for _ in range(150):
+        value_loss = loss.loss_value(td)[0]
+        opt.zero_grad()
+        value_loss.backward()
+        opt.step()
+        updater.step()
+    assert loss(td)["td_error"].item() < 0.2 * first
+
+
+def test_target_uses_coalition_reward_and_termination():
+    loss = _loss(gamma=0.9)
+    td = _batch()
+    td["next", "agents", "terminated"][:] = True  # every agent ends: y = R(C)
+    coalition = td["agents", "coalition"].float()
+    expected = (td["next", "agents", "reward"].squeeze(-1) * coalition).sum(-1).mean()
+    assert torch.isclose(loss.loss_value(td)[1]["target_value"], expected)
+    td["next", "agents", "terminated"] = torch.zeros(B, 1, dtype=torch.bool)  # root-shaped flag
+    assert not torch.isclose(loss.loss_value(td)[1]["target_value"], expected)
+
+
+def _reference_phi(loss, td):
+    """phi_i with only agent i's action replaced by pi_i(s^C), by exact Shapley per agent."""
+    actor, critic = loss.actor_network, loss.critic_network
+    with loss.actor_network_params.to_module(actor, preserve_module_state=False):
+        a_pol = actor(td.select(("agents", "observation"), ("agents", "coalition")).clone())[
+            "agents", "action"
+        ]
+    obs, a_batch = td["agents", "observation"], td["agents", "action"]
+    phis = []
+    with loss.critic_network_params.detach().to_module(critic, preserve_module_state=False):
+        for i in range(N):
+            joint = a_batch.clone()
+            joint[:, i] = a_pol[:, i]
+            phis.append(exact_shapley(critic.all_coalition_values(obs, joint), N)[:, i])
+    return torch.stack(phis, -1)
+
+
+def test_actor_gradient_flows_only_through_own_action():
+    loss = _loss(discrete=False)
+    td = _batch(discrete=False)
+    params = [p for _, p in loss.actor_network_params.items(True, True) if p.requires_grad]
+    phi = loss.shapley_values(td)
+    ref = _reference_phi(loss, td)
+    assert torch.allclose(phi, ref, atol=1e-5)
+    got = torch.autograd.grad(-phi.mean(), params)
+    want = torch.autograd.grad(-ref.mean(), params)
+    for g, w in zip(got, want, strict=True):
+        assert torch.allclose(g, w, atol=1e-6)
+    # phi_0 moves only agent 0's policy parameters (leading dim = agent).
+    grads = torch.autograd.grad(loss.shapley_values(td)[:, 0].sum(), params)
+    assert any(g[0].abs().sum() > 0 for g in grads)
+    assert all((g[1:] == 0).all() for g in grads)
+    # and never the critic's
+    loss.loss_actor(td)[0].backward()
+    assert all(p.grad is None for _, p in loss.critic_network_params.items(True, True))
+
+
+def test_discrete_gumbel_straight_through_reaches_actor():
+    loss = _loss(discrete=True)
+    loss.loss_actor(_batch())[0].backward()
+    params = loss.actor_network_params.items(True, True)
+    grads = [p.grad for _, p in params if p.requires_grad]
+    assert all(g is not None for g in grads) and any(g.abs().sum() > 0 for g in grads)
+
+
+def test_sampled_path_matches_exact():
+    exact = _loss(discrete=False)
+    sampled = _loss(discrete=False, exact_max_agents=2, num_permutations=20000)
+    sampled.load_state_dict(exact.state_dict())
+    td = _batch(discrete=False, b=4)
+    torch.manual_seed(3)
+    with torch.no_grad():
+        phi_exact, phi_sampled = exact.shapley_values(td), sampled.shapley_values(td)
+    scale = phi_exact.abs().mean()
+    assert (phi_exact - phi_sampled).abs().max() < 0.05 * scale + 1e-4
+
+
+def test_set_keys():
+    loss = _loss()
+    td = _batch()
+    loss.set_keys(reward=("agents", "r"), terminated="terminated")
+    td["next", "agents", "r"] = td["next", "agents", "reward"]
+    td["next", "terminated"] = torch.zeros(B, 1, dtype=torch.bool)
+    del td["next", "agents", "reward"]
+    del td["next", "agents", "terminated"]
+    out = loss(td)
+    assert torch.isfinite(out["loss_value"]) and torch.isfinite(out["loss_actor"])
+
+
+def test_bad_input():
+    actor = make_coalition_actor(N, OBS, ACT, discrete=True)
+    critic = CoalitionCritic(N, OBS, ACT)
+    with pytest.raises(ValueError, match="action_space"):
+        ShapleyActorCriticLoss(actor, critic, action_space="box")
+    with pytest.raises(ValueError, match="exact_max_agents"):
+        ShapleyActorCriticLoss(actor, critic, exact_max_agents=21)
+    with pytest.raises(ValueError, match="num_permutations"):
+        ShapleyActorCriticLoss(actor, critic, num_permutations=0)
+    with pytest.raises(ValueError, match="critic_network"):
+        ShapleyActorCriticLoss(actor, actor)
+    td = _batch()
+    td["agents", "coalition"] = torch.ones(B, N + 1, dtype=torch.bool)
+    with pytest.raises(ValueError, match="coalition"):
+        ShapleyActorCriticLoss(actor, critic)(td)
+    with pytest.raises(ValueError, match="n_agents"):
+        CoalitionCritic(0, OBS, ACT)
