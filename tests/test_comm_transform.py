@@ -207,3 +207,31 @@ def test_spec_with_wrong_position_shape_raises():
 
     with pytest.raises(ValueError, match="position"):
         _ = TransformedEnv(Bad3D(), CommunicationRange(10.0)).observation_spec
+
+
+def test_episode_graph_links_agents_still_driving_at_the_end():
+    env = TransformedEnv(TinyPositionsEnv(4), CommunicationRange(math.inf))
+    rollout = env.rollout(3)
+    # PettingZoo-style end: every agent removed (mask False) in the final state.
+    rollout["next", "agents", "mask"][-1] = False
+    rollout["agents", "mask"][-1] = torch.tensor([True, True, True, False])  # 3 was gone
+    terminated = torch.zeros(3, 4, 1, dtype=torch.bool)
+    terminated[-1, 1] = True  # 1 crashed in the last step
+    rollout["next", "agents", "terminated"] = terminated
+    graph = CommunicationRange(math.inf).episode_graph(rollout)
+    assert torch.equal(graph, _adj(4, [(0, 2)]))
+    near = CommunicationRange(0.0).episode_graph(rollout)
+    assert not near.any()
+
+
+def test_transform_on_figure_eight_env():
+    envs = pytest.importorskip("mapets_rl.envs")
+    env = envs.make_env("figure-eight", seed=0, horizon=5)
+    env.append_transform(CommunicationRange(100.0, p_fail=0.25, seed=0))
+    check_env_specs(env, seed=0)
+    rollout = env.rollout(5, envs.ScriptedCAVPolicy(env), break_when_any_done=True)
+    adjacency = rollout["agents", "neighbors"]
+    assert adjacency.shape == (5, 8, 8)
+    assert torch.equal(adjacency, adjacency.transpose(-1, -2))
+    assert adjacency.any()  # 8 CAVs on a ~480 m loop: some within 100 m
+    assert CommunicationRange(math.inf).episode_graph(rollout).sum() == 8 * 7

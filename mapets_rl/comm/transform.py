@@ -13,6 +13,10 @@ from torchrl.envs.transforms import Transform
 __all__ = ["CommunicationRange", "communication_graph"]
 
 
+def _as_tuple(key: NestedKey) -> tuple[str, ...]:
+    return (key,) if isinstance(key, str) else tuple(key)
+
+
 def _check_comm_range(comm_range: float) -> float:
     comm_range = float(comm_range)
     if math.isnan(comm_range) or comm_range < 0:
@@ -98,6 +102,13 @@ class CommunicationRange(Transform):
         p_fail: link failure probability in ``[0, 1]``.
         seed: seed of the link-failure generator.
         position_key, mask_key, neighbors_key: keys read/written.
+        terminated_key: per-agent termination ``[*B, I, 1]`` (a crash), used by
+            :meth:`episode_graph`.
+
+    The exchange graph of an episode is :meth:`episode_graph` of its rollout. It differs from
+    ``rollout[..., -1]["next", neighbors_key]`` for PettingZoo-based envs (``make_env``): those
+    remove every agent when the episode is truncated, so the final state's mask is all
+    ``False``.
 
     Example:
         >>> env = TransformedEnv(make_env("figure-eight"), CommunicationRange(100.0))
@@ -114,6 +125,7 @@ class CommunicationRange(Transform):
         position_key: NestedKey = ("agents", "position"),
         mask_key: NestedKey | None = ("agents", "mask"),
         neighbors_key: NestedKey = ("agents", "neighbors"),
+        terminated_key: NestedKey = ("agents", "terminated"),
     ) -> None:
         comm_range = _check_comm_range(comm_range)
         p_fail = _check_p_fail(p_fail)
@@ -123,6 +135,7 @@ class CommunicationRange(Transform):
         self.position_key = position_key
         self.mask_key = mask_key
         self.neighbors_key = neighbors_key
+        self.terminated_key = terminated_key
         self.generator = torch.Generator()
         self.set_seed(seed)
 
@@ -147,6 +160,35 @@ class CommunicationRange(Transform):
         )
         next_tensordict.set(self.neighbors_key, adjacency)
         return next_tensordict
+
+    def episode_graph(self, rollout: TensorDictBase) -> torch.Tensor:
+        """Communication graph at the end of an episode, when the paper exchanges data.
+
+        Positions of the final state (``("next", position_key)`` of the last step) and links
+        between the CAVs that are still driving then: active at the last step (``mask_key``,
+        when present) and not terminated by it (``("next", terminated_key)``, when present).
+
+        Args:
+            rollout: an episode, TensorDict ``[*B, T]`` (time last, e.g. ``env.rollout``).
+
+        Returns:
+            ``[*B, I, I]`` bool adjacency (link failures drawn from this transform's generator).
+        """
+        if rollout.batch_dims < 1:
+            raise ValueError("rollout must have a time dimension (batch size [*B, T])")
+        last = rollout[..., -1]
+        position = last.get(("next", *_as_tuple(self.position_key)))
+        alive = None
+        if self.mask_key is not None:
+            alive = last.get(self.mask_key, default=None)
+        terminated = last.get(("next", *_as_tuple(self.terminated_key)), default=None)
+        if terminated is not None:
+            if terminated.shape == position.shape[:-1] + (1,):
+                terminated = terminated.squeeze(-1)
+            alive = ~terminated if alive is None else alive.to(torch.bool) & ~terminated
+        return communication_graph(
+            position, self.comm_range, self.p_fail, mask=alive, generator=self.generator
+        )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Writes the neighbours of ``tensordict`` (offline use, e.g. on a stored rollout)."""
