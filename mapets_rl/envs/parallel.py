@@ -54,22 +54,33 @@ class TrafficParallelEnv(ParallelEnv):
     def action_space(self, agent: str) -> spaces.Space:
         return self._action_space
 
+    def info_arrays(self, info: dict) -> dict[str, np.ndarray]:
+        """Per-agent info of a raw-env ``info`` as arrays ``[I, ...]`` (see module docstring)."""
+        n = len(self.possible_agents)
+        arrays = {
+            "position": np.asarray(info["positions"], dtype=np.float32),
+            "distance": np.asarray(info["distance"], dtype=np.float32),
+            "speed": np.asarray(info["speed"], dtype=np.float32),
+            "collided": np.asarray(info.get("collided", np.zeros(n, dtype=bool)), dtype=bool),
+        }
+        if "traffic_velocity" in info:
+            arrays["traffic_velocity"] = np.full(n, info["traffic_velocity"], dtype=np.float32)
+            arrays["traffic_comfort"] = np.full(n, info["traffic_comfort"], dtype=np.float32)
+        return arrays
+
     def _agent_infos(self, info: dict, agents: list[str]) -> dict[str, dict[str, Any]]:
-        collided = info.get("collided", np.zeros(len(self.possible_agents), dtype=bool))
-        infos = {}
-        for agent in agents:
-            i = self._index[agent]
-            entry = {
-                "position": info["positions"][i].astype(np.float32),
-                "distance": np.float32(info["distance"][i]),
-                "speed": np.float32(info["speed"][i]),
-                "collided": bool(collided[i]),
+        arrays = self.info_arrays(info)
+        return {
+            agent: {
+                key: (
+                    value[self._index[agent]]
+                    if value.ndim > 1
+                    else value[self._index[agent]].item()
+                )
+                for key, value in arrays.items()
             }
-            if "traffic_velocity" in info:
-                entry["traffic_velocity"] = np.float32(info["traffic_velocity"])
-                entry["traffic_comfort"] = np.float32(info["traffic_comfort"])
-            infos[agent] = entry
-        return infos
+            for agent in agents
+        }
 
     def reset(
         self, seed: int | None = None, options: dict | None = None
@@ -78,11 +89,19 @@ class TrafficParallelEnv(ParallelEnv):
         self.agents = list(self.possible_agents)
         return {a: obs[self._index[a]] for a in self.agents}, self._agent_infos(info, self.agents)
 
-    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
-        unknown = set(actions) - set(self.agents)
-        require(not unknown, f"actions given for agents that are not acting: {sorted(unknown)}")
+    def joint_action(self, actions: dict[str, Any]) -> np.ndarray:
+        """The raw env's joint action from a per-agent dict.
+
+        Agents absent from ``actions`` get the lowest action; actions of agents that are no
+        longer acting are ignored (torchrl's wrapper sends the whole group's actions).
+        """
+        unknown = set(actions) - set(self.possible_agents)
+        require(not unknown, f"actions given for unknown agents: {sorted(unknown)}")
         joint = self._default_action.copy()
+        acting = set(self.agents)
         for agent, action in actions.items():
+            if agent not in acting:
+                continue
             value = np.asarray(action)
             if isinstance(self._action_space, spaces.Discrete):
                 require(
@@ -97,17 +116,43 @@ class TrafficParallelEnv(ParallelEnv):
                     f"got {value.shape}",
                 )
                 joint[self._index[agent]] = value
+        return joint
+
+    def step_joint(
+        self, joint: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
+        """Step with a joint action ``[I, ...]``; the array form of ``step``.
+
+        Returns:
+            ``obs [I, obs]``, ``rewards [I]``, ``terminated [I]``, ``truncated [I]``,
+            ``acting [I]`` (agents that acted in this step) and the raw env's ``info``.
+            Entries of agents that did not act are zero (terminated/truncated: True).
+        """
+        acting = np.array([a in self.agents for a in self.possible_agents], dtype=bool)
         obs, _, _, truncated, info = self.env.step(joint)
-        acting = self.agents
-        rewards = {a: float(info["agent_rewards"][self._index[a]]) for a in acting}
-        terminations = {a: bool(info["agent_terminated"][self._index[a]]) for a in acting}
-        truncations = {a: bool(truncated) and not terminations[a] for a in acting}
-        observations = {a: obs[self._index[a]] for a in acting}
-        infos = self._agent_infos(info, acting)
-        self.agents = [a for a in acting if not (terminations[a] or truncations[a])]
+        terminated = np.asarray(info["agent_terminated"], dtype=bool)
+        truncated_agents = np.where(acting, bool(truncated) & ~terminated, True)
+        self.agents = [
+            a
+            for a in self.agents
+            if not (terminated[self._index[a]] or truncated_agents[self._index[a]])
+        ]
         if "episode" in info:
             self.last_episode_metrics = info["episode"]
-        return observations, rewards, terminations, truncations, infos
+        rewards = np.asarray(info["agent_rewards"], dtype=np.float32) * acting
+        return obs, rewards, terminated, truncated_agents, acting, info
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        acting = list(self.agents)
+        obs, rewards, terminated, truncated, _, info = self.step_joint(self.joint_action(actions))
+        index = self._index
+        return (
+            {a: obs[index[a]] for a in acting},
+            {a: float(rewards[index[a]]) for a in acting},
+            {a: bool(terminated[index[a]]) for a in acting},
+            {a: bool(truncated[index[a]]) for a in acting},
+            self._agent_infos(info, acting),
+        )
 
     def render(self) -> np.ndarray | None:
         return self.env.render()

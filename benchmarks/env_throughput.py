@@ -1,0 +1,121 @@
+"""Environment throughput: env steps per second through the raw highway-env scenario, the
+PettingZoo env and the TorchRL env, all measured in this run, plus the same figure-eight scenario
+with highway-env's stock neighbour search as the reference.
+
+CAVs drive the crash-free scripted policy (IDM + first come, first served at the crossing) so
+every vehicle stays on the road; its cost is included in every layer alike.
+
+Targets: ours >= 2x the stock-search reference at 8 CAVs + 8 HVs and >= 3x at 22 + 20 on two
+lanes; the TorchRL env at most 30% slower than the raw env.
+
+    python benchmarks/env_throughput.py [--steps 300] [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+
+import torch
+
+from mapets_rl.envs import ScriptedCAVPolicy, make_env, make_parallel_env
+
+CASES = {
+    "figure-eight 8 CAVs + 8 HVs": ("figure-eight", {"n_cavs": 8, "n_hvs": 8}),
+    "figure-eight 22 CAVs + 20 HVs, 2 lanes": (
+        "figure-eight-multilane",
+        {"n_cavs": 22, "n_hvs": 20},
+    ),
+    "freeway 30 vehicles": ("freeway", {"n_vehicles": 30}),
+}
+
+
+def best_rate(run: Callable[[], int], repeats: int) -> float:
+    """Best steps/s over ``repeats`` runs of ``run`` (which returns the steps it took)."""
+    rates = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        steps = run()
+        rates.append(steps / (time.perf_counter() - start))
+    return max(rates)
+
+
+def raw_runner(name: str, config: dict, steps: int) -> Callable[[], int]:
+    scenario = make_parallel_env(name, **config).env
+
+    def run() -> int:
+        scenario.reset(seed=0)
+        for _ in range(steps):
+            _, _, terminated, truncated, _ = scenario.step(scenario.scripted_action())
+            if terminated or truncated:
+                scenario.reset()
+        return steps
+
+    return run
+
+
+def pettingzoo_runner(name: str, config: dict, steps: int) -> Callable[[], int]:
+    env = make_parallel_env(name, **config)
+
+    def run() -> int:
+        env.reset(seed=0)
+        for _ in range(steps):
+            joint = env.env.scripted_action()
+            actions = {a: joint[env._index[a]] for a in env.agents}
+            env.step(actions)
+            if not env.agents:
+                env.reset()
+        return steps
+
+    return run
+
+
+def torchrl_runner(name: str, config: dict, steps: int) -> Callable[[], int]:
+    env = make_env(name, seed=0, **config)
+    policy = ScriptedCAVPolicy(env)
+
+    def run() -> int:
+        with torch.no_grad():
+            env.rollout(steps, policy, break_when_any_done=False)
+        return steps
+
+    return run
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--steps", type=int, default=300, help="env steps per timed run")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs (best is kept)")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+
+    print(f"{'case':42s} {'layer':12s} {'steps/s':>9s}")
+    results: dict[str, dict[str, float]] = {}
+    for label, (name, config) in CASES.items():
+        layers = {
+            "raw": raw_runner(name, config, args.steps),
+            "pettingzoo": pettingzoo_runner(name, config, args.steps),
+            "torchrl": torchrl_runner(name, config, args.steps),
+        }
+        if name.startswith("figure-eight"):
+            stock = {**config, "stock_neighbour_search": True}
+            layers["stock-search"] = raw_runner(name, stock, args.steps)
+        results[label] = {}
+        for layer, run in layers.items():
+            results[label][layer] = best_rate(run, args.repeats)
+            print(f"{label:42s} {layer:12s} {results[label][layer]:9.1f}")
+
+    print("\nratios (same run)")
+    for label, rates in results.items():
+        overhead = rates["raw"] / rates["torchrl"] - 1.0
+        line = f"{label:42s} torchrl overhead vs raw: {100 * overhead:+.0f}% (target <= +30%)"
+        if "stock-search" in rates:
+            target = 3.0 if "22" in label else 2.0
+            speedup = rates["raw"] / rates["stock-search"]
+            line += f"; speed-up vs stock search: {speedup:.2f}x (target >= {target:.0f}x)"
+        print(line)
+
+
+if __name__ == "__main__":
+    main()
