@@ -1,5 +1,6 @@
 """NeighbourDatasets: exchange semantics, overhead accounting, FIFO, memory, sampling."""
 
+import io
 from collections import deque
 
 import pytest
@@ -214,8 +215,11 @@ def test_state_dict_round_trip_restores_data_counters_and_rng():
     data.add(_episode(5, n, 0))
     data.exchange(_graph(n, [(0, 2)]))
     data.add(_episode(2, n, 100))  # pending, not yet exchanged
+    buffer = io.BytesIO()
+    torch.save(data.state_dict(), buffer)
+    buffer.seek(0)
     restored = NeighbourDatasets(n, capacity_per_agent=8, seed=99)
-    restored.load_state_dict(data.state_dict())
+    restored.load_state_dict(torch.load(buffer, weights_only=True))
     for i in range(n):
         assert torch.equal(restored.dataset(i)["id"], data.dataset(i)["id"])
     assert torch.equal(restored.sample(16)["id"], data.sample(16)["id"])

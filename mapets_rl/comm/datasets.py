@@ -60,9 +60,10 @@ class NeighbourDatasets:
 
     Example:
         >>> data = NeighbourDatasets(n_agents=8, capacity_per_agent=2048)
+        >>> comm = CommunicationRange(100.0)
         >>> # per episode: transitions is a TensorDict with batch_size [T, I]
         >>> data.add(transitions, mask=rollout["agents", "mask"])
-        >>> stats = data.exchange(rollout["next", "agents", "neighbors"][-1])
+        >>> stats = data.exchange(comm.episode_graph(rollout))
         >>> batch = data.sample(128)  # TensorDict [I, 128], one row per agent
     """
 
