@@ -207,3 +207,27 @@ def test_bad_input():
         ShapleyActorCriticLoss(actor, critic)(td)
     with pytest.raises(ValueError, match="n_agents"):
         CoalitionCritic(0, OBS, ACT)
+
+
+def test_random_coalition_modes_and_mask():
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from mapets_rl.shapley import RandomCoalition
+
+    td = TensorDict(
+        {
+            ("agents", "observation"): torch.zeros(2000, 3, 1),
+            ("agents", "mask"): torch.tensor([True, True, False]).expand(2000, 3),
+        },
+        [2000],
+    )
+    module = RandomCoalition(3, join_prob=0.3)
+    with set_exploration_type(ExplorationType.RANDOM):
+        c = module(td)["agents", "coalition"]
+    assert abs(c[:, :2].float().mean().item() - 0.3) < 0.05
+    assert not c[:, 2].any()  # masked-out agents never join
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        c = module(td)["agents", "coalition"]
+    assert c[:, :2].all() and not c[:, 2].any()  # grand coalition of the alive agents
+    with pytest.raises(ValueError, match="eval_mode"):
+        RandomCoalition(3, eval_mode="half")

@@ -1,6 +1,7 @@
 """Shapley-value reward reallocation (Han et al.): TU-game core, coalition critic, actors."""
 
 from mapets_rl.shapley.actor import CoalitionObservation, make_coalition_actor
+from mapets_rl.shapley.coalition import RandomCoalition
 from mapets_rl.shapley.critic import CoalitionCritic
 from mapets_rl.shapley.game import (
     MAX_EXACT_AGENTS,
@@ -19,6 +20,7 @@ __all__ = [
     "CoalitionCritic",
     "CoalitionObservation",
     "make_coalition_actor",
+    "RandomCoalition",
     "MAX_EXACT_AGENTS",
     "coalition_masks",
     "exact_shapley",

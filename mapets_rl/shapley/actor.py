@@ -80,6 +80,7 @@ def make_coalition_actor(
     num_cells: Sequence[int] = (64, 64),
     activation_class: type[nn.Module] = nn.Tanh,
     share_params: bool = False,
+    action_head: nn.Module | None = None,
     action_low: float = -1.0,
     action_high: float = 1.0,
     observation_key: NestedKey = ("agents", "observation"),
@@ -91,9 +92,11 @@ def make_coalition_actor(
     """Deterministic per-agent actors ``pi_i(s^C)`` (torchrl ``MultiAgentMLP``, one set of
     parameters per agent unless ``share_params``).
 
-    Discrete: writes ``logits_key [*, n, act]`` and the greedy one-hot ``action_key [*, n, act]``
-    (order for the freeway: KL, CL, CR, ES). Continuous: writes ``action_key [*, n, act]`` squashed
-    into ``[action_low, action_high]`` with ``TanhModule``.
+    Discrete: writes ``logits_key [*, n, act]`` and ``action_key [*, n, act]``, the one-hot image
+    of the logits by ``action_head`` (default: greedy ``argmax``; pass e.g. a Gumbel-softmax
+    sampler for exploration). Freeway order: KL, CL, CR, ES.
+    Continuous: writes ``action_key [*, n, act]`` squashed into ``[action_low, action_high]``
+    with ``TanhModule``.
     """
     for name, val in (
         ("n_agents", n_agents),
@@ -120,7 +123,8 @@ def make_coalition_actor(
     )
     if discrete:
         head = TensorDictModule(net, in_keys=[view_key], out_keys=[logits_key])
-        greedy = TensorDictModule(_one_hot_argmax, in_keys=[logits_key], out_keys=[action_key])
+        to_action = action_head if action_head is not None else _one_hot_argmax
+        greedy = TensorDictModule(to_action, in_keys=[logits_key], out_keys=[action_key])
         return TensorDictSequential(view, head, greedy)
     param_key = ("agents", "param")
     head = TensorDictModule(net, in_keys=[view_key], out_keys=[param_key])

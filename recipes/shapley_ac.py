@@ -1,0 +1,256 @@
+"""Shapley-value reward reallocation actor-critic (Han et al., Algorithm 1) on the freeway.
+
+Reads top to bottom: config -> modules (coalition sampler, actors on ``s^C``, coalition critic)
+-> collector -> replay buffer -> loss + target updater -> optimisers -> ``train_step``.
+
+Every collected step carries a fresh random coalition ``C`` (Algorithm 1 line 6, written by
+:class:`~mapets_rl.shapley.RandomCoalition` into ``("agents", "coalition")``); agent ``i``'s actor
+sees ``s^C`` (line 7); the transition ``(s, a, C, r, s')`` is replayed to train the
+characteristic function ``v(s, a, C)`` on ``R(C) = sum_{i in C} r_i`` and the actors on the
+Shapley value ``phi_i`` (lines 9-15, :class:`~mapets_rl.objectives.ShapleyActorCriticLoss`).
+Evaluation uses the grand coalition (all CAVs cooperate), as the paper reports.
+
+Usage::
+
+    from recipes.shapley_ac import ShapleyAC, ShapleyACConfig
+    ShapleyAC(ShapleyACConfig(total_frames=4000, seed=1)).train()
+
+or ``mapets-rl train shapley_ac env_config.cav_ratio=0.5``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictSequential
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.objectives import SoftUpdate
+
+from mapets_rl.experiment import Experiment, ExperimentConfig, check
+from mapets_rl.experiment.multiagent import AgentGroupSpec, GumbelSoftmaxHead
+from mapets_rl.objectives import ShapleyActorCriticLoss
+from mapets_rl.shapley import CoalitionCritic, RandomCoalition, make_coalition_actor
+
+OBS = ("agents", "observation")
+ACTION = ("agents", "action")
+COALITION = ("agents", "coalition")
+REPLAY_KEYS = [
+    OBS,
+    ACTION,
+    COALITION,
+    ("next", "agents", "observation"),
+    ("next", "agents", "reward"),
+    ("next", "agents", "terminated"),
+]
+
+
+def _default_env_config() -> dict[str, Any]:
+    # CPU scale: 8 vehicles of which 4 CAVs (paper: 30 CAVs); see ShapleyACConfig.
+    return {"n_vehicles": 8, "cav_ratio": 0.5}
+
+
+@dataclasses.dataclass
+class ShapleyACConfig(ExperimentConfig):
+    """Shapley actor-critic hyper-parameters (inherits env / seed / frame budget / logging).
+
+    Attributes:
+        gamma: discount.
+        tau: soft target update rate (Algorithm 1 line 15).
+        actor_lr, critic_lr: Adam learning rates.
+        actor_cells, critic_cells: hidden sizes of the per-agent actors / the coalition critic.
+        share_actor_params: one actor for all CAVs instead of one per CAV.
+        buffer_size: replay capacity in transitions.
+        batch_size: minibatch size (transitions).
+        updates_per_batch: gradient steps per collected batch.
+        warmup_frames: transitions in the buffer before the first update.
+        join_prob: probability that a CAV joins the random coalition of a timestep.
+        eval_coalition: coalition used in evaluation: ``grand``, ``empty`` or ``random``.
+        gumbel_temperature: Gumbel-softmax temperature (exploration and actor gradient).
+        exact_max_agents: Shapley exact up to this many CAVs, permutation sampling beyond.
+        num_permutations: orderings per update on the sampled path.
+        max_grad_norm: gradient clipping.
+    """
+
+    env: str = "freeway"
+    env_config: dict[str, Any] = dataclasses.field(default_factory=_default_env_config)
+    total_frames: int = 4000
+    frames_per_batch: int = 40
+    eval_interval: int = 400
+    eval_episodes: int = 2
+    checkpoint_interval: int = 1000
+    gamma: float = 0.95
+    tau: float = 0.01
+    actor_lr: float = 1e-3
+    critic_lr: float = 1e-3
+    actor_cells: list[int] = dataclasses.field(default_factory=lambda: [64, 64])
+    critic_cells: list[int] = dataclasses.field(default_factory=lambda: [128, 128])
+    share_actor_params: bool = False
+    buffer_size: int = 100_000
+    batch_size: int = 128
+    updates_per_batch: int = 4
+    warmup_frames: int = 200
+    join_prob: float = 0.5
+    eval_coalition: str = "grand"
+    gumbel_temperature: float = 1.0
+    exact_max_agents: int = 10
+    num_permutations: int = 32
+    max_grad_norm: float = 10.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(0.0 <= self.gamma <= 1.0, "gamma", "in [0, 1]", self.gamma)
+        check(0.0 < self.tau <= 1.0, "tau", "in (0, 1]", self.tau)
+        check(self.actor_lr > 0, "actor_lr", "> 0", self.actor_lr)
+        check(self.critic_lr > 0, "critic_lr", "> 0", self.critic_lr)
+        for name in ("actor_cells", "critic_cells"):
+            cells = getattr(self, name)
+            check(
+                len(cells) > 0 and all(c >= 1 for c in cells),
+                name,
+                "a non-empty list of ints >= 1",
+                cells,
+            )
+        check(self.buffer_size >= self.batch_size, "buffer_size", ">= batch_size", self.buffer_size)
+        check(self.batch_size >= 1, "batch_size", ">= 1", self.batch_size)
+        check(self.updates_per_batch >= 1, "updates_per_batch", ">= 1", self.updates_per_batch)
+        check(self.warmup_frames >= 0, "warmup_frames", ">= 0", self.warmup_frames)
+        check(0.0 <= self.join_prob <= 1.0, "join_prob", "in [0, 1]", self.join_prob)
+        check(
+            self.eval_coalition in ("grand", "empty", "random"),
+            "eval_coalition",
+            "one of grand, empty, random",
+            self.eval_coalition,
+        )
+        check(self.gumbel_temperature > 0, "gumbel_temperature", "> 0", self.gumbel_temperature)
+        check(
+            1 <= self.exact_max_agents <= 20,
+            "exact_max_agents",
+            "in [1, 20]",
+            self.exact_max_agents,
+        )
+        check(
+            self.num_permutations >= 2 and self.num_permutations % 2 == 0,
+            "num_permutations",
+            "an even int >= 2",
+            self.num_permutations,
+        )
+        check(self.max_grad_norm > 0, "max_grad_norm", "> 0", self.max_grad_norm)
+
+
+class ShapleyAC(Experiment):
+    """Cooperative policy learning with Shapley value reward reallocation (Algorithm 1)."""
+
+    name = "shapley_ac"
+    Config = ShapleyACConfig
+
+    def __init__(self, config: ShapleyACConfig, run_dir: Any = None) -> None:
+        super().__init__(config, run_dir)
+        group = AgentGroupSpec.from_env(self.env)
+        if not group.discrete:
+            raise ValueError(
+                f"env {config.env!r} must have one-hot (discrete) actions for "
+                "shapley_ac, e.g. the freeway"
+            )
+        n, device = group.n_agents, self.device
+
+        # modules: coalition of the timestep -> actors on s^C; coalition critic v(s, a, C)
+        self.coalition = RandomCoalition(
+            n, join_prob=config.join_prob, eval_mode=config.eval_coalition
+        )
+        self.actor = make_coalition_actor(
+            n,
+            group.obs_dim,
+            group.action_dim,
+            discrete=True,
+            num_cells=config.actor_cells,
+            share_params=config.share_actor_params,
+            action_head=GumbelSoftmaxHead(config.gumbel_temperature),
+            device=device,
+        )
+        self.critic = CoalitionCritic(
+            n, group.obs_dim, group.action_dim, num_cells=config.critic_cells, device=device
+        )
+        self.policy = TensorDictSequential(self.coalition, self.actor)
+
+        # collector (no random warm-up phase: the coalition is written by the policy)
+        self.collector = self.make_collector(self.policy)
+        self.eval_policy = self.policy
+
+        self.buffer = TensorDictReplayBuffer(
+            storage=LazyTensorStorage(config.buffer_size, device=device),
+            batch_size=config.batch_size,
+        )
+
+        # loss + soft target updates
+        self.loss = ShapleyActorCriticLoss(
+            self.actor,
+            self.critic,
+            action_space="discrete",
+            gamma=config.gamma,
+            exact_max_agents=config.exact_max_agents,
+            num_permutations=config.num_permutations,
+            gumbel_temperature=config.gumbel_temperature,
+        )
+        self.updater = SoftUpdate(self.loss, tau=config.tau)
+        self.actor_optim = torch.optim.Adam(
+            self.loss.actor_network_params.values(True, True), lr=config.actor_lr
+        )
+        self.critic_optim = torch.optim.Adam(
+            self.loss.critic_network_params.values(True, True), lr=config.critic_lr
+        )
+
+    def train_step(self, batch: TensorDictBase) -> dict[str, float]:
+        cfg = self.config
+        self.buffer.extend(batch.reshape(-1).select(*REPLAY_KEYS).to(self.device))
+        if len(self.buffer) < max(cfg.warmup_frames, cfg.batch_size):
+            return {}
+        logs: dict[str, float] = {}
+        for _ in range(cfg.updates_per_batch):
+            sample = self.buffer.sample()
+            loss_value, meta = self.loss.loss_value(sample)
+            self.critic_optim.zero_grad()
+            loss_value.backward()
+            torch.nn.utils.clip_grad_norm_(
+                self.critic_optim.param_groups[0]["params"], cfg.max_grad_norm
+            )
+            self.critic_optim.step()
+            loss_actor, meta_actor = self.loss.loss_actor(sample)
+            self.actor_optim.zero_grad()
+            loss_actor.backward()
+            torch.nn.utils.clip_grad_norm_(
+                self.actor_optim.param_groups[0]["params"], cfg.max_grad_norm
+            )
+            self.actor_optim.step()
+            self.updater.step()
+            step = {
+                "loss_value": loss_value.item(),
+                "loss_actor": loss_actor.item(),
+                **{k: v.item() for k, v in {**meta, **meta_actor}.items()},
+            }
+            for key, val in step.items():
+                logs[key] = logs.get(key, 0.0) + val / cfg.updates_per_batch
+        return logs
+
+    def stateful_components(self) -> dict[str, Any]:
+        return {
+            "loss": self.loss,
+            "actor_optim": self.actor_optim,
+            "critic_optim": self.critic_optim,
+            "buffer": self.buffer,
+        }
+
+    def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
+        """Adds the system reward per step (sum over CAVs, the paper's Fig. 2 quantity)."""
+        out = super().batch_metrics(batch)
+        reward = batch.get(("next", "agents", "reward")).float()
+        out["system_reward"] = reward.sum((-2, -1)).mean().item()
+        return out
+
+    def episode_metrics(self, rollout: TensorDictBase) -> dict[str, float]:
+        """Adds ``system_return``: the episode's reward summed over CAVs and steps."""
+        out = super().episode_metrics(rollout)
+        out["system_return"] = rollout.get(("next", "agents", "reward")).float().sum().item()
+        return out
