@@ -46,7 +46,9 @@ class ToyAgentsEnv(EnvBase):
         self.action_spec = Composite(agents=Composite(
             action=Bounded(-1.0, 1.0, (i, 1)), shape=(i,)))
         self.reward_spec = Composite(agents=Composite(reward=Unbounded((i, 1)), shape=(i,)))
+        flag = Categorical(2, (i, 1), dtype=torch.bool)
         self.done_spec = Composite(
+            agents=Composite(done=flag, terminated=flag.clone(), shape=(i,)),
             done=Categorical(2, (1,), dtype=torch.bool),
             terminated=Categorical(2, (1,), dtype=torch.bool),
             truncated=Categorical(2, (1,), dtype=torch.bool))
@@ -59,11 +61,15 @@ class ToyAgentsEnv(EnvBase):
         t = torch.full((self.n_agents, 1), self.t / self.horizon)
         return torch.cat([self.x, t], -1)
 
+    def _flags(self, value: bool) -> torch.Tensor:
+        return torch.full((self.n_agents, 1), value)
+
     def _reset(self, td=None) -> TensorDict:
         self.t = 0
         self.x = torch.rand(self.n_agents, 1, generator=self.rng) * 4 - 2
         false = torch.zeros(1, dtype=torch.bool)
-        agents = TensorDict({"observation": self._obs()}, [self.n_agents])
+        agents = TensorDict({"observation": self._obs(), "done": self._flags(False),
+                             "terminated": self._flags(False)}, [self.n_agents])
         return TensorDict({"agents": agents, "done": false,
                            "terminated": false.clone(), "truncated": false.clone()})
 
@@ -72,7 +78,8 @@ class ToyAgentsEnv(EnvBase):
         self.x = self.x + 0.5 * a + 0.05 * torch.randn(self.x.shape, generator=self.rng)
         self.t += 1
         trunc = torch.tensor([self.t >= self.horizon])
-        agents = TensorDict({"observation": self._obs(), "reward": -self.x.pow(2)},
+        agents = TensorDict({"observation": self._obs(), "reward": -self.x.pow(2),
+                             "done": self._flags(bool(trunc)), "terminated": self._flags(False)},
                             [self.n_agents])
         return TensorDict({"agents": agents, "done": trunc, "truncated": trunc.clone(),
                            "terminated": torch.zeros(1, dtype=torch.bool)})

@@ -32,6 +32,7 @@ from mapets_rl.experiment.checkpoint import (
     set_rng_state,
 )
 from mapets_rl.experiment.config import ConfigError, ExperimentConfig, atomic_write_text
+from mapets_rl.experiment.multiagent import masked_mean
 from mapets_rl.experiment.results import (
     ResultsWriter,
     log_scalars,
@@ -118,6 +119,7 @@ class Experiment:
                                      config.to_dict())
         self.env = self.make_env()
         self.collector: Collector | MultiSyncCollector | None = None
+        self._collector_args: tuple[TensorDictModuleBase, int, dict[str, Any]] | None = None
         self.eval_policy: TensorDictModuleBase | None = None
         self.latest_metrics: dict[str, float] = {}
 
@@ -126,12 +128,20 @@ class Experiment:
         """A fresh environment of ``config.env`` with ``config.env_config``."""
         return build_env(self.config.env, self.config.env_config)
 
-    def make_collector(self, policy: TensorDictModuleBase, **kwargs: Any
-                       ) -> Collector | MultiSyncCollector:
+    def make_collector(self, policy: TensorDictModuleBase, init_random_frames: int = 0,
+                       **kwargs: Any) -> Collector | MultiSyncCollector:
         """An endless torchrl collector for ``policy`` (``Collector`` in this process when
         ``num_envs == 1``, else ``MultiSyncCollector`` with one env per process); the run loop
-        stops it at ``total_frames``. Extra ``kwargs`` go to the collector."""
+        stops it at ``total_frames``. The first ``init_random_frames`` frames of the run use
+        uniformly random actions (counted over the whole run, resumes included). Extra
+        ``kwargs`` go to the collector."""
+        if init_random_frames < 0:
+            raise ValueError(f"init_random_frames must be >= 0, got {init_random_frames}")
+        self._collector_args = (policy, init_random_frames, kwargs)
         cfg = self.config
+        remaining = max(init_random_frames - self.frames, 0)
+        if remaining:
+            kwargs = {**kwargs, "init_random_frames": remaining}
         env_fn = functools.partial(build_env, cfg.env, cfg.env_config)
         common = dict(frames_per_batch=cfg.frames_per_batch, total_frames=-1,
                       device=self.device, exploration_type=ExplorationType.RANDOM,
@@ -153,36 +163,33 @@ class Experiment:
         raise NotImplementedError
 
     def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
-        """Training metrics of a collected batch: mean per-agent reward and, for episodes
-        that ended in it, the episode metrics the environment reports."""
-        reward = batch.get(("next", "agents", "reward"), None)
-        out = {} if reward is None else {"reward": reward.float().mean().item()}
-        done = batch.get(("next", "done"))
-        info = batch.get(("next", "agents", "episode_metrics"), None) \
-            if done.any() else None
+        """Training metrics of a collected batch [T]: mean reward of the CAVs alive
+        (``("agents", "mask")``) and, on the freeway, the mean traffic velocity and comfort."""
+        mask = batch.get(("next", "agents", "mask"), None)
+        out = {"reward": masked_mean(batch.get(("next", "agents", "reward")), mask)}
+        info = batch.get(("next", "agents", "info"), None)
         if info is not None:
-            ended = done.reshape(done.shape[: batch.ndim])
-            for key, val in info[ended].items():
-                out[key] = val.float().mean().item()
+            for key in ("traffic_velocity", "traffic_comfort"):
+                if key in info.keys():
+                    out[key.removeprefix("traffic_")] = masked_mean(info.get(key), mask)
         return out
 
     def episode_metrics(self, rollout: TensorDictBase) -> dict[str, float]:
         """Metrics of one evaluation episode ``rollout`` (shape [T]).
 
-        ``reward``: mean per-agent reward per step; ``return``: per-agent summed reward,
-        averaged over agents; ``length``: steps. When the env exposes
-        ``mapets_rl.metrics.episode_metrics`` it adds the scenario's metrics (agility and
-        safety on the figure-eight, velocity and comfort on the freeway).
+        ``reward``: mean reward per step of the CAVs alive; ``return``: per-CAV summed reward,
+        averaged over CAVs; ``length``: steps; plus the scenario's episode metrics that the env
+        reports in ``last_episode_metrics`` (figure-eight: agility, safety, mean speed; freeway:
+        velocity, comfort).
         """
         reward = rollout.get(("next", "agents", "reward")).float()  # [T, I, 1]
-        out = {"reward": reward.mean().item(),
+        out = {"reward": masked_mean(reward, rollout.get(("next", "agents", "mask"), None)),
                "return": reward.sum(0).mean().item(),
                "length": float(rollout.shape[0])}
-        try:
-            from mapets_rl.metrics import episode_metrics
-        except ImportError:
-            return out
-        out.update({k: float(v) for k, v in episode_metrics(rollout, self.env).items()})
+        scenario = getattr(self.env, "last_episode_metrics", None)
+        if isinstance(scenario, Mapping):
+            out.update({k: float(v) for k, v in scenario.items()
+                        if isinstance(v, (int, float))})
         return out
 
     # --------------------------------------------------------------------------- the loop
@@ -313,6 +320,11 @@ class Experiment:
         self.results.evaluations = json.loads(state["evaluations"])
         self.latest_metrics = (self.results.evaluations[-1]["metrics"]
                                if self.results.evaluations else {})
+        if self._collector_args is not None and self._collector_args[1] > 0:
+            # the random-action warm-up is counted over the run: rebuild for what is left
+            self.collector.shutdown()
+            policy, init_random, kwargs = self._collector_args
+            self.collector = self.make_collector(policy, init_random, **kwargs)
         set_rng_state(state["rng"])
 
     def save_checkpoint(self) -> Path:

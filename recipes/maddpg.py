@@ -1,0 +1,194 @@
+"""MADDPG baseline (Lowe et al. 2017): deterministic per-agent actors, a centralised critic.
+
+config -> env -> modules (actors o_i -> a_i; critic Q_i(o_1..o_I, a_1..a_I) as a centralised
+``MultiAgentMLP``) -> collector (annealed Gaussian exploration) -> replay buffer -> loss
+(torchrl ``DDPGLoss``, TD(0) targets, target networks by ``SoftUpdate``) -> loop (shared
+``Experiment.train``).
+
+Discrete actions (freeway): the actor outputs logits and a Gumbel-softmax head
+(:class:`~mapets_rl.experiment.multiagent.GumbelSoftmaxHead`) turns them into one-hot actions
+that carry gradients — a hard Gumbel sample at temperature ``gumbel_tau`` while collecting (this
+is the exploration; the Gaussian noise applies to continuous actions only) and the greedy
+one-hot with the straight-through softmax gradient in the actor update and evaluation. This is
+the discrete variant of the MADDPG paper (Gumbel-softmax), chosen because it keeps the
+deterministic policy gradient through the centralised critic unchanged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.modules import AdditiveGaussianModule, MultiAgentMLP, TanhModule
+from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
+
+from mapets_rl.experiment import Experiment, ExperimentConfig, check
+from mapets_rl.experiment.multiagent import (
+    ACTION,
+    GROUP,
+    LOSS_KEYS,
+    OBS,
+    AgentGroupSpec,
+    GumbelSoftmaxHead,
+)
+
+OBS_ACTION = (GROUP, "obs_action")
+Q_VALUE = (GROUP, "state_action_value")
+
+
+def concat_last(*tensors: torch.Tensor) -> torch.Tensor:
+    """Concatenate along the last dim ([*, I, obs] + [*, I, act] -> [*, I, obs + act])."""
+    return torch.cat(tensors, dim=-1)
+
+
+@dataclasses.dataclass
+class MADDPGConfig(ExperimentConfig):
+    """MADDPG hyper-parameters (plus the shared :class:`ExperimentConfig` fields).
+
+    Attributes:
+        lr_actor, lr_critic: Adam learning rates (> 0).
+        gamma: discount in [0, 1].
+        tau: soft target update rate in (0, 1].
+        buffer_size: replay capacity in transitions (>= batch_size).
+        batch_size: transitions per gradient step (>= 1).
+        updates_per_batch: gradient steps per collected batch (>= 1).
+        init_random_frames: first frames of the run with uniformly random actions (>= 0).
+        sigma_init, sigma_end: Gaussian exploration std as a fraction of the half action
+            range, annealed linearly over ``sigma_anneal_frames`` (continuous actions).
+        gumbel_tau: Gumbel-softmax temperature (> 0; discrete actions).
+        num_cells: hidden layer sizes of actor and critic MLPs.
+        share_params: one actor network shared by all agents (else one per agent).
+        max_grad_norm: gradient-norm clip (> 0).
+    """
+
+    lr_actor: float = 1e-3
+    lr_critic: float = 1e-3
+    gamma: float = 0.95
+    tau: float = 0.01
+    buffer_size: int = 100_000
+    batch_size: int = 256
+    updates_per_batch: int = 20
+    init_random_frames: int = 200
+    sigma_init: float = 0.3
+    sigma_end: float = 0.05
+    sigma_anneal_frames: int = 3000
+    gumbel_tau: float = 1.0
+    num_cells: list[int] = dataclasses.field(default_factory=lambda: [64, 64])
+    share_params: bool = True
+    max_grad_norm: float = 1.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        for name in ("lr_actor", "lr_critic", "gumbel_tau", "max_grad_norm"):
+            check(getattr(self, name) > 0, name, "> 0", getattr(self, name))
+        check(0 <= self.gamma <= 1, "gamma", "in [0, 1]", self.gamma)
+        check(0 < self.tau <= 1, "tau", "in (0, 1]", self.tau)
+        check(self.batch_size >= 1, "batch_size", ">= 1", self.batch_size)
+        check(self.buffer_size >= self.batch_size, "buffer_size",
+              f">= batch_size={self.batch_size}", self.buffer_size)
+        check(self.updates_per_batch >= 1, "updates_per_batch", ">= 1", self.updates_per_batch)
+        check(self.init_random_frames >= 0, "init_random_frames", ">= 0",
+              self.init_random_frames)
+        check(0 <= self.sigma_end <= self.sigma_init, "sigma_end", "in [0, sigma_init]",
+              self.sigma_end)
+        check(self.sigma_anneal_frames >= 1, "sigma_anneal_frames", ">= 1",
+              self.sigma_anneal_frames)
+        check(len(self.num_cells) >= 1 and min(self.num_cells) >= 1, "num_cells",
+              "a non-empty list of positive layer sizes", self.num_cells)
+
+
+class MADDPG(Experiment):
+    """MADDPG with a centralised critic on any scenario (continuous or one-hot actions)."""
+
+    name = "maddpg"
+    Config = MADDPGConfig
+
+    def __init__(self, config: MADDPGConfig, run_dir=None) -> None:
+        super().__init__(config, run_dir)  # seeds, run dir, self.env
+        spec = AgentGroupSpec.from_env(self.env)
+        depth, cells = len(config.num_cells), config.num_cells
+
+        # modules: actor o_i -> a_i (bounded by tanh, or one-hot by Gumbel-softmax)
+        actor_mlp = MultiAgentMLP(n_agent_inputs=spec.obs_dim, n_agent_outputs=spec.action_dim,
+                                  n_agents=spec.n_agents, centralized=False,
+                                  share_params=config.share_params, depth=depth,
+                                  num_cells=cells, activation_class=nn.ReLU)
+        if spec.discrete:
+            self.actor = TensorDictModule(nn.Sequential(actor_mlp,
+                                                        GumbelSoftmaxHead(config.gumbel_tau)),
+                                          in_keys=[OBS], out_keys=[ACTION])
+            self.exploration = None
+            collection_policy = self.actor
+        else:
+            self.actor = TensorDictSequential(
+                TensorDictModule(actor_mlp, in_keys=[OBS], out_keys=[(GROUP, "param")]),
+                TanhModule(in_keys=[(GROUP, "param")], out_keys=[ACTION],
+                           spec=spec.action_spec))
+            self.exploration = AdditiveGaussianModule(
+                spec=self.env.full_action_spec_unbatched, sigma_init=config.sigma_init,
+                sigma_end=config.sigma_end, annealing_num_steps=config.sigma_anneal_frames,
+                std=spec.action_half_range, action_key=ACTION)
+            collection_policy = TensorDictSequential(self.actor, self.exploration)
+        # centralised critic Q_i(o_1..o_I, a_1..a_I), one output per agent
+        self.critic = TensorDictSequential(
+            TensorDictModule(concat_last, in_keys=[OBS, ACTION], out_keys=[OBS_ACTION]),
+            TensorDictModule(
+                MultiAgentMLP(n_agent_inputs=spec.obs_dim + spec.action_dim, n_agent_outputs=1,
+                              n_agents=spec.n_agents, centralized=True, share_params=True,
+                              depth=depth, num_cells=cells, activation_class=nn.ReLU),
+                in_keys=[OBS_ACTION], out_keys=[Q_VALUE]))
+
+        # collector
+        self.collector = self.make_collector(collection_policy,
+                                             init_random_frames=config.init_random_frames)
+        self.eval_policy = self.actor
+
+        # buffer
+        self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(config.buffer_size),
+                                             batch_size=config.batch_size)
+
+        # loss: DDPG with per-agent TD(0) targets through target actor and critic
+        self.loss = DDPGLoss(actor_network=self.actor, value_network=self.critic,
+                             delay_actor=True, delay_value=True, loss_function="l2")
+        self.loss.set_keys(**LOSS_KEYS, state_action_value=Q_VALUE)
+        self.loss.make_value_estimator(ValueEstimators.TD0, gamma=config.gamma)
+        self.target_updater = SoftUpdate(self.loss, tau=config.tau)
+        self.optim_actor = torch.optim.Adam(self.loss.actor_network_params.values(True, True),
+                                            lr=config.lr_actor)
+        self.optim_critic = torch.optim.Adam(self.loss.value_network_params.values(True, True),
+                                             lr=config.lr_critic)
+
+    def train_step(self, batch: TensorDictBase) -> dict[str, float]:
+        """Store the batch; ``updates_per_batch`` critic + actor steps; soft target update."""
+        self.buffer.extend(batch.reshape(-1))
+        if self.exploration is not None:
+            self.exploration.step(batch.numel())
+        if len(self.buffer) < self.config.batch_size:
+            return {}
+        logs = {"loss_actor": 0.0, "loss_value": 0.0}
+        n = self.config.updates_per_batch
+        for _ in range(n):
+            out = self.loss(self.buffer.sample())
+            # the actor loss sees detached critic params, so one backward serves both
+            self.optim_actor.zero_grad()
+            self.optim_critic.zero_grad()
+            (out["loss_actor"] + out["loss_value"]).backward()
+            for optim in (self.optim_actor, self.optim_critic):
+                params = [p for g in optim.param_groups for p in g["params"]]
+                nn.utils.clip_grad_norm_(params, self.config.max_grad_norm)
+                optim.step()
+            for key in logs:
+                logs[key] += out[key].item() / n
+            self.target_updater.step()
+        return logs
+
+    def stateful_components(self) -> dict:
+        parts = {"loss": self.loss, "optim_actor": self.optim_actor,
+                 "optim_critic": self.optim_critic, "buffer": self.buffer}
+        if self.exploration is not None:
+            parts["exploration"] = self.exploration
+        return parts

@@ -1,0 +1,161 @@
+"""MAPPO (Yu et al. 2022) and IPPO (de Witt et al. 2020) baselines.
+
+config -> env -> modules (per-agent policy, centralised or per-agent value) -> collector ->
+buffer (the last batch, sampled without replacement in minibatches) -> loss (torchrl
+``MAPPOLoss`` / ``IPPOLoss`` with ``MultiAgentGAE``) -> loop (shared ``Experiment.train``).
+
+Continuous actions (figure-eight) use a TanhNormal head bounded by the action spec; discrete
+actions (freeway, one-hot KL/CL/CR/ES) use a one-hot categorical head.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
+from torchrl.modules import MultiAgentMLP, OneHotCategorical, ProbabilisticActor, TanhNormal
+from torchrl.objectives import ValueEstimators
+from torchrl.objectives.multiagent import IPPOLoss, MAPPOLoss
+
+from mapets_rl.experiment import Experiment, ExperimentConfig, check
+from mapets_rl.experiment.multiagent import ACTION, GROUP, LOSS_KEYS, OBS, AgentGroupSpec
+
+VALUE = (GROUP, "state_value")
+LOG_PROB = (GROUP, "action_log_prob")
+
+
+@dataclasses.dataclass
+class MAPPOConfig(ExperimentConfig):
+    """MAPPO / IPPO hyper-parameters (plus the shared :class:`ExperimentConfig` fields).
+
+    Attributes:
+        lr: Adam learning rate of policy and value (> 0).
+        gamma: discount in [0, 1].
+        lmbda: GAE lambda in [0, 1].
+        clip_epsilon: PPO ratio clip (> 0).
+        entropy_coeff: entropy bonus weight (>= 0).
+        critic_coeff: value-loss weight (> 0).
+        epochs: passes over each collected batch (>= 1).
+        minibatch_size: transitions per gradient step (1 .. frames_per_batch).
+        max_grad_norm: gradient-norm clip (> 0).
+        num_cells: hidden layer sizes of the policy and value MLPs.
+        share_params: one policy network shared by all agents (else one per agent).
+        ippo: decentralised per-agent values (IPPO) instead of the centralised value (MAPPO).
+    """
+
+    lr: float = 3e-4
+    gamma: float = 0.99
+    lmbda: float = 0.95
+    clip_epsilon: float = 0.2
+    entropy_coeff: float = 0.01
+    critic_coeff: float = 1.0
+    epochs: int = 4
+    minibatch_size: int = 100
+    max_grad_norm: float = 1.0
+    num_cells: list[int] = dataclasses.field(default_factory=lambda: [64, 64])
+    share_params: bool = True
+    ippo: bool = False
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(self.lr > 0, "lr", "> 0", self.lr)
+        check(0 <= self.gamma <= 1, "gamma", "in [0, 1]", self.gamma)
+        check(0 <= self.lmbda <= 1, "lmbda", "in [0, 1]", self.lmbda)
+        check(self.clip_epsilon > 0, "clip_epsilon", "> 0", self.clip_epsilon)
+        check(self.entropy_coeff >= 0, "entropy_coeff", ">= 0", self.entropy_coeff)
+        check(self.critic_coeff > 0, "critic_coeff", "> 0", self.critic_coeff)
+        check(self.epochs >= 1, "epochs", ">= 1", self.epochs)
+        check(1 <= self.minibatch_size <= self.frames_per_batch, "minibatch_size",
+              f"in [1, frames_per_batch={self.frames_per_batch}]", self.minibatch_size)
+        check(self.max_grad_norm > 0, "max_grad_norm", "> 0", self.max_grad_norm)
+        check(len(self.num_cells) >= 1 and min(self.num_cells) >= 1, "num_cells",
+              "a non-empty list of positive layer sizes", self.num_cells)
+
+
+def make_stochastic_policy(spec: AgentGroupSpec, num_cells: list[int], share_params: bool,
+                           return_log_prob: bool = True) -> ProbabilisticActor:
+    """Decentralised stochastic policy: ``("agents","observation")`` [*, I, obs] ->
+    ``("agents","action")`` [*, I, act] (TanhNormal within the action bounds, or one-hot
+    categorical [*, I, n]) and its log-probability ``("agents","action_log_prob")`` [*, I]."""
+    n_out = spec.action_dim if spec.discrete else 2 * spec.action_dim
+    mlp = MultiAgentMLP(n_agent_inputs=spec.obs_dim, n_agent_outputs=n_out,
+                        n_agents=spec.n_agents, centralized=False, share_params=share_params,
+                        depth=len(num_cells), num_cells=num_cells, activation_class=nn.Tanh)
+    if spec.discrete:
+        module = TensorDictModule(mlp, in_keys=[OBS], out_keys=[(GROUP, "logits")])
+        dist_keys, dist_cls, dist_kwargs = [(GROUP, "logits")], OneHotCategorical, {}
+    else:
+        module = TensorDictModule(nn.Sequential(mlp, NormalParamExtractor()), in_keys=[OBS],
+                                  out_keys=[(GROUP, "loc"), (GROUP, "scale")])
+        dist_keys, dist_cls = [(GROUP, "loc"), (GROUP, "scale")], TanhNormal
+        dist_kwargs = {"low": spec.action_spec.space.low, "high": spec.action_spec.space.high}
+    return ProbabilisticActor(module, in_keys=dist_keys, out_keys=[ACTION],
+                              spec=spec.action_spec, distribution_class=dist_cls,
+                              distribution_kwargs=dist_kwargs, return_log_prob=return_log_prob,
+                              log_prob_key=LOG_PROB)
+
+
+class MAPPO(Experiment):
+    """MAPPO (centralised value) or IPPO (``ippo=True``) on any scenario."""
+
+    name = "mappo"
+    Config = MAPPOConfig
+
+    def __init__(self, config: MAPPOConfig, run_dir=None) -> None:
+        super().__init__(config, run_dir)  # seeds, run dir, self.env
+        spec = AgentGroupSpec.from_env(self.env)
+
+        # modules: decentralised policy; value V(o_1..o_I) per agent (MAPPO) or V(o_i) (IPPO)
+        self.policy = make_stochastic_policy(spec, config.num_cells, config.share_params)
+        value_mlp = MultiAgentMLP(n_agent_inputs=spec.obs_dim, n_agent_outputs=1,
+                                  n_agents=spec.n_agents, centralized=not config.ippo,
+                                  share_params=True, depth=len(config.num_cells),
+                                  num_cells=config.num_cells, activation_class=nn.Tanh)
+        self.critic = TensorDictModule(value_mlp, in_keys=[OBS], out_keys=[VALUE])
+
+        # collector (on-policy: the stochastic policy explores; evaluation takes its mode)
+        self.collector = self.make_collector(self.policy)
+        self.eval_policy = self.policy
+
+        # buffer: the latest batch, minibatches without replacement
+        self.buffer = TensorDictReplayBuffer(
+            storage=LazyTensorStorage(config.frames_per_batch),
+            sampler=SamplerWithoutReplacement(), batch_size=config.minibatch_size)
+
+        # loss: clipped surrogate + value + entropy, advantages by MultiAgentGAE
+        loss_cls = IPPOLoss if config.ippo else MAPPOLoss
+        self.loss = loss_cls(self.policy, self.critic, clip_epsilon=config.clip_epsilon,
+                             entropy_coeff=config.entropy_coeff,
+                             critic_coeff=config.critic_coeff)
+        self.loss.set_keys(**LOSS_KEYS, action=ACTION, value=VALUE, sample_log_prob=LOG_PROB)
+        self.loss.make_value_estimator(ValueEstimators.MAGAE, gamma=config.gamma,
+                                       lmbda=config.lmbda)
+        self.optim = torch.optim.Adam(self.loss.parameters(), lr=config.lr)
+
+    def train_step(self, batch: TensorDictBase) -> dict[str, float]:
+        """GAE on the batch [T], then ``epochs`` passes of minibatch PPO updates."""
+        with torch.no_grad():
+            self.loss.value_estimator(batch, params=self.loss.critic_network_params,
+                                      target_params=self.loss.target_critic_network_params)
+        self.buffer.empty()
+        self.buffer.extend(batch.reshape(-1))
+        logs: dict[str, float] = {}
+        steps = self.config.epochs * max(batch.numel() // self.config.minibatch_size, 1)
+        for _ in range(steps):
+            out = self.loss(self.buffer.sample())
+            total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+            self.optim.zero_grad()
+            total.backward()
+            nn.utils.clip_grad_norm_(self.loss.parameters(), self.config.max_grad_norm)
+            self.optim.step()
+            for key in ("loss_objective", "loss_critic", "loss_entropy"):
+                logs[key] = logs.get(key, 0.0) + out[key].item() / steps
+        return logs
+
+    def stateful_components(self) -> dict:
+        return {"loss": self.loss, "optim": self.optim, "buffer": self.buffer}
