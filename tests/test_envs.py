@@ -1,0 +1,267 @@
+"""Scenarios: geometry, signals, crossing rule, determinism, API compliance, bad input."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from pettingzoo.test import parallel_api_test
+from torchrl.envs import SerialEnv
+from torchrl.envs.utils import check_env_specs
+
+from mapets_rl.envs import (
+    FigureEightEnv,
+    FigureEightParallelEnv,
+    FreewayEnv,
+    FreewayParallelEnv,
+    ScriptedCAVPolicy,
+    figure_eight_reward,
+    make_env,
+)
+from mapets_rl.envs.figure_eight_road import SEGMENTS, FigureEightGeometry
+from mapets_rl.envs.freeway import CL, ES, KL
+
+MAX_SPEED = 13.89
+
+
+def place(env: FigureEightEnv, vehicle, coordinate: float, speed: float, lane: int = 0) -> None:
+    """Put ``vehicle`` at route coordinate ``coordinate`` on ``lane`` with ``speed``."""
+    index, s = env.geometry.lane_at(coordinate, lane)
+    lane_obj = env.geometry.network.get_lane(index)
+    vehicle.position = lane_obj.position(s, 0.0)
+    vehicle.heading = lane_obj.heading_at(s)
+    vehicle.speed = speed
+    vehicle.lane_index = vehicle.target_lane_index = index
+    vehicle.lane = lane_obj
+
+
+@pytest.mark.parametrize("lanes", [1, 2])
+def test_loop_length_and_continuity(lanes: int) -> None:
+    geometry = FigureEightGeometry(480.0, lanes)
+    for lane in range(lanes):
+        lane_objs = [geometry.network.get_lane((*seg, lane)) for seg in SEGMENTS]
+        assert sum(obj.length for obj in lane_objs) == pytest.approx(480.0, rel=0.01)
+        for here, nxt in zip(lane_objs, lane_objs[1:] + lane_objs[:1], strict=True):
+            np.testing.assert_allclose(here.position(here.length, 0), nxt.position(0, 0), atol=1e-6)
+    # The two straights cross at the origin, at their middles.
+    for branch, coordinate in enumerate(geometry.crossing_coordinates):
+        index, s = geometry.lane_at(coordinate, 0)
+        assert index[:2] == SEGMENTS[0 if branch == 0 else 3]
+        if lanes == 1:
+            np.testing.assert_allclose(
+                geometry.network.get_lane(index).position(s, 0), 0, atol=1e-6
+            )
+
+
+def test_two_cavs_sent_into_the_crossing_collide() -> None:
+    env = FigureEightEnv({"n_cavs": 2, "n_hvs": 0, "horizon": 100})
+    env.reset(seed=0)
+    for cav, crossing in zip(env.cavs, env.geometry.crossing_coordinates, strict=True):
+        place(env, cav, crossing - 30.0, 10.0)
+    env.road.refresh()
+    action = np.full((2, 1), 10.0, dtype=np.float32)
+    for _ in range(60):
+        obs, _, terminated, _, info = env.step(action)
+        if terminated:
+            break
+    assert terminated
+    assert info["agent_terminated"].all() and info["collided"].all()
+    expected = obs[:, 0] + obs[:, 3] + obs[:, 4] - 10.0  # eq. 26 with beta = -10
+    np.testing.assert_allclose(info["agent_rewards"], expected, atol=1e-5)
+    metrics = info["episode"]
+    assert metrics["collisions"] == 2 and metrics["safety"] < 0.3
+
+
+def test_observation_and_reward_on_constructed_situation() -> None:
+    env = FigureEightEnv({"n_cavs": 1, "n_hvs": 2, "horizon": 10})
+    env.reset(seed=0)
+    cav = env.cavs[0]
+    ahead, behind = [v for v in env.road.vehicles if v is not cav]
+    place(env, cav, 120.0, 10.0)
+    place(env, ahead, 140.0, 5.0)  # centre distance 20 m -> gap 15 m
+    place(env, behind, 105.0, 7.0)  # centre distance 15 m -> gap 10 m
+    env.road.refresh()
+    obs = env.observe_agents()[0]
+    np.testing.assert_allclose(obs[[0, 3, 4, 5, 6]], [10.0, 5.0, 7.0, 15.0, 10.0], atol=1e-4)
+    np.testing.assert_allclose(obs[1:3], cav.position, atol=1e-4)
+    assert env.agent_rewards(None)[0] == pytest.approx(10.0 + 5.0 + 7.0, abs=1e-4)  # eq. 26
+    # Far neighbours: gaps clip at 75 m and their speeds read 0.
+    place(env, ahead, 240.0, 5.0)
+    place(env, behind, 20.0, 7.0)
+    env.road.refresh()
+    obs = env.observe_agents()[0]
+    np.testing.assert_allclose(obs[3:], [0.0, 0.0, 75.0, 75.0])
+
+
+def test_planning_reward_penalises_predicted_collisions() -> None:
+    next_obs = torch.tensor([[10.0, 0, 0, 5, 7, 15, 10], [10.0, 0, 0, 5, 7, 0.2, 10]])
+    reward = figure_eight_reward(next_obs, torch.zeros(2, 1), next_obs)
+    torch.testing.assert_close(reward, torch.tensor([22.0, 12.0]))
+
+
+@pytest.mark.parametrize("lanes,n_cavs", [(1, 8), (2, 22)])
+def test_human_drivers_never_crash_with_scripted_cavs(lanes: int, n_cavs: int) -> None:
+    env = FigureEightEnv({"lanes": lanes, "n_cavs": n_cavs, "n_hvs": 20, "horizon": 600})
+    env.reset(seed=0)
+    crashes = 0
+    for _ in range(600):
+        _, _, terminated, truncated, info = env.step(env.scripted_action())
+        crashes += sum(v.crashed for v in env.road.vehicles) + int(info["collided"].sum())
+    assert truncated and not terminated
+    assert crashes == 0
+    assert len(env.road.vehicles) == n_cavs + 20
+    assert info["episode"]["safety"] == 1.0 and info["episode"]["agility"] > 0.1
+
+
+def test_seeded_episodes_are_deterministic() -> None:
+    def rollout(seed: int) -> np.ndarray:
+        env = FigureEightEnv({"n_cavs": 3, "horizon": 30})
+        obs, _ = env.reset(seed=seed)
+        trace = [obs]
+        for _ in range(30):
+            trace.append(env.step(env.scripted_action())[0])
+        return np.stack(trace)
+
+    np.testing.assert_array_equal(rollout(7), rollout(7))
+    assert not np.array_equal(rollout(7), rollout(8))
+
+
+def test_metrics_in_info_match_distances() -> None:
+    env = FigureEightEnv({"n_cavs": 2, "n_hvs": 2, "horizon": 20})
+    env.reset(seed=0)
+    total = np.zeros(2)
+    for _ in range(20):
+        _, _, _, truncated, info = env.step(np.full((2, 1), 8.0, dtype=np.float32))
+        total += info["distance"]
+    assert truncated
+    assert info["episode"]["agility"] == pytest.approx(total.mean() / 20)
+    assert info["episode"]["safety"] == 1.0
+
+
+def test_freeway_rewards_and_comfort() -> None:
+    env = FreewayEnv({"n_vehicles": 6, "cav_ratio": 0.5, "horizon": 5})
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (3, 22)
+    _, _, _, _, info = env.step(np.array([KL, ES, CL]))
+    speeds = np.array([cav.speed for cav in env.cavs])
+    comfort = info["agent_rewards"] - 0.1 * speeds
+    assert min(abs(comfort[0] - 2.0), abs(comfort[0] - 3.0)) < 1e-4  # KL: 3 smooth, else 2
+    assert comfort[1] == pytest.approx(0.0, abs=1e-4)  # ES
+    assert comfort[2] == pytest.approx(1.0, abs=1e-4)  # CL
+    assert 0.0 <= info["traffic_comfort"] <= 3.0 and info["traffic_velocity"] > 0
+
+
+def test_freeway_all_human_traffic_runs() -> None:
+    env = FreewayEnv({"n_vehicles": 9, "cav_ratio": 0.0, "horizon": 5})
+    env.reset(seed=0)
+    for _ in range(5):
+        _, reward, terminated, truncated, info = env.step(np.zeros(0, dtype=np.int64))
+    assert truncated and not terminated and reward == 0.0
+    assert info["episode"]["average_velocity"] > 10.0
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: FigureEightParallelEnv(n_cavs=3, n_hvs=3, horizon=30),
+        lambda: FigureEightParallelEnv(n_cavs=4, n_hvs=4, lanes=2, horizon=30),
+        lambda: FreewayParallelEnv(n_vehicles=6, cav_ratio=0.5, horizon=10),
+    ],
+)
+def test_pettingzoo_parallel_api(make) -> None:
+    parallel_api_test(make(), num_cycles=40)
+
+
+@pytest.mark.parametrize(
+    "name,config,act_shape",
+    [
+        ("figure-eight", {"n_cavs": 3, "n_hvs": 3}, (3, 1)),
+        ("figure-eight-multilane", {"n_cavs": 4, "n_hvs": 4}, (4, 2)),
+        ("freeway", {"n_vehicles": 6}, (6, 4)),
+    ],
+)
+def test_torchrl_env_specs_and_keys(name: str, config: dict, act_shape: tuple) -> None:
+    env = make_env(name, seed=0, **config)
+    check_env_specs(env)
+    td = env.rollout(5)
+    n = act_shape[0]
+    assert td["agents", "action"].shape == (5, *act_shape)
+    assert td["next", "agents", "reward"].shape == (5, n, 1)
+    assert td["next", "agents", "terminated"].shape == (5, n, 1)
+    assert td["next", "agents", "position"].shape == (5, n, 2)
+    assert td["next", "done"].shape == (5, 1)
+
+
+def test_torchrl_crashed_agents_stay_masked_in_the_batch() -> None:
+    env = make_env("figure-eight", seed=0, n_cavs=2, n_hvs=0, horizon=100)
+    start = env.reset()
+    scenario = env.base_env._env.env
+    for cav, crossing in zip(scenario.cavs, scenario.geometry.crossing_coordinates, strict=True):
+        place(scenario, cav, crossing - 30.0, 10.0)
+    scenario.road.refresh()
+    td = env.rollout(
+        60,
+        lambda td: td.set(("agents", "action"), torch.full((2, 1), 10.0)),
+        auto_reset=False,
+        tensordict=start,
+    )
+    assert td["next", "agents", "terminated"][-1].all() and td["next", "done"][-1].all()
+    assert not td["next", "agents", "mask"][-1].any()
+    assert td["next", "agents", "observation"].shape == (td.shape[0], 2, 7)
+
+
+def test_torchrl_env_in_serial_env_with_scripted_policy() -> None:
+    env = SerialEnv(2, lambda: make_env("figure-eight", n_cavs=2, n_hvs=2))
+    td = env.rollout(3)
+    assert td.shape == (2, 3) and td["agents", "position"].shape == (2, 3, 2, 2)
+    single = make_env("figure-eight", seed=1, n_cavs=2, n_hvs=8)
+    td = single.rollout(20, ScriptedCAVPolicy(single))
+    assert (td["next", "agents", "reward"] > 0).all()
+
+
+def test_gymnasium_ids_and_rendering() -> None:
+    env = gym.make("mapets_rl/FigureEight-v0", render_mode="rgb_array", config={"n_cavs": 2})
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (2, 7)
+    frame = env.render()
+    assert frame.ndim == 3 and frame.shape[2] == 3 and frame.std() > 0
+    multi = gym.make("mapets_rl/FigureEightMultiLane-v0").unwrapped
+    assert multi.config["lanes"] == 2 and multi.config["horizon"] == 400
+    assert gym.make("mapets_rl/Freeway-v0").unwrapped.config["horizon"] == 40
+
+
+@pytest.mark.parametrize(
+    "build,match",
+    [
+        (lambda: make_env("ring-road"), "scenario name"),
+        (lambda: FigureEightEnv({"n_cavs": 0}), "n_cavs"),
+        (lambda: FigureEightEnv({"n_cavs": 30, "n_hvs": 20}), "n_cavs \\+ n_hvs"),
+        (lambda: FigureEightEnv({"lanes": 3}), "lanes"),
+        (lambda: FigureEightEnv({"horizon": 0}), "horizon"),
+        (lambda: FigureEightEnv({"policy_frequency": 0}), "policy_frequency"),
+        (lambda: FigureEightEnv({"simulation_frequency": 15}), "simulation_frequency"),
+        (lambda: FigureEightEnv({"n_hvs": (5, 2)}), "n_hvs"),
+        (lambda: FreewayEnv({"cav_ratio": 1.5}), "cav_ratio"),
+        (lambda: FreewayEnv({"n_vehicles": 500}), "n_vehicles"),
+        (lambda: FreewayParallelEnv(n_vehicles=4, cav_ratio=0.0), "cav_ratio"),
+    ],
+)
+def test_bad_configuration_is_rejected(build, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        build()
+
+
+def test_bad_actions_are_rejected() -> None:
+    env = FigureEightEnv({"n_cavs": 2, "n_hvs": 0})
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="shape"):
+        env.step(np.zeros((3, 1)))
+    with pytest.raises(ValueError, match="out of bounds"):
+        env.step(np.full((2, 1), MAX_SPEED + 5))
+    with pytest.raises(ValueError, match="finite"):
+        env.step(np.full((2, 1), np.nan))
+    freeway = FreewayEnv({"n_vehicles": 3})
+    freeway.reset(seed=0)
+    with pytest.raises(ValueError, match="integers in \\[0, 3\\]"):
+        freeway.step(np.array([0, 4, 1]))
