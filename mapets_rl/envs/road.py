@@ -26,8 +26,10 @@ class SortedNeighbourRoad(Road):
         period: length of a closed route (coordinates wrap modulo ``period``), ``None`` for an
             open road.
         n_lanes: number of parallel lanes (lane ids ``0 .. n_lanes - 1``).
-        stock_neighbour_search: use highway-env's original ``neighbour_vehicles`` (kept as the
-            reference of ``benchmarks/env_throughput.py``).
+        stock_neighbour_search: use highway-env's stock searches for who is near whom:
+            ``Road.neighbour_vehicles`` (leaders/followers), ``get_closest_lane_index`` over
+            every lane (lane assignment) and the all-pairs collision loop of ``Road.step``.
+            The reference of ``benchmarks/env_throughput.py``.
         np_random: random generator for vehicle behaviour.
     """
 
@@ -92,6 +94,9 @@ class SortedNeighbourRoad(Road):
         The stock ``Road.step`` calls ``handle_collisions`` on all n(n-1)/2 pairs; a vectorised
         distance pre-check keeps highway-env's exact polygon test for the few candidate pairs.
         """
+        if self.stock_neighbour_search:
+            super().step(dt)
+            return
         for vehicle in self.vehicles:
             vehicle.step(dt)
         n = len(self.vehicles)

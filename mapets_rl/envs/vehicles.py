@@ -76,7 +76,8 @@ class RouteVehicleMixin:
 
     def on_state_update(self) -> None:
         candidates = getattr(self.road, "candidate_lanes", None)
-        if candidates is None or self.lane_index is None:
+        stock = getattr(self.road, "stock_neighbour_search", True)
+        if candidates is None or self.lane_index is None or stock:
             super().on_state_update()
             return
         indexes = candidates(self.lane_index)
