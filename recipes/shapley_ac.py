@@ -90,7 +90,7 @@ class ShapleyACConfig(ExperimentConfig):
     share_actor_params: bool = False
     buffer_size: int = 100_000
     batch_size: int = 128
-    updates_per_batch: int = 4
+    updates_per_batch: int = 10
     warmup_frames: int = 200
     join_prob: float = 0.5
     eval_coalition: str = "grand"
