@@ -250,10 +250,12 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
             h = x.reshape(n_agents * members, rows, in_dim).to(dtype)
             flat = [(w.flatten(0, 1), b.flatten(0, 1)) for w, b in params]
         last = len(flat) - 1
+        inference = not torch.is_grad_enabled()
         for layer, (weight, bias) in enumerate(flat):
-            h = torch.baddbmm(bias, h, weight)
+            # Without autograd, bmm + in-place bias is cheaper than baddbmm's broadcast copy.
+            h = torch.bmm(h, weight).add_(bias) if inference else torch.baddbmm(bias, h, weight)
             if layer < last:
-                h = F.silu(h, inplace=not torch.is_grad_enabled())
+                h = F.silu(h, inplace=inference)
         out = h.to(param_dtype)
         if self.share_across_agents:
             out = out.reshape(members, n_agents, rows, -1).transpose(0, 1)

@@ -1,0 +1,301 @@
+"""Seconds per planning decision of TrajectorySamplingCEM, with in-run references.
+
+For each preset (``paper``: Table II, ``cpu``: the scaled-down preset) and each number of agents
+``I`` the script times one decision of the batched planner on the figure-eight reward and
+reports, all measured in the same run:
+
+* achieved GFLOP/s (2 x MACs of the MLP layers actually evaluated) and its ratio to a plain
+  batched GEMM chain of the same layer shapes (``baddbmm`` only, no activations, no sampling);
+* a naive reference planner (same algorithm, Python loops over agents and members, fp32);
+* bf16 vs fp32: speed-up and the difference of the chosen actions (relative to the action
+  range), next to the fp32 seed-to-seed spread as the noise floor;
+* one call for ``I`` agents vs ``I`` separate single-agent calls;
+* peak resident memory during the decision (VmHWM, reset before each measurement).
+
+Examples::
+
+    python benchmarks/planner.py --quick
+    python benchmarks/planner.py --configs paper --agents 1 8 22 --dtypes fp32 --repeats 1
+    python benchmarks/planner.py --configs cpu --agents 1 8 22 --dtypes fp32 bf16 --repeats 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import replace
+
+import torch
+from torch.nn import functional as F
+
+from mapets_rl.envs import figure_eight_reward
+from mapets_rl.models import ProbabilisticEnsemble
+from mapets_rl.planning import PRESETS, PlannerConfig, TrajectorySamplingCEM
+
+OBS_DIM, ACT_DIM = 7, 1
+LOW, HIGH = 0.0, 13.89
+DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
+
+
+def make_model(cfg: PlannerConfig, n_agents: int, seed: int = 0) -> ProbabilisticEnsemble:
+    """Random-weight ensemble with figure-eight-like normalisation statistics."""
+    torch.manual_seed(seed)
+    model = ProbabilisticEnsemble(OBS_DIM, ACT_DIM, n_agents, **cfg.model_kwargs())
+    with torch.no_grad():
+        mean = torch.tensor([7.0, 0.0, 0.0, 7.0, 7.0, 30.0, 30.0, 7.0])
+        std = torch.tensor([4.0, 60.0, 60.0, 4.0, 4.0, 20.0, 20.0, 4.0])
+        model.input_mean.copy_(mean.expand_as(model.input_mean))
+        model.input_std.copy_(std.expand_as(model.input_std))
+        model.output_std.fill_(0.2)
+    return model.requires_grad_(False)
+
+
+def make_obs(n_agents: int, seed: int = 1) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(seed)
+    obs = torch.rand(n_agents, OBS_DIM, generator=gen)
+    scale = torch.tensor([13.89, 200.0, 200.0, 13.89, 13.89, 75.0, 75.0])
+    return obs * scale - torch.tensor([0.0, 100.0, 100.0, 0.0, 0.0, 0.0, 0.0])
+
+
+def macs_per_row(cfg: PlannerConfig) -> int:
+    sizes = (OBS_DIM + ACT_DIM, *cfg.hidden, 2 * OBS_DIM)
+    return sum(a * b for a, b in zip(sizes[:-1], sizes[1:], strict=True))
+
+
+def flops(cfg: PlannerConfig, n_agents: int, iterations: int) -> float:
+    rows = n_agents * cfg.population * cfg.particles
+    return 2.0 * macs_per_row(cfg) * rows * cfg.horizon * iterations
+
+
+class PeakMemory:
+    """Peak resident set size (MiB) of this process inside a ``with`` block."""
+
+    def __enter__(self) -> PeakMemory:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        self.base = self._read("VmRSS")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.peak = self._read("VmHWM")
+        self.extra = self.peak - self.base
+
+    @staticmethod
+    def _read(field: str) -> float:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field):
+                    return int(line.split()[1]) / 1024
+        raise RuntimeError(f"{field} not in /proc/self/status")
+
+
+def time_planner(planner: TrajectorySamplingCEM, obs: torch.Tensor, repeats: int, warmup: int):
+    """Fastest of ``repeats`` decisions (after ``warmup`` calls), last actions, peak memory.
+
+    The minimum is the least noisy estimate on a machine shared with other jobs.
+    """
+    for _ in range(warmup):
+        planner.plan(obs)
+    times = []
+    with PeakMemory() as mem:
+        for _ in range(repeats):
+            start = time.perf_counter()
+            action = planner.plan(obs)
+            times.append(time.perf_counter() - start)
+    return min(times), action, mem
+
+
+def gemm_chain_seconds(cfg: PlannerConfig, n_agents: int, iterations: int, repeats: int) -> float:
+    """Plain ``bmm`` chain with the planner's layer shapes over the same number of model steps.
+
+    No bias, activation, sampling or reward: the ceiling the planner's matmuls could reach.
+    """
+    groups = n_agents * cfg.ensemble_size
+    rows = cfg.population * cfg.particles // cfg.ensemble_size
+    sizes = (OBS_DIM + ACT_DIM, *cfg.hidden, 2 * OBS_DIM)
+    weights = [torch.randn(groups, a, b) * 0.05 for a, b in zip(sizes[:-1], sizes[1:], strict=True)]
+    x = torch.randn(groups, rows, sizes[0])
+
+    def chain(steps: int) -> None:
+        for _ in range(steps):
+            h = x
+            for w in weights:
+                h = torch.bmm(h, w)
+
+    chain(1)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        chain(cfg.horizon * iterations)
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+@torch.no_grad()
+def naive_plan(
+    model: ProbabilisticEnsemble, cfg: PlannerConfig, obs: torch.Tensor, gen: torch.Generator
+) -> torch.Tensor:
+    """Reference: the same TS-inf CEM with Python loops over agents and members (fp32)."""
+    members, per = cfg.ensemble_size, cfg.particles // cfg.ensemble_size
+    shape = (cfg.population, cfg.horizon, ACT_DIM)
+    actions = []
+    for i in range(model.n_agents):
+        mu = torch.full((cfg.horizon, ACT_DIM), (LOW + HIGH) / 2)
+        std = torch.full_like(mu, (HIGH - LOW) / 4)
+        for _ in range(cfg.iterations):
+            cand = (mu + std * torch.randn(shape, generator=gen)).clamp(LOW, HIGH)
+            returns = torch.zeros(members, per, cfg.population)
+            state = obs[i].expand(members, per, cfg.population, OBS_DIM).clone()
+            for t in range(cfg.horizon):
+                act = cand[:, t].expand(per, -1, -1)
+                nxt = torch.empty_like(state)
+                for b in range(members):
+                    x = torch.cat([state[b], act], -1).reshape(-1, OBS_DIM + ACT_DIM)
+                    h = (x - model.input_mean[i, 0, 0]) / model.input_std[i, 0, 0]
+                    for layer in range(len(model.weights)):
+                        h = torch.addmm(model.biases[layer][i, b, 0], h, model.weights[layer][i, b])
+                        if layer < len(model.weights) - 1:
+                            h = F.silu(h)
+                    mean, raw = h.split(OBS_DIM, -1)
+                    logvar = model.max_logvar[i, 0, 0] - F.softplus(model.max_logvar[i, 0, 0] - raw)
+                    logvar = model.min_logvar[i, 0, 0] + F.softplus(
+                        logvar - model.min_logvar[i, 0, 0]
+                    )
+                    mean = mean * model.output_std[i, 0, 0] + model.output_mean[i, 0, 0]
+                    std_out = torch.exp(0.5 * logvar) * model.output_std[i, 0, 0]
+                    delta = mean + std_out * torch.randn(mean.shape, generator=gen)
+                    nxt[b] = state[b] + delta.reshape(per, cfg.population, OBS_DIM)
+                returns += figure_eight_reward(state, act.expand(members, -1, -1, -1), nxt)
+                state = nxt
+            scores = returns.mean((0, 1)).nan_to_num(float("-inf"))
+            elites = cand[scores.topk(cfg.elites).indices]
+            mu = cfg.alpha * mu + (1 - cfg.alpha) * elites.mean(0)
+            std = cfg.alpha * std + (1 - cfg.alpha) * elites.std(0, unbiased=False)
+            if std.max() < cfg.epsilon:
+                break
+        actions.append(mu[0].clamp(LOW, HIGH))
+    return torch.stack(actions)
+
+
+def bench(name: str, cfg: PlannerConfig, n_agents: int, args: argparse.Namespace) -> None:
+    obs = make_obs(n_agents)
+    model = make_model(cfg, n_agents)
+    results = {}
+    for key in args.dtypes:
+        planner = TrajectorySamplingCEM(
+            model, figure_eight_reward, LOW, HIGH, dtype=DTYPES[key], seed=0, **cfg.planner_kwargs()
+        )
+        results[key] = time_planner(planner, obs, args.repeats, args.warmup)
+        iters = planner.last_iterations
+    gemm = gemm_chain_seconds(cfg, n_agents, iters, args.repeats)
+    total = flops(cfg, n_agents, iters)
+    line = f"{name:>5} I={n_agents:<3d}"
+    for key, (sec, _, mem) in results.items():
+        line += (
+            f" | {key}: {sec:8.3f} s/decision {total / sec / 1e9:6.1f} GFLOP/s "
+            f"peak+{mem.extra:6.0f} MiB"
+        )
+    print(line)
+    if "fp32" in results:
+        sec, action32, _ = results["fp32"]
+        print(
+            f"      GEMM chain {gemm:8.3f} s ({total / gemm / 1e9:.1f} GFLOP/s):"
+            f" fp32 planner reaches {gemm / sec:.2f} of GEMM ({iters} CEM iterations)"
+        )
+        other = TrajectorySamplingCEM(
+            model, figure_eight_reward, LOW, HIGH, seed=123, **cfg.planner_kwargs()
+        )
+        spread = (other.plan(obs) - action32).abs().max().item() / (HIGH - LOW)
+        if "bf16" in results:
+            sec16, action16, _ = results["bf16"]
+            diff = (action16 - action32).abs().max().item() / (HIGH - LOW)
+            print(
+                f"      bf16 speed-up over fp32: {sec / sec16:.2f}x; max |a_bf16 - a_fp32| = "
+                f"{diff:.3f} of range (fp32 seed-to-seed spread: {spread:.3f})"
+            )
+        if n_agents > 1 and args.separate:
+            single = [
+                TrajectorySamplingCEM(
+                    make_model(cfg, 1, seed=i),
+                    figure_eight_reward,
+                    LOW,
+                    HIGH,
+                    seed=0,
+                    **cfg.planner_kwargs(),
+                )
+                for i in range(n_agents)
+            ]
+            for _ in range(args.warmup):
+                for p, o in zip(single, obs, strict=True):
+                    p.plan(o[None])
+            runs = []
+            for _ in range(args.repeats):
+                start = time.perf_counter()
+                for p, o in zip(single, obs, strict=True):
+                    p.plan(o[None])
+                runs.append(time.perf_counter() - start)
+            separate = min(runs)
+            print(
+                f"      {n_agents} separate I=1 calls: {separate:8.3f} s -> one batched call is "
+                f"{separate / sec:.2f}x faster"
+            )
+        if n_agents <= args.naive_max_agents:
+            gen = torch.Generator().manual_seed(0)
+            naive_plan(model, replace(cfg, iterations=1, horizon=1), obs, gen)
+            start = time.perf_counter()
+            naive_plan(model, cfg, obs, gen)
+            naive = time.perf_counter() - start
+            print(
+                f"      naive loops (agents x members, fp32): {naive:8.3f} s -> batched planner "
+                f"is {naive / sec:.2f}x faster"
+            )
+        if name == "cpu":
+            print(f"      200-step episode at this I: ~{200 * sec:.1f} s of planning (fp32)")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--configs", nargs="+", default=["cpu", "paper"], choices=list(PRESETS))
+    parser.add_argument("--agents", nargs="+", type=int, default=[1, 8, 22])
+    parser.add_argument("--dtypes", nargs="+", default=["fp32", "bf16"], choices=list(DTYPES))
+    parser.add_argument("--repeats", type=int, default=2, help="timed decisions per setting")
+    parser.add_argument(
+        "--naive-max-agents", type=int, default=8, help="run the naive reference up to this I"
+    )
+    parser.add_argument(
+        "--no-separate",
+        dest="separate",
+        action="store_false",
+        help="skip timing I separate single-agent calls",
+    )
+    parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
+    parser.add_argument("--warmup", type=int, default=1, help="untimed decisions first")
+    parser.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="override the presets' CEM iterations (time per decision scales linearly)",
+    )
+    parser.add_argument("--quick", action="store_true", help="cpu preset, I in {1, 8}, 2 repeats")
+    args = parser.parse_args()
+    if args.quick:
+        args.configs, args.agents, args.repeats = ["cpu"], [1, 8], 2
+    if args.repeats <= 0 or args.warmup < 0 or any(i <= 0 for i in args.agents):
+        parser.error("--repeats and --agents must be positive, --warmup non-negative")
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} threads, "
+        f"CPU capability {torch.backends.cpu.get_cpu_capability()}"
+    )
+    for name in args.configs:
+        cfg = PRESETS[name]
+        if args.iterations is not None:
+            cfg = replace(cfg, iterations=args.iterations)
+        print(f"\n[{name}] {cfg}  ({macs_per_row(cfg)} MACs per model row)")
+        for n_agents in args.agents:
+            bench(name, cfg, n_agents, args)
+
+
+if __name__ == "__main__":
+    main()
