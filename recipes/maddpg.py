@@ -31,10 +31,12 @@ from mapets_rl.experiment.multiagent import (
     ACTION,
     GROUP,
     LOSS_KEYS,
+    MASK,
     OBS,
     AgentGroupSpec,
     GumbelSoftmaxHead,
 )
+from recipes.mappo import OBS_NORM, make_obs_norm
 
 OBS_ACTION = (GROUP, "obs_action")
 Q_VALUE = (GROUP, "state_action_value")
@@ -62,6 +64,7 @@ class MADDPGConfig(ExperimentConfig):
         gumbel_tau: Gumbel-softmax temperature (> 0; discrete actions).
         num_cells: hidden layer sizes of actor and critic MLPs.
         share_params: one actor network shared by all agents (else one per agent).
+        normalize_obs: standardise observations with running statistics of collected data.
         max_grad_norm: gradient-norm clip (> 0).
     """
 
@@ -79,6 +82,7 @@ class MADDPGConfig(ExperimentConfig):
     gumbel_tau: float = 1.0
     num_cells: list[int] = dataclasses.field(default_factory=lambda: [64, 64])
     share_params: bool = True
+    normalize_obs: bool = True
     max_grad_norm: float = 1.0
 
     def __post_init__(self) -> None:
@@ -112,20 +116,25 @@ class MADDPG(Experiment):
         spec = AgentGroupSpec.from_env(self.env)
         depth, cells = len(config.num_cells), config.num_cells
 
-        # modules: actor o_i -> a_i (bounded by tanh, or one-hot by Gumbel-softmax)
+        # modules: (observation normaliser ->) actor o_i -> a_i (bounded by tanh, or one-hot
+        # by Gumbel-softmax)
+        self.obs_norm, norm_module = make_obs_norm(spec) if config.normalize_obs else (None, None)
+        obs_key = OBS if norm_module is None else OBS_NORM
+        front = [] if norm_module is None else [norm_module]
         actor_mlp = MultiAgentMLP(n_agent_inputs=spec.obs_dim, n_agent_outputs=spec.action_dim,
                                   n_agents=spec.n_agents, centralized=False,
                                   share_params=config.share_params, depth=depth,
                                   num_cells=cells, activation_class=nn.ReLU)
         if spec.discrete:
-            self.actor = TensorDictModule(nn.Sequential(actor_mlp,
-                                                        GumbelSoftmaxHead(config.gumbel_tau)),
-                                          in_keys=[OBS], out_keys=[ACTION])
+            self.actor = TensorDictSequential(*front, TensorDictModule(
+                nn.Sequential(actor_mlp, GumbelSoftmaxHead(config.gumbel_tau)),
+                in_keys=[obs_key], out_keys=[ACTION]))
             self.exploration = None
             collection_policy = self.actor
         else:
             self.actor = TensorDictSequential(
-                TensorDictModule(actor_mlp, in_keys=[OBS], out_keys=[(GROUP, "param")]),
+                *front,
+                TensorDictModule(actor_mlp, in_keys=[obs_key], out_keys=[(GROUP, "param")]),
                 TanhModule(in_keys=[(GROUP, "param")], out_keys=[ACTION],
                            spec=spec.action_spec))
             self.exploration = AdditiveGaussianModule(
@@ -135,7 +144,8 @@ class MADDPG(Experiment):
             collection_policy = TensorDictSequential(self.actor, self.exploration)
         # centralised critic Q_i(o_1..o_I, a_1..a_I), one output per agent
         self.critic = TensorDictSequential(
-            TensorDictModule(concat_last, in_keys=[OBS, ACTION], out_keys=[OBS_ACTION]),
+            *front,
+            TensorDictModule(concat_last, in_keys=[obs_key, ACTION], out_keys=[OBS_ACTION]),
             TensorDictModule(
                 MultiAgentMLP(n_agent_inputs=spec.obs_dim + spec.action_dim, n_agent_outputs=1,
                               n_agents=spec.n_agents, centralized=True, share_params=True,
@@ -165,6 +175,8 @@ class MADDPG(Experiment):
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
         """Store the batch; ``updates_per_batch`` critic + actor steps; soft target update."""
         self.buffer.extend(batch.reshape(-1))
+        if self.obs_norm is not None:
+            self.obs_norm.update(batch.get(OBS), batch.get(MASK, None))
         if self.exploration is not None:
             self.exploration.step(batch.numel())
         if len(self.buffer) < self.config.batch_size:

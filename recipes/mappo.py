@@ -14,7 +14,7 @@ import dataclasses
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import NormalParamExtractor, TensorDictModule
+from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
@@ -23,10 +23,26 @@ from torchrl.objectives import ValueEstimators
 from torchrl.objectives.multiagent import IPPOLoss, MAPPOLoss
 
 from mapets_rl.experiment import Experiment, ExperimentConfig, check
-from mapets_rl.experiment.multiagent import ACTION, GROUP, LOSS_KEYS, OBS, AgentGroupSpec
+from mapets_rl.experiment.multiagent import (
+    ACTION,
+    GROUP,
+    LOSS_KEYS,
+    MASK,
+    OBS,
+    AgentGroupSpec,
+    RunningObsNorm,
+)
 
 VALUE = (GROUP, "state_value")
 LOG_PROB = (GROUP, "action_log_prob")
+OBS_NORM = (GROUP, "observation_normalized")
+
+
+def make_obs_norm(spec: AgentGroupSpec) -> tuple[RunningObsNorm, TensorDictModule]:
+    """A running observation normaliser and the module writing ``("agents",
+    "observation_normalized")`` [*, I, obs] from ``("agents", "observation")``."""
+    norm = RunningObsNorm(spec.obs_dim)
+    return norm, TensorDictModule(norm, in_keys=[OBS], out_keys=[OBS_NORM])
 
 
 @dataclasses.dataclass
@@ -45,6 +61,7 @@ class MAPPOConfig(ExperimentConfig):
         max_grad_norm: gradient-norm clip (> 0).
         num_cells: hidden layer sizes of the policy and value MLPs.
         share_params: one policy network shared by all agents (else one per agent).
+        normalize_obs: standardise observations with running statistics of collected data.
         ippo: decentralised per-agent values (IPPO) instead of the centralised value (MAPPO).
     """
 
@@ -59,6 +76,7 @@ class MAPPOConfig(ExperimentConfig):
     max_grad_norm: float = 1.0
     num_cells: list[int] = dataclasses.field(default_factory=lambda: [64, 64])
     share_params: bool = True
+    normalize_obs: bool = True
     ippo: bool = False
 
     def __post_init__(self) -> None:
@@ -78,22 +96,27 @@ class MAPPOConfig(ExperimentConfig):
 
 
 def make_stochastic_policy(spec: AgentGroupSpec, num_cells: list[int], share_params: bool,
-                           return_log_prob: bool = True) -> ProbabilisticActor:
-    """Decentralised stochastic policy: ``("agents","observation")`` [*, I, obs] ->
-    ``("agents","action")`` [*, I, act] (TanhNormal within the action bounds, or one-hot
-    categorical [*, I, n]) and its log-probability ``("agents","action_log_prob")`` [*, I]."""
+                           return_log_prob: bool = True,
+                           obs_norm: TensorDictModule | None = None) -> ProbabilisticActor:
+    """Decentralised stochastic policy: ``("agents","observation")`` [*, I, obs] (through
+    ``obs_norm`` when given) -> ``("agents","action")`` [*, I, act] (TanhNormal within the
+    action bounds, or one-hot categorical [*, I, n]) and its log-probability
+    ``("agents","action_log_prob")`` [*, I]."""
+    obs_key = OBS if obs_norm is None else OBS_NORM
     n_out = spec.action_dim if spec.discrete else 2 * spec.action_dim
     mlp = MultiAgentMLP(n_agent_inputs=spec.obs_dim, n_agent_outputs=n_out,
                         n_agents=spec.n_agents, centralized=False, share_params=share_params,
                         depth=len(num_cells), num_cells=num_cells, activation_class=nn.Tanh)
     if spec.discrete:
-        module = TensorDictModule(mlp, in_keys=[OBS], out_keys=[(GROUP, "logits")])
+        module = TensorDictModule(mlp, in_keys=[obs_key], out_keys=[(GROUP, "logits")])
         dist_keys, dist_cls, dist_kwargs = [(GROUP, "logits")], OneHotCategorical, {}
     else:
-        module = TensorDictModule(nn.Sequential(mlp, NormalParamExtractor()), in_keys=[OBS],
-                                  out_keys=[(GROUP, "loc"), (GROUP, "scale")])
+        module = TensorDictModule(nn.Sequential(mlp, NormalParamExtractor()),
+                                  in_keys=[obs_key], out_keys=[(GROUP, "loc"), (GROUP, "scale")])
         dist_keys, dist_cls = [(GROUP, "loc"), (GROUP, "scale")], TanhNormal
         dist_kwargs = {"low": spec.action_spec.space.low, "high": spec.action_spec.space.high}
+    if obs_norm is not None:
+        module = TensorDictSequential(obs_norm, module)
     return ProbabilisticActor(module, in_keys=dist_keys, out_keys=[ACTION],
                               spec=spec.action_spec, distribution_class=dist_cls,
                               distribution_kwargs=dist_kwargs, return_log_prob=return_log_prob,
@@ -110,13 +133,19 @@ class MAPPO(Experiment):
         super().__init__(config, run_dir)  # seeds, run dir, self.env
         spec = AgentGroupSpec.from_env(self.env)
 
-        # modules: decentralised policy; value V(o_1..o_I) per agent (MAPPO) or V(o_i) (IPPO)
-        self.policy = make_stochastic_policy(spec, config.num_cells, config.share_params)
+        # modules: (observation normaliser ->) decentralised policy; value V(o_1..o_I) per
+        # agent (MAPPO) or V(o_i) (IPPO)
+        self.obs_norm, norm_module = make_obs_norm(spec) if config.normalize_obs else (None, None)
+        self.policy = make_stochastic_policy(spec, config.num_cells, config.share_params,
+                                             obs_norm=norm_module)
         value_mlp = MultiAgentMLP(n_agent_inputs=spec.obs_dim, n_agent_outputs=1,
                                   n_agents=spec.n_agents, centralized=not config.ippo,
                                   share_params=True, depth=len(config.num_cells),
                                   num_cells=config.num_cells, activation_class=nn.Tanh)
-        self.critic = TensorDictModule(value_mlp, in_keys=[OBS], out_keys=[VALUE])
+        self.critic = TensorDictModule(value_mlp, in_keys=[OBS if norm_module is None
+                                                           else OBS_NORM], out_keys=[VALUE])
+        if norm_module is not None:
+            self.critic = TensorDictSequential(norm_module, self.critic)
 
         # collector (on-policy: the stochastic policy explores; evaluation takes its mode)
         self.collector = self.make_collector(self.policy)
@@ -155,6 +184,8 @@ class MAPPO(Experiment):
             self.optim.step()
             for key in ("loss_objective", "loss_critic", "loss_entropy"):
                 logs[key] = logs.get(key, 0.0) + out[key].item() / steps
+        if self.obs_norm is not None:  # new statistics apply from the next batch on
+            self.obs_norm.update(batch.get(OBS), batch.get(MASK, None))
         return logs
 
     def stateful_components(self) -> dict:

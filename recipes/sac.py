@@ -22,9 +22,9 @@ from torchrl.modules import MultiAgentMLP
 from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate, ValueEstimators
 
 from mapets_rl.experiment import Experiment, ExperimentConfig, check
-from mapets_rl.experiment.multiagent import ACTION, GROUP, LOSS_KEYS, OBS, AgentGroupSpec
+from mapets_rl.experiment.multiagent import ACTION, GROUP, LOSS_KEYS, MASK, OBS, AgentGroupSpec
 from recipes.maddpg import OBS_ACTION, Q_VALUE, concat_last
-from recipes.mappo import make_stochastic_policy
+from recipes.mappo import OBS_NORM, make_obs_norm, make_stochastic_policy
 
 ACTION_VALUE = (GROUP, "action_value")
 
@@ -44,6 +44,7 @@ class SACConfig(ExperimentConfig):
         init_random_frames: first frames of the run with uniformly random actions (>= 0).
         num_cells: hidden layer sizes of actor and critic MLPs.
         share_params: one actor and one critic shared by all agents (else per agent).
+        normalize_obs: standardise observations with running statistics of collected data.
         max_grad_norm: gradient-norm clip (> 0).
     """
 
@@ -57,6 +58,7 @@ class SACConfig(ExperimentConfig):
     init_random_frames: int = 200
     num_cells: list[int] = dataclasses.field(default_factory=lambda: [64, 64])
     share_params: bool = True
+    normalize_obs: bool = True
     max_grad_norm: float = 1.0
 
     def __post_init__(self) -> None:
@@ -86,20 +88,24 @@ class SAC(Experiment):
         spec = AgentGroupSpec.from_env(self.env)
         depth, cells = len(config.num_cells), config.num_cells
 
-        # modules: stochastic actor pi(a_i | o_i); per-agent critics Q(o_i, a_i) (continuous)
-        # or Q(o_i, .) over the discrete actions
+        # modules: (observation normaliser ->) stochastic actor pi(a_i | o_i); per-agent
+        # critics Q(o_i, a_i) (continuous) or Q(o_i, .) over the discrete actions
+        self.obs_norm, norm_module = make_obs_norm(spec) if config.normalize_obs else (None, None)
+        obs_key = OBS if norm_module is None else OBS_NORM
+        front = [] if norm_module is None else [norm_module]
         self.actor = make_stochastic_policy(spec, cells, config.share_params,
-                                            return_log_prob=False)
+                                            return_log_prob=False, obs_norm=norm_module)
         if spec.discrete:
-            self.qvalue = TensorDictModule(
+            self.qvalue = TensorDictSequential(*front, TensorDictModule(
                 MultiAgentMLP(n_agent_inputs=spec.obs_dim, n_agent_outputs=spec.action_dim,
                               n_agents=spec.n_agents, centralized=False,
                               share_params=config.share_params, depth=depth, num_cells=cells,
                               activation_class=nn.ReLU),
-                in_keys=[OBS], out_keys=[ACTION_VALUE])
+                in_keys=[obs_key], out_keys=[ACTION_VALUE]))
         else:
             self.qvalue = TensorDictSequential(
-                TensorDictModule(concat_last, in_keys=[OBS, ACTION], out_keys=[OBS_ACTION]),
+                *front,
+                TensorDictModule(concat_last, in_keys=[obs_key, ACTION], out_keys=[OBS_ACTION]),
                 TensorDictModule(
                     MultiAgentMLP(n_agent_inputs=spec.obs_dim + spec.action_dim,
                                   n_agent_outputs=1, n_agents=spec.n_agents, centralized=False,
@@ -134,6 +140,8 @@ class SAC(Experiment):
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
         """Store the batch; ``updates_per_batch`` SAC steps; soft target update."""
         self.buffer.extend(batch.reshape(-1))
+        if self.obs_norm is not None:
+            self.obs_norm.update(batch.get(OBS), batch.get(MASK, None))
         if len(self.buffer) < self.config.batch_size:
             return {}
         keys = ("loss_actor", "loss_qvalue", "loss_alpha")

@@ -122,6 +122,7 @@ class Experiment:
         self._collector_args: tuple[TensorDictModuleBase, int, dict[str, Any]] | None = None
         self.eval_policy: TensorDictModuleBase | None = None
         self.latest_metrics: dict[str, float] = {}
+        self._video_env: EnvBase | None = None
 
     # ------------------------------------------------------------------ recipe-facing helpers
     def make_env(self) -> EnvBase:
@@ -249,16 +250,30 @@ class Experiment:
         if episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {episodes}")
         video = self.config.video if video is None else video
-        self.env.set_seed(self.config.seed + EVAL_SEED_OFFSET)
-        per_episode = []
-        with set_exploration_type(ExplorationType.DETERMINISTIC):
-            for ep in range(episodes):
-                frames: list[Any] | None = [] if (video and ep == 0) else None
-                rollout = self._eval_episode(frames)
-                per_episode.append(self.episode_metrics(rollout))
-                if frames:
-                    self._write_video(frames)
+        # with video, evaluate on a rendering copy of the env (same seed, same episodes);
+        # episode_metrics hooks read self.env, so it points at the env being evaluated
+        previous = self.env
+        self.env = self._render_env() if video else previous
+        try:
+            self.env.set_seed(self.config.seed + EVAL_SEED_OFFSET)
+            per_episode = []
+            with set_exploration_type(ExplorationType.DETERMINISTIC):
+                for ep in range(episodes):
+                    frames: list[Any] | None = [] if (video and ep == 0) else None
+                    rollout = self._eval_episode(frames)
+                    per_episode.append(self.episode_metrics(rollout))
+                    if frames:
+                        self._write_video(frames)
+        finally:
+            self.env = previous
         return mean_metrics(per_episode)
+
+    def _render_env(self) -> EnvBase:
+        """The env with ``render_mode="rgb_array"`` (built once)."""
+        if self._video_env is None:
+            self._video_env = build_env(self.config.env,
+                                        {**self.config.env_config, "render_mode": "rgb_array"})
+        return self._video_env
 
     def _eval_episode(self, frames: list[Any] | None) -> TensorDictBase:
         """One episode until the root ``done``; returns the stacked steps [T]."""
