@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 import torch
 from pettingzoo.test import parallel_api_test
+from tensordict.nn import TensorDictModule
 from torchrl.envs import SerialEnv
+from torchrl.envs.libs.pettingzoo import PettingZooWrapper
 from torchrl.envs.utils import check_env_specs
 
 from mapets_rl.envs import (
@@ -18,7 +20,9 @@ from mapets_rl.envs import (
     ScriptedCAVPolicy,
     figure_eight_reward,
     make_env,
+    make_parallel_env,
 )
+from mapets_rl.envs.factory import TrafficPettingZooWrapper
 from mapets_rl.envs.figure_eight_road import SEGMENTS, FigureEightGeometry
 from mapets_rl.envs.freeway import CL, ES, KL
 
@@ -85,7 +89,8 @@ def test_observation_and_reward_on_constructed_situation() -> None:
     obs = env.observe_agents()[0]
     np.testing.assert_allclose(obs[[0, 3, 4, 5, 6]], [10.0, 5.0, 7.0, 15.0, 10.0], atol=1e-4)
     np.testing.assert_allclose(obs[1:3], cav.position, atol=1e-4)
-    assert env.agent_rewards(None)[0] == pytest.approx(10.0 + 5.0 + 7.0, abs=1e-4)  # eq. 26
+    reward = env.agent_rewards(obs[None], None)[0]
+    assert reward == pytest.approx(10.0 + 5.0 + 7.0, abs=1e-4)  # eq. 26
     # Far neighbours: gaps clip at 75 m and their speeds read 0.
     place(env, ahead, 240.0, 5.0)
     place(env, behind, 20.0, 7.0)
@@ -191,6 +196,42 @@ def test_torchrl_env_specs_and_keys(name: str, config: dict, act_shape: tuple) -
     assert td["next", "agents", "terminated"].shape == (5, n, 1)
     assert td["next", "agents", "position"].shape == (5, n, 2)
     assert td["next", "done"].shape == (5, 1)
+
+
+@pytest.mark.parametrize(
+    "name,config,speed",
+    [
+        ("figure-eight", {"n_cavs": 4, "n_hvs": 4, "horizon": 60}, 13.89),
+        ("freeway", {"n_vehicles": 8, "horizon": 10}, None),
+    ],
+)
+def test_vectorised_wrapper_matches_stock_pettingzoo_wrapper(name, config, speed) -> None:
+    """Same seed, same actions: identical outputs, including crashes, masks and resets."""
+    rollouts = []
+    for wrapper in (PettingZooWrapper, TrafficPettingZooWrapper):
+        parallel = make_parallel_env(name, **config)
+        env = wrapper(
+            env=parallel,
+            group_map={"agents": parallel.possible_agents},
+            use_mask=True,
+            categorical_actions=False,
+            done_on_any=False,
+            seed=3,
+        )
+        torch.manual_seed(0)
+        policy = None
+        if speed is not None:
+            policy = TensorDictModule(
+                lambda obs: torch.full((*obs.shape[:-1], 1), speed),
+                in_keys=[("agents", "observation")],
+                out_keys=[("agents", "action")],
+            )
+        rollouts.append(env.rollout(150, policy, break_when_any_done=False))
+    stock, ours = rollouts
+    assert stock["next", "agents", "info", "collided"].sum() > 0  # crashes happened
+    assert stock["next", "done"].sum() > 0  # and resets
+    for key in stock.keys(True, True):
+        assert torch.equal(stock[key], ours[key]), key
 
 
 def test_torchrl_crashed_agents_stay_masked_in_the_batch() -> None:

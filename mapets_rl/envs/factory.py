@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase, RenameTransform, TransformedEnv
 from torchrl.envs.libs.pettingzoo import PettingZooWrapper
 
@@ -41,28 +41,42 @@ class TrafficPettingZooWrapper(PettingZooWrapper):
         action_spec = self.input_spec["full_action_spec", "agents", "action"]
         joint = np.asarray(action_spec.to_numpy(tensordict.get(("agents", "action"))))
         obs, rewards, terminated, truncated, acting, info = parallel_env.step_joint(joint)
-        out = self.cached_step_output_zero.clone()
-        group = out.get("agents")
-        alive = torch.as_tensor(acting)
-        group.set("observation", torch.as_tensor(obs, device=self.device) * alive[:, None])
-        group.set("reward", torch.as_tensor(rewards, device=self.device).unsqueeze(-1))
-        terminated_t = torch.as_tensor(terminated, device=self.device).unsqueeze(-1)
-        truncated_t = torch.as_tensor(truncated, device=self.device).unsqueeze(-1)
-        group.set("terminated", terminated_t)
-        group.set("truncated", truncated_t)
-        group.set("done", terminated_t | truncated_t)
-        still = {a for a in parallel_env.agents}
-        mask = torch.tensor([a in still for a in parallel_env.possible_agents], device=self.device)
-        group.set("mask", mask)
-        group_info = group.get("info", None)
-        if group_info is not None:
+        device = self.device
+        alive = torch.as_tensor(acting, device=device)
+        terminated_t = torch.as_tensor(terminated, device=device).unsqueeze(-1)
+        truncated_t = torch.as_tensor(truncated, device=device).unsqueeze(-1)
+        done_t = terminated_t | truncated_t
+        still = set(parallel_env.agents)
+        group = {
+            "observation": torch.as_tensor(obs, device=device) * alive[:, None],
+            "reward": torch.as_tensor(rewards, device=device).unsqueeze(-1),
+            "terminated": terminated_t,
+            "truncated": truncated_t,
+            "done": done_t,
+            "mask": torch.tensor([a in still for a in parallel_env.possible_agents], device=device),
+        }
+        if not hasattr(self, "_info_dtypes"):
+            info_spec = self.observation_spec["agents"].get("info", None)
+            self._info_dtypes = (
+                {} if info_spec is None else {k: info_spec[k].dtype for k in info_spec}
+            )
+        if self._info_dtypes:
+            info_out = {}
             for key, value in parallel_env.info_arrays(info).items():
-                value = torch.as_tensor(value, device=self.device)
+                value = torch.as_tensor(value, device=device)
                 keep = alive.reshape(-1, *([1] * (value.ndim - 1)))
-                group_info.set(key, (value * keep).to(group_info.get(key).dtype))
-        for key in ("done", "terminated", "truncated"):
-            out.set(key, group.get(key).all().reshape(1))
-        return out
+                info_out[key] = (value * keep).to(self._info_dtypes[key])
+            group["info"] = TensorDict(info_out, batch_size=alive.shape, device=device)
+        return TensorDict(
+            {
+                "agents": TensorDict(group, batch_size=alive.shape, device=device),
+                "done": done_t.all().reshape(1),
+                "terminated": terminated_t.all().reshape(1),
+                "truncated": truncated_t.all().reshape(1),
+            },
+            batch_size=(),
+            device=device,
+        )
 
 
 def make_parallel_env(name: str, **config: Any) -> TrafficParallelEnv:

@@ -322,9 +322,8 @@ class FigureEightEnv(MultiAgentTrafficEnv):
                 obs[i] = (cav.speed, *cav.position, *self._neighbour_features(cav))
         return obs
 
-    def agent_rewards(self, action: Any) -> np.ndarray:
-        """Paper eq. (26) on the current observation, ``beta`` for CAVs that crashed this step."""
-        obs = self.observe_agents()
+    def agent_rewards(self, obs: np.ndarray, action: Any) -> np.ndarray:
+        """Paper eq. (26) on the observation ``obs``, ``beta`` for CAVs that crashed this step."""
         rewards = obs[:, 0] + obs[:, 3] + obs[:, 4]
         rewards = rewards + self.config["collision_reward"] * self._crashed_now
         return (rewards * (self.alive | self._crashed_now)).astype(np.float32)

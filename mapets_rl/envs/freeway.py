@@ -354,7 +354,7 @@ class FreewayEnv(MultiAgentTrafficEnv):
             obs[i, 4:] = self._neighbours(cav)
         return obs
 
-    def agent_rewards(self, action: Any) -> np.ndarray:
+    def agent_rewards(self, obs: np.ndarray, action: Any) -> np.ndarray:
         """``w * velocity + comfort`` per CAV (paper eq. 10); ``collision_reward`` on crash."""
         if not self.cavs:
             return np.zeros(0, dtype=np.float32)

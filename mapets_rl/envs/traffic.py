@@ -135,8 +135,11 @@ class MultiAgentTrafficEnv(AbstractEnv):
         """Per-CAV observations ``[I, obs_dim]`` (zero rows for crashed CAVs)."""
         raise NotImplementedError
 
-    def agent_rewards(self, action: Any) -> np.ndarray:
-        """Per-CAV rewards ``[I]`` for the step just simulated (0 for CAVs already gone)."""
+    def agent_rewards(self, obs: np.ndarray, action: Any) -> np.ndarray:
+        """Per-CAV rewards ``[I]`` for the step just simulated (0 for CAVs already gone).
+
+        ``obs`` is the observation ``[I, obs_dim]`` after the step.
+        """
         raise NotImplementedError
 
     def episode_metrics(self) -> dict[str, float]:
@@ -156,7 +159,7 @@ class MultiAgentTrafficEnv(AbstractEnv):
         self._simulate(action)
         self.road.refresh()
         obs = self.observe_agents()
-        rewards = self.agent_rewards(action)
+        rewards = self.agent_rewards(obs, action)
         crashed_now = self._crashed_now.copy()
         self.collision_step[crashed_now] = self.steps_taken
         self.alive &= ~crashed_now
@@ -211,7 +214,7 @@ class MultiAgentTrafficEnv(AbstractEnv):
         return self.steps_taken >= self.config["horizon"]
 
     def _reward(self, action: Any) -> float:
-        rewards = self.agent_rewards(action)
+        rewards = self.agent_rewards(self.observe_agents(), action)
         return float(rewards.mean()) if rewards.size else 0.0
 
     # --- rendering ---------------------------------------------------------------------------

@@ -80,14 +80,17 @@ class RouteVehicleMixin:
         if candidates is None or self.lane_index is None or stock:
             super().on_state_update()
             return
-        indexes = candidates(self.lane_index)
-        network = self.road.network
-        distances = [
-            network.get_lane(index).distance_with_heading(self.position, self.heading)
-            for index in indexes
-        ]
-        self.lane_index = indexes[int(np.argmin(distances))]
-        self.lane = network.get_lane(self.lane_index)
+        # Search the candidate lanes only once the vehicle leaves the middle of its lane.
+        s, lateral = self.lane.local_coordinates(self.position)
+        if not (0.0 <= s <= self.lane.length and abs(lateral) <= 0.25 * self.lane.width_at(s)):
+            indexes = candidates(self.lane_index)
+            network = self.road.network
+            distances = [
+                network.get_lane(index).distance_with_heading(self.position, self.heading)
+                for index in indexes
+            ]
+            self.lane_index = indexes[int(np.argmin(distances))]
+            self.lane = network.get_lane(self.lane_index)
         if self.road.record_history:
             self.history.appendleft(self.create_from(self))
 
@@ -109,13 +112,8 @@ class HumanVehicle(RouteVehicleMixin, IDMVehicle):
         stop_distance = getattr(self.road, "stop_distance", None)
         distance = stop_distance(self) if stop_distance is not None else None
         if distance is not None:
-            self.action["acceleration"] = float(
-                np.clip(
-                    min(self.action["acceleration"], idm_stop_acceleration(self, distance)),
-                    -self.ACC_MAX,
-                    self.ACC_MAX,
-                )
-            )
+            acceleration = min(self.action["acceleration"], idm_stop_acceleration(self, distance))
+            self.action["acceleration"] = max(acceleration, -self.ACC_MAX)
 
 
 class TargetSpeedVehicle(RouteVehicleMixin, ControlledVehicle):
@@ -134,17 +132,13 @@ class TargetSpeedVehicle(RouteVehicleMixin, ControlledVehicle):
             return
         self.follow_road()
         acceleration = self.KP_A * (self.target_speed - self.speed)
+        steering = float(self.steering_control(self.target_lane_index))
+        limit = self.MAX_STEERING_ANGLE
         Vehicle.act(
             self,
             {
-                "steering": float(
-                    np.clip(
-                        self.steering_control(self.target_lane_index),
-                        -self.MAX_STEERING_ANGLE,
-                        self.MAX_STEERING_ANGLE,
-                    )
-                ),
-                "acceleration": float(np.clip(acceleration, self.ACC_MIN, self.ACC_MAX)),
+                "steering": min(max(steering, -limit), limit),
+                "acceleration": min(max(float(acceleration), self.ACC_MIN), self.ACC_MAX),
             },
         )
 
