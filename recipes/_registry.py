@@ -7,6 +7,7 @@ import importlib
 
 RECIPES: dict[str, str] = {
     "maddpg": "recipes.maddpg:MADDPG",
+    "mapets": "recipes.mapets:MAPETS",
     "mappo": "recipes.mappo:MAPPO",
     "sac": "recipes.sac:SAC",
 }

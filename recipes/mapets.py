@@ -1,0 +1,461 @@
+"""MA-PETS: multi-agent probabilistic ensembles with trajectory sampling (Wen et al., Algorithm 1).
+
+Reads top to bottom: config -> env (+ :class:`~mapets_rl.comm.CommunicationRange`) -> per-agent
+ensembles -> NLL loss + Adam -> batched CEM planner -> per-agent datasets ``D(i)+`` -> the episode
+loop of :meth:`MAPETS.train`:
+
+1. episode ``k <= random_episodes`` drives every CAV with uniformly random actions (line 2);
+   later episodes let the planner drive all CAVs, each re-planning every step with its own
+   ensemble (lines 5-15);
+2. at the episode's end every CAV stores its own transitions ``(s, a, s')`` (only steps where it
+   was driving, without the crash step) and sends them to the CAVs within range ``d`` of it
+   (lines 16-17, :meth:`CommunicationRange.episode_graph` + :class:`NeighbourDatasets`);
+3. every CAV's ensemble is refit on its ``D(i)+`` (line 4: normaliser refit, 5 epochs of
+   128-row minibatches, Adam): one vectorised optimisation over all ``I`` agents and ``B``
+   members per minibatch;
+4. the episode's metrics (agility, safety, reward, transitions shared, model NLL) go to the
+   logger and ``results.json`` and a checkpoint is written atomically.
+
+A run resumes from its latest checkpoint at the next episode (``mapets-rl resume RUN_DIR``, or
+``MAPETS.from_run_dir(run_dir).train()``); every random stream is re-seeded from
+``(seed, episode)`` or restored, so a resumed run repeats an uninterrupted one.
+
+Usage::
+
+    from recipes.mapets import MAPETS, MAPETSConfig
+    MAPETS(MAPETSConfig(preset="cpu", episodes=5, seed=1)).train()
+
+or ``mapets-rl train mapets --env figure-eight preset=cpu episodes=5``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import EnvBase
+from tqdm import tqdm
+
+from mapets_rl.comm import CommunicationRange, NeighbourDatasets
+from mapets_rl.envs import figure_eight_reward
+from mapets_rl.experiment import Experiment, ExperimentConfig, check, log_scalars
+from mapets_rl.experiment.multiagent import AgentGroupSpec, masked_mean
+from mapets_rl.experiment.runner import build_env
+from mapets_rl.models import ProbabilisticEnsemble, train_ensemble
+from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss
+from mapets_rl.planning import PRESETS, PROPAGATIONS, PlannerConfig, RewardFn, TrajectorySamplingCEM
+
+OBS = ("agents", "observation")
+ACTION = ("agents", "action")
+MASK = ("agents", "mask")
+NEXT_OBS = ("next", "agents", "observation")
+NEXT_REWARD = ("next", "agents", "reward")
+NEXT_TERMINATED = ("next", "agents", "terminated")
+MAX_STEPS = 100_000
+"""Safety cap on the steps of one episode (the env truncates at its own horizon first)."""
+
+# Planner / ensemble fields that a preset fills when left unset (None).
+_PRESET_FIELDS = (
+    "horizon",
+    "population",
+    "elites",
+    "iterations",
+    "particles",
+    "ensemble_size",
+    "hidden",
+)
+
+
+def _default_env_config() -> dict[str, Any]:
+    return {"n_cavs": 8}
+
+
+@dataclasses.dataclass
+class MAPETSConfig(ExperimentConfig):
+    """MA-PETS hyper-parameters; defaults are the paper's Table II.
+
+    The planner/ensemble sizes left unset (``None``) come from ``preset``:
+
+    - ``"paper"`` (Table II): ``w=25, Q=400, X=40, Y=5, P=20, B=5``, 3x300 hidden units. About
+      0.37 TFLOP per agent and decision: a GPU workload.
+    - ``"cpu"``: ``w=10, Q=64, X=8, Y=3, P=5, B=5``, 3x64 hidden units
+      (:data:`mapets_rl.planning.CPU_PRESET`, ~400x fewer MLP FLOPs per decision), about 0.3 s
+      per step for 8 CAVs on one shared CPU core.
+
+    A field set explicitly wins over the preset (``preset=cpu horizon=15``); the resolved values
+    are what ``config.yaml`` records.
+
+    Attributes:
+        episodes: ``K``, episodes to train for (paper: 15). ``train()`` continues a resumed
+            run up to this number.
+        random_episodes: leading episodes driven by uniformly random actions (paper: 1).
+        comm_range: communication range ``d`` in metres (``0``: independent learners,
+            ``inf``: everybody shares); paper: 100.
+        p_fail: probability that a communication link fails, in ``[0, 1]``.
+        preset: ``"paper"`` or ``"cpu"``, see above.
+        horizon, population, elites, iterations, particles: CEM planner ``w, Q, X, Y, P``.
+        ensemble_size: ensemble members ``B`` per CAV.
+        hidden: hidden layer widths of each member MLP.
+        propagation: ``"ts_inf"`` (paper), ``"ts1"`` or ``"expectation"``.
+        epsilon: CEM stops once every sampling std is below it (Table II: 1e-3).
+        cem_momentum: momentum of the CEM mean/std update, in ``[0, 1)``.
+        buffer_size: capacity of each CAV's dataset ``D(i)+`` in transitions (paper: 2048).
+        batch_size: model-training minibatch rows (paper: 128).
+        epochs: model-training passes over ``D(i)+`` after each episode (paper: 5).
+        lr: Adam learning rate (paper: 1e-3).
+        logvar_bound_coef: weight of the PETS log-variance bound penalty.
+        share_model: one set of ``B`` MLPs for all CAVs (a centralised model; each CAV still
+            normalises with its own statistics) instead of one ensemble per CAV.
+        num_threads: torch intra-op threads (0: leave torch's default). On a CPU shared with
+            other jobs, 1 is often the fastest.
+
+    Inherited frame-budget fields (``total_frames``, ``frames_per_batch``, ``eval_interval``,
+    ``checkpoint_interval``) are not used: MA-PETS trains and checkpoints after every episode.
+    """
+
+    env_config: dict[str, Any] = dataclasses.field(default_factory=_default_env_config)
+    episodes: int = 15
+    random_episodes: int = 1
+    comm_range: float = 100.0
+    p_fail: float = 0.0
+    preset: str = "paper"
+    horizon: int | None = None
+    population: int | None = None
+    elites: int | None = None
+    iterations: int | None = None
+    particles: int | None = None
+    ensemble_size: int | None = None
+    hidden: list[int] | None = None
+    propagation: str = "ts_inf"
+    epsilon: float = 1e-3
+    cem_momentum: float = 0.1
+    buffer_size: int = 2048
+    batch_size: int = 128
+    epochs: int = 5
+    lr: float = 1e-3
+    logvar_bound_coef: float = 0.01
+    share_model: bool = False
+    num_threads: int = 0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(self.preset in PRESETS, "preset", f"one of {sorted(PRESETS)}", self.preset)
+        preset = PRESETS[self.preset]
+        for name in _PRESET_FIELDS:
+            if getattr(self, name) is None:
+                value = getattr(preset, name)
+                setattr(self, name, list(value) if name == "hidden" else value)
+        check(self.episodes >= 1, "episodes", ">= 1", self.episodes)
+        check(self.random_episodes >= 0, "random_episodes", ">= 0", self.random_episodes)
+        check(self.comm_range >= 0, "comm_range", ">= 0 metres (inf allowed)", self.comm_range)
+        check(0.0 <= self.p_fail <= 1.0, "p_fail", "in [0, 1]", self.p_fail)
+        for name in ("horizon", "population", "iterations", "particles", "ensemble_size"):
+            check(getattr(self, name) >= 1, name, ">= 1", getattr(self, name))
+        check(
+            1 <= self.elites <= self.population,
+            "elites",
+            f"in [1, population={self.population}]",
+            self.elites,
+        )
+        check(
+            len(self.hidden) > 0 and all(h >= 1 for h in self.hidden),
+            "hidden",
+            "a non-empty list of ints >= 1",
+            self.hidden,
+        )
+        check(
+            self.propagation in PROPAGATIONS,
+            "propagation",
+            f"one of {list(PROPAGATIONS)}",
+            self.propagation,
+        )
+        check(
+            self.propagation != "ts_inf" or self.particles % self.ensemble_size == 0,
+            "particles",
+            f"a multiple of ensemble_size={self.ensemble_size} for propagation='ts_inf'",
+            self.particles,
+        )
+        check(self.epsilon > 0, "epsilon", "> 0", self.epsilon)
+        check(0.0 <= self.cem_momentum < 1.0, "cem_momentum", "in [0, 1)", self.cem_momentum)
+        check(self.batch_size >= 1, "batch_size", ">= 1", self.batch_size)
+        check(self.buffer_size >= 1, "buffer_size", ">= 1", self.buffer_size)
+        check(self.epochs >= 1, "epochs", ">= 1", self.epochs)
+        check(self.lr > 0, "lr", "> 0", self.lr)
+        check(self.logvar_bound_coef >= 0, "logvar_bound_coef", ">= 0", self.logvar_bound_coef)
+        check(self.num_threads >= 0, "num_threads", ">= 0", self.num_threads)
+        check(self.num_envs == 1, "num_envs", "1 (MA-PETS plans on one env)", self.num_envs)
+
+    @property
+    def planner(self) -> PlannerConfig:
+        """The resolved planner / ensemble sizes."""
+        return PlannerConfig(
+            horizon=self.horizon,
+            population=self.population,
+            elites=self.elites,
+            iterations=self.iterations,
+            particles=self.particles,
+            ensemble_size=self.ensemble_size,
+            hidden=tuple(self.hidden),
+            propagation=self.propagation,
+            epsilon=self.epsilon,
+            alpha=self.cem_momentum,
+        )
+
+
+class _Counters:
+    """The episode counter as a checkpoint component."""
+
+    def __init__(self) -> None:
+        self.episode = 0
+
+    def state_dict(self) -> dict[str, int]:
+        return {"episode": self.episode}
+
+    def load_state_dict(self, state: Mapping[str, int]) -> None:
+        self.episode = int(state["episode"])
+
+
+class MAPETS(Experiment):
+    """Decentralised model-based MARL with range-limited data sharing (MA-PETS, Algorithm 1).
+
+    Args:
+        config: a :class:`MAPETSConfig`.
+        run_dir: run directory (default ``runs/mapets_<env>_seed<N>_<time>``).
+        reward_fn: the known reward the planner maximises, ``(obs [..., S], action [..., A],
+            next_obs [..., S]) -> [...]``; default :func:`mapets_rl.envs.figure_eight_reward`
+            (paper eq. 26 with a predicted-collision penalty), which needs the figure-eight's
+            7-dim observation.
+
+    Attributes:
+        env: the env with the :class:`CommunicationRange` transform appended.
+        comm: that transform (range ``config.comm_range``).
+        model: the CAVs' :class:`ProbabilisticEnsemble` ``(I agents x B members)``.
+        loss: :class:`EnsembleNLLLoss` on the dataset keys ``observation``, ``action``,
+            ``next_observation``, ``mask``.
+        planner: :class:`TrajectorySamplingCEM` over all CAVs at once (also ``eval_policy``).
+        datasets: :class:`NeighbourDatasets`, every CAV's ``D(i)+``.
+        episode: episodes completed.
+    """
+
+    name = "mapets"
+    Config = MAPETSConfig
+
+    def __init__(
+        self,
+        config: MAPETSConfig,
+        run_dir: Any = None,
+        reward_fn: RewardFn | None = None,
+    ) -> None:
+        if isinstance(config, MAPETSConfig) and config.num_threads > 0:
+            torch.set_num_threads(config.num_threads)
+        super().__init__(config, run_dir)
+        group = AgentGroupSpec.from_env(self.env)
+        if group.discrete:
+            raise ValueError(
+                f"env {config.env!r} must have continuous actions for mapets (the CEM planner "
+                "optimises real-valued action sequences), e.g. figure-eight"
+            )
+        if reward_fn is None and group.obs_dim != 7:
+            raise ValueError(
+                f"reward_fn is required for env {config.env!r}: the default figure_eight_reward "
+                f"needs 7-dim observations, got {group.obs_dim}"
+            )
+        self.reward_fn = figure_eight_reward if reward_fn is None else reward_fn
+        self.n_agents = n = group.n_agents
+        plan = config.planner
+        device = self.device
+
+        # per-CAV probabilistic ensembles + Gaussian NLL (eq. 9) + Adam
+        self.model = ProbabilisticEnsemble(
+            group.obs_dim,
+            group.action_dim,
+            n,
+            share_across_agents=config.share_model,
+            **plan.model_kwargs(),
+        ).to(device)
+        self.bootstrap_generator = torch.Generator(device=device)
+        self.loss = EnsembleNLLLoss(
+            self.model,
+            logvar_bound_coef=config.logvar_bound_coef,
+            generator=self.bootstrap_generator,
+        )
+        self.loss.set_keys(
+            observation="observation",
+            action="action",
+            next_observation="next_observation",
+            mask="mask",
+        )
+        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=config.lr)
+        self.shuffle_generator = torch.Generator(device=device)
+
+        # batched CEM planner with trajectory sampling over every CAV's ensemble
+        bounds = group.action_spec.space
+        self.plan_generator = torch.Generator(device=device)
+        self.planner = TrajectorySamplingCEM(
+            self.model,
+            self.reward_fn,
+            bounds.low.to(device),
+            bounds.high.to(device),
+            generator=self.plan_generator,
+            **plan.planner_kwargs(),
+        )
+        self.eval_policy = self.planner
+
+        # D(i)+ of every CAV over one shared storage
+        self.datasets = NeighbourDatasets(
+            n, config.buffer_size, device=device, seed=config.seed
+        )
+        self.counters = _Counters()
+
+    # ------------------------------------------------------------------ env
+    def make_env(self) -> EnvBase:
+        """The scenario with the communication-range transform appended."""
+        env = build_env(self.config.env, self.config.env_config)
+        self.comm = CommunicationRange(self.config.comm_range, self.config.p_fail)
+        return env.append_transform(self.comm)
+
+    @property
+    def episode(self) -> int:
+        return self.counters.episode
+
+    def stateful_components(self) -> dict[str, Any]:
+        return {
+            "model": self.model,
+            "optimizer": self.optimizer,
+            "datasets": self.datasets,
+            "counters": self.counters,
+        }
+
+    # ------------------------------------------------------------------ the loop
+    def _seed_episode(self, episode: int) -> None:
+        """Seed the env and every private random stream from ``(seed, episode)``."""
+        base = self.config.seed * 1_000_003 + episode * 7_919
+        self.env.set_seed(base)
+        self.comm.set_seed(base + 1)
+        self.plan_generator.manual_seed(base + 2)
+        self.bootstrap_generator.manual_seed(base + 3)
+        self.shuffle_generator.manual_seed(base + 4)
+
+    def run_episode(self, random_actions: bool) -> TensorDictBase:
+        """One episode until every CAV is done: ``[T]`` rollout (random or planned actions)."""
+        self.planner.reset()
+        with torch.no_grad():
+            return self.env.rollout(
+                MAX_STEPS,
+                policy=None if random_actions else self.planner,
+                break_when_any_done=True,
+            )
+
+    def store_and_share(self, rollout: TensorDictBase) -> dict[str, float]:
+        """Add every CAV's transitions of ``rollout`` to its ``D(i)+`` and exchange them with
+        the CAVs within range at the episode's end (Algorithm 1 lines 16-17).
+
+        A CAV's transition of step ``t`` is kept when it was driving (``("agents", "mask")``)
+        and did not crash in that step (its next observation is then zeroed by the env).
+        """
+        keep = rollout.get(MASK) & ~rollout.get(NEXT_TERMINATED).squeeze(-1)  # [T, I]
+        transitions = TensorDict(
+            {
+                "observation": rollout.get(OBS),
+                "action": rollout.get(ACTION),
+                "next_observation": rollout.get(NEXT_OBS),
+            },
+            batch_size=keep.shape,
+        )
+        self.datasets.add(transitions, mask=keep)
+        stats = self.datasets.exchange(self.comm.episode_graph(rollout))
+        return {
+            "transitions_stored": float(keep.sum()),
+            "transitions_shared": float(stats.transitions),
+            "bytes_shared": float(stats.bytes),
+            "dataset_size": self.datasets.sizes.float().mean().item(),
+        }
+
+    def train_models(self) -> dict[str, float]:
+        """Refit every CAV's ensemble on its ``D(i)+`` (Algorithm 1 line 4).
+
+        The datasets are laid out as one padded batch ``[N, I]`` (``N`` = the largest
+        ``|D(i)+|``; ``mask`` is ``False`` on the padding of smaller datasets), so each
+        minibatch trains all ``I x B`` members in one forward/backward.
+        """
+        sizes = self.datasets.sizes
+        if bool((sizes == 0).any()):
+            return {}
+        rows = int(sizes.max())
+        # one shuffled pass: row j < |D(i)+| of agent i is a distinct transition of D(i)+
+        data = next(iter(self.datasets.iter_epoch(rows))).transpose(0, 1)  # [N, I]
+        mask = torch.arange(rows, device=sizes.device)[:, None] < sizes[None, :]
+        data.set("mask", mask)
+        data.batch_size = torch.Size([rows])  # train_ensemble reads keys [N, I, *]
+        history = train_ensemble(
+            self.loss,
+            self.optimizer,
+            data,
+            epochs=self.config.epochs,
+            batch_size=self.config.batch_size,
+            generator=self.shuffle_generator,
+        )  # [epochs, I, B]
+        return {"model_nll": history[-1].mean().item()}
+
+    def episode_metrics(self, rollout: TensorDictBase) -> dict[str, float]:
+        """Runner metrics (reward, return, length, agility, safety, collisions, mean speed)."""
+        out = super().episode_metrics(rollout)
+        out["reward"] = masked_mean(rollout.get(NEXT_REWARD), rollout.get(MASK))
+        return out
+
+    def train(
+        self, on_episode_end: Callable[[dict[str, float]], None] | None = None
+    ) -> list[dict[str, Any]]:
+        """Train (or continue) up to ``config.episodes`` episodes.
+
+        Args:
+            on_episode_end: optional callback receiving each episode's metrics.
+
+        Returns:
+            the run's per-episode entries ``{"frames", "metrics"}`` (as in ``results.json``).
+        """
+        cfg = self.config
+        bar = tqdm(
+            total=cfg.episodes,
+            initial=self.episode,
+            disable=not cfg.progress,
+            desc=f"{self.name} {cfg.env} d={cfg.comm_range:g} seed {cfg.seed}",
+            unit="episode",
+        )
+        while self.episode < cfg.episodes:
+            episode = self.episode + 1
+            self._seed_episode(episode)
+            random_actions = episode <= cfg.random_episodes
+            start = time.perf_counter()
+            rollout = self.run_episode(random_actions)
+            act_time = time.perf_counter() - start
+            metrics = {"episode": float(episode), "random": float(random_actions)}
+            metrics.update(self.episode_metrics(rollout))
+            metrics.update(self.store_and_share(rollout))
+            start = time.perf_counter()
+            metrics.update(self.train_models())
+            metrics["train_time"] = time.perf_counter() - start
+            metrics["step_time"] = act_time / rollout.shape[0]
+            self.frames += rollout.shape[0]
+            self.counters.episode = episode
+            self.results.add(self.frames, metrics)
+            log_scalars(self.logger, "train", metrics, self.frames)
+            self.latest_metrics = metrics
+            self.save_checkpoint()
+            bar.update(1)
+            bar.set_postfix(
+                {k: f"{metrics[k]:.3g}" for k in ("agility", "safety") if k in metrics}
+            )
+            if on_episode_end is not None:
+                on_episode_end(metrics)
+        bar.close()
+        return self.results.evaluations
+
+    # ------------------------------------------------------------------ evaluation
+    def _eval_episode(self, frames: list[Any] | None) -> TensorDictBase:
+        self.planner.reset()
+        return super()._eval_episode(frames)
