@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 import torch
@@ -68,6 +68,11 @@ _PRESET_FIELDS = (
     "ensemble_size",
     "hidden",
 )
+
+
+def _preset_value(preset: PlannerConfig, name: str) -> Any:
+    value = getattr(preset, name)
+    return list(value) if name == "hidden" else value
 
 
 def _default_env_config() -> dict[str, Any]:
@@ -147,8 +152,7 @@ class MAPETSConfig(ExperimentConfig):
         preset = PRESETS[self.preset]
         for name in _PRESET_FIELDS:
             if getattr(self, name) is None:
-                value = getattr(preset, name)
-                setattr(self, name, list(value) if name == "hidden" else value)
+                setattr(self, name, _preset_value(preset, name))
         check(self.episodes >= 1, "episodes", ">= 1", self.episodes)
         check(self.random_episodes >= 0, "random_episodes", ">= 0", self.random_episodes)
         check(self.comm_range >= 0, "comm_range", ">= 0 metres (inf allowed)", self.comm_range)
@@ -188,6 +192,22 @@ class MAPETSConfig(ExperimentConfig):
         check(self.logvar_bound_coef >= 0, "logvar_bound_coef", ">= 0", self.logvar_bound_coef)
         check(self.num_threads >= 0, "num_threads", ">= 0", self.num_threads)
         check(self.num_envs == 1, "num_envs", "1 (MA-PETS plans on one env)", self.num_envs)
+
+    def with_overrides(self, overrides: Iterable[str]) -> MAPETSConfig:
+        """``key=value`` overrides; ``preset=NAME`` re-fills the preset fields that still hold
+        the current preset's values (fields set explicitly, here or earlier, are kept)."""
+        overrides = list(overrides)
+        presets = [v for k, _, v in (o.partition("=") for o in overrides) if k.strip() == "preset"]
+        new = presets[-1].strip() if presets else self.preset
+        if new != self.preset and new in PRESETS:
+            old = PRESETS[self.preset]
+            unset = [
+                f"{name}=null"
+                for name in _PRESET_FIELDS
+                if getattr(self, name) == _preset_value(old, name)
+            ]
+            overrides = unset + overrides
+        return super().with_overrides(overrides)
 
     @property
     def planner(self) -> PlannerConfig:

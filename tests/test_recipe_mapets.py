@@ -1,0 +1,159 @@
+"""MA-PETS recipe: end-to-end episodes, metrics, checkpoints, exact resume, config validation."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+import torch
+
+from mapets_rl.experiment import ConfigError, latest_checkpoint, load_checkpoint
+from mapets_rl.experiment.cli import main as cli_main
+from recipes.mapets import MAPETS, MAPETSConfig
+
+TINY = dict(
+    env_config={"n_cavs": 3, "n_hvs": 2, "horizon": 20},
+    preset="cpu",
+    horizon=3,
+    population=8,
+    elites=2,
+    iterations=2,
+    particles=5,
+    hidden=[16],
+    buffer_size=64,
+    batch_size=16,
+    epochs=2,
+    num_threads=1,
+    progress=False,
+)
+
+
+def tiny(**overrides) -> MAPETSConfig:
+    return MAPETSConfig(**{**TINY, **overrides})
+
+
+@pytest.fixture(scope="module")
+def two_episodes(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("mapets") / "run"
+    exp = MAPETS(tiny(episodes=2, seed=3), run_dir)
+    params_before = [p.detach().clone() for p in exp.model.parameters()]
+    seen = []
+    exp.train(on_episode_end=seen.append)
+    return exp, run_dir, params_before, seen
+
+
+def test_two_episodes_write_metrics_and_checkpoint(two_episodes):
+    exp, run_dir, params_before, seen = two_episodes
+    assert [m["episode"] for m in seen] == [1.0, 2.0]
+    assert [m["random"] for m in seen] == [1.0, 0.0]  # episode 1 random, then the planner
+    results = json.loads((run_dir / "results.json").read_text())
+    assert results["recipe"] == "mapets"
+    entries = results["evaluations"]
+    assert [e["metrics"]["episode"] for e in entries] == [1.0, 2.0]
+    frames = [e["frames"] for e in entries]
+    assert frames[0] == entries[0]["metrics"]["length"] and frames[1] > frames[0]
+    for entry in entries:
+        m = entry["metrics"]
+        assert 0.0 <= m["safety"] <= 1.0 and m["agility"] >= 0.0
+        assert 0 < m["transitions_stored"] <= 3 * 20
+        assert m["transitions_shared"] >= 0 and torch.isfinite(torch.tensor(m["model_nll"]))
+    # CSV logger (the default) wrote one row per episode
+    with open(next(run_dir.glob("logs/*/scalars/train/safety.csv"))) as fh:
+        assert len(list(csv.reader(fh))) == 2
+    ckpt = latest_checkpoint(run_dir)
+    assert ckpt is not None
+    state = load_checkpoint(ckpt)  # weights_only=True
+    assert state["recipe"] == "mapets" and state["components"]["counters"]["episode"] == 2
+    # the ensembles trained
+    changed = [not torch.equal(a, b) for a, b in zip(params_before, exp.model.parameters(),
+                                                       strict=True)]
+    assert all(changed)
+    # every CAV's dataset holds its own stored transitions (+ what neighbours sent)
+    stored = sum(m["transitions_stored"] for m in seen)
+    assert int(exp.datasets.sizes.sum()) >= min(stored, 3 * 64)
+
+
+def test_resume_continues_at_episode_3_like_an_uninterrupted_run(two_episodes, tmp_path):
+    _, run_dir, _, _ = two_episodes
+    resumed = MAPETS.from_run_dir(run_dir, overrides=["episodes=3"])
+    assert resumed.episode == 2
+    seen = []
+    resumed.train(on_episode_end=seen.append)
+    assert [m["episode"] for m in seen] == [3.0]
+    entries = json.loads((run_dir / "results.json").read_text())["evaluations"]
+    assert [e["metrics"]["episode"] for e in entries] == [1.0, 2.0, 3.0]
+
+    straight = MAPETS(tiny(episodes=3, seed=3), tmp_path / "straight")
+    straight.train()
+    ref = straight.results.evaluations
+    for key in ("agility", "safety", "reward", "transitions_shared", "model_nll"):
+        assert entries[2]["metrics"][key] == pytest.approx(ref[2]["metrics"][key], rel=1e-5)
+    for a, b in zip(resumed.model.parameters(), straight.model.parameters(), strict=True):
+        torch.testing.assert_close(a, b)
+
+
+def test_d0_shares_nothing_and_d_inf_shares(tmp_path):
+    exp = MAPETS(tiny(episodes=1, comm_range=0.0), tmp_path / "d0")
+    (metrics,) = [e["metrics"] for e in exp.train()]
+    assert metrics["transitions_shared"] == 0
+    sizes = exp.datasets.sizes
+    assert int(sizes.sum()) == metrics["transitions_stored"]
+    exp = MAPETS(tiny(episodes=1, comm_range=float("inf")), tmp_path / "dinf")
+    (metrics,) = [e["metrics"] for e in exp.train()]
+    # CAVs still driving at the end send their episode to the other two
+    assert metrics["transitions_shared"] > 0
+
+
+def test_cli_train_mapets(tmp_path, capsys):
+    run_dir = tmp_path / "cli"
+    args = ["train", "mapets", "--env", "figure-eight", "--run-dir", str(run_dir), "episodes=1",
+            "random_episodes=1", "preset=cpu", "hidden=[8]", "horizon=2", "population=4",
+            "elites=1", "iterations=1", "env_config.n_cavs=2", "env_config.n_hvs=1",
+            "env_config.horizon=5", "progress=false", "num_threads=1"]
+    assert cli_main(args) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["metrics"]["episode"] == 1.0 and 0 <= out["metrics"]["safety"] <= 1
+    config = MAPETSConfig.from_yaml(run_dir / "config.yaml")
+    assert config.hidden == [8] and config.population == 4 and config.particles == 5
+
+
+def test_presets_resolve_and_explicit_fields_win():
+    paper = MAPETSConfig()
+    assert (paper.horizon, paper.population, paper.elites, paper.iterations, paper.particles,
+            paper.ensemble_size, paper.hidden) == (25, 400, 40, 5, 20, 5, [300, 300, 300])
+    assert (paper.buffer_size, paper.batch_size, paper.epochs, paper.lr) == (2048, 128, 5, 1e-3)
+    assert paper.episodes == 15 and paper.comm_range == 100.0 and paper.random_episodes == 1
+    cpu = MAPETSConfig(preset="cpu", horizon=15)
+    assert (cpu.horizon, cpu.population, cpu.hidden) == (15, 64, [64, 64, 64])
+    assert cpu.with_overrides(["lr=3e-4"]).horizon == 15
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("episodes", 0),
+        ("comm_range", -1.0),
+        ("p_fail", 1.5),
+        ("preset", "gpu"),
+        ("elites", 500),
+        ("particles", 7),
+        ("hidden", []),
+        ("propagation", "ts2"),
+        ("lr", 0.0),
+        ("batch_size", 0),
+        ("epochs", 0),
+        ("cem_momentum", 1.0),
+        ("num_envs", 2),
+    ],
+)
+def test_bad_config_raises_naming_the_field(field, value):
+    with pytest.raises(ValueError, match=field) as err:
+        MAPETSConfig(**{field: value})
+    assert isinstance(err.value, ConfigError)
+
+
+def test_discrete_env_is_rejected(tmp_path):
+    with pytest.raises(ValueError, match="continuous actions"):
+        MAPETS(tiny(env="freeway", env_config={"n_vehicles": 4, "cav_ratio": 0.5}),
+               tmp_path / "freeway")
