@@ -79,8 +79,10 @@ def test_module_entry_point_errors_without_traceback() -> None:
                            "--env", "figure-eight"], cwd=ROOT, capture_output=True, text=True,
                           timeout=120)
     assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines() == [
-        "mapets-rl: error: unknown recipe 'nope' (choose from: maddpg, mappo, sac)"]
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(
+        "mapets-rl: error: unknown recipe 'nope' (choose from: ")
+    assert all(name in lines[0] for name in ("maddpg", "mappo", "sac"))
 
 
 def test_help_explains_every_subcommand(capsys) -> None:

@@ -215,6 +215,8 @@ def test_toy_learner_trains_and_writes_run_dir(tmp_path: Path) -> None:
     assert (run / "config.yaml").is_file() and (run / "logs").is_dir()
     assert read_results(run)["evaluations"] == evals
     assert len(list_checkpoints(run)) == 2
+    with pytest.raises(ValueError, match="already holds a run"):
+        ToyLearner(ToyConfig(), run)  # a fresh run must not mix with the old checkpoints
 
 
 def test_resume_reproduces_uninterrupted_run(tmp_path: Path) -> None:

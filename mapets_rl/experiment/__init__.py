@@ -45,33 +45,81 @@ Custom scenarios: ``register_env("name", factory)`` makes ``factory(**env_config
 to every recipe and to ``--env name``.
 """
 
-from mapets_rl.experiment.checkpoint import (
-    atomic_torch_save,
-    latest_checkpoint,
-    list_checkpoints,
-    load_checkpoint,
-    rng_state,
-    save_checkpoint,
-    seed_everything,
-    set_rng_state,
-)
-from mapets_rl.experiment.compare import compare, mean_ci95, student_t_quantile
-from mapets_rl.experiment.config import ConfigError, ExperimentConfig, atomic_write_text, check
-from mapets_rl.experiment.results import (
-    ResultsWriter,
-    log_scalars,
-    make_logger,
-    mean_metrics,
-    read_results,
-)
-from mapets_rl.experiment.runner import (
-    Experiment,
-    available_envs,
-    build_env,
-    default_run_dir,
-    register_env,
-    run_recipe_name,
-)
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from mapets_rl.experiment.checkpoint import (
+        atomic_torch_save,
+        latest_checkpoint,
+        list_checkpoints,
+        load_checkpoint,
+        rng_state,
+        save_checkpoint,
+        seed_everything,
+        set_rng_state,
+    )
+    from mapets_rl.experiment.comparison import compare, mean_ci95, student_t_quantile
+    from mapets_rl.experiment.config import ConfigError, ExperimentConfig, atomic_write_text, check
+    from mapets_rl.experiment.results import (
+        ResultsWriter,
+        log_scalars,
+        make_logger,
+        mean_metrics,
+        read_results,
+    )
+    from mapets_rl.experiment.runner import (
+        Experiment,
+        available_envs,
+        build_env,
+        default_run_dir,
+        register_env,
+        run_recipe_name,
+    )
+
+# Exports are imported on first use, so that `mapets-rl --help` and its error messages do not
+# pay for importing torch and torchrl.
+_EXPORTS = {
+    "ConfigError": "config",
+    "Experiment": "runner",
+    "ExperimentConfig": "config",
+    "ResultsWriter": "results",
+    "atomic_torch_save": "checkpoint",
+    "atomic_write_text": "config",
+    "available_envs": "runner",
+    "build_env": "runner",
+    "check": "config",
+    "compare": "comparison",
+    "default_run_dir": "runner",
+    "latest_checkpoint": "checkpoint",
+    "list_checkpoints": "checkpoint",
+    "load_checkpoint": "checkpoint",
+    "log_scalars": "results",
+    "make_logger": "results",
+    "mean_ci95": "comparison",
+    "mean_metrics": "results",
+    "read_results": "results",
+    "register_env": "runner",
+    "rng_state": "checkpoint",
+    "run_recipe_name": "runner",
+    "save_checkpoint": "checkpoint",
+    "seed_everything": "checkpoint",
+    "set_rng_state": "checkpoint",
+    "student_t_quantile": "comparison",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_EXPORTS])
+
 
 __all__ = [
     "ConfigError",

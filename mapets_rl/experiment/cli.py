@@ -120,11 +120,11 @@ def _check_env(name: str) -> None:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
+    cls = _recipe_class(args.recipe)  # an unknown name fails before torch is imported
+    _check_env(args.env)
     from mapets_rl.experiment.config import ConfigError
     from mapets_rl.experiment.runner import default_run_dir
 
-    cls = _recipe_class(args.recipe)
-    _check_env(args.env)
     overrides = [f"env={args.env}"]
     if args.seed is not None:
         overrides.append(f"seed={args.seed}")
@@ -176,7 +176,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from mapets_rl.experiment.compare import compare
+    from mapets_rl.experiment.comparison import compare
 
     metrics = [m for m in args.metrics.split(",") if m] if args.metrics else None
     try:

@@ -114,7 +114,9 @@ class ExperimentConfig:
         eval_episodes: episodes per evaluation (>= 1).
         checkpoint_interval: write a checkpoint every this many frames (0: only at the end).
             Environments are re-seeded and reset at every checkpoint boundary so that a resumed
-            run continues exactly like an uninterrupted one (an episode in flight is cut there).
+            run continues exactly like an uninterrupted one (an episode in flight is cut there;
+            bit-exact with ``num_envs=1``; worker processes of ``num_envs > 1`` re-seed their
+            environments but not their own torch RNG).
         keep_last: checkpoints to keep on disk (>= 1).
         logger: ``csv`` (default), ``tensorboard``, ``wandb`` or ``none``.
         video: record a GIF of the first episode of each evaluation.

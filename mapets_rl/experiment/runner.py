@@ -46,6 +46,7 @@ EVAL_SEED_OFFSET = 1_000_003
 BOUNDARY_SEED_STRIDE = 7_919
 
 _ENV_REGISTRY: dict[str, Callable[..., EnvBase]] = {}
+_RESTORING: list[Path] = []  # run dirs being rebuilt by Experiment.from_run_dir
 
 
 def register_env(name: str, factory: Callable[..., EnvBase]) -> None:
@@ -104,6 +105,10 @@ class Experiment:
         self.config = config
         self.run_dir = Path(run_dir) if run_dir is not None else default_run_dir(
             self.name, config.env, config.seed)
+        if latest_checkpoint(self.run_dir) is not None and self.run_dir not in _RESTORING:
+            raise ValueError(f"run_dir {str(self.run_dir)!r} already holds a run with "
+                             "checkpoints; continue it with from_run_dir / `mapets-rl resume` "
+                             "or choose another run_dir")
         self.run_dir.mkdir(parents=True, exist_ok=True)
         config.to_yaml(self.run_dir / CONFIG_FILE)
         if not (self.run_dir / RUN_FILE).exists():
@@ -356,7 +361,11 @@ class Experiment:
         config = cls.Config.from_yaml(run_dir / CONFIG_FILE)
         if overrides:
             config = config.with_overrides(overrides)
-        exp = cls(config, run_dir)
+        _RESTORING.append(run_dir)
+        try:
+            exp = cls(config, run_dir)
+        finally:
+            _RESTORING.remove(run_dir)
         if load:
             ckpt = latest_checkpoint(run_dir)
             if ckpt is None:
