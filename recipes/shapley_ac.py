@@ -69,6 +69,8 @@ class ShapleyACConfig(ExperimentConfig):
         join_prob: probability that a CAV joins the random coalition of a timestep.
         eval_coalition: coalition used in evaluation: ``grand``, ``empty`` or ``random``.
         gumbel_temperature: Gumbel-softmax temperature (exploration and actor gradient).
+        logits_reg: weight of the squared-logits penalty in the actor loss (keeps the discrete
+            policies from saturating early).
         exact_max_agents: Shapley exact up to this many CAVs, permutation sampling beyond.
         num_permutations: orderings per update on the sampled path.
         max_grad_norm: gradient clipping.
@@ -97,7 +99,8 @@ class ShapleyACConfig(ExperimentConfig):
     gumbel_temperature: float = 1.0
     exact_max_agents: int = 10
     num_permutations: int = 32
-    max_grad_norm: float = 10.0
+    logits_reg: float = 1e-3
+    max_grad_norm: float = 1.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -137,6 +140,7 @@ class ShapleyACConfig(ExperimentConfig):
             "an even int >= 2",
             self.num_permutations,
         )
+        check(self.logits_reg >= 0, "logits_reg", ">= 0", self.logits_reg)
         check(self.max_grad_norm > 0, "max_grad_norm", "> 0", self.max_grad_norm)
 
 
@@ -193,6 +197,7 @@ class ShapleyAC(Experiment):
             exact_max_agents=config.exact_max_agents,
             num_permutations=config.num_permutations,
             gumbel_temperature=config.gumbel_temperature,
+            logits_reg=config.logits_reg,
         )
         self.updater = SoftUpdate(self.loss, tau=config.tau)
         self.actor_optim = torch.optim.Adam(

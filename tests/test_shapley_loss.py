@@ -231,3 +231,20 @@ def test_random_coalition_modes_and_mask():
     assert c[:, :2].all() and not c[:, 2].any()  # grand coalition of the alive agents
     with pytest.raises(ValueError, match="eval_mode"):
         RandomCoalition(3, eval_mode="half")
+
+
+def test_logits_penalty():
+    td = _batch()
+    plain, reg = _loss(logits_reg=0.0), _loss(logits_reg=0.5)
+    reg.load_state_dict(plain.state_dict())
+    actor = plain.actor_network
+    with plain.actor_network_params.to_module(actor, preserve_module_state=False):
+        view = td.select(("agents", "observation"), ("agents", "coalition")).clone()
+        logits = actor(view)["agents", "logits"]
+    torch.manual_seed(4)
+    base = plain.loss_actor(td)[0]
+    torch.manual_seed(4)
+    penalised = reg.loss_actor(td)[0]
+    assert torch.allclose(penalised - base, 0.5 * logits.pow(2).mean(), atol=1e-5)
+    with pytest.raises(ValueError, match="logits_reg"):
+        _loss(logits_reg=-1.0)

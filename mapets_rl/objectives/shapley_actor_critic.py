@@ -53,6 +53,9 @@ class ShapleyActorCriticLoss(LossModule):
         exact_max_agents: largest ``n`` computed exactly (``1..20``, default 10).
         num_permutations: orderings per update on the sampled path (even, ``>= 2``).
         gumbel_temperature: Gumbel-softmax temperature (``> 0``).
+        logits_reg: weight of the mean squared actor logits added to the actor loss (discrete;
+            ``>= 0``). As in the original MADDPG code, it keeps the logits from saturating, where
+            the softmax gradient vanishes and a deterministic policy stops exploring.
         loss_function: ``"l2"``, ``"l1"`` or ``"smooth_l1"`` for the TD loss.
         delay_actor, delay_value: keep target copies of the actor / critic parameters.
 
@@ -112,6 +115,7 @@ class ShapleyActorCriticLoss(LossModule):
         exact_max_agents: int = 10,
         num_permutations: int = 32,
         gumbel_temperature: float = 1.0,
+        logits_reg: float = 1e-3,
         loss_function: str = "l2",
         delay_actor: bool = True,
         delay_value: bool = True,
@@ -132,6 +136,8 @@ class ShapleyActorCriticLoss(LossModule):
             raise ValueError(f"num_permutations must be an even int >= 2, got {num_permutations!r}")
         if not gumbel_temperature > 0:
             raise ValueError(f"gumbel_temperature must be > 0, got {gumbel_temperature}")
+        if not logits_reg >= 0:
+            raise ValueError(f"logits_reg must be >= 0, got {logits_reg}")
         if loss_function not in ("l2", "l1", "smooth_l1"):
             raise ValueError(
                 f"loss_function must be 'l2', 'l1' or 'smooth_l1', got {loss_function!r}"
@@ -143,6 +149,7 @@ class ShapleyActorCriticLoss(LossModule):
         self.exact_max_agents = exact_max_agents
         self.num_permutations = num_permutations
         self.gumbel_temperature = gumbel_temperature
+        self.logits_reg = logits_reg
         self.loss_function = loss_function
         self.delay_actor = delay_actor
         self.delay_value = delay_value
@@ -206,8 +213,9 @@ class ShapleyActorCriticLoss(LossModule):
 
     def _policy_action(
         self, params: TensorDictBase, obs: torch.Tensor, coalition: torch.Tensor, greedy: bool
-    ) -> torch.Tensor:
-        """``pi(s^C)`` under ``params``: ``[*, n, act]`` (one-hot if discrete)."""
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``pi(s^C)`` under ``params``: action ``[*, n, act]`` (one-hot if discrete) and the
+        logits (``None`` if continuous)."""
         keys = self.tensor_keys
         td = TensorDict(
             {keys.observation: obs, keys.coalition: coalition}, batch_size=obs.shape[:-2]
@@ -215,11 +223,13 @@ class ShapleyActorCriticLoss(LossModule):
         with params.to_module(self.actor_network, preserve_module_state=False):
             td = self.actor_network(td)
         if self.action_space == "continuous":
-            return td.get(keys.action)
+            return td.get(keys.action), None
         logits = td.get(keys.logits)
         if greedy:
-            return torch.nn.functional.one_hot(logits.argmax(-1), logits.shape[-1]).to(logits.dtype)
-        return torch.nn.functional.gumbel_softmax(logits, tau=self.gumbel_temperature, hard=True)
+            hard = torch.nn.functional.one_hot(logits.argmax(-1), logits.shape[-1])
+            return hard.to(logits.dtype), logits
+        action = torch.nn.functional.gumbel_softmax(logits, tau=self.gumbel_temperature, hard=True)
+        return action, logits
 
     def loss_value(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """TD loss of the characteristic function (Algorithm 1 lines 10-11)."""
@@ -238,7 +248,7 @@ class ShapleyActorCriticLoss(LossModule):
             terminated = terminated.reshape(*terminated.shape[: coalition.ndim - 1], -1)
             next_coalition = coalition & ~terminated.expand_as(coalition)
             coalition_reward = (reward * coalition.to(reward.dtype)).sum(-1)  # R(C), eq. 10
-            next_action = self._policy_action(
+            next_action, _ = self._policy_action(
                 self.target_actor_network_params, next_obs, coalition, greedy=True
             )
             with self.target_critic_network_params.to_module(
@@ -262,12 +272,17 @@ class ShapleyActorCriticLoss(LossModule):
 
         Returns ``[*, n]``. Gradients reach the actor parameters, not the critic's.
         """
+        return self._shapley_and_logits(tensordict)[0]
+
+    def _shapley_and_logits(
+        self, tensordict: TensorDictBase
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         keys = self.tensor_keys
         obs = tensordict.get(keys.observation)
         coalition = tensordict.get(keys.coalition).bool()
         self._check_shapes(obs, coalition)
         a_batch = tensordict.get(keys.action).to(obs.dtype)
-        a_pol = self._policy_action(self.actor_network_params, obs, coalition, greedy=False)
+        a_pol, logits = self._policy_action(self.actor_network_params, obs, coalition, greedy=False)
         # joint[..., i, j] = a_pol_j if i == j else a_batch_j: agent i's own action substituted.
         joint = torch.where(self._eye.unsqueeze(-1), a_pol.unsqueeze(-3), a_batch.unsqueeze(-3))
         obs_i = obs.unsqueeze(-3)  # [*, 1, n, obs], broadcast over the substituted agent i
@@ -291,12 +306,16 @@ class ShapleyActorCriticLoss(LossModule):
                 with torch.no_grad():
                     v_before = critic.coalition_values(obs_i, a_batch.unsqueeze(-3), before)
                     phi_without = -v_before.mean(-1)
-        return phi + phi_without
+        return phi + phi_without, logits
 
     def loss_actor(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
-        """Shapley deterministic policy gradient (Algorithm 1 lines 12-13)."""
-        phi = self.shapley_values(tensordict)
-        return -phi.mean(), {"shapley_value": phi.detach().mean()}
+        """Shapley deterministic policy gradient (Algorithm 1 lines 12-13), plus
+        ``logits_reg * mean(logits**2)`` for discrete actions."""
+        phi, logits = self._shapley_and_logits(tensordict)
+        loss = -phi.mean()
+        if logits is not None and self.logits_reg > 0:
+            loss = loss + self.logits_reg * logits.pow(2).mean()
+        return loss, {"shapley_value": phi.detach().mean()}
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """``tensordict [*B]`` from the replay buffer -> TensorDict with ``loss_value``,
