@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
 from dataclasses import replace
 
 import torch
@@ -89,24 +90,8 @@ class PeakMemory:
         raise RuntimeError(f"{field} not in /proc/self/status")
 
 
-def time_planner(planner: TrajectorySamplingCEM, obs: torch.Tensor, repeats: int, warmup: int):
-    """Fastest of ``repeats`` decisions (after ``warmup`` calls), last actions, peak memory.
-
-    The minimum is the least noisy estimate on a machine shared with other jobs.
-    """
-    for _ in range(warmup):
-        planner.plan(obs)
-    times = []
-    with PeakMemory() as mem:
-        for _ in range(repeats):
-            start = time.perf_counter()
-            action = planner.plan(obs)
-            times.append(time.perf_counter() - start)
-    return min(times), action, mem
-
-
-def gemm_chain_seconds(cfg: PlannerConfig, n_agents: int, iterations: int, repeats: int) -> float:
-    """Plain ``bmm`` chain with the planner's layer shapes over the same number of model steps.
+def gemm_chain(cfg: PlannerConfig, n_agents: int) -> Callable[[int], None]:
+    """Plain ``bmm`` chain with the planner's layer shapes; call it with a number of model steps.
 
     No bias, activation, sampling or reward: the ceiling the planner's matmuls could reach.
     """
@@ -122,13 +107,13 @@ def gemm_chain_seconds(cfg: PlannerConfig, n_agents: int, iterations: int, repea
             for w in weights:
                 h = torch.bmm(h, w)
 
-    chain(1)
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        chain(cfg.horizon * iterations)
-        times.append(time.perf_counter() - start)
-    return min(times)
+    return chain
+
+
+def timed(fn: Callable[[], object]) -> float:
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
 
 
 @torch.no_grad()
@@ -178,79 +163,99 @@ def naive_plan(
 
 
 def bench(name: str, cfg: PlannerConfig, n_agents: int, args: argparse.Namespace) -> None:
+    """Time every variant once per repeat, interleaved, and keep each variant's fastest run."""
     obs = make_obs(n_agents)
     model = make_model(cfg, n_agents)
-    results = {}
-    for key in args.dtypes:
-        planner = TrajectorySamplingCEM(
+    planners = {
+        key: TrajectorySamplingCEM(
             model, figure_eight_reward, LOW, HIGH, dtype=DTYPES[key], seed=0, **cfg.planner_kwargs()
         )
-        results[key] = time_planner(planner, obs, args.repeats, args.warmup)
-        iters = planner.last_iterations
-    gemm = gemm_chain_seconds(cfg, n_agents, iters, args.repeats)
+        for key in args.dtypes
+    }
+    first: dict[str, torch.Tensor] = {}  # cold-start decisions, to compare dtypes
+
+    def decide(key: str) -> None:
+        action = planners[key].plan(obs)
+        first.setdefault(key, action)
+
+    variants: dict[str, Callable[[], object]] = {
+        key: (lambda key=key: decide(key)) for key in planners
+    }
+    if n_agents > 1 and args.separate:
+        single = [
+            TrajectorySamplingCEM(
+                make_model(cfg, 1, seed=i),
+                figure_eight_reward,
+                LOW,
+                HIGH,
+                seed=0,
+                **cfg.planner_kwargs(),
+            )
+            for i in range(n_agents)
+        ]
+        variants["separate"] = lambda: [p.plan(o[None]) for p, o in zip(single, obs, strict=True)]
+    if n_agents <= args.naive_max_agents:
+        gen = torch.Generator().manual_seed(0)
+        variants["naive"] = lambda: naive_plan(model, cfg, obs, gen)
+    for _ in range(args.warmup):
+        for fn in variants.values():
+            fn()
+    chain = gemm_chain(cfg, n_agents)
+    chain(1)
+    times: dict[str, list[float]] = {key: [] for key in [*variants, "gemm"]}
+    peak = dict.fromkeys(planners, 0.0)
+    iters = cfg.iterations
+    for _ in range(args.repeats):
+        for key, fn in variants.items():
+            if key in planners:
+                with PeakMemory() as mem:
+                    times[key].append(timed(fn))
+                peak[key] = max(peak[key], mem.extra)
+                iters = planners[key].last_iterations
+            else:
+                times[key].append(timed(fn))
+        steps = cfg.horizon * iters
+        times["gemm"].append(timed(lambda steps=steps: chain(steps)))
+    best = {key: min(v) for key, v in times.items()}
     total = flops(cfg, n_agents, iters)
     line = f"{name:>5} I={n_agents:<3d}"
-    for key, (sec, _, mem) in results.items():
+    for key in planners:
         line += (
-            f" | {key}: {sec:8.3f} s/decision {total / sec / 1e9:6.1f} GFLOP/s "
-            f"peak+{mem.extra:6.0f} MiB"
+            f" | {key}: {best[key]:8.3f} s/decision {total / best[key] / 1e9:6.1f} GFLOP/s "
+            f"peak+{peak[key]:6.0f} MiB"
         )
     print(line)
-    if "fp32" in results:
-        sec, action32, _ = results["fp32"]
-        print(
-            f"      GEMM chain {gemm:8.3f} s ({total / gemm / 1e9:.1f} GFLOP/s):"
-            f" fp32 planner reaches {gemm / sec:.2f} of GEMM ({iters} CEM iterations)"
-        )
+    gemm = best["gemm"]
+    if "fp32" not in planners:
+        return
+    sec = best["fp32"]
+    print(
+        f"      GEMM chain {gemm:8.3f} s ({total / gemm / 1e9:.1f} GFLOP/s):"
+        f" fp32 planner reaches {gemm / sec:.2f} of GEMM ({iters} CEM iterations)"
+    )
+    if "bf16" in planners:
+        action32, action16 = first["fp32"], first["bf16"]
         other = TrajectorySamplingCEM(
             model, figure_eight_reward, LOW, HIGH, seed=123, **cfg.planner_kwargs()
         )
         spread = (other.plan(obs) - action32).abs().max().item() / (HIGH - LOW)
-        if "bf16" in results:
-            sec16, action16, _ = results["bf16"]
-            diff = (action16 - action32).abs().max().item() / (HIGH - LOW)
-            print(
-                f"      bf16 speed-up over fp32: {sec / sec16:.2f}x; max |a_bf16 - a_fp32| = "
-                f"{diff:.3f} of range (fp32 seed-to-seed spread: {spread:.3f})"
-            )
-        if n_agents > 1 and args.separate:
-            single = [
-                TrajectorySamplingCEM(
-                    make_model(cfg, 1, seed=i),
-                    figure_eight_reward,
-                    LOW,
-                    HIGH,
-                    seed=0,
-                    **cfg.planner_kwargs(),
-                )
-                for i in range(n_agents)
-            ]
-            for _ in range(args.warmup):
-                for p, o in zip(single, obs, strict=True):
-                    p.plan(o[None])
-            runs = []
-            for _ in range(args.repeats):
-                start = time.perf_counter()
-                for p, o in zip(single, obs, strict=True):
-                    p.plan(o[None])
-                runs.append(time.perf_counter() - start)
-            separate = min(runs)
-            print(
-                f"      {n_agents} separate I=1 calls: {separate:8.3f} s -> one batched call is "
-                f"{separate / sec:.2f}x faster"
-            )
-        if n_agents <= args.naive_max_agents:
-            gen = torch.Generator().manual_seed(0)
-            naive_plan(model, replace(cfg, iterations=1, horizon=1), obs, gen)
-            start = time.perf_counter()
-            naive_plan(model, cfg, obs, gen)
-            naive = time.perf_counter() - start
-            print(
-                f"      naive loops (agents x members, fp32): {naive:8.3f} s -> batched planner "
-                f"is {naive / sec:.2f}x faster"
-            )
-        if name == "cpu":
-            print(f"      200-step episode at this I: ~{200 * sec:.1f} s of planning (fp32)")
+        diff = (action16 - action32).abs().max().item() / (HIGH - LOW)
+        print(
+            f"      bf16 speed-up over fp32: {sec / best['bf16']:.2f}x; max |a_bf16 - a_fp32| = "
+            f"{diff:.2e} of range (fp32 seed-to-seed spread: {spread:.2e})"
+        )
+    if "separate" in best:
+        print(
+            f"      {n_agents} separate I=1 calls: {best['separate']:8.3f} s -> one batched call "
+            f"is {best['separate'] / sec:.2f}x faster"
+        )
+    if "naive" in best:
+        print(
+            f"      naive loops (agents x members, fp32): {best['naive']:8.3f} s -> batched "
+            f"planner is {best['naive'] / sec:.2f}x faster"
+        )
+    if name == "cpu":
+        print(f"      200-step episode at this I: ~{200 * sec:.1f} s of planning (fp32)")
 
 
 def main() -> None:

@@ -3,6 +3,10 @@
 import pytest
 import torch
 from tensordict import TensorDict
+from torchrl.collectors import Collector
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase, InitTracker, TransformedEnv
+from torchrl.envs.utils import check_env_specs
 
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.planning import CPU_PRESET, PAPER_PRESET, PlannerConfig, TrajectorySamplingCEM
@@ -196,3 +200,80 @@ def test_presets_build_planner_and_model():
             model, quadratic_reward, 0.0, 13.89, **preset.planner_kwargs()
         )
         assert planner.horizon == preset.horizon and model.hidden == preset.hidden
+
+
+def test_nan_observation_of_one_agent_leaves_others_untouched():
+    model = linear_ensemble([point_mass_matrix(), point_mass_matrix(2.0)])
+    obs = torch.tensor([[1.0, 0.5], [-2.0, 1.0]])
+    clean = make_planner(model).plan(obs)
+    broken = obs.clone()
+    broken[0, 1] = torch.nan  # e.g. a crashed agent's stale observation
+    action = make_planner(model).plan(broken)
+    assert torch.isfinite(action).all() and bool(((action >= -20) & (action <= 20)).all())
+    torch.testing.assert_close(action[1], clean[1])
+
+
+def test_shared_weights_model_plans_like_per_agent_copies():
+    shared = ProbabilisticEnsemble(
+        2, 1, 2, ensemble_size=5, hidden=(8, 8), share_across_agents=True
+    )
+    per_agent = ProbabilisticEnsemble(2, 1, 2, ensemble_size=5, hidden=(8, 8))
+    state = {k: v.expand_as(per_agent.state_dict()[k]) for k, v in shared.state_dict().items()}
+    per_agent.load_state_dict(state)
+    obs = torch.tensor([[1.0, 0.5], [-2.0, 1.0]])
+    torch.testing.assert_close(make_planner(shared).plan(obs), make_planner(per_agent).plan(obs))
+
+
+class PointMassEnv(EnvBase):
+    """I independent point masses (pos, vel) with the dynamics of ``point_mass_matrix``."""
+
+    def __init__(self, gains: list[float]):
+        super().__init__(batch_size=torch.Size([]))
+        self.gains = torch.tensor(gains)
+        n = len(gains)
+        self.full_observation_spec = Composite(
+            agents=Composite(observation=Unbounded(shape=(n, 2)), shape=(n,))
+        )
+        self.full_action_spec = Composite(
+            agents=Composite(action=Bounded(-20.0, 20.0, shape=(n, 1)), shape=(n,))
+        )
+        self.full_reward_spec = Composite(
+            agents=Composite(reward=Unbounded(shape=(n, 1)), shape=(n,))
+        )
+        self.full_done_spec = Composite(
+            done=Categorical(2, shape=(1,), dtype=torch.bool),
+            terminated=Categorical(2, shape=(1,), dtype=torch.bool),
+        )
+
+    def _reset(self, tensordict):
+        self.state = torch.stack([torch.ones(len(self.gains)), torch.zeros(len(self.gains))], -1)
+        agents = TensorDict({"observation": self.state.clone()}, [len(self.gains)])
+        return TensorDict({"agents": agents})
+
+    def _step(self, tensordict):
+        action = tensordict["agents", "action"]
+        pos, vel = self.state.unbind(-1)
+        nxt = torch.stack([pos + DT * vel, vel + DT * self.gains * action[:, 0]], -1)
+        reward = quadratic_reward(self.state, action, nxt)
+        self.state = nxt
+        false = torch.zeros(1, dtype=torch.bool)
+        agents = TensorDict(
+            {"observation": nxt.clone(), "reward": reward.unsqueeze(-1)}, [len(self.gains)]
+        )
+        return TensorDict({"agents": agents, "done": false, "terminated": false.clone()})
+
+    def _set_seed(self, seed):
+        return seed
+
+
+def test_collector_drives_planner():
+    gains = [1.0, 2.0]
+    env = TransformedEnv(PointMassEnv(gains), InitTracker())  # "is_init" resets warm starts
+    check_env_specs(env)
+    planner = make_planner(linear_ensemble([point_mass_matrix(g) for g in gains]))
+    collector = Collector(env, planner, frames_per_batch=20, total_frames=20)
+    batch = next(iter(collector))
+    collector.shutdown()
+    assert batch["agents", "action"].shape == (20, 2, 1)
+    positions = batch["next", "agents", "observation"][..., 0].abs()
+    assert bool((positions[-1] < 0.75 * positions[0]).all())  # the planner drives both to 0
