@@ -27,9 +27,11 @@ from mapets_rl.experiment import (
     latest_checkpoint,
     list_checkpoints,
     load_checkpoint,
+    mean_ci95,
     read_results,
     register_env,
     save_checkpoint,
+    student_t_quantile,
 )
 
 
@@ -234,6 +236,18 @@ def test_resume_reproduces_uninterrupted_run(tmp_path: Path) -> None:
 
 
 # -------------------------------------------------------------------------------- compare
+@pytest.mark.parametrize("df, expected", [(1, 12.7062), (2, 4.3027), (4, 2.7764), (30, 2.0423)])
+def test_student_t_quantile_known_values(df: int, expected: float) -> None:
+    assert student_t_quantile(0.975, df) == pytest.approx(expected, abs=2e-3)
+
+
+def test_mean_ci95() -> None:
+    mean, half = mean_ci95([1.0, 2.0, 3.0])
+    assert mean == pytest.approx(2.0)
+    assert half == pytest.approx(4.3027 * 1.0 / 3**0.5, abs=1e-3)
+    assert mean_ci95([5.0]) == (5.0, 0.0)
+
+
 def test_compare_writes_plot_and_table(tmp_path: Path) -> None:
     runs = []
     for seed in (0, 1):

@@ -138,8 +138,8 @@ def _plot(groups: dict[str, list[dict]], metrics: Sequence[str], path: Path) -> 
             stats = [mean_ci95([bf[f] for bf in by_frame]) for f in frames]
             mean = np.array([s[0] for s in stats])
             half = np.array([s[1] for s in stats])
-            ax.plot(frames, mean, marker="o", ms=3, label=f"{label} (n={len(runs)})")
-            ax.fill_between(frames, mean - half, mean + half, alpha=0.2)
+            (line,) = ax.plot(frames, mean, marker="o", ms=3, label=f"{label} (n={len(runs)})")
+            ax.fill_between(frames, mean - half, mean + half, alpha=0.2, color=line.get_color())
         ax.set_title(m)
         ax.set_xlabel("environment frames")
         ax.grid(alpha=0.3)
