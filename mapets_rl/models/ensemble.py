@@ -130,7 +130,7 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
         self.register_buffer("input_std", torch.ones(n_agents, 1, 1, in_dim))
         self.register_buffer("output_mean", torch.zeros(n_agents, 1, 1, obs_dim))
         self.register_buffer("output_std", torch.ones(n_agents, 1, 1, obs_dim))
-        self._cast_cache: tuple[tuple, list[tuple[torch.Tensor, torch.Tensor]]] | None = None
+        self._param_cache: tuple[tuple, list[tuple[torch.Tensor, torch.Tensor]]] | None = None
 
     # ------------------------------------------------------------------ normalisation
     @torch.no_grad()
@@ -210,19 +210,28 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
                 check_finite(f"training batch '{name}'", value, agent_dim=1)
 
     # ------------------------------------------------------------------ core computation
-    def _params(self, dtype: torch.dtype) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """Stacked ``(weight, bias)`` per layer, cast to ``dtype`` (cast copies are cached)."""
-        if dtype == self.weights[0].dtype:
-            return list(zip(self.weights, self.biases, strict=True))
-        versions = (dtype, *(p._version for p in self.parameters()), *(id(p) for p in self.weights))
-        if self._cast_cache is None or self._cast_cache[0] != versions:
+    def _batched_params(self, dtype: torch.dtype) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Per layer ``(weight [G*B, in, out], bias [G*B, 1, out])`` in ``dtype``.
+
+        With autograd on and the parameters' dtype these are fresh views (gradients flow);
+        otherwise detached copies / views cached until a parameter changes (in-place updates
+        bump ``_version``), so a planning call does not rebuild them at every horizon step.
+        """
+        if torch.is_grad_enabled() and dtype == self.weights[0].dtype:
+            return [
+                (w.flatten(0, 1), b.flatten(0, 1))
+                for w, b in zip(self.weights, self.biases, strict=True)
+            ]
+        params = [*self.weights, *self.biases]
+        key = (dtype, *(id(p) for p in params), *(p._version for p in params))
+        if self._param_cache is None or self._param_cache[0] != key:
             with torch.no_grad():
                 cast = [
-                    (w.detach().to(dtype), b.detach().to(dtype))
+                    (w.detach().flatten(0, 1).to(dtype), b.detach().flatten(0, 1).to(dtype))
                     for w, b in zip(self.weights, self.biases, strict=True)
                 ]
-            self._cast_cache = (versions, cast)
-        return self._cast_cache[1]
+            self._param_cache = (key, cast)
+        return self._param_cache[1]
 
     def normalized_forward(
         self, x: torch.Tensor, dtype: torch.dtype | None = None
@@ -241,14 +250,12 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
         n_agents, members, rows, in_dim = x.shape
         param_dtype = self.weights[0].dtype
         dtype = param_dtype if dtype is None else dtype
-        params = self._params(dtype)
+        flat = self._batched_params(dtype)  # [G*B, in, out] with G = 1 when shared
         if self.share_across_agents:
             # [I, B, N, in] -> [B, I*N, in]: one bmm over the B shared members.
             h = x.transpose(0, 1).reshape(members, n_agents * rows, in_dim).to(dtype)
-            flat = [(w[0], b[0]) for w, b in params]
         else:
             h = x.reshape(n_agents * members, rows, in_dim).to(dtype)
-            flat = [(w.flatten(0, 1), b.flatten(0, 1)) for w, b in params]
         last = len(flat) - 1
         inference = not torch.is_grad_enabled()
         for layer, (weight, bias) in enumerate(flat):
