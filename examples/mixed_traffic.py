@@ -9,11 +9,11 @@ for the same number of episodes. Average velocity (converted to mph) and average
 paper's numbers.
 
 Paper scale: 30 vehicles, 100k training episodes, CARLA. Default scale here (CPU, about an hour
-on a 2-core machine): 30 vehicles, ``--frames 800`` (20 episodes of 40 steps) of training per
+on a 2-core machine): 30 vehicles, ``--frames 600`` (15 episodes of 40 steps) of training per
 ratio, 3 evaluation episodes. With more than 10 CAVs the Shapley value is estimated by
 permutation sampling (``exact_max_agents=10``).
 
-Run:  python examples/mixed_traffic.py [--frames 800] [--out outputs/mixed_traffic]
+Run:  python examples/mixed_traffic.py [--frames 600] [--out outputs/mixed_traffic]
 Writes ``<out>/table.md`` and ``<out>/results.json``.
 """
 
@@ -73,7 +73,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ratios", nargs="+", type=float, default=list(RATIOS))
     parser.add_argument("--n-vehicles", type=int, default=30)
-    parser.add_argument("--frames", type=int, default=800)
+    parser.add_argument("--frames", type=int, default=600)
     parser.add_argument("--eval-episodes", type=int, default=3)
     parser.add_argument("--batch-size", type=int, default=64)
     parser.add_argument("--num-permutations", type=int, default=8)

@@ -7,11 +7,11 @@ system reward*: the reward summed over all CAVs and the 40 steps of an episode, 
 recipes' per-CAV ``return`` times the number of CAVs.
 
 Paper scale: 30 CAVs, 100k episodes x 5 seeds on a 4-GPU server. Default scale here (CPU, about
-an hour for the 9 runs on a 2-core machine): 8 vehicles of which 4 CAVs, 2000 frames (50
+an hour for the 9 runs on a 2-core machine): 8 vehicles of which 4 CAVs, 1600 frames (40
 episodes) per run, 3 seeds. Runs are resumable: an interrupted invocation continues from the
 runs' last checkpoints.
 
-Run:  python examples/shapley_freeway.py [--frames 2000] [--seeds 0 1 2] [--out outputs/...]
+Run:  python examples/shapley_freeway.py [--frames 1600] [--seeds 0 1 2] [--out outputs/...]
 Writes ``<out>/system_reward.png`` (mean and 95% band over seeds), ``<out>/system_reward.md``
 and ``<out>/summary.json``; prints the table.
 """
@@ -91,7 +91,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--algorithms", nargs="+", default=list(ALGORITHMS))
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--frames", type=int, default=2000)
+    parser.add_argument("--frames", type=int, default=1600)
     parser.add_argument("--frames-per-batch", type=int, default=40)
     parser.add_argument("--eval-interval", type=int, default=400)
     parser.add_argument("--eval-episodes", type=int, default=2)
