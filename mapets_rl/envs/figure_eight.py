@@ -140,12 +140,12 @@ class TargetSpeedAction(ActionType):
         )
         require(bool(np.isfinite(action).all()), "action must be finite (got NaN or inf)")
         tol = 1e-4
-        require(
-            bool(((action >= self.low - tol) & (action <= self.high + tol)).all()),
-            f"action out of bounds: target speed must be in [0, {self.high[0, 0]:.2f}] m/s"
-            + (" and the lane-change flag in [0, 1]" if self.low.shape[1] == 2 else "")
-            + f", got min {action.min(0)} max {action.max(0)}",
-        )
+        if not ((action >= self.low - tol) & (action <= self.high + tol)).all():
+            flag = " and the lane-change flag in [0, 1]" if self.low.shape[1] == 2 else ""
+            raise ValueError(
+                f"action out of bounds: target speed must be in [0, {self.high[0, 0]:.2f}] m/s"
+                f"{flag}, got min {action.min(0)} max {action.max(0)}"
+            )
 
     def act(self, action: np.ndarray) -> None:
         action = np.clip(np.asarray(action, dtype=np.float64), self.low, self.high)
