@@ -120,3 +120,14 @@ def test_resume_matches_uninterrupted(cls, config_cls, extra, tmp_path: Path) ->
 def test_config_validation(config_cls, override: str, field: str) -> None:
     with pytest.raises(ConfigError, match=field):
         config_cls().with_overrides([override])
+
+
+def test_evaluation_video_is_a_gif(tmp_path: Path) -> None:
+    import imageio.v2 as imageio
+
+    config = MAPPOConfig(env="figure-eight", env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},
+                         progress=False, logger="none")
+    exp = MAPPO(config, tmp_path)
+    metrics = exp.evaluate(episodes=1, video=True)
+    frames = imageio.mimread(tmp_path / "videos" / "eval_000000000000.gif")
+    assert len(frames) == metrics["length"] == 5 and frames[0].ndim == 3

@@ -276,8 +276,12 @@ class Experiment:
     def _render_env(self) -> EnvBase:
         """The env with ``render_mode="rgb_array"`` (built once)."""
         if self._video_env is None:
-            self._video_env = build_env(self.config.env,
-                                        {**self.config.env_config, "render_mode": "rgb_array"})
+            try:
+                self._video_env = build_env(
+                    self.config.env, {**self.config.env_config, "render_mode": "rgb_array"})
+            except TypeError as err:
+                raise ValueError(f"video needs scenario {self.config.env!r} to accept "
+                                 f"render_mode='rgb_array' ({err})") from err
         return self._video_env
 
     def _eval_episode(self, frames: list[Any] | None) -> TensorDictBase:
