@@ -131,6 +131,7 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
         self.register_buffer("output_mean", torch.zeros(n_agents, 1, 1, obs_dim))
         self.register_buffer("output_std", torch.ones(n_agents, 1, 1, obs_dim))
         self._param_cache: tuple[tuple, list[tuple[torch.Tensor, torch.Tensor]]] | None = None
+        self._buffers_cache: list[torch.Tensor] | None = None  # inference workspace
 
     # ------------------------------------------------------------------ normalisation
     @torch.no_grad()
@@ -233,6 +234,15 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
             self._param_cache = (key, cast)
         return self._param_cache[1]
 
+    def _workspace(self, rows: int, dtype: torch.dtype, device: torch.device) -> list[torch.Tensor]:
+        """Two flat buffers for ``rows`` x widest hidden layer, reused while the size fits."""
+        size = rows * max(self.hidden)
+        ws = self._buffers_cache
+        if ws is None or ws[0].numel() < size or ws[0].dtype != dtype or ws[0].device != device:
+            ws = [torch.empty(size, dtype=dtype, device=device) for _ in range(2)]
+            self._buffers_cache = ws
+        return ws
+
     def normalized_forward(
         self, x: torch.Tensor, dtype: torch.dtype | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -257,12 +267,22 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
         else:
             h = x.reshape(n_agents * members, rows, in_dim).to(dtype)
         last = len(flat) - 1
-        inference = not torch.is_grad_enabled()
-        for layer, (weight, bias) in enumerate(flat):
-            # Without autograd, bmm + in-place bias is cheaper than baddbmm's broadcast copy.
-            h = torch.bmm(h, weight).add_(bias) if inference else torch.baddbmm(bias, h, weight)
-            if layer < last:
-                h = F.silu(h, inplace=inference)
+        if torch.is_grad_enabled():
+            for layer, (weight, bias) in enumerate(flat):
+                h = torch.baddbmm(bias, h, weight)
+                if layer < last:
+                    h = F.silu(h)
+        else:
+            # Inference: hidden activations ping-pong between two reused buffers (large fresh
+            # allocations page-fault on every planning step), bias and SiLU in place.
+            buffers = self._workspace(h.shape[0] * h.shape[1], dtype, h.device)
+            for layer, (weight, bias) in enumerate(flat):
+                if layer < last:
+                    shape = (h.shape[0], h.shape[1], weight.shape[-1])
+                    out = buffers[layer % 2][: math.prod(shape)].view(shape)
+                    h = F.silu(torch.bmm(h, weight, out=out).add_(bias), inplace=True)
+                else:
+                    h = torch.bmm(h, weight).add_(bias)
         out = h.to(param_dtype)
         if self.share_across_agents:
             out = out.reshape(members, n_agents, rows, -1).transpose(0, 1)
