@@ -31,6 +31,7 @@ or ``mapets-rl train mapets --env figure-eight preset=cpu episodes=5``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
@@ -115,6 +116,11 @@ class MAPETSConfig(ExperimentConfig):
         logvar_bound_coef: weight of the PETS log-variance bound penalty.
         share_model: one set of ``B`` MLPs for all CAVs (a centralised model; each CAV still
             normalises with its own statistics) instead of one ensemble per CAV.
+        collision_gap: the planner's reward counts a predicted collision when a predicted gap
+            ahead or behind falls below this many metres (``figure_eight_reward``).
+        collision_reward: the planner's reward ``beta`` of a predicted collision (paper eq. 26:
+            -10). The MPC horizon does not see that a crash ends the CAV's episode, so a larger
+            margin and penalty (e.g. 2 m, -100) trade agility for safety.
         num_threads: torch intra-op threads (0: leave torch's default). On a CPU shared with
             other jobs, 1 is often the fastest.
 
@@ -144,6 +150,8 @@ class MAPETSConfig(ExperimentConfig):
     lr: float = 1e-3
     logvar_bound_coef: float = 0.01
     share_model: bool = False
+    collision_gap: float = 0.5
+    collision_reward: float = -10.0
     num_threads: int = 0
 
     def __post_init__(self) -> None:
@@ -190,6 +198,8 @@ class MAPETSConfig(ExperimentConfig):
         check(self.epochs >= 1, "epochs", ">= 1", self.epochs)
         check(self.lr > 0, "lr", "> 0", self.lr)
         check(self.logvar_bound_coef >= 0, "logvar_bound_coef", ">= 0", self.logvar_bound_coef)
+        check(self.collision_gap >= 0, "collision_gap", ">= 0 metres", self.collision_gap)
+        check(self.collision_reward <= 0, "collision_reward", "<= 0", self.collision_reward)
         check(self.num_threads >= 0, "num_threads", ">= 0", self.num_threads)
         check(self.num_envs == 1, "num_envs", "1 (MA-PETS plans on one env)", self.num_envs)
 
@@ -247,8 +257,8 @@ class MAPETS(Experiment):
         run_dir: run directory (default ``runs/mapets_<env>_seed<N>_<time>``).
         reward_fn: the known reward the planner maximises, ``(obs [..., S], action [..., A],
             next_obs [..., S]) -> [...]``; default :func:`mapets_rl.envs.figure_eight_reward`
-            (paper eq. 26 with a predicted-collision penalty), which needs the figure-eight's
-            7-dim observation.
+            (paper eq. 26 with a predicted-collision penalty, ``config.collision_gap`` and
+            ``config.collision_reward``), which needs the figure-eight's 7-dim observation.
 
     Attributes:
         env: the env with the :class:`CommunicationRange` transform appended.
@@ -284,7 +294,13 @@ class MAPETS(Experiment):
                 f"reward_fn is required for env {config.env!r}: the default figure_eight_reward "
                 f"needs 7-dim observations, got {group.obs_dim}"
             )
-        self.reward_fn = figure_eight_reward if reward_fn is None else reward_fn
+        if reward_fn is None:
+            reward_fn = functools.partial(
+                figure_eight_reward,
+                collision_gap=config.collision_gap,
+                collision_reward=config.collision_reward,
+            )
+        self.reward_fn = reward_fn
         self.n_agents = n = group.n_agents
         plan = config.planner
         device = self.device

@@ -145,6 +145,8 @@ def test_presets_resolve_and_explicit_fields_win():
         ("epochs", 0),
         ("cem_momentum", 1.0),
         ("num_envs", 2),
+        ("collision_reward", 5.0),
+        ("collision_gap", -1.0),
     ],
 )
 def test_bad_config_raises_naming_the_field(field, value):
