@@ -10,7 +10,7 @@ reports, all measured in the same run:
 * bf16 vs fp32: speed-up and the difference of the chosen actions (relative to the action
   range), next to the fp32 seed-to-seed spread as the noise floor;
 * one call for ``I`` agents vs ``I`` separate single-agent calls;
-* peak resident memory during the decision (VmHWM, reset before each measurement).
+* peak resident memory of the whole process during the decisions (VmHWM, reset before each one).
 
 Examples::
 
@@ -74,12 +74,10 @@ class PeakMemory:
     def __enter__(self) -> PeakMemory:
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")
-        self.base = self._read("VmRSS")
         return self
 
     def __exit__(self, *exc) -> None:
         self.peak = self._read("VmHWM")
-        self.extra = self.peak - self.base
 
     @staticmethod
     def _read(field: str) -> float:
@@ -210,7 +208,7 @@ def bench(name: str, cfg: PlannerConfig, n_agents: int, args: argparse.Namespace
             if key in planners:
                 with PeakMemory() as mem:
                     times[key].append(timed(fn))
-                peak[key] = max(peak[key], mem.extra)
+                peak[key] = max(peak[key], mem.peak)
                 iters = planners[key].last_iterations
             else:
                 times[key].append(timed(fn))
@@ -222,7 +220,7 @@ def bench(name: str, cfg: PlannerConfig, n_agents: int, args: argparse.Namespace
     for key in planners:
         line += (
             f" | {key}: {best[key]:8.3f} s/decision {total / best[key] / 1e9:6.1f} GFLOP/s "
-            f"peak+{peak[key]:6.0f} MiB"
+            f"peak RSS {peak[key]:6.0f} MiB"
         )
     print(line)
     gemm = best["gemm"]
