@@ -13,6 +13,7 @@ same command is run again. Several processes can share one ``--out`` (e.g. one p
     python examples/mapets_figure_eight.py                           # 3 seeds x d in {100, 0}
     python examples/mapets_figure_eight.py --ranges 100 --seeds 0    # one run
     python examples/mapets_figure_eight.py --report-only             # table + plot only
+    python examples/mapets_figure_eight.py --set horizon=25 collision_reward=-100 --out DIR
 
 Default sizes are the ``cpu`` preset of :class:`recipes.mapets.MAPETSConfig` (the paper's
 planner needs a GPU); ``--preset paper`` uses Table II.
@@ -64,7 +65,7 @@ def train_one(args: argparse.Namespace, comm_range: float, seed: int) -> None:
             preset=args.preset,
             num_threads=args.threads,
             progress=False,
-        )
+        ).with_overrides(args.set)
         exp = MAPETS(config, path)
 
     def report(m: dict[str, float]) -> None:
@@ -179,6 +180,9 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=200, help="steps per episode H")
     parser.add_argument("--preset", default="cpu", choices=["cpu", "paper"])
     parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
+    parser.add_argument("--set", nargs="*", default=[], metavar="key=value",
+                        help="further MAPETSConfig overrides of new runs, e.g. "
+                        "collision_gap=2 collision_reward=-100 horizon=25")
     parser.add_argument("--out", type=Path, default=Path("outputs/mapets_figure_eight"))
     parser.add_argument("--report-only", action="store_true",
                         help="only aggregate the runs already in --out")
