@@ -14,7 +14,8 @@ ratio, 3 evaluation episodes. With more than 10 CAVs the Shapley value is estima
 permutation sampling (``exact_max_agents=10``).
 
 Run:  python examples/mixed_traffic.py [--frames 600] [--out outputs/mixed_traffic]
-Writes ``<out>/table.md`` and ``<out>/results.json``.
+Writes ``<out>/table.md`` and ``<out>/results.json``; ratios whose run already finished in
+``<out>/runs`` are not retrained.
 """
 
 from __future__ import annotations
@@ -53,6 +54,15 @@ def all_human(n_vehicles: int, episodes: int, seed: int) -> dict[str, float]:
 
 
 def train_and_evaluate(ratio: float, args: argparse.Namespace) -> dict[str, float]:
+    """Train Shapley AC at ``ratio`` and return its final evaluation; a run of the same
+    budget already finished in ``--out`` is reused (so an interrupted table resumes)."""
+    run_dir = Path(args.out) / "runs" / f"ratio{ratio:.2f}"
+    results = run_dir / "results.json"
+    if results.is_file():
+        done = [e for e in json.loads(results.read_text())["evaluations"]
+                if e["frames"] >= args.frames]
+        if done:
+            return done[-1]["metrics"]
     config = ShapleyACConfig(
         env_config={"n_vehicles": args.n_vehicles, "cav_ratio": ratio},
         seed=args.seed,
@@ -65,7 +75,7 @@ def train_and_evaluate(ratio: float, args: argparse.Namespace) -> dict[str, floa
         logger="csv",
         progress=args.progress,
     )
-    exp = ShapleyAC(config, Path(args.out) / "runs" / f"ratio{ratio:.2f}")
+    exp = ShapleyAC(config, run_dir)
     return exp.train()[-1]["metrics"]
 
 
