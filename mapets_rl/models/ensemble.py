@@ -65,7 +65,9 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
 
     Shapes: weights of layer ``l`` are ``[G, B, in_l, out_l]`` with ``G = I`` (or 1 when
     shared). Normalisation statistics are ``[I, 1, 1, dim]`` buffers fitted by
-    :meth:`fit_normalizer` on each agent's own data.
+    :meth:`fit_normalizer` on each agent's own data. Without autograd (planning) the hidden
+    activations go to a workspace of ``2 x rows x max(hidden)`` floats kept on the module and
+    reused across calls (paper config, I=22: ~420 MB).
     """
 
     def __init__(
