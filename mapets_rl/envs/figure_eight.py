@@ -267,34 +267,33 @@ class FigureEightEnv(MultiAgentTrafficEnv):
             for s in self.spawn_slots(geometry, cfg["min_spacing"])
         ]
         chosen = rng.choice(len(slots), size=n_cavs + n_hvs, replace=False)
-        is_cav = np.zeros(n_cavs + n_hvs, dtype=bool)
-        is_cav[rng.choice(n_cavs + n_hvs, size=n_cavs, replace=False)] = True
+        is_cav = self._draw_cavs(n_cavs + n_hvs)
         cavs = []
         for k, slot in enumerate(chosen):
             s, lane = slots[slot]
             lane_index, longitudinal = geometry.lane_at(s, lane)
-            lane_obj = geometry.network.get_lane(lane_index)
-            kwargs = dict(
-                road=self.road,
-                position=lane_obj.position(longitudinal, 0.0),
-                heading=lane_obj.heading_at(longitudinal),
-                speed=float(rng.uniform(*cfg["initial_speed"])),
-                target_lane_index=lane_index,
-            )
+            speed = float(rng.uniform(*cfg["initial_speed"]))
             if is_cav[k]:
-                vehicle = TargetSpeedVehicle(target_speed=kwargs["speed"], **kwargs)
-                cavs.append(vehicle)
+                cavs.append(
+                    self._place_vehicle(
+                        TargetSpeedVehicle,
+                        lane_index,
+                        longitudinal,
+                        speed,
+                        cfg["max_speed"],
+                        target_speed=speed,
+                    )
+                )
             else:
-                vehicle = HumanVehicle(
+                self._place_vehicle(
+                    HumanVehicle,
+                    lane_index,
+                    longitudinal,
+                    speed,
+                    cfg["max_speed"],
                     target_speed=float(rng.uniform(*cfg["hv_target_speed"])),
                     enable_lane_change=cfg["lanes"] > 1,
-                    **kwargs,
-                )
-                vehicle.randomize_behavior()
-            vehicle.lane_index = lane_index
-            vehicle.lane = lane_obj
-            vehicle.MAX_SPEED = cfg["max_speed"]
-            self.road.vehicles.append(vehicle)
+                ).randomize_behavior()
         return cavs
 
     def _neighbour_features(self, cav: TargetSpeedVehicle) -> tuple[float, float, float, float]:

@@ -258,30 +258,32 @@ class FreewayEnv(MultiAgentTrafficEnv):
         cfg, rng = self.config, self.np_random
         per_lane = int(cfg["spawn_length"] // cfg["min_spacing"])
         slots = rng.choice(per_lane * cfg["lanes"], size=cfg["n_vehicles"], replace=False)
-        is_cav = np.zeros(cfg["n_vehicles"], dtype=bool)
-        is_cav[rng.choice(cfg["n_vehicles"], size=cfg["n_cavs"], replace=False)] = True
+        is_cav = self._draw_cavs(cfg["n_vehicles"])
         cavs = []
         for k, slot in enumerate(slots):
             lane_index = ("0", "1", int(slot // per_lane))
-            lane = self.road.network.get_lane(lane_index)
             x = (slot % per_lane) * cfg["min_spacing"]
-            kwargs = dict(
-                road=self.road,
-                position=lane.position(x, 0.0),
-                heading=lane.heading_at(x),
-                speed=float(rng.uniform(*cfg["initial_speed"])),
-                target_lane_index=lane_index,
-            )
+            speed = float(rng.uniform(*cfg["initial_speed"]))
             if is_cav[k]:
-                vehicle = LaneDecisionVehicle(target_speed=cfg["cav_target_speed"], **kwargs)
-                cavs.append(vehicle)
-            else:
-                vehicle = HumanVehicle(
-                    target_speed=float(rng.uniform(*cfg["hv_target_speed"])), **kwargs
+                cavs.append(
+                    self._place_vehicle(
+                        LaneDecisionVehicle,
+                        lane_index,
+                        x,
+                        speed,
+                        cfg["speed_limit"],
+                        target_speed=cfg["cav_target_speed"],
+                    )
                 )
-                vehicle.randomize_behavior()
-            vehicle.MAX_SPEED = cfg["speed_limit"]
-            self.road.vehicles.append(vehicle)
+            else:
+                self._place_vehicle(
+                    HumanVehicle,
+                    lane_index,
+                    x,
+                    speed,
+                    cfg["speed_limit"],
+                    target_speed=float(rng.uniform(*cfg["hv_target_speed"])),
+                ).randomize_behavior()
         # CAVs in a fixed order along the road, so agent ids are reproducible and meaningful.
         cavs.sort(key=lambda v: (v.position[0], v.lane_index[2]))
         self.vehicles_all = list(self.road.vehicles)

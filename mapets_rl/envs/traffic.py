@@ -128,6 +128,36 @@ class MultiAgentTrafficEnv(AbstractEnv):
     def _make_road(self) -> SortedNeighbourRoad:
         raise NotImplementedError
 
+    def _place_vehicle(
+        self,
+        cls: type[Vehicle],
+        lane_index: tuple,
+        longitudinal: float,
+        speed: float,
+        max_speed: float,
+        **kwargs: Any,
+    ) -> Vehicle:
+        """Create a ``cls`` vehicle on ``lane_index`` at ``longitudinal`` and put it on the road."""
+        lane = self.road.network.get_lane(lane_index)
+        vehicle = cls(
+            road=self.road,
+            position=lane.position(longitudinal, 0.0),
+            heading=lane.heading_at(longitudinal),
+            speed=speed,
+            target_lane_index=lane_index,
+            **kwargs,
+        )
+        vehicle.lane_index, vehicle.lane = lane_index, lane
+        vehicle.MAX_SPEED = max_speed
+        self.road.vehicles.append(vehicle)
+        return vehicle
+
+    def _draw_cavs(self, n_vehicles: int) -> np.ndarray:
+        """Which of ``n_vehicles`` spawned vehicles are CAVs: ``[n_vehicles]`` bool, random."""
+        is_cav = np.zeros(n_vehicles, dtype=bool)
+        is_cav[self.np_random.choice(n_vehicles, size=self.config["n_cavs"], replace=False)] = True
+        return is_cav
+
     def _spawn_vehicles(self) -> list[Vehicle]:
         raise NotImplementedError
 
