@@ -41,6 +41,7 @@ REPLAY_KEYS = [
     OBS,
     ACTION,
     COALITION,
+    ("agents", "mask"),
     ("next", "agents", "observation"),
     ("next", "agents", "reward"),
     ("next", "agents", "terminated"),

@@ -248,3 +248,15 @@ def test_logits_penalty():
     assert torch.allclose(penalised - base, 0.5 * logits.pow(2).mean(), atol=1e-5)
     with pytest.raises(ValueError, match="logits_reg"):
         _loss(logits_reg=-1.0)
+
+
+def test_alive_mask_excludes_dead_agents_from_actor_loss():
+    loss = _loss(discrete=False)
+    td = _batch(discrete=False)
+    mask = torch.ones(B, N, dtype=torch.bool)
+    mask[:, 1] = False
+    td["agents", "mask"] = mask
+    params = [p for _, p in loss.actor_network_params.items(True, True) if p.requires_grad]
+    grads = torch.autograd.grad(loss.loss_actor(td)[0], params)
+    assert all((g[1] == 0).all() for g in grads)  # agent 1 (dead) gets no update
+    assert any(g[0].abs().sum() > 0 for g in grads)

@@ -77,6 +77,8 @@ class ShapleyActorCriticLoss(LossModule):
             reward: per-agent reward, read under ``"next"``. Defaults to ``("agents", "reward")``.
             terminated: termination flag, read under ``"next"``. Defaults to
                 ``("agents", "terminated")``.
+            mask: optional alive mask ``[*, n]``; when present, the actor loss averages
+                ``phi_i`` over alive agents only. Defaults to ``("agents", "mask")``.
         """
 
         observation: NestedKey = ("agents", "observation")
@@ -85,6 +87,7 @@ class ShapleyActorCriticLoss(LossModule):
         coalition: NestedKey = ("agents", "coalition")
         reward: NestedKey = ("agents", "reward")
         terminated: NestedKey = ("agents", "terminated")
+        mask: NestedKey = ("agents", "mask")
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -312,7 +315,12 @@ class ShapleyActorCriticLoss(LossModule):
         """Shapley deterministic policy gradient (Algorithm 1 lines 12-13), plus
         ``logits_reg * mean(logits**2)`` for discrete actions."""
         phi, logits = self._shapley_and_logits(tensordict)
-        loss = -phi.mean()
+        mask = tensordict.get(self.tensor_keys.mask, None)
+        if mask is None:
+            loss = -phi.mean()
+        else:
+            weight = mask.reshape(phi.shape).to(phi.dtype)
+            loss = -(phi * weight).sum() / weight.sum().clamp_min(1.0)
         if logits is not None and self.logits_reg > 0:
             loss = loss + self.logits_reg * logits.pow(2).mean()
         return loss, {"shapley_value": phi.detach().mean()}
