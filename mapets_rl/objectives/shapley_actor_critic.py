@@ -62,7 +62,7 @@ class ShapleyActorCriticLoss(LossModule):
     Keys (``set_keys``): ``observation`` ``[*, n, obs]``, ``action`` ``[*, n, act]``, ``logits``
     ``[*, n, act]`` (actor output, discrete), ``coalition`` ``[*, n]`` bool, ``reward``
     ``("next", reward) [*, n, 1]``, ``terminated`` ``("next", terminated) [*, n, 1]`` or
-    ``[*, 1]``.
+    ``[*, 1]``, optional ``mask`` ``[*, n]`` (alive agents).
     """
 
     @dataclass
