@@ -10,6 +10,7 @@ RECIPES: dict[str, str] = {
     "mapets": "recipes.mapets:MAPETS",
     "mappo": "recipes.mappo:MAPPO",
     "sac": "recipes.sac:SAC",
+    "shapley_ac": "recipes.shapley_ac:ShapleyAC",
 }
 
 
