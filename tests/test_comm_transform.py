@@ -227,7 +227,7 @@ def test_episode_graph_links_agents_still_driving_at_the_end():
 def test_transform_on_figure_eight_env():
     envs = pytest.importorskip("mapets_rl.envs")
     env = envs.make_env("figure-eight", seed=0, horizon=5)
-    env.append_transform(CommunicationRange(100.0, p_fail=0.25, seed=0))
+    env = env.append_transform(CommunicationRange(100.0, p_fail=0.25, seed=0))
     check_env_specs(env, seed=0)
     rollout = env.rollout(5, envs.ScriptedCAVPolicy(env), break_when_any_done=True)
     adjacency = rollout["agents", "neighbors"]

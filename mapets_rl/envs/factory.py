@@ -1,15 +1,15 @@
 """TorchRL environments of the scenarios: ``make_env(name, **config)``.
 
-The PettingZoo envs are wrapped by torchrl's ``PettingZooWrapper`` (specs, seeding, reset, masks)
+The PettingZoo envs are wrapped by torchrl's ``PettingZooWrapper`` (specs, seeding, group map)
 with one group ``"agents"`` and ``use_mask=True``: crashed CAVs stay in the batch with
-``("agents", "mask") = False`` and ``("agents", "terminated") = True``. The wrapper reads
-per-agent infos into ``("agents", "info", key)``; a ``RenameTransform`` moves the positions to
-``("agents", "position")`` ``[*, I, 2]`` (metres), where the communication transform reads them.
+``("agents", "mask") = False`` and ``("agents", "terminated") = True``. Per-agent infos go to
+``("agents", "info", key)``, except the positions, which go to ``("agents", "position")``
+``[*, I, 2]`` (metres), where the communication transform reads them.
 
-``TrafficPettingZooWrapper`` only replaces the wrapper's per-step data path: the stock ``_step``
-builds every agent's entries with a Python loop of small tensor copies (and deep-copies the info
+``TrafficPettingZooWrapper`` replaces the wrapper's data path: the stock ``_step``/``_reset``
+build every agent's entries with a Python loop of small tensor copies (and deep-copy the info
 dicts), which costs more than a highway-env step with 8 agents; here one array per key is copied
-from the scenario. The outputs are the same as the stock wrapper's (dead agents: zero entries,
+from the scenario. The entries are the same as the stock wrapper's (dead agents: zero entries,
 ``terminated = truncated = done = True``, ``mask = False``; root flags = all agents').
 """
 
@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.envs import EnvBase, RenameTransform, TransformedEnv
+from torchrl.envs import EnvBase
 from torchrl.envs.libs.pettingzoo import PettingZooWrapper
 
 from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, TrafficParallelEnv
@@ -34,49 +34,69 @@ SCENARIOS: dict[str, tuple[type[TrafficParallelEnv], dict[str, Any]]] = {
 
 
 class TrafficPettingZooWrapper(PettingZooWrapper):
-    """``PettingZooWrapper`` for ``TrafficParallelEnv`` with a vectorised ``_step``."""
+    """``PettingZooWrapper`` for ``TrafficParallelEnv`` with a vectorised data path."""
 
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def _init_env(self) -> None:
+        super()._init_env()
+        group_spec = self.observation_spec["agents"]
+        position = group_spec["info", "position"]
+        del group_spec["info"]["position"]
+        group_spec["position"] = position
+        self._info_dtypes = {key: group_spec["info", key].dtype for key in group_spec["info"]}
+
+    def _output(
+        self, obs: np.ndarray, info: dict, acting: np.ndarray, group: dict[str, torch.Tensor]
+    ) -> TensorDict:
+        """Output TensorDict from the scenario's arrays; entries of non-acting agents zeroed."""
         parallel_env: TrafficParallelEnv = self._env
-        action_spec = self.input_spec["full_action_spec", "agents", "action"]
-        joint = np.asarray(action_spec.to_numpy(tensordict.get(("agents", "action"))))
-        obs, rewards, terminated, truncated, acting, info = parallel_env.step_joint(joint)
         device = self.device
         alive = torch.as_tensor(acting, device=device)
-        terminated_t = torch.as_tensor(terminated, device=device).unsqueeze(-1)
-        truncated_t = torch.as_tensor(truncated, device=device).unsqueeze(-1)
-        done_t = terminated_t | truncated_t
         still = set(parallel_env.agents)
-        group = {
-            "observation": torch.as_tensor(obs, device=device) * alive[:, None],
-            "reward": torch.as_tensor(rewards, device=device).unsqueeze(-1),
-            "terminated": terminated_t,
-            "truncated": truncated_t,
-            "done": done_t,
-            "mask": torch.tensor([a in still for a in parallel_env.possible_agents], device=device),
-        }
-        if not hasattr(self, "_info_dtypes"):
-            info_spec = self.observation_spec["agents"].get("info", None)
-            self._info_dtypes = (
-                {} if info_spec is None else {k: info_spec[k].dtype for k in info_spec}
-            )
-        if self._info_dtypes:
-            info_out = {}
-            for key, value in parallel_env.info_arrays(info).items():
-                value = torch.as_tensor(value, device=device)
-                keep = alive.reshape(-1, *([1] * (value.ndim - 1)))
-                info_out[key] = (value * keep).to(self._info_dtypes[key])
-            group["info"] = TensorDict(info_out, batch_size=alive.shape, device=device)
+        group["observation"] = torch.as_tensor(obs, device=device) * alive[:, None]
+        group["mask"] = torch.tensor(
+            [a in still for a in parallel_env.possible_agents], device=device
+        )
+        info_out = {}
+        for key, value in parallel_env.info_arrays(info).items():
+            value = torch.as_tensor(value, device=device)
+            value = value * alive.reshape(-1, *([1] * (value.ndim - 1)))
+            if key == "position":
+                group["position"] = value
+            else:
+                info_out[key] = value.to(self._info_dtypes[key])
+        group["info"] = TensorDict(info_out, batch_size=alive.shape, device=device)
+        done = {key: group[key].all().reshape(1) for key in ("done", "terminated", "truncated")}
         return TensorDict(
-            {
-                "agents": TensorDict(group, batch_size=alive.shape, device=device),
-                "done": done_t.all().reshape(1),
-                "terminated": terminated_t.all().reshape(1),
-                "truncated": truncated_t.all().reshape(1),
-            },
+            {"agents": TensorDict(group, batch_size=alive.shape, device=device), **done},
             batch_size=(),
             device=device,
         )
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
+        if tensordict is not None:
+            reset = tensordict.get("_reset", None)
+            if reset is not None and not reset.all():
+                raise RuntimeError("TrafficPettingZooWrapper resets all agents at once.")
+        obs, info = self._env.reset_joint(**kwargs)
+        n = len(self._env.possible_agents)
+        false = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
+        group = {"done": false, "terminated": false.clone(), "truncated": false.clone()}
+        return self._output(obs, info, np.ones(n, dtype=bool), group)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action_spec = self.input_spec["full_action_spec", "agents", "action"]
+        joint = np.asarray(action_spec.to_numpy(tensordict.get(("agents", "action"))))
+        obs, rewards, terminated, truncated, acting, info = self._env.step_joint(joint)
+        device = self.device
+        terminated_t = torch.as_tensor(terminated, device=device).unsqueeze(-1)
+        truncated_t = torch.as_tensor(truncated, device=device).unsqueeze(-1)
+        group = {
+            "reward": torch.as_tensor(rewards, device=device).unsqueeze(-1),
+            "terminated": terminated_t,
+            "truncated": truncated_t,
+            "done": terminated_t | truncated_t,
+        }
+        return self._output(obs, info, acting, group)
 
 
 def make_parallel_env(name: str, **config: Any) -> TrafficParallelEnv:
@@ -113,7 +133,7 @@ def make_env(
         **config: scenario config (``FigureEightParallelEnv`` / ``FreewayParallelEnv`` args).
     """
     parallel_env = make_parallel_env(name, **config)
-    base = TrafficPettingZooWrapper(
+    return TrafficPettingZooWrapper(
         env=parallel_env,
         group_map={"agents": list(parallel_env.possible_agents)},
         use_mask=True,
@@ -121,12 +141,4 @@ def make_env(
         done_on_any=False,
         seed=seed,
         device=device,
-    )
-    return TransformedEnv(
-        base,
-        RenameTransform(
-            in_keys=[("agents", "info", "position")],
-            out_keys=[("agents", "position")],
-            create_copy=False,
-        ),
     )

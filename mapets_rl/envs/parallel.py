@@ -82,11 +82,18 @@ class TrafficParallelEnv(ParallelEnv):
             for agent in agents
         }
 
+    def reset_joint(
+        self, seed: int | None = None, options: dict | None = None
+    ) -> tuple[np.ndarray, dict]:
+        """Reset; the array form of ``reset``: ``obs [I, obs]`` and the raw env's ``info``."""
+        obs, info = self.env.reset(seed=seed, options=options)
+        self.agents = list(self.possible_agents)
+        return obs, info
+
     def reset(
         self, seed: int | None = None, options: dict | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
-        obs, info = self.env.reset(seed=seed, options=options)
-        self.agents = list(self.possible_agents)
+        obs, info = self.reset_joint(seed=seed, options=options)
         return {a: obs[self._index[a]] for a in self.agents}, self._agent_infos(info, self.agents)
 
     def joint_action(self, actions: dict[str, Any]) -> np.ndarray:
