@@ -8,7 +8,7 @@ import pytest
 import torch
 from pettingzoo.test import parallel_api_test
 from tensordict.nn import TensorDictModule
-from torchrl.envs import SerialEnv
+from torchrl.envs import ParallelEnv, SerialEnv
 from torchrl.envs.libs.pettingzoo import PettingZooWrapper
 from torchrl.envs.utils import check_env_specs
 
@@ -264,6 +264,19 @@ def test_torchrl_env_in_serial_env_with_scripted_policy() -> None:
     single = make_env("figure-eight", seed=1, n_cavs=2, n_hvs=8)
     td = single.rollout(20, ScriptedCAVPolicy(single))
     assert (td["next", "agents", "reward"] > 0).all()
+
+
+def _small_figure_eight():
+    return make_env("figure-eight", n_cavs=2, n_hvs=2)
+
+
+def test_torchrl_env_in_multiprocess_parallel_env() -> None:
+    env = ParallelEnv(2, _small_figure_eight)
+    try:
+        td = env.rollout(3)
+    finally:
+        env.close()
+    assert td.shape == (2, 3) and td["next", "agents", "position"].shape == (2, 3, 2, 2)
 
 
 def test_gymnasium_ids_and_rendering() -> None:
