@@ -21,8 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import tempfile
 import time
 from pathlib import Path
 
@@ -35,21 +33,10 @@ from tensordict import TensorDict  # noqa: E402
 
 from mapets_rl.comm import CommunicationRange, NeighbourDatasets, clique_cover  # noqa: E402
 from mapets_rl.envs import ScriptedCAVPolicy, make_env  # noqa: E402
+from mapets_rl.experiment import atomic_savefig, atomic_write_text  # noqa: E402
 
 RANGES = (0.0, 50.0, 100.0, 150.0, 200.0)
 PAPER_TABLE_III = {0.0: 0.0, 50.0: 330.13, 100.0: 1866.0, 150.0: 6139.7, 200.0: 10961.06}
-
-
-def _atomic_write(path: Path, write) -> None:
-    """Writes through ``write(tmp_path)`` to a temp file in ``path``'s dir, then renames."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -197,7 +184,7 @@ def plot(results: dict, path: Path) -> None:
     ax2.set_title(f"Clique cover, {len(results['steps_per_episode'])} episodes (cf. Fig. 7)")
     ax2.legend()
     fig.tight_layout()
-    _atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
+    atomic_savefig(fig, path, format="png", dpi=120)
     plt.close(fig)
 
 
@@ -209,7 +196,7 @@ def main(argv: list[str] | None = None) -> dict:
     plot(results, args.out / "comm_overhead.png")
     payload = json.dumps(results, indent=2)
     json_path = args.out / "comm_overhead.json"
-    _atomic_write(json_path, lambda tmp: Path(tmp).write_text(payload))
+    atomic_write_text(json_path, payload)
     print(f"wrote {args.out / 'comm_overhead.png'} and {json_path}")
     return results
 

@@ -25,7 +25,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from mapets_rl.experiment import default_run_dir  # noqa: E402
+from mapets_rl.experiment import atomic_savefig, default_run_dir  # noqa: E402
 from recipes.mapets import MAPETS, MAPETSConfig  # noqa: E402
 
 
@@ -48,10 +48,8 @@ def plot(history: list[dict[str, float]], path: Path, title: str) -> None:
     ax_a.legend(loc="lower right")
     fig.suptitle(title)
     fig.tight_layout()
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp)
+    atomic_savefig(fig, path)
     plt.close(fig)
-    tmp.replace(path)
 
 
 def main() -> None:

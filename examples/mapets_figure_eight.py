@@ -32,6 +32,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from mapets_rl.experiment import (  # noqa: E402
+    atomic_savefig,
     atomic_write_text,
     latest_checkpoint,
     mean_ci95,
@@ -164,10 +165,8 @@ def plot(summary: dict[str, dict[str, list]], path: Path) -> None:
         ax.legend()
     fig.suptitle("MA-PETS, figure-eight, 8 CAVs (mean and 95% CI over seeds)")
     fig.tight_layout()
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp)
+    atomic_savefig(fig, path)
     plt.close(fig)
-    tmp.replace(path)
 
 
 def main() -> None:

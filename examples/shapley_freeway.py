@@ -29,6 +29,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mapets_rl.experiment import (  # noqa: E402
+    atomic_savefig,
     atomic_write_text,
     latest_checkpoint,
     mean_ci95,
@@ -140,9 +141,7 @@ def main() -> None:
     ax.set_title(f"freeway, {n_cavs} CAVs / {args.n_vehicles} vehicles")
     ax.legend()
     fig.tight_layout()
-    tmp = out / ".system_reward.tmp.png"
-    fig.savefig(tmp)
-    tmp.replace(out / "system_reward.png")
+    atomic_savefig(fig, out / "system_reward.png")
     table = "\n".join([
         f"Mean episode system reward (sum over {n_cavs} CAVs and 40 steps), mean ± 95% CI over "
         f"seeds, {args.frames} training frames per run.",

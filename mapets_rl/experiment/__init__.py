@@ -60,7 +60,14 @@ if TYPE_CHECKING:
         set_rng_state,
     )
     from mapets_rl.experiment.comparison import compare, mean_ci95, student_t_quantile
-    from mapets_rl.experiment.config import ConfigError, ExperimentConfig, atomic_write_text, check
+    from mapets_rl.experiment.config import (
+        ConfigError,
+        ExperimentConfig,
+        atomic_savefig,
+        atomic_write,
+        atomic_write_text,
+        check,
+    )
     from mapets_rl.experiment.results import (
         ResultsWriter,
         log_scalars,
@@ -85,6 +92,8 @@ _EXPORTS = {
     "ExperimentConfig": "config",
     "ResultsWriter": "results",
     "atomic_torch_save": "checkpoint",
+    "atomic_savefig": "config",
+    "atomic_write": "config",
     "atomic_write_text": "config",
     "available_envs": "runner",
     "build_env": "runner",
@@ -127,6 +136,8 @@ __all__ = [
     "ExperimentConfig",
     "ResultsWriter",
     "atomic_torch_save",
+    "atomic_savefig",
+    "atomic_write",
     "atomic_write_text",
     "available_envs",
     "build_env",

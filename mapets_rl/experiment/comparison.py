@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapets_rl.experiment.config import atomic_write_text
+from mapets_rl.experiment.config import atomic_savefig, atomic_write_text
 from mapets_rl.experiment.results import read_results
 
 
@@ -147,7 +147,5 @@ def _plot(groups: dict[str, list[dict]], metrics: Sequence[str], path: Path) -> 
         ax.set_visible(False)
     axes.flat[0].legend(fontsize=8)
     fig.tight_layout()
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=110)
+    atomic_savefig(fig, path, dpi=110)
     plt.close(fig)
-    os.replace(tmp, path)

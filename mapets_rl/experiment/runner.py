@@ -31,7 +31,12 @@ from mapets_rl.experiment.checkpoint import (
     seed_everything,
     set_rng_state,
 )
-from mapets_rl.experiment.config import ConfigError, ExperimentConfig, atomic_write_text
+from mapets_rl.experiment.config import (
+    ConfigError,
+    ExperimentConfig,
+    atomic_write,
+    atomic_write_text,
+)
 from mapets_rl.experiment.multiagent import masked_mean
 from mapets_rl.experiment.results import (
     ResultsWriter,
@@ -310,10 +315,7 @@ class Experiment:
         import imageio.v2 as imageio
 
         path = self.run_dir / "videos" / f"eval_{self.frames:012d}.gif"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp.gif")
-        imageio.mimsave(tmp, frames, duration=0.1)
-        os.replace(tmp, path)
+        atomic_write(path, lambda tmp: imageio.mimsave(tmp, frames, duration=0.1))
         return path
 
     # ----------------------------------------------------------------------- checkpoints
