@@ -6,8 +6,8 @@ cover number chi_bar(G_{d,k}) over 15 episodes) on the single-lane figure-eight 
 Protocol: scripted CAVs (``mapets_rl.envs.ScriptedCAVPolicy``) drive ``--episodes`` episodes;
 every range d is evaluated on the same trajectories (a paired comparison). As in the paper
 (sec. III-B), the exchange happens at the end of each episode over the graph of the **final
-state**: ``CommunicationRange(d).episode_graph(rollout)`` links the CAVs that are still driving
-at the last step (active, not crashed in it) by their final positions. (With ``make_env`` the
+state**: ``CommunicationRange(d).episode_graph(rollout)`` links every CAV that drove in the
+episode by its last driving position (a crashed CAV from its crash site). (With ``make_env`` the
 per-step ``("next", "agents", "neighbors")`` of the final state is empty, because PettingZoo
 removes all agents at truncation.) Each range has its own
 :class:`~mapets_rl.comm.NeighbourDatasets` (capacity 2048 per agent) that stores the episode's

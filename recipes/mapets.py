@@ -8,11 +8,14 @@ loop of :meth:`MAPETS.train`:
    later episodes let the planner drive all CAVs, each re-planning every step with its own
    ensemble (lines 5-15);
 2. at the episode's end every CAV stores its own transitions ``(s, a, s')`` (only steps where it
-   was driving, without the crash step) and sends them to the CAVs within range ``d`` of it
-   (lines 16-17, :meth:`CommunicationRange.episode_graph` + :class:`NeighbourDatasets`);
-3. every CAV's ensemble is refit on its ``D(i)+`` (line 4: normaliser refit, 5 epochs of
-   128-row minibatches, Adam): one vectorised optimisation over all ``I`` agents and ``B``
-   members per minibatch;
+   was driving, without the crash step and without the steps in which its observed neighbours
+   changed identity, ``("agents", "info", "neighbour_changed")``: their gap jumps are not
+   dynamics) and sends them to the CAVs within range ``d`` of its last driving position
+   (lines 16-17, :meth:`CommunicationRange.episode_graph` + :class:`NeighbourDatasets`; a CAV
+   that crashed shares from its crash site);
+3. every CAV's ensemble is refit on its ``D(i)+`` (line 4: normaliser refit, ``epochs`` passes
+   of 128-row minibatches, Adam): one vectorised optimisation over all ``I`` agents and ``B``
+   members per minibatch; the per-epoch NLL curve is logged under ``model/nll``;
 4. the episode's metrics (agility, safety, reward, transitions shared, model NLL) go to the
    logger and ``results.json`` and a checkpoint is written atomically.
 
@@ -42,13 +45,21 @@ from torchrl.envs import EnvBase
 from tqdm import tqdm
 
 from mapets_rl.comm import CommunicationRange, NeighbourDatasets
-from mapets_rl.envs import figure_eight_reward
+from mapets_rl.envs import figure_eight_collision, figure_eight_reward
+from mapets_rl.envs.figure_eight import OBSERVATIONS
 from mapets_rl.experiment import Experiment, ExperimentConfig, check, log_scalars
 from mapets_rl.experiment.multiagent import AgentGroupSpec, masked_mean
 from mapets_rl.experiment.runner import build_env
 from mapets_rl.models import ProbabilisticEnsemble, train_ensemble
 from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss
-from mapets_rl.planning import PRESETS, PROPAGATIONS, PlannerConfig, RewardFn, TrajectorySamplingCEM
+from mapets_rl.planning import (
+    PRESETS,
+    PROPAGATIONS,
+    PlannerConfig,
+    RewardFn,
+    TerminationFn,
+    TrajectorySamplingCEM,
+)
 
 OBS = ("agents", "observation")
 ACTION = ("agents", "action")
@@ -56,6 +67,7 @@ MASK = ("agents", "mask")
 NEXT_OBS = ("next", "agents", "observation")
 NEXT_REWARD = ("next", "agents", "reward")
 NEXT_TERMINATED = ("next", "agents", "terminated")
+NEXT_NEIGHBOUR_CHANGED = ("next", "agents", "info", "neighbour_changed")
 MAX_STEPS = 100_000
 """Safety cap on the steps of one episode (the env truncates at its own horizon first)."""
 
@@ -68,6 +80,7 @@ _PRESET_FIELDS = (
     "particles",
     "ensemble_size",
     "hidden",
+    "epochs",
 )
 
 
@@ -82,15 +95,15 @@ def _default_env_config() -> dict[str, Any]:
 
 @dataclasses.dataclass
 class MAPETSConfig(ExperimentConfig):
-    """MA-PETS hyper-parameters; defaults are the paper's Table II.
+    """MA-PETS hyper-parameters; defaults are the paper's Table II except where noted.
 
     The planner/ensemble sizes left unset (``None``) come from ``preset``:
 
-    - ``"paper"`` (Table II): ``w=25, Q=400, X=40, Y=5, P=20, B=5``, 3x300 hidden units. About
-      0.37 TFLOP per agent and decision: a GPU workload.
-    - ``"cpu"``: ``w=10, Q=64, X=8, Y=3, P=5, B=5``, 3x64 hidden units
-      (:data:`mapets_rl.planning.CPU_PRESET`, ~400x fewer MLP FLOPs per decision), about 0.3 s
-      per step for 8 CAVs on one shared CPU core.
+    - ``"paper"`` (Table II): ``w=25, Q=400, X=40, Y=5, P=20, B=5``, 3x300 hidden units, 5
+      training epochs. About 0.37 TFLOP per agent and decision: a GPU workload.
+    - ``"cpu"``: ``w=25, Q=32, X=4, Y=2, P=5, B=5``, 3x64 hidden units
+      (:data:`mapets_rl.planning.CPU_PRESET`): the paper's horizon (a CAV must see 2.3 s ahead
+      to brake from top speed), a narrower CEM, 30 training epochs.
 
     A field set explicitly wins over the preset (``preset=cpu horizon=15``); the resolved values
     are what ``config.yaml`` records.
@@ -111,16 +124,21 @@ class MAPETSConfig(ExperimentConfig):
         cem_momentum: momentum of the CEM mean/std update, in ``[0, 1)``.
         buffer_size: capacity of each CAV's dataset ``D(i)+`` in transitions (paper: 2048).
         batch_size: model-training minibatch rows (paper: 128).
-        epochs: model-training passes over ``D(i)+`` after each episode (paper: 5).
+        epochs: model-training passes over ``D(i)+`` after each episode (paper preset: 5, the
+            paper's; cpu preset: 30, where 5 passes are 40-80 gradient steps that leave the
+            model underestimating fast closing and the training NLL flattens by ~30).
         lr: Adam learning rate (paper: 1e-3).
         logvar_bound_coef: weight of the PETS log-variance bound penalty.
         share_model: one set of ``B`` MLPs for all CAVs (a centralised model; each CAV still
             normalises with its own statistics) instead of one ensemble per CAV.
-        collision_gap: the planner's reward counts a predicted collision when a predicted gap
-            ahead or behind falls below this many metres (``figure_eight_reward``).
+        collision_gap: the planner predicts a collision when a predicted gap ahead falls below
+            this many metres (:func:`~mapets_rl.envs.figure_eight_collision`).
+        crossing_gap: with the crossing observation, the planner predicts a collision when the
+            CAV and the first conflicting vehicle are both within this many metres of the
+            crossing point.
         collision_reward: the planner's reward ``beta`` of a predicted collision (paper eq. 26:
-            -10). The MPC horizon does not see that a crash ends the CAV's episode, so a larger
-            margin and penalty (e.g. 2 m, -100) trade agility for safety.
+            -10). A predicted collision also ends the particle's trajectory (no reward after
+            it), so the paper's -10 suffices.
         num_threads: torch intra-op threads (0: leave torch's default). On a CPU shared with
             other jobs, 1 is often the fastest.
 
@@ -146,11 +164,12 @@ class MAPETSConfig(ExperimentConfig):
     cem_momentum: float = 0.1
     buffer_size: int = 2048
     batch_size: int = 128
-    epochs: int = 5
+    epochs: int | None = None
     lr: float = 1e-3
     logvar_bound_coef: float = 0.01
     share_model: bool = False
-    collision_gap: float = 0.5
+    collision_gap: float = 2.0
+    crossing_gap: float = 6.0
     collision_reward: float = -10.0
     num_threads: int = 0
 
@@ -199,6 +218,7 @@ class MAPETSConfig(ExperimentConfig):
         check(self.lr > 0, "lr", "> 0", self.lr)
         check(self.logvar_bound_coef >= 0, "logvar_bound_coef", ">= 0", self.logvar_bound_coef)
         check(self.collision_gap >= 0, "collision_gap", ">= 0 metres", self.collision_gap)
+        check(self.crossing_gap >= 0, "crossing_gap", ">= 0 metres", self.crossing_gap)
         check(self.collision_reward <= 0, "collision_reward", "<= 0", self.collision_reward)
         check(self.num_threads >= 0, "num_threads", ">= 0", self.num_threads)
         check(self.num_envs == 1, "num_envs", "1 (MA-PETS plans on one env)", self.num_envs)
@@ -233,6 +253,7 @@ class MAPETSConfig(ExperimentConfig):
             propagation=self.propagation,
             epsilon=self.epsilon,
             alpha=self.cem_momentum,
+            epochs=self.epochs,
         )
 
 
@@ -257,8 +278,13 @@ class MAPETS(Experiment):
         run_dir: run directory (default ``runs/mapets_<env>_seed<N>_<time>``).
         reward_fn: the known reward the planner maximises, ``(obs [..., S], action [..., A],
             next_obs [..., S]) -> [...]``; default :func:`mapets_rl.envs.figure_eight_reward`
-            (paper eq. 26 with a predicted-collision penalty, ``config.collision_gap`` and
-            ``config.collision_reward``), which needs the figure-eight's 7-dim observation.
+            (paper eq. 26 with a predicted-collision penalty, ``config.collision_gap``,
+            ``config.crossing_gap`` and ``config.collision_reward``), which needs a figure-eight
+            observation (7 or 10 features).
+        termination_fn: the known termination of a planned trajectory, ``(obs, action,
+            next_obs) -> [...]`` bool; default (with the default ``reward_fn`` only)
+            :func:`mapets_rl.envs.figure_eight_collision`; ``None`` with a custom ``reward_fn``
+            means trajectories never terminate.
 
     Attributes:
         env: the env with the :class:`CommunicationRange` transform appended.
@@ -279,6 +305,7 @@ class MAPETS(Experiment):
         config: MAPETSConfig,
         run_dir: Any = None,
         reward_fn: RewardFn | None = None,
+        termination_fn: TerminationFn | None = None,
     ) -> None:
         if isinstance(config, MAPETSConfig) and config.num_threads > 0:
             torch.set_num_threads(config.num_threads)
@@ -289,18 +316,21 @@ class MAPETS(Experiment):
                 f"env {config.env!r} must have continuous actions for mapets (the CEM planner "
                 "optimises real-valued action sequences), e.g. figure-eight"
             )
-        if reward_fn is None and group.obs_dim != 7:
+        if reward_fn is None and group.obs_dim not in OBSERVATIONS.values():
             raise ValueError(
                 f"reward_fn is required for env {config.env!r}: the default figure_eight_reward "
-                f"needs 7-dim observations, got {group.obs_dim}"
+                f"needs the figure-eight's observation (sizes {sorted(OBSERVATIONS.values())}), "
+                f"got {group.obs_dim}"
             )
         if reward_fn is None:
+            gaps = {"collision_gap": config.collision_gap, "crossing_gap": config.crossing_gap}
             reward_fn = functools.partial(
-                figure_eight_reward,
-                collision_gap=config.collision_gap,
-                collision_reward=config.collision_reward,
+                figure_eight_reward, collision_reward=config.collision_reward, **gaps
             )
+            if termination_fn is None:
+                termination_fn = functools.partial(figure_eight_collision, **gaps)
         self.reward_fn = reward_fn
+        self.termination_fn = termination_fn
         self.n_agents = n = group.n_agents
         plan = config.planner
         device = self.device
@@ -337,6 +367,7 @@ class MAPETS(Experiment):
             bounds.low.to(device),
             bounds.high.to(device),
             generator=self.plan_generator,
+            termination_fn=self.termination_fn,
             **plan.planner_kwargs(),
         )
         self.eval_policy = self.planner
@@ -390,10 +421,17 @@ class MAPETS(Experiment):
         """Add every CAV's transitions of ``rollout`` to its ``D(i)+`` and exchange them with
         the CAVs within range at the episode's end (Algorithm 1 lines 16-17).
 
-        A CAV's transition of step ``t`` is kept when it was driving (``("agents", "mask")``)
-        and did not crash in that step (its next observation is then zeroed by the env).
+        A CAV's transition of step ``t`` is kept when it was driving (``("agents", "mask")``),
+        did not crash in that step (its next observation is then zeroed by the env) and its
+        observed neighbours kept their identity (``neighbour_changed``, when the env reports
+        it): a new leader makes the gap jump by up to 75 m, which inflates the model's
+        normalisation and predicted noise although no dynamics caused it.
         """
         keep = rollout.get(MASK) & ~rollout.get(NEXT_TERMINATED).squeeze(-1)  # [T, I]
+        changed = rollout.get(NEXT_NEIGHBOUR_CHANGED, None)
+        driving = int(keep.sum())
+        if changed is not None:
+            keep = keep & ~changed.to(torch.bool)
         transitions = TensorDict(
             {
                 "observation": rollout.get(OBS),
@@ -406,6 +444,7 @@ class MAPETS(Experiment):
         stats = self.datasets.exchange(self.comm.episode_graph(rollout))
         return {
             "transitions_stored": float(keep.sum()),
+            "transitions_filtered": float(driving - int(keep.sum())),
             "transitions_shared": float(stats.transitions),
             "bytes_shared": float(stats.bytes),
             "dataset_size": self.datasets.sizes.float().mean().item(),
@@ -435,7 +474,11 @@ class MAPETS(Experiment):
             batch_size=self.config.batch_size,
             generator=self.shuffle_generator,
         )  # [epochs, I, B]
-        return {"model_nll": history[-1].mean().item()}
+        curve = history.mean(dim=(1, 2))  # [epochs]
+        first = self.episode * self.config.epochs
+        for epoch, nll in enumerate(curve.tolist()):
+            log_scalars(self.logger, "model", {"nll": nll}, first + epoch + 1)
+        return {"model_nll_first_epoch": curve[0].item(), "model_nll": curve[-1].item()}
 
     def episode_metrics(self, rollout: TensorDictBase) -> dict[str, float]:
         """Runner metrics (reward, return, length, agility, safety, collisions, mean speed)."""

@@ -209,19 +209,28 @@ def test_spec_with_wrong_position_shape_raises():
         _ = TransformedEnv(Bad3D(), CommunicationRange(10.0)).observation_spec
 
 
-def test_episode_graph_links_agents_still_driving_at_the_end():
+def test_episode_graph_crashed_agents_share_from_their_crash_site():
     env = TransformedEnv(TinyPositionsEnv(4), CommunicationRange(math.inf))
     rollout = env.rollout(3)
-    # PettingZoo-style end: every agent removed (mask False) in the final state.
-    rollout["next", "agents", "mask"][-1] = False
-    rollout["agents", "mask"][-1] = torch.tensor([True, True, True, False])  # 3 was gone
-    terminated = torch.zeros(3, 4, 1, dtype=torch.bool)
-    terminated[-1, 1] = True  # 1 crashed in the last step
-    rollout["next", "agents", "terminated"] = terminated
-    graph = CommunicationRange(math.inf).episode_graph(rollout)
-    assert torch.equal(graph, _adj(4, [(0, 2)]))
-    near = CommunicationRange(0.0).episode_graph(rollout)
-    assert not near.any()
+    position = torch.tensor(
+        [
+            [[0.0, 0.0], [500.0, 0.0], [10.0, 0.0], [900.0, 900.0]],  # step 0
+            [[0.0, 0.0], [20.0, 0.0], [10.0, 0.0], [0.0, 0.0]],  # 1 crashed here at (20, 0)
+            [[0.0, 0.0], [0.0, 0.0], [10.0, 0.0], [0.0, 0.0]],  # removed agents reported at 0
+        ]
+    )
+    rollout["next", "agents", "position"] = position
+    mask = torch.tensor(
+        [[True, True, True, False], [True, True, True, False], [True, False, True, False]]
+    )  # 3 never drove; 1 drove until step 1 (its crash step)
+    rollout["agents", "mask"] = mask
+    rollout["next", "agents", "mask"][-1] = False  # PettingZoo-style end: everybody removed
+    graph = CommunicationRange(15.0).episode_graph(rollout)
+    # 1 shares from its crash site (20, 0): within 15 m of 2 at (10, 0), not of 0 at (0, 0)
+    assert torch.equal(graph, _adj(4, [(0, 2), (1, 2)]))
+    assert torch.equal(CommunicationRange(math.inf).episode_graph(rollout),
+                       _adj(4, [(0, 1), (0, 2), (1, 2)]))
+    assert not CommunicationRange(0.0).episode_graph(rollout).any()
 
 
 def test_transform_on_figure_eight_env():

@@ -10,7 +10,7 @@ from pettingzoo.test import parallel_api_test
 from tensordict.nn import TensorDictModule
 from torchrl.envs import ParallelEnv, SerialEnv
 from torchrl.envs.libs.pettingzoo import PettingZooWrapper
-from torchrl.envs.utils import check_env_specs
+from torchrl.envs.utils import check_env_specs, step_mdp
 
 from mapets_rl.envs import (
     FigureEightEnv,
@@ -18,6 +18,7 @@ from mapets_rl.envs import (
     FreewayEnv,
     FreewayParallelEnv,
     ScriptedCAVPolicy,
+    figure_eight_collision,
     figure_eight_reward,
     make_env,
     make_parallel_env,
@@ -79,7 +80,7 @@ def test_two_cavs_sent_into_the_crossing_collide() -> None:
 
 
 def test_observation_and_reward_on_constructed_situation() -> None:
-    env = FigureEightEnv({"n_cavs": 1, "n_hvs": 2, "horizon": 10})
+    env = FigureEightEnv({"n_cavs": 1, "n_hvs": 2, "horizon": 10, "observation": "paper"})
     env.reset(seed=0)
     cav = env.cavs[0]
     ahead, behind = [v for v in env.road.vehicles if v is not cav]
@@ -104,6 +105,106 @@ def test_planning_reward_penalises_predicted_collisions() -> None:
     next_obs = torch.tensor([[10.0, 0, 0, 5, 7, 15, 10], [10.0, 0, 0, 5, 7, 0.2, 10]])
     reward = figure_eight_reward(next_obs, torch.zeros(2, 1), next_obs)
     torch.testing.assert_close(reward, torch.tensor([22.0, 12.0]))
+
+
+def test_planning_collision_tests_the_gap_ahead_and_the_crossing() -> None:
+    rows = torch.tensor(
+        [
+            [10.0, 0, 0, 5, 7, 15, 10, 30, 40, 8],  # free
+            [10.0, 0, 0, 5, 7, 1.5, 10, 30, 40, 8],  # gap ahead below 2 m
+            [10.0, 0, 0, 5, 7, 15, 0.5, 30, 40, 8],  # fast follower: not the CAV's crash
+            [10.0, 0, 0, 5, 7, 15, 10, 3, -2, 8],  # both inside the conflict zone
+            [10.0, 0, 0, 5, 7, 15, 10, 3, 20, 8],  # the other vehicle still 20 m away
+            [10.0, 0, 0, 5, 7, 15, 10, 3, -6, 8],  # the other vehicle has cleared it
+        ]
+    )
+    collided = figure_eight_collision(rows, torch.zeros(6, 1), rows)
+    assert collided.tolist() == [False, True, False, True, False, False]
+    # the paper's 7 features: only the gap ahead
+    assert figure_eight_collision(rows[:, :7], None, rows[:, :7]).tolist() == [
+        False, True, False, False, False, False
+    ]
+    reward = figure_eight_reward(rows, None, rows)
+    torch.testing.assert_close(reward, 22.0 - 10.0 * collided.float())
+
+
+def test_crossing_observation_on_constructed_scene() -> None:
+    env = FigureEightEnv({"n_cavs": 1, "n_hvs": 3, "horizon": 10})
+    assert env.obs_dim == 10 and env.observation_space.shape == (1, 10)
+    env.reset(seed=0)
+    cav = env.cavs[0]
+    cleared, conflict, behind_it = [v for v in env.road.vehicles if v is not cav]
+    c0, c1 = env.geometry.crossing_coordinates
+    place(env, cav, c0 - 30.0, 10.0)  # 30 m before the crossing on branch 0
+    place(env, cleared, c1 + 8.0, 12.0)  # 8 m past it on branch 1: cleared
+    place(env, conflict, c1 - 20.0, 6.0)  # 20 m before it on branch 1
+    place(env, behind_it, c1 - 45.0, 9.0)
+    env.road.refresh()
+    obs = env.observe_agents()[0]
+    np.testing.assert_allclose(obs[7:], [30.0, 20.0, 6.0], atol=1e-3)
+    # a vehicle 3 m past the crossing point still occupies it: it is the conflicting vehicle
+    place(env, cleared, c1 + 3.0, 12.0)
+    env.road.refresh()
+    np.testing.assert_allclose(env.observe_agents()[0, 7:], [30.0, -3.0, 12.0], atol=1e-3)
+    # the CAV inside the crossing: negative distance until it has cleared it by 5 m
+    place(env, cav, c0 + 2.0, 10.0)
+    env.road.refresh()
+    assert env.observe_agents()[0, 7] == pytest.approx(-2.0, abs=1e-3)
+    # nobody on the other branch within 75 m: distance clips at 75, speed 0
+    for vehicle, where in ((cleared, c1 + 100.0), (conflict, c1 + 150.0), (behind_it, c1 - 90)):
+        place(env, vehicle, where, 5.0)
+    place(env, cav, c0 - 100.0, 10.0)
+    env.road.refresh()
+    np.testing.assert_allclose(env.observe_agents()[0, 7:], [75.0, 75.0, 0.0], atol=1e-3)
+
+
+def test_crossing_conflict_is_no_neighbour_change_and_crashed_cavs_keep_their_position():
+    env = make_env("figure-eight", seed=0, n_cavs=3, n_hvs=0, horizon=100)
+    td = env.reset()
+    raw: FigureEightEnv = env._env.env
+    c0, c1 = raw.geometry.crossing_coordinates
+    for cav, where in zip(raw.cavs, (c0 - 30.0, c1 - 30.0, c0 + 120.0), strict=True):
+        place(raw, cav, where, 10.0)
+    raw.road.refresh()
+    raw._info(raw.observe_agents())  # the scene above is the reference for the flags
+    flags = []
+    while not td.get(("next", "agents", "terminated"), torch.zeros(1, dtype=torch.bool)).any():
+        td = step_mdp(td) if "next" in td.keys() else td
+        td["agents", "action"] = torch.full((3, 1), 10.0)
+        td = env.step(td)
+        flags.append(td["next", "agents", "info", "neighbour_changed"].clone())
+        assert len(flags) < 60
+    crashed = td["next", "agents", "info", "collided"]
+    assert crashed.tolist() == [True, True, False]  # the two sent into the crossing
+    # each saw the other as its conflicting vehicle all along: no identity change flagged
+    assert not torch.stack(flags)[:, :2].any()
+    crash_site = td["next", "agents", "position"][:2].clone()
+    assert (crash_site.norm(dim=-1) < 8.0).all() and (crash_site.norm(dim=-1) > 0.1).all()
+    # one step later the crashed CAVs are removed but reported where they crashed, not at 0
+    td = step_mdp(td)
+    td["agents", "action"] = torch.full((3, 1), 10.0)
+    td = env.step(td)
+    assert td["next", "agents", "mask"].tolist() == [False, False, True]
+    torch.testing.assert_close(td["next", "agents", "position"][:2], crash_site)
+
+
+def test_neighbour_changed_flags_a_new_leader() -> None:
+    env = FigureEightEnv({"n_cavs": 1, "n_hvs": 2, "horizon": 10, "observation": "paper"})
+    env.reset(seed=0)
+    cav = env.cavs[0]
+    near, far = [v for v in env.road.vehicles if v is not cav]
+    place(env, cav, 100.0, 5.0)
+    place(env, near, 120.0, 5.0)
+    place(env, far, 160.0, 5.0)
+    env.road.refresh()
+    env._info(env.observe_agents())
+    _, _, _, _, info = env.step(np.full((1, 1), 5.0, dtype=np.float32))
+    assert not info["neighbour_changed"][0]
+    env.road.vehicles.remove(near)  # the leader leaves the road: the next car becomes leader
+    _, _, _, _, info = env.step(np.full((1, 1), 5.0, dtype=np.float32))
+    assert info["neighbour_changed"][0]
+    _, _, _, _, info = env.step(np.full((1, 1), 5.0, dtype=np.float32))
+    assert not info["neighbour_changed"][0]
 
 
 @pytest.mark.parametrize("lanes,n_cavs", [(1, 8), (2, 22)])
@@ -232,8 +333,14 @@ def test_vectorised_wrapper_matches_stock_pettingzoo_wrapper(name, config, speed
     assert stock["next", "agents", "info", "collided"].sum() > 0  # crashes happened
     assert stock["next", "done"].sum() > 0  # and resets
     for prefix in ((), ("next",)):  # ours moves the positions out of the info
-        ours.set((*prefix, "agents", "info", "position"), ours.get((*prefix, "agents", "position")))
+        position = ours.get((*prefix, "agents", "position"))
         del ours[(*prefix, "agents", "position")]
+        # ... and reports a removed CAV where it last drove (the stock wrapper: zeros)
+        stock_position = stock.get((*prefix, "agents", "info", "position"))
+        removed = ~stock.get((*prefix, "agents", "mask")) & (stock_position == 0).all(-1)
+        assert torch.equal(position[~removed], stock_position[~removed])
+        assert (position[removed].abs().sum(-1) > 0).all()
+        del stock[(*prefix, "agents", "info", "position")]
     assert set(stock.keys(True, True)) == set(ours.keys(True, True))
     for key in stock.keys(True, True):
         assert torch.equal(stock[key], ours[key]), key
@@ -254,7 +361,7 @@ def test_torchrl_crashed_agents_stay_masked_in_the_batch() -> None:
     )
     assert td["next", "agents", "terminated"][-1].all() and td["next", "done"][-1].all()
     assert not td["next", "agents", "mask"][-1].any()
-    assert td["next", "agents", "observation"].shape == (td.shape[0], 2, 7)
+    assert td["next", "agents", "observation"].shape == (td.shape[0], 2, 10)
 
 
 def test_torchrl_env_in_serial_env_with_scripted_policy() -> None:
@@ -282,7 +389,7 @@ def test_torchrl_env_in_multiprocess_parallel_env() -> None:
 def test_gymnasium_ids_and_rendering() -> None:
     env = gym.make("mapets_rl/FigureEight-v0", render_mode="rgb_array", config={"n_cavs": 2})
     obs, _ = env.reset(seed=0)
-    assert obs.shape == (2, 7)
+    assert obs.shape == (2, 10)
     frame = env.render()
     assert frame.ndim == 3 and frame.shape[2] == 3 and frame.std() > 0
     multi = gym.make("mapets_rl/FigureEightMultiLane-v0").unwrapped

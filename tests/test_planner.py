@@ -277,3 +277,60 @@ def test_collector_drives_planner():
     assert batch["agents", "action"].shape == (20, 2, 1)
     positions = batch["next", "agents", "observation"][..., 0].abs()
     assert bool((positions[-1] < 0.75 * positions[0]).all())  # the planner drives both to 0
+
+
+WALL = 5.0
+
+
+def crossed_wall(obs, action, next_obs):
+    """The point mass reaches the wall at position 5 in this step (a crash)."""
+    return (obs[..., 0] < WALL) & (next_obs[..., 0] >= WALL)
+
+
+def speed_reward(obs, action, next_obs):
+    """Speed, minus 50 in the step that crashes into the wall."""
+    return next_obs[..., 1] - 50.0 * crossed_wall(obs, action, next_obs).float()
+
+
+def rollout_positions(obs: torch.Tensor, plan: torch.Tensor, gain: float) -> torch.Tensor:
+    """Exact point-mass positions ``[H]`` of the action sequence ``plan`` ``[H, 1]``."""
+    pos, vel, out = obs[0].item(), obs[1].item(), []
+    for a in plan[:, 0].tolist():
+        pos, vel = pos + DT * vel, vel + DT * gain * a
+        out.append(pos)
+    return torch.tensor(out)
+
+
+@pytest.mark.parametrize("propagation", ["ts_inf", "expectation"])
+def test_predicted_crash_ends_the_particle_so_braking_beats_a_faster_crash(propagation):
+    # 5 m before a wall at 10 m/s; |a| <= 5 changes the speed by up to 5 m/s per step. Full
+    # throttle crashes at step 4, after which a model that ignores the crash keeps collecting
+    # speed reward; staying short of the wall caps the summed speed below 50.
+    gain, obs = 10.0, torch.tensor([[0.0, 10.0]])
+    model = linear_ensemble([point_mass_matrix(gain)])
+    options = dict(PLAN, horizon=10, iterations=10, seed=0, propagation=propagation)
+    ending = TrajectorySamplingCEM(
+        model, speed_reward, -5.0, 5.0, termination_fn=crossed_wall, **options
+    )
+    action = ending.plan(obs)
+    assert action.item() < -1.0  # brakes at once
+    assert rollout_positions(obs[0], ending.last_solution[0], gain).max() < WALL
+    # Without the termination the same planner drives into the wall at full throttle.
+    ignoring = TrajectorySamplingCEM(model, speed_reward, -5.0, 5.0, **options)
+    assert ignoring.plan(obs).item() > 2.0
+    assert rollout_positions(obs[0], ignoring.last_solution[0], gain).max() > WALL
+
+
+def test_candidates_are_scored_under_common_particle_noise():
+    model = linear_ensemble([point_mass_matrix()])
+    with torch.no_grad():
+        model.biases[2][..., 2:] = 0.0  # unit predicted variance: particles really differ
+    planner = make_planner(model, particles=5)
+    obs = torch.tensor([[[1.0, 0.5]]]).transpose(0, 1)  # [I=1, M=1, obs]
+    same = torch.full((1, 1, 6, PLAN["horizon"], 1), 0.7)  # six identical candidates
+    with torch.no_grad():
+        scores, again = planner._score(obs, same), planner._score(obs, same)
+    # identical candidates, identical scores (up to float rounding) ...
+    torch.testing.assert_close(scores, scores[..., :1].expand_as(scores))
+    # ... although the noise matters: the next call's draw scores them differently
+    assert (again - scores).abs().min() > 1e-2

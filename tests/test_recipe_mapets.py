@@ -125,7 +125,7 @@ def test_presets_resolve_and_explicit_fields_win():
     assert (paper.buffer_size, paper.batch_size, paper.epochs, paper.lr) == (2048, 128, 5, 1e-3)
     assert paper.episodes == 15 and paper.comm_range == 100.0 and paper.random_episodes == 1
     cpu = MAPETSConfig(preset="cpu", horizon=15)
-    assert (cpu.horizon, cpu.population, cpu.hidden) == (15, 64, [64, 64, 64])
+    assert (cpu.horizon, cpu.population, cpu.hidden, cpu.epochs) == (15, 32, [64, 64, 64], 30)
     assert cpu.with_overrides(["lr=3e-4"]).horizon == 15
 
 

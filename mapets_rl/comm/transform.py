@@ -102,13 +102,10 @@ class CommunicationRange(Transform):
         p_fail: link failure probability in ``[0, 1]``.
         seed: seed of the link-failure generator.
         position_key, mask_key, neighbors_key: keys read/written.
-        terminated_key: per-agent termination ``[*B, I, 1]`` (a crash), used by
-            :meth:`episode_graph`.
 
-    The exchange graph of an episode is :meth:`episode_graph` of its rollout. It differs from
-    ``rollout[..., -1]["next", neighbors_key]`` for PettingZoo-based envs (``make_env``): those
-    remove every agent when the episode is truncated, so the final state's mask is all
-    ``False``.
+    The exchange graph of an episode is :meth:`episode_graph` of its rollout: every agent
+    takes part from its last driving position (crashed CAVs from their crash site). It differs
+    from ``rollout[..., -1]["next", neighbors_key]``, which links only the agents still driving.
 
     Example:
         >>> env = TransformedEnv(make_env("figure-eight"), CommunicationRange(100.0))
@@ -125,7 +122,6 @@ class CommunicationRange(Transform):
         position_key: NestedKey = ("agents", "position"),
         mask_key: NestedKey | None = ("agents", "mask"),
         neighbors_key: NestedKey = ("agents", "neighbors"),
-        terminated_key: NestedKey = ("agents", "terminated"),
     ) -> None:
         comm_range = _check_comm_range(comm_range)
         p_fail = _check_p_fail(p_fail)
@@ -135,7 +131,6 @@ class CommunicationRange(Transform):
         self.position_key = position_key
         self.mask_key = mask_key
         self.neighbors_key = neighbors_key
-        self.terminated_key = terminated_key
         self.generator = torch.Generator()
         self.set_seed(seed)
 
@@ -164,9 +159,11 @@ class CommunicationRange(Transform):
     def episode_graph(self, rollout: TensorDictBase) -> torch.Tensor:
         """Communication graph at the end of an episode, when the paper exchanges data.
 
-        Positions of the final state (``("next", position_key)`` of the last step) and links
-        between the CAVs that are still driving then: active at the last step (``mask_key``,
-        when present) and not terminated by it (``("next", terminated_key)``, when present).
+        Every agent that drove in the episode takes part, from the last position where it was
+        driving: a CAV that crashed still holds its transitions and stays at its crash site. The
+        position of agent ``i`` is ``("next", position_key)`` of the last step at which it was
+        active (``mask_key`` True; every step when the rollout has no mask), so the graph does
+        not depend on what an env reports for removed agents.
 
         Args:
             rollout: an episode, TensorDict ``[*B, T]`` (time last, e.g. ``env.rollout``).
@@ -176,18 +173,21 @@ class CommunicationRange(Transform):
         """
         if rollout.batch_dims < 1:
             raise ValueError("rollout must have a time dimension (batch size [*B, T])")
-        last = rollout[..., -1]
-        position = last.get(("next", *_as_tuple(self.position_key)))
-        alive = None
+        positions = rollout.get(("next", *_as_tuple(self.position_key)))  # [*B, T, I, 2]
+        steps = positions.shape[-3]
+        active = None
         if self.mask_key is not None:
-            alive = last.get(self.mask_key, default=None)
-        terminated = last.get(("next", *_as_tuple(self.terminated_key)), default=None)
-        if terminated is not None:
-            if terminated.shape == position.shape[:-1] + (1,):
-                terminated = terminated.squeeze(-1)
-            alive = ~terminated if alive is None else alive.to(torch.bool) & ~terminated
+            active = rollout.get(self.mask_key, default=None)
+        if active is None:
+            active = torch.ones(positions.shape[:-1], dtype=torch.bool, device=positions.device)
+        if active.shape == positions.shape[:-1] + (1,):
+            active = active.squeeze(-1)
+        time = torch.arange(steps, device=positions.device).view(steps, 1)
+        last = torch.where(active.to(torch.bool), time, -1).amax(dim=-2)  # [*B, I]
+        index = last.clamp_min(0)[..., None, :, None].expand(*last.shape[:-1], 1, -1, 2)
+        position = positions.gather(-3, index).squeeze(-3)  # [*B, I, 2]
         return communication_graph(
-            position, self.comm_range, self.p_fail, mask=alive, generator=self.generator
+            position, self.comm_range, self.p_fail, mask=last >= 0, generator=self.generator
         )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

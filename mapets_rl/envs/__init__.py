@@ -3,7 +3,11 @@
 from gymnasium.envs.registration import register, registry
 
 from mapets_rl.envs.factory import SCENARIOS, make_env, make_parallel_env
-from mapets_rl.envs.figure_eight import FigureEightEnv, figure_eight_reward
+from mapets_rl.envs.figure_eight import (
+    FigureEightEnv,
+    figure_eight_collision,
+    figure_eight_reward,
+)
 from mapets_rl.envs.freeway import ACTION_NAMES, FreewayEnv
 from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, TrafficParallelEnv
 from mapets_rl.envs.scripted import ScriptedCAVPolicy, traffic_env
@@ -17,6 +21,7 @@ __all__ = [
     "FreewayEnv",
     "FreewayParallelEnv",
     "TrafficParallelEnv",
+    "figure_eight_collision",
     "figure_eight_reward",
     "make_env",
     "make_parallel_env",

@@ -4,12 +4,14 @@ The PettingZoo envs are wrapped by torchrl's ``PettingZooWrapper`` (specs, seedi
 with one group ``"agents"`` and ``use_mask=True``: crashed CAVs stay in the batch with
 ``("agents", "mask") = False`` and ``("agents", "terminated") = True``. Per-agent infos go to
 ``("agents", "info", key)``, except the positions, which go to ``("agents", "position")``
-``[*, I, 2]`` (metres), where the communication transform reads them.
+``[*, I, 2]`` (metres), where the communication transform reads them. A crashed CAV's position
+stays where it last drove (the crash site), not zero: ``(0, 0)`` is the crossing.
 
 ``TrafficPettingZooWrapper`` replaces the wrapper's data path: the stock ``_step``/``_reset``
 build every agent's entries with a Python loop of small tensor copies (and deep-copy the info
 dicts), which costs more than a highway-env step with 8 agents; here one array per key is copied
-from the scenario. The entries are the same as the stock wrapper's (dead agents: zero entries,
+from the scenario. The entries are the same as the stock wrapper's (dead agents: zero entries
+except the position,
 ``terminated = truncated = done = True``, ``mask = False``; root flags = all agents').
 """
 
@@ -59,10 +61,10 @@ class TrafficPettingZooWrapper(PettingZooWrapper):
         info_out = {}
         for key, value in parallel_env.info_arrays(info).items():
             value = torch.as_tensor(value, device=device)
-            value = value * alive.reshape(-1, *([1] * (value.ndim - 1)))
             if key == "position":
                 group["position"] = value
             else:
+                value = value * alive.reshape(-1, *([1] * (value.ndim - 1)))
                 info_out[key] = value.to(self._info_dtypes[key])
         group["info"] = TensorDict(info_out, batch_size=alive.shape, device=device)
         done = {key: group[key].all().reshape(1) for key in ("done", "terminated", "truncated")}

@@ -4,11 +4,24 @@ CAVs (learning agents) and human-driven vehicles (IDM/MOBIL with a first-come-fi
 crossing rule) share a ~480 m figure-eight loop whose two straights cross at one unsignalised
 intersection. Each step lasts 0.1 s.
 
-CAV observation (7): ``(v, x, y, v_ahead, v_behind, gap_ahead, gap_behind)``; speeds in m/s,
-position in metres, gaps bumper-to-bumper along the lane in ``[0, 75]`` m (75 and neighbour speed
-0 when nobody is within 75 m). CAV action: target speed in ``[0, 13.89]`` m/s, plus on two lanes
-a lane-change flag in ``[0, 1]`` (> 0.5 requests a change to the other lane). Reward (paper eq.
-26): ``r = v + v_ahead + v_behind + beta`` with ``beta = -10`` on collision.
+CAV observation, ``observation="paper"`` (7): ``(v, x, y, v_ahead, v_behind, gap_ahead,
+gap_behind)``; speeds in m/s, position in metres, gaps bumper-to-bumper along the lane in
+``[0, 75]`` m (75 and neighbour speed 0 when nobody is within 75 m). ``observation="crossing"``
+(10, the default; a deviation from the paper, whose CAVs cannot see traffic on the crossing
+branch) appends ``(d_cross, d_conflict, v_conflict)``: the CAV's signed route distance to the
+next crossing point it has not cleared, and the signed distance to that point and the speed of
+the first vehicle on the other branch that has not cleared it (both in ``[-5, 75]`` m; 75 and
+speed 0 when nobody is within 75 m). A vehicle has cleared the crossing once its centre is 5 m
+past the crossing point.
+
+``info["neighbour_changed"]`` ``[I]`` flags the CAVs whose observed neighbours changed identity in
+this step (a new leader or follower, one removed after a crash, a vehicle entering or leaving the
+75 m range, a new conflicting vehicle or crossing): their gap features jump, which no dynamics
+model of the CAV's own motion can predict.
+
+CAV action: target speed in ``[0, 13.89]`` m/s, plus on two lanes a lane-change flag in
+``[0, 1]`` (> 0.5 requests a change to the other lane). Reward (paper eq. 26):
+``r = v + v_ahead + v_behind + beta`` with ``beta = -10`` on collision.
 """
 
 from __future__ import annotations
@@ -31,6 +44,13 @@ MAX_SPEED = 13.89
 GAP_RANGE = 75.0
 """Sensing range of the gap observations [m]."""
 OBS_DIM = 7
+"""Size of the paper's observation (``observation="paper"``)."""
+CROSSING_OBS_DIM = 10
+"""Size of the observation with the crossing features (``observation="crossing"``)."""
+OBSERVATIONS = {"paper": OBS_DIM, "crossing": CROSSING_OBS_DIM}
+"""Observation options of the figure-eight and their sizes."""
+CROSSING_CLEAR = 5.0
+"""A vehicle whose centre is this far past a crossing point [m] has cleared the crossing."""
 COLLISION_REWARD = -10.0
 
 
@@ -167,10 +187,17 @@ class FigureEightEnv(MultiAgentTrafficEnv):
     ``policy_frequency=10`` Hz, ``simulation_frequency=10`` Hz, ``max_speed=13.89`` m/s,
     ``initial_speed=(4.0, 8.0)`` m/s, ``hv_target_speed=(10.0, 13.89)`` m/s,
     ``min_spacing=12.0`` m (initial bumper-to-bumper spacing >= 7 m), ``collision_reward=-10``,
+    ``observation="crossing"`` (``"paper"``: the paper's 7 features; see the module docstring),
     ``stock_neighbour_search=False`` (True uses highway-env's stock search; benchmark reference).
     """
 
-    obs_dim = OBS_DIM
+    _observed_ids: np.ndarray | None = None
+    _previous_ids: np.ndarray | None = None
+
+    @property
+    def obs_dim(self) -> int:
+        """Observation size of the configured ``observation`` option (7 or 10)."""
+        return OBSERVATIONS[self.config["observation"]]
 
     @classmethod
     def default_config(cls) -> dict:
@@ -187,6 +214,7 @@ class FigureEightEnv(MultiAgentTrafficEnv):
                 "hv_target_speed": (10.0, MAX_SPEED),
                 "min_spacing": 12.0,
                 "collision_reward": COLLISION_REWARD,
+                "observation": "crossing",
                 "screen_width": 640,
                 "screen_height": 400,
                 "scaling": 3.2,
@@ -199,6 +227,10 @@ class FigureEightEnv(MultiAgentTrafficEnv):
     def validate_config(cls, config: dict) -> None:
         super().validate_config(config)
         require(config["lanes"] in (1, 2), f"lanes must be 1 or 2, got {config['lanes']!r}")
+        require(
+            config["observation"] in OBSERVATIONS,
+            f"observation must be one of {sorted(OBSERVATIONS)}, got {config['observation']!r}",
+        )
         require(config["length"] > 0, f"length must be > 0 m, got {config['length']!r}")
         require(
             config["min_spacing"] >= 7.0,
@@ -241,7 +273,7 @@ class FigureEightEnv(MultiAgentTrafficEnv):
         return len(cls.spawn_slots(geometry, config["min_spacing"])) * config["lanes"]
 
     def define_spaces(self) -> None:
-        self.observation_type = AgentObservation(self, OBS_DIM)
+        self.observation_type = AgentObservation(self, self.obs_dim)
         self.action_type = TargetSpeedAction(self)
         self.observation_space = self.observation_type.space()
         self.action_space = self.action_type.space()
@@ -296,30 +328,91 @@ class FigureEightEnv(MultiAgentTrafficEnv):
                 ).randomize_behavior()
         return cavs
 
-    def _neighbour_features(self, cav: TargetSpeedVehicle) -> tuple[float, float, float, float]:
+    def _reset(self) -> None:
+        super()._reset()
+        self._observed_ids = None
+        self._previous_ids = None
+
+    def _neighbour_features(
+        self, cav: TargetSpeedVehicle
+    ) -> tuple[tuple[float, float, float, float], tuple[int, int]]:
+        """``(v_ahead, v_behind, gap_ahead, gap_behind)`` and the ids (``-1``: nobody in range)
+        of the leader and follower of ``cav``."""
         front, rear = self.road.neighbour_vehicles(cav)
-        out = []
+        out, ids = [], []
         for other, sign in ((front, 1.0), (rear, -1.0)):
-            if other is None:
-                out.append((0.0, GAP_RANGE))
-                continue
-            distance = sign * self.road.longitudinal_distance(cav, other)
-            if distance < 0:  # stock search may return cars behind as "front"
-                distance += self.road.period
-            gap = distance - 0.5 * (cav.LENGTH + other.LENGTH)
+            gap = GAP_RANGE + 1.0
+            if other is not None:
+                distance = sign * self.road.longitudinal_distance(cav, other)
+                if distance < 0:  # stock search may return cars behind as "front"
+                    distance += self.road.period
+                gap = distance - 0.5 * (cav.LENGTH + other.LENGTH)
             if gap > GAP_RANGE:
                 out.append((0.0, GAP_RANGE))
+                ids.append(-1)
             else:
                 out.append((float(other.speed), float(np.clip(gap, 0.0, GAP_RANGE))))
+                ids.append(id(other))
         (v_ahead, gap_ahead), (v_behind, gap_behind) = out
-        return v_ahead, v_behind, gap_ahead, gap_behind
+        return (v_ahead, v_behind, gap_ahead, gap_behind), (ids[0], ids[1])
+
+    def _crossing_features(
+        self, coords: np.ndarray, speeds: np.ndarray, index: int
+    ) -> tuple[tuple[float, float, float], tuple[int, int]]:
+        """``(d_cross, d_conflict, v_conflict)`` of vehicle ``index`` of the road and the ids of
+        its crossing branch and conflicting vehicle (``-1``: nobody within 75 m).
+
+        Args:
+            coords: ``[V]`` route coordinates of the road's vehicles [m].
+            speeds: ``[V]`` their speeds [m/s].
+            index: the CAV's index among the road's vehicles.
+        """
+        period, crossings = self.road.period, self.geometry.crossing_coordinates
+        ahead = (crossings - coords[index] + CROSSING_CLEAR) % period - CROSSING_CLEAR  # [2]
+        branch = int(np.argmin(ahead))
+        d_cross = float(min(ahead[branch], GAP_RANGE))
+        others = (crossings[1 - branch] - coords + CROSSING_CLEAR) % period - CROSSING_CLEAR
+        others[index] = np.inf
+        nearest = int(np.argmin(others))
+        if others[nearest] > GAP_RANGE:
+            return (d_cross, GAP_RANGE, 0.0), (branch, -1)
+        vehicle = id(self.road.vehicles[nearest])
+        return (d_cross, float(others[nearest]), float(speeds[nearest])), (branch, vehicle)
 
     def observe_agents(self) -> np.ndarray:
-        obs = np.zeros((len(self.cavs), OBS_DIM), dtype=np.float32)
+        """Per-CAV observations ``[I, obs_dim]`` (zero rows for crashed CAVs)."""
+        crossing = self.config["observation"] == "crossing"
+        obs = np.zeros((len(self.cavs), self.obs_dim), dtype=np.float32)
+        ids = np.full((len(self.cavs), 4 if crossing else 2), -1, dtype=np.int64)
+        if crossing:
+            vehicles = self.road.vehicles
+            coords = np.array([self.road.route_coordinate(v) for v in vehicles])
+            speeds = np.array([v.speed for v in vehicles])
+            road_index = {id(v): k for k, v in enumerate(vehicles)}
         for i, cav in enumerate(self.cavs):
             if self.alive[i]:
-                obs[i] = (cav.speed, *cav.position, *self._neighbour_features(cav))
+                features, ids[i, :2] = self._neighbour_features(cav)
+                row = [cav.speed, *cav.position, *features]
+                if crossing:
+                    cross, ids[i, 2:] = self._crossing_features(
+                        coords, speeds, road_index[id(cav)]
+                    )
+                    row.extend(cross)
+                obs[i] = row
+        self._observed_ids = ids
         return obs
+
+    def _info(self, obs: np.ndarray, action: Any = None) -> dict:
+        """Adds ``neighbour_changed`` ``[I]``: observed neighbours changed identity (see the
+        module docstring); ``False`` at reset and for CAVs that are no longer driving."""
+        info = super()._info(obs, action)
+        current, previous = self._observed_ids, self._previous_ids
+        changed = np.zeros(len(self.cavs), dtype=bool)
+        if previous is not None and current is not None:
+            changed = (current != previous).any(axis=1) & self.alive
+        self._previous_ids = current
+        info["neighbour_changed"] = changed
+        return info
 
     def agent_rewards(self, obs: np.ndarray, action: Any) -> np.ndarray:
         """Paper eq. (26) on the observation ``obs``, ``beta`` for CAVs that crashed this step."""
@@ -374,27 +467,64 @@ class FigureEightEnv(MultiAgentTrafficEnv):
         return action
 
 
+def figure_eight_collision(
+    obs: torch.Tensor,
+    action: torch.Tensor,
+    next_obs: torch.Tensor,
+    collision_gap: float = 2.0,
+    crossing_gap: float = 6.0,
+) -> torch.Tensor:
+    """Predicted collision of a figure-eight CAV, vectorised (the planner's termination).
+
+    A collision is predicted when the (predicted) gap ahead falls below ``collision_gap``
+    metres, or, with the crossing features (10-dim observation), when the CAV and the first
+    conflicting vehicle of the other branch are both within ``crossing_gap`` metres of the
+    crossing point and neither has cleared it (``> -5`` m). The gap behind is not tested: a CAV
+    cannot avoid a follower by speeding into its leader. The margins let a 0.1 s step resolve an
+    approach (a CAV at 13.89 m/s covers 1.4 m per step).
+
+    Args:
+        obs: ``[..., 7 or 10]`` current observation (unused: the test is on the outcome).
+        action: ``[..., act_dim]`` action (unused).
+        next_obs: ``[..., 7 or 10]`` (predicted) next observation.
+        collision_gap: margin on the gap ahead [m].
+        crossing_gap: half-width of the conflict zone around the crossing point [m].
+
+    Returns:
+        ``[...]`` bool.
+    """
+    collided = next_obs[..., 5] < collision_gap
+    if next_obs.shape[-1] == CROSSING_OBS_DIM:
+        inside = (next_obs[..., 7:9] < crossing_gap) & (next_obs[..., 7:9] > -CROSSING_CLEAR)
+        collided = collided | inside.all(-1)
+    return collided
+
+
 def figure_eight_reward(
     obs: torch.Tensor,
     action: torch.Tensor,
     next_obs: torch.Tensor,
-    collision_gap: float = 0.5,
+    collision_gap: float = 2.0,
+    crossing_gap: float = 6.0,
     collision_reward: float = COLLISION_REWARD,
 ) -> torch.Tensor:
     """Known figure-eight reward for planning (paper eq. 26), vectorised.
 
     ``r = v' + v_ahead' + v_behind' + beta`` on the (predicted) next observation, with
-    ``beta = collision_reward`` when the predicted gap ahead or behind falls below
-    ``collision_gap`` metres (a predicted collision).
+    ``beta = collision_reward`` where :func:`figure_eight_collision` predicts a collision.
+    Pair it with :func:`figure_eight_collision` as the planner's termination so that a
+    predicted crash ends the particle's trajectory.
 
     Args:
-        obs: ``[..., 7]`` current observation (unused: the reward depends on the outcome).
+        obs: ``[..., 7 or 10]`` current observation (unused: the reward depends on the outcome).
         action: ``[..., act_dim]`` action (unused).
-        next_obs: ``[..., 7]`` (predicted) next observation.
+        next_obs: ``[..., 7 or 10]`` (predicted) next observation.
+        collision_gap, crossing_gap: see :func:`figure_eight_collision`.
+        collision_reward: ``beta`` of a predicted collision (paper: -10).
 
     Returns:
         ``[...]`` rewards.
     """
     speed_terms = next_obs[..., 0] + next_obs[..., 3] + next_obs[..., 4]
-    gap = torch.minimum(next_obs[..., 5], next_obs[..., 6])
-    return speed_terms + collision_reward * (gap < collision_gap).to(speed_terms.dtype)
+    collided = figure_eight_collision(obs, action, next_obs, collision_gap, crossing_gap)
+    return speed_terms + collision_reward * collided.to(speed_terms.dtype)

@@ -17,10 +17,12 @@ from tensordict.utils import NestedKey
 from mapets_rl.models.ensemble import ProbabilisticEnsemble
 from mapets_rl.planning.config import PROPAGATIONS
 
-__all__ = ["TrajectorySamplingCEM", "RewardFn"]
+__all__ = ["TrajectorySamplingCEM", "RewardFn", "TerminationFn"]
 
 #: ``reward_fn(obs [..., obs], action [..., act], next_obs [..., obs]) -> reward [...]``.
 RewardFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+#: ``termination_fn(obs [..., obs], action [..., act], next_obs [..., obs]) -> done [...]`` bool.
+TerminationFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
 
 class TrajectorySamplingCEM(TensorDictModuleBase):
@@ -35,7 +37,10 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
     2. propagate ``P`` particles per candidate through agent ``i``'s ensemble
        (``ts_inf``: particle ``p`` always uses member ``p mod B``; ``ts1``: members re-drawn
        at every step; ``expectation``: one deterministic trajectory through the ensemble mean);
-    3. score ``J = 1/P sum_p sum_t r(s_{p,t}, a_t, s_{p,t+1})`` (eq. 10); NaN scores -> -inf;
+    3. score ``J = 1/P sum_p sum_t r(s_{p,t}, a_t, s_{p,t+1})`` (eq. 10); with a
+       ``termination_fn`` a particle's sum stops after the step at which it predicts a
+       termination (that step's reward counts, later ones do not, as mbrl-lib's
+       ``ModelEnv``); NaN scores -> -inf;
     4. refit ``mu, sigma`` to the ``X`` best candidates with momentum ``alpha``:
        ``mu <- alpha mu + (1 - alpha) mean(elites)`` (same for sigma);
 
@@ -47,12 +52,17 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
     Random numbers are common to all agents and envs of a call (every planning problem sees
     the same candidate noise and particle noise), so agent ``i``'s decision in a batched call
     equals a single-agent call with the same seed; problems are independent, so this changes
-    no agent's marginal behaviour.
+    no agent's marginal behaviour. The particle noise is also common to the candidates of one
+    CEM iteration (particle ``p`` draws the same standard-normal noise whichever candidate it
+    follows): candidates are compared under common random numbers, so that elite selection
+    ranks action sequences rather than noise draws.
 
     Args:
         model: the agents' :class:`~mapets_rl.models.ProbabilisticEnsemble`.
         reward_fn: vectorized known reward ``(obs, action, next_obs) -> reward``, shapes
             ``[..., obs]``, ``[..., act]``, ``[..., obs]`` -> ``[...]``.
+        termination_fn: optional vectorized known termination ``(obs, action, next_obs) ->
+            done`` (same shapes, bool): a predicted termination (a crash) ends the particle.
         action_low / action_high: bounds, scalars or ``[act]`` / ``[I, act]`` tensors,
             ``low < high`` elementwise.
         horizon, population, elites, iterations, particles, propagation, epsilon, alpha: see
@@ -81,6 +91,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         *,
         seed: int | None = None,
         generator: torch.Generator | None = None,
+        termination_fn: TerminationFn | None = None,
         observation_key: NestedKey = ("agents", "observation"),
         action_key: NestedKey = ("agents", "action"),
         is_init_key: NestedKey = "is_init",
@@ -89,6 +100,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             raise ValueError(f"model must be a ProbabilisticEnsemble, got {type(model).__name__}.")
         if not callable(reward_fn):
             raise ValueError("reward_fn must be callable (obs, action, next_obs) -> reward.")
+        if termination_fn is not None and not callable(termination_fn):
+            raise ValueError("termination_fn must be callable (obs, action, next_obs) -> done.")
         for name, value in (
             ("horizon", horizon),
             ("population", population),
@@ -136,6 +149,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         super().__init__()
         self.model = model
         self.reward_fn = reward_fn
+        self.termination_fn = termination_fn
         self.horizon = horizon
         self.population = population
         self.elites = elites
@@ -279,7 +293,9 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         state = obs.repeat_interleave(pop, dim=1).unsqueeze(1).expand(-1, particles, -1, -1)
         state = state.reshape(n_agents, particles * cands, -1)
         returns = torch.zeros(n_agents, particles * cands, device=obs.device)
+        alive = torch.ones(n_agents, particles * cands, dtype=torch.bool, device=obs.device)
         rows = particles * cands
+        obs_dim = obs.shape[-1]
         for t in range(self.horizon):
             action = actions[t].expand(-1, particles, -1, -1).reshape(n_agents, rows, -1)
             if self.propagation == "expectation":
@@ -297,18 +313,24 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
                 s_in = s_in.reshape(n_agents, members, rows // members, -1)
                 a_in = a_in.reshape(n_agents, members, rows // members, -1)
                 mean, logvar = model.predict(s_in, a_in, dtype=self.dtype)
-                eps = torch.randn(mean.shape[1:], generator=self.generator, device=obs.device)
-                delta = (mean + torch.exp(0.5 * logvar) * eps).reshape(n_agents, rows, -1)
+                mean = mean.reshape(n_agents, rows, -1)
+                std = torch.exp(0.5 * logvar).reshape(n_agents, rows, -1)
                 if self.propagation == "ts1":
-                    delta = delta[:, inv]
-                next_state = state + delta
+                    mean, std = mean[:, inv], std[:, inv]
+                # Common random numbers: one draw per particle, shared by all candidates.
+                eps = torch.randn(
+                    (particles, 1, obs_dim), generator=self.generator, device=obs.device
+                ).expand(particles, cands, obs_dim)
+                next_state = state + mean + std * eps.reshape(rows, obs_dim)
             reward = self.reward_fn(state, action, next_state)
             if reward.shape != returns.shape:
                 raise ValueError(
                     f"reward_fn must return shape {tuple(returns.shape)} for inputs shaped "
                     f"{tuple(state.shape)}, got {tuple(reward.shape)}."
                 )
-            returns = returns + reward
+            returns = returns + torch.where(alive, reward, 0.0)
+            if self.termination_fn is not None:
+                alive = alive & ~self.termination_fn(state, action, next_state)
             state = next_state
         scores = returns.reshape(n_agents, particles, envs, pop).mean(1)
         return torch.where(torch.isnan(scores), float("-inf"), scores)
