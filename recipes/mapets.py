@@ -410,6 +410,7 @@ class MAPETS(Experiment):
     def run_episode(self, random_actions: bool) -> TensorDictBase:
         """One episode until every CAV is done: ``[T]`` rollout (random or planned actions)."""
         self.planner.reset()
+        self.planner.nonfinite_rewards.zero_()
         with torch.no_grad():
             return self.env.rollout(
                 MAX_STEPS,
@@ -514,6 +515,7 @@ class MAPETS(Experiment):
             act_time = time.perf_counter() - start
             metrics = {"episode": float(episode), "random": float(random_actions)}
             metrics.update(self.episode_metrics(rollout))
+            metrics["nonfinite_rewards"] = float(self.planner.nonfinite_rewards.sum())
             metrics.update(self.store_and_share(rollout))
             start = time.perf_counter()
             metrics.update(self.train_models())

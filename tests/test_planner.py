@@ -1,5 +1,7 @@
 """TrajectorySamplingCEM on problems with known answers (point mass, exact linear dynamics)."""
 
+import warnings
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -334,3 +336,36 @@ def test_candidates_are_scored_under_common_particle_noise():
     torch.testing.assert_close(scores, scores[..., :1].expand_as(scores))
     # ... although the noise matters: the next call's draw scores them differently
     assert (again - scores).abs().min() > 1e-2
+
+
+def test_reward_fn_of_the_wrong_shape_fails_at_construction():
+    model = linear_ensemble([point_mass_matrix(), point_mass_matrix()])
+    with pytest.raises(ValueError, match=r"reward_fn must map .* returned \(2, 2, 2\)"):
+        TrajectorySamplingCEM(model, lambda s, a, n: n, -1.0, 1.0, **PLAN)
+    with pytest.raises(ValueError, match="termination_fn must return a bool"):
+        TrajectorySamplingCEM(
+            model, quadratic_reward, -1.0, 1.0, termination_fn=lambda s, a, n: n[..., 0], **PLAN
+        )
+
+
+def test_nonfinite_predicted_rewards_are_counted_and_named_once():
+    model = linear_ensemble([point_mass_matrix(), point_mass_matrix()])
+
+    def nan_for_agent_1(obs, action, next_obs):
+        reward = quadratic_reward(obs, action, next_obs)
+        return reward.clone().index_fill_(0, torch.tensor([1]), float("nan"))
+
+    planner = TrajectorySamplingCEM(model, nan_for_agent_1, -20.0, 20.0, seed=0, **PLAN)
+    obs = torch.tensor([[1.0, 0.5], [-2.0, 1.0]])
+    with pytest.warns(RuntimeWarning, match=r"agent\(s\) \[1\]"):
+        first = planner.plan(obs)
+    counts = planner.nonfinite_rewards.clone()
+    assert counts[0] == 0 and counts[1] > 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # warned once only
+        planner.plan(obs)
+    assert planner.nonfinite_rewards[1] > counts[1]
+    # agent 0 still plans its optimum; agent 1 gets a finite action within the bounds
+    best = lq_optimal_first_action(obs[0], 1.0, PLAN["horizon"])
+    assert first[0, 0].item() == pytest.approx(best, abs=0.06 * abs(best) + 0.05)
+    assert torch.isfinite(first[1]).all() and first[1].abs().item() <= 20.0

@@ -7,6 +7,7 @@ calls; the only Python loops are over CEM iterations and horizon steps.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Sequence
 
 import torch
@@ -40,7 +41,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
     3. score ``J = 1/P sum_p sum_t r(s_{p,t}, a_t, s_{p,t+1})`` (eq. 10); with a
        ``termination_fn`` a particle's sum stops after the step at which it predicts a
        termination (that step's reward counts, later ones do not, as mbrl-lib's
-       ``ModelEnv``); NaN scores -> -inf;
+       ``ModelEnv``); NaN scores -> -inf; non-finite predicted rewards are counted per agent
+       in the ``nonfinite_rewards`` buffer ``[I]`` (a warning names the agents once);
     4. refit ``mu, sigma`` to the ``X`` best candidates with momentum ``alpha``:
        ``mu <- alpha mu + (1 - alpha) mean(elites)`` (same for sigma);
 
@@ -63,6 +65,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             ``[..., obs]``, ``[..., act]``, ``[..., obs]`` -> ``[...]``.
         termination_fn: optional vectorized known termination ``(obs, action, next_obs) ->
             done`` (same shapes, bool): a predicted termination (a crash) ends the particle.
+            Both functions are dry-called on a dummy batch at construction: a wrong output
+            shape raises ``ValueError`` before any planning.
         action_low / action_high: bounds, scalars or ``[act]`` / ``[I, act]`` tensors,
             ``low < high`` elementwise.
         horizon, population, elites, iterations, particles, propagation, epsilon, alpha: see
@@ -173,6 +177,46 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         self._solution: torch.Tensor | None = None  # [I, M, H, act] last optimised mean
         self._batch_shape: torch.Size | None = None
         self.last_iterations = 0
+        self._warned_nonfinite = False
+        self.register_buffer(
+            "nonfinite_rewards", torch.zeros(model.n_agents, dtype=torch.long, device=device)
+        )
+        self._check_model_fns(device)
+
+    def _check_model_fns(self, device: torch.device) -> None:
+        """Dry-call ``reward_fn`` (and ``termination_fn``) on a dummy batch ``[I, 2, *]``: a
+        wrong output shape or dtype fails here, before any episode runs."""
+        model = self.model
+        obs = torch.zeros(model.n_agents, 2, model.obs_dim, device=device)
+        action = self.action_low[:, 0].expand(-1, 2, -1)
+        expected = (model.n_agents, 2)
+        for name, fn in (("reward_fn", self.reward_fn), ("termination_fn", self.termination_fn)):
+            if fn is None:
+                continue
+            out = fn(obs, action, obs)
+            if not isinstance(out, torch.Tensor) or tuple(out.shape) != expected:
+                shape = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+                raise ValueError(
+                    f"{name} must map obs [..., {model.obs_dim}], action "
+                    f"[..., {model.action_dim}], next_obs [..., {model.obs_dim}] to a tensor "
+                    f"[...]; on inputs [{model.n_agents}, 2, *] it returned {shape}."
+                )
+            if name == "termination_fn" and out.dtype != torch.bool:
+                raise ValueError(f"termination_fn must return a bool tensor, got {out.dtype}.")
+
+    def _warn_nonfinite(self) -> None:
+        """Warn once (per planner) naming the agents whose predicted rewards were NaN/inf."""
+        if self._warned_nonfinite or not bool(self.nonfinite_rewards.any()):
+            return
+        self._warned_nonfinite = True
+        agents = torch.nonzero(self.nonfinite_rewards).flatten().tolist()
+        warnings.warn(
+            f"reward_fn returned NaN or inf on predicted trajectories of agent(s) {agents} "
+            f"({int(self.nonfinite_rewards.sum())} rewards so far); such candidates score -inf. "
+            "See the planner's nonfinite_rewards counter.",
+            RuntimeWarning,
+            stacklevel=4,
+        )
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
@@ -261,6 +305,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             if bool(std.max() < self.epsilon):
                 break
         self.last_iterations = iterations
+        self._warn_nonfinite()
         self._solution = mu
         action = torch.clamp(mu[:, :, 0], self.action_low[:, 0], self.action_high[:, 0])
         # Warm start: shift the plan by one step, pad with the centre of the box.
@@ -294,6 +339,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         state = state.reshape(n_agents, particles * cands, -1)
         returns = torch.zeros(n_agents, particles * cands, device=obs.device)
         alive = torch.ones(n_agents, particles * cands, dtype=torch.bool, device=obs.device)
+        nonfinite = torch.zeros(n_agents, dtype=torch.long, device=obs.device)
         rows = particles * cands
         obs_dim = obs.shape[-1]
         for t in range(self.horizon):
@@ -328,9 +374,11 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
                     f"reward_fn must return shape {tuple(returns.shape)} for inputs shaped "
                     f"{tuple(state.shape)}, got {tuple(reward.shape)}."
                 )
+            nonfinite = nonfinite + (~torch.isfinite(reward) & alive).sum(-1)
             returns = returns + torch.where(alive, reward, 0.0)
             if self.termination_fn is not None:
                 alive = alive & ~self.termination_fn(state, action, next_state)
             state = next_state
+        self.nonfinite_rewards += nonfinite
         scores = returns.reshape(n_agents, particles, envs, pop).mean(1)
         return torch.where(torch.isnan(scores), float("-inf"), scores)
