@@ -11,7 +11,14 @@ from torchrl.envs import EnvBase, InitTracker, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from mapets_rl.models import ProbabilisticEnsemble
-from mapets_rl.planning import CPU_PRESET, PAPER_PRESET, PlannerConfig, TrajectorySamplingCEM
+from mapets_rl.planning import (
+    CPU_PRESET,
+    PAPER_PRESET,
+    DynamicsModel,
+    PlannerConfig,
+    TrajectorySamplingCEM,
+    trajectory_sampling_returns,
+)
 
 DT = 0.1
 RHO = 0.1
@@ -327,15 +334,41 @@ def test_candidates_are_scored_under_common_particle_noise():
     model = linear_ensemble([point_mass_matrix()])
     with torch.no_grad():
         model.biases[2][..., 2:] = 0.0  # unit predicted variance: particles really differ
-    planner = make_planner(model, particles=5)
-    obs = torch.tensor([[[1.0, 0.5]]]).transpose(0, 1)  # [I=1, M=1, obs]
+    obs = torch.tensor([[[1.0, 0.5]]])  # [I=1, M=1, obs]
     same = torch.full((1, 1, 6, PLAN["horizon"], 1), 0.7)  # six identical candidates
+    generator = torch.Generator().manual_seed(0)
     with torch.no_grad():
-        scores, again = planner._score(obs, same), planner._score(obs, same)
+        scores, again = (
+            trajectory_sampling_returns(
+                model, obs, same, quadratic_reward, particles=5, generator=generator
+            )[0]
+            for _ in range(2)
+        )
     # identical candidates, identical scores (up to float rounding) ...
     torch.testing.assert_close(scores, scores[..., :1].expand_as(scores))
     # ... although the noise matters: the next call's draw scores them differently
     assert (again - scores).abs().min() > 1e-2
+
+
+class ExactPointMass:
+    """An exact point-mass simulator: a :class:`DynamicsModel` that is no ensemble (B = 1)."""
+
+    n_agents, obs_dim, action_dim, ensemble_size = 1, 2, 1, 1
+
+    def predict(self, obs, action, dtype=torch.float32):
+        mean = torch.cat([DT * obs[..., 1:2], DT * action], dim=-1)
+        return mean, torch.full_like(mean, -60.0)
+
+
+def test_plans_with_any_dynamics_model_not_only_an_ensemble():
+    model = ExactPointMass()
+    assert isinstance(model, DynamicsModel) and not isinstance(model, torch.nn.Module)
+    obs = torch.tensor([[1.0, 0.5]])
+    action = make_planner(model).plan(obs)
+    best = lq_optimal_first_action(obs[0], 1.0, PLAN["horizon"])
+    assert action[0, 0].item() == pytest.approx(best, abs=0.06 * abs(best) + 0.05)
+    with pytest.raises(ValueError, match="DynamicsModel"):
+        TrajectorySamplingCEM(object(), quadratic_reward, -1.0, 1.0)
 
 
 def test_reward_fn_of_the_wrong_shape_fails_at_construction():

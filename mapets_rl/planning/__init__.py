@@ -1,12 +1,30 @@
-"""Planning: batched multi-agent CEM with trajectory sampling (MA-PETS sec. IV-B)."""
+"""Planning: batched multi-agent CEM with trajectory sampling (MA-PETS sec. IV-B).
 
-from mapets_rl.planning.cem import RewardFn, TerminationFn, TrajectorySamplingCEM
-from mapets_rl.planning.config import CPU_PRESET, PAPER_PRESET, PRESETS, PROPAGATIONS, PlannerConfig
+Three pieces, as mbrl-lib splits PETS: :class:`CEMOptimizer` (a pure optimiser over action
+sequences), :func:`trajectory_sampling_returns` (scores of candidate sequences through any
+:class:`DynamicsModel`) and :class:`TrajectorySamplingCEM` (the policy module that composes them
+and keeps the warm start).
+"""
+
+from mapets_rl.planning.cem import CEMOptimizer, ScoreFn
+from mapets_rl.planning.config import CPU_PRESET, PAPER_PRESET, PRESETS, PlannerConfig
+from mapets_rl.planning.mpc import TrajectorySamplingCEM
+from mapets_rl.planning.trajectory_sampling import (
+    PROPAGATIONS,
+    DynamicsModel,
+    RewardFn,
+    TerminationFn,
+    trajectory_sampling_returns,
+)
 
 __all__ = [
+    "CEMOptimizer",
+    "DynamicsModel",
+    "ScoreFn",
     "TrajectorySamplingCEM",
     "RewardFn",
     "TerminationFn",
+    "trajectory_sampling_returns",
     "PlannerConfig",
     "PAPER_PRESET",
     "CPU_PRESET",

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
+from mapets_rl.planning.trajectory_sampling import PROPAGATIONS
+
 __all__ = ["PlannerConfig", "PAPER_PRESET", "CPU_PRESET", "PRESETS", "PROPAGATIONS"]
-
-PROPAGATIONS = ("ts_inf", "ts1", "expectation")
-
 
 @dataclass(frozen=True)
 class PlannerConfig:

@@ -1,0 +1,351 @@
+"""The MA-PETS planner as a policy module: CEM + trajectory sampling, warm-started MPC.
+
+:class:`TrajectorySamplingCEM` reads observations from a TensorDict and writes actions. It keeps
+the warm start and composes the two pieces it is made of, as mbrl-lib splits PETS:
+:class:`~mapets_rl.planning.CEMOptimizer` (the optimiser over ``[I, M, Q, H, act]``) and
+:func:`~mapets_rl.planning.trajectory_sampling_returns` (the scores of candidate sequences).
+All agents (and all envs of a batched env) are planned by one batched tensor program; the only
+Python loops are over CEM iterations and horizon steps.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+
+from mapets_rl.planning.cem import CEMOptimizer
+from mapets_rl.planning.trajectory_sampling import (
+    PROPAGATIONS,
+    DynamicsModel,
+    RewardFn,
+    TerminationFn,
+    trajectory_sampling_returns,
+)
+
+__all__ = ["TrajectorySamplingCEM"]
+
+
+def _model_device(model: DynamicsModel, bounds: object) -> torch.device:
+    """The device of ``model``'s tensors (a module's parameters/buffers), else of ``bounds``."""
+    if isinstance(model, torch.nn.Module):
+        for tensor in (*model.parameters(), *model.buffers()):
+            return tensor.device
+    return torch.as_tensor(bounds).device
+
+
+class TrajectorySamplingCEM(TensorDictModuleBase):
+    """Batched multi-agent PETS planner: CEM over action sequences scored by TS rollouts.
+
+    Reads ``("agents", "observation")`` ``[*, I, obs]`` and writes ``("agents", "action")``
+    ``[*, I, act]`` (``*`` may be empty or the batch of a batched env). For each agent
+    ``i`` the planner keeps a Gaussian ``N(mu, sigma)`` over ``w``-step action sequences
+    ``[w, act]`` and iterates (Algorithm 1, lines 6-12):
+
+    1. sample ``Q`` candidates, clipped to the action bounds;
+    2. propagate ``P`` particles per candidate through agent ``i``'s ensemble
+       (``ts_inf``: particle ``p`` always uses member ``p mod B``; ``ts1``: members re-drawn
+       at every step; ``expectation``: one deterministic trajectory through the ensemble mean);
+    3. score ``J = 1/P sum_p sum_t r(s_{p,t}, a_t, s_{p,t+1})`` (eq. 10); with a
+       ``termination_fn`` a particle's sum stops after the step at which it predicts a
+       termination (that step's reward counts, later ones do not, as mbrl-lib's
+       ``ModelEnv``); NaN scores -> -inf; non-finite predicted rewards are counted per agent
+       in the ``nonfinite_rewards`` buffer ``[I]`` (a warning names the agents once);
+    4. refit ``mu, sigma`` to the ``X`` best candidates with momentum ``alpha``:
+       ``mu <- alpha mu + (1 - alpha) mean(elites)`` (same for sigma);
+
+    for at most ``iterations`` rounds, stopping early once every sigma is below ``epsilon``.
+    The first action of ``mu`` is executed (line 13) and ``mu`` shifted by one step warm-starts
+    the next call. Call :meth:`reset` at episode start (an ``"is_init"`` entry ``[*, 1]`` in the
+    input, as written by torchrl's ``InitTracker``, resets the matching envs automatically).
+
+    Random numbers are common to all agents and envs of a call (every planning problem sees
+    the same candidate noise and particle noise), so agent ``i``'s decision in a batched call
+    equals a single-agent call with the same seed; problems are independent, so this changes
+    no agent's marginal behaviour. The particle noise is also common to the candidates of one
+    CEM iteration (particle ``p`` draws the same standard-normal noise whichever candidate it
+    follows): candidates are compared under common random numbers, so that elite selection
+    ranks action sequences rather than noise draws.
+
+    Args:
+        model: the agents' dynamics, any :class:`~mapets_rl.planning.DynamicsModel` (e.g. a
+            :class:`~mapets_rl.models.ProbabilisticEnsemble`).
+        reward_fn: vectorized known reward ``(obs, action, next_obs) -> reward``, shapes
+            ``[..., obs]``, ``[..., act]``, ``[..., obs]`` -> ``[...]``.
+        termination_fn: optional vectorized known termination ``(obs, action, next_obs) ->
+            done`` (same shapes, bool): a predicted termination (a crash) ends the particle.
+            Both functions are dry-called on a dummy batch at construction: a wrong output
+            shape raises ``ValueError`` before any planning.
+        action_low / action_high: bounds, scalars or ``[act]`` / ``[I, act]`` tensors,
+            ``low < high`` elementwise.
+        horizon, population, elites, iterations, particles, propagation, epsilon, alpha: see
+            :class:`~mapets_rl.planning.PlannerConfig` (Table II names ``w, Q, X, Y, P``).
+        dtype: compute dtype of the ensemble forward (``torch.bfloat16`` or ``torch.float32``);
+            states, rewards and CEM statistics stay float32.
+        seed / generator: reproducible randomness (``generator`` wins if both are given).
+        observation_key / action_key / is_init_key: TensorDict keys.
+    """
+
+    def __init__(
+        self,
+        model: DynamicsModel,
+        reward_fn: RewardFn,
+        action_low: float | Sequence[float] | torch.Tensor,
+        action_high: float | Sequence[float] | torch.Tensor,
+        horizon: int = 25,
+        population: int = 400,
+        elites: int = 40,
+        iterations: int = 5,
+        particles: int = 20,
+        propagation: str = "ts_inf",
+        epsilon: float = 1e-3,
+        alpha: float = 0.1,
+        dtype: torch.dtype = torch.float32,
+        *,
+        seed: int | None = None,
+        generator: torch.Generator | None = None,
+        termination_fn: TerminationFn | None = None,
+        observation_key: NestedKey = ("agents", "observation"),
+        action_key: NestedKey = ("agents", "action"),
+        is_init_key: NestedKey = "is_init",
+    ) -> None:
+        if not isinstance(model, DynamicsModel):
+            raise ValueError(
+                "model must provide n_agents, obs_dim, action_dim, ensemble_size and "
+                f"predict(obs, action, dtype) (DynamicsModel), got {type(model).__name__}."
+            )
+        if not callable(reward_fn):
+            raise ValueError("reward_fn must be callable (obs, action, next_obs) -> reward.")
+        if termination_fn is not None and not callable(termination_fn):
+            raise ValueError("termination_fn must be callable (obs, action, next_obs) -> done.")
+        for name, value in (
+            ("horizon", horizon),
+            ("population", population),
+            ("iterations", iterations),
+            ("particles", particles),
+        ):
+            if not isinstance(value, int) or value <= 0:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}.")
+        if not isinstance(elites, int) or not 1 <= elites <= population:
+            raise ValueError(
+                f"elites must be an integer in [1, population={population}], got {elites!r}."
+            )
+        if propagation not in PROPAGATIONS:
+            raise ValueError(f"propagation must be one of {PROPAGATIONS}, got {propagation!r}.")
+        members = model.ensemble_size
+        if propagation == "ts_inf" and particles % members:
+            raise ValueError(
+                f"particles ({particles}) must be divisible by the ensemble size ({members}) "
+                "for propagation='ts_inf'."
+            )
+        if propagation == "ts1" and (particles * population) % members:
+            raise ValueError(
+                f"particles * population ({particles * population}) must be divisible by the "
+                f"ensemble size ({members}) for propagation='ts1'."
+            )
+        if not epsilon > 0:
+            raise ValueError(f"epsilon must be > 0, got {epsilon}.")
+        if not 0 <= alpha < 1:
+            raise ValueError(f"alpha must be in [0, 1), got {alpha}.")
+        if dtype not in (torch.float32, torch.bfloat16):
+            raise ValueError(f"dtype must be torch.float32 or torch.bfloat16, got {dtype}.")
+        device = _model_device(model, action_low)
+        low = torch.as_tensor(action_low, dtype=torch.float32, device=device)
+        high = torch.as_tensor(action_high, dtype=torch.float32, device=device)
+        act = model.action_dim
+        try:
+            low, high = (torch.broadcast_to(b, (model.n_agents, act)).clone() for b in (low, high))
+        except RuntimeError as err:
+            raise ValueError(
+                f"action_low/action_high must broadcast to [n_agents={model.n_agents}, "
+                f"action_dim={act}], got {tuple(low.shape)} and {tuple(high.shape)}."
+            ) from err
+        if not bool((low < high).all()):
+            raise ValueError("action_low must be < action_high in every dimension.")
+        super().__init__()
+        self.model = model
+        self.reward_fn = reward_fn
+        self.termination_fn = termination_fn
+        self.horizon = horizon
+        self.particles = particles
+        self.propagation = propagation
+        self.dtype = dtype
+        if generator is None and seed is not None:
+            generator = torch.Generator(device=device)
+            generator.manual_seed(seed)
+        self.generator = generator
+        self.optimizer = CEMOptimizer(
+            population, elites, iterations, float(epsilon), float(alpha), generator
+        )
+        self.in_keys = [observation_key]
+        self.out_keys = [action_key]
+        self.is_init_key = is_init_key
+        # Bounds as [I, 1, 1, act] so they broadcast over [I, M, (Q,) H, act].
+        self.register_buffer("action_low", low[:, None, None, :])
+        self.register_buffer("action_high", high[:, None, None, :])
+        self._mean: torch.Tensor | None = None  # [I, M, H, act] warm start
+        self._solution: torch.Tensor | None = None  # [I, M, H, act] last optimised mean
+        self._batch_shape: torch.Size | None = None
+        self._warned_nonfinite = False
+        self.register_buffer(
+            "nonfinite_rewards", torch.zeros(model.n_agents, dtype=torch.long, device=device)
+        )
+        self._check_model_fns(device)
+
+    def _check_model_fns(self, device: torch.device) -> None:
+        """Dry-call ``reward_fn`` (and ``termination_fn``) on a dummy batch ``[I, 2, *]``: a
+        wrong output shape or dtype fails here, before any episode runs."""
+        model = self.model
+        obs = torch.zeros(model.n_agents, 2, model.obs_dim, device=device)
+        action = self.action_low[:, 0].expand(-1, 2, -1)
+        expected = (model.n_agents, 2)
+        for name, fn in (("reward_fn", self.reward_fn), ("termination_fn", self.termination_fn)):
+            if fn is None:
+                continue
+            out = fn(obs, action, obs)
+            if not isinstance(out, torch.Tensor) or tuple(out.shape) != expected:
+                shape = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+                raise ValueError(
+                    f"{name} must map obs [..., {model.obs_dim}], action "
+                    f"[..., {model.action_dim}], next_obs [..., {model.obs_dim}] to a tensor "
+                    f"[...]; on inputs [{model.n_agents}, 2, *] it returned {shape}."
+                )
+            if name == "termination_fn" and out.dtype != torch.bool:
+                raise ValueError(f"termination_fn must return a bool tensor, got {out.dtype}.")
+
+    def _warn_nonfinite(self) -> None:
+        """Warn once (per planner) naming the agents whose predicted rewards were NaN/inf."""
+        if self._warned_nonfinite or not bool(self.nonfinite_rewards.any()):
+            return
+        self._warned_nonfinite = True
+        agents = torch.nonzero(self.nonfinite_rewards).flatten().tolist()
+        warnings.warn(
+            f"reward_fn returned NaN or inf on predicted trajectories of agent(s) {agents} "
+            f"({int(self.nonfinite_rewards.sum())} rewards so far); such candidates score -inf. "
+            "See the planner's nonfinite_rewards counter.",
+            RuntimeWarning,
+            stacklevel=4,
+        )
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Forget the warm start (call at episode start)."""
+        self._mean = None
+        self._solution = None
+        self._batch_shape = None
+
+    def _to_batch_layout(self, plan: torch.Tensor | None) -> torch.Tensor | None:
+        """``[I, M, H, act]`` -> ``[*, I, H, act]``."""
+        if plan is None:
+            return None
+        return plan.transpose(0, 1).reshape(
+            *self._batch_shape, self.model.n_agents, self.horizon, self.model.action_dim
+        )
+
+    @property
+    def last_iterations(self) -> int:
+        """CEM iterations run by the last call (early stopping may cut them short)."""
+        return self.optimizer.last_iterations
+
+    population = property(
+        lambda self: self.optimizer.population,
+        lambda self, value: setattr(self.optimizer, "population", value),
+        doc="CEM candidates ``Q`` (held by :attr:`optimizer`).",
+    )
+    elites = property(
+        lambda self: self.optimizer.elites,
+        lambda self, value: setattr(self.optimizer, "elites", value),
+        doc="CEM elites ``X``.",
+    )
+    iterations = property(
+        lambda self: self.optimizer.iterations,
+        lambda self, value: setattr(self.optimizer, "iterations", value),
+        doc="Maximum CEM iterations ``Y``.",
+    )
+    epsilon = property(
+        lambda self: self.optimizer.epsilon,
+        lambda self, value: setattr(self.optimizer, "epsilon", value),
+        doc="Early-stop threshold on the sampling std.",
+    )
+    alpha = property(
+        lambda self: self.optimizer.alpha,
+        lambda self, value: setattr(self.optimizer, "alpha", value),
+        doc="Momentum of the CEM update.",
+    )
+
+    @property
+    def warm_start_mean(self) -> torch.Tensor | None:
+        """The shifted plan that seeds the next call, ``[*, I, horizon, act]`` (or ``None``)."""
+        return self._to_batch_layout(self._mean)
+
+    @property
+    def last_solution(self) -> torch.Tensor | None:
+        """The last call's optimised mean sequence, ``[*, I, horizon, act]`` (or ``None``)."""
+        return self._to_batch_layout(self._solution)
+
+    def _initial_mean(self, envs: int) -> torch.Tensor:
+        """``[I, M, H, act]`` centre of the action box."""
+        centre = (self.action_low + self.action_high) / 2  # [I, 1, 1, act]
+        return centre.expand(-1, envs, self.horizon, -1).clone()
+
+    # ------------------------------------------------------------------ TensorDict API
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        obs = tensordict.get(self.in_keys[0])
+        is_init = tensordict.get(self.is_init_key, None)
+        tensordict.set(self.out_keys[0], self.plan(obs, is_init=is_init))
+        return tensordict
+
+    @torch.no_grad()
+    def plan(self, obs: torch.Tensor, is_init: torch.Tensor | None = None) -> torch.Tensor:
+        """Plan one decision for every agent.
+
+        Args:
+            obs: ``[*, I, obs]`` current observations.
+            is_init: optional ``[*]`` / ``[*, 1]`` bool; ``True`` resets that env's warm start.
+
+        Returns:
+            ``[*, I, act]`` first actions of the optimised sequences, within the bounds.
+        """
+        model = self.model
+        n_agents, obs_dim = model.n_agents, model.obs_dim
+        if obs.ndim < 2 or obs.shape[-2:] != (n_agents, obs_dim):
+            raise ValueError(
+                f"observation must be shaped [*, n_agents={n_agents}, obs_dim={obs_dim}], "
+                f"got {tuple(obs.shape)}."
+            )
+        batch_shape = obs.shape[:-2]
+        obs_p = obs.reshape(-1, n_agents, obs_dim).transpose(0, 1).float()  # [I, M, obs]
+        envs = obs_p.shape[1]
+        if self._mean is None or self._batch_shape != batch_shape:
+            self._mean = self._initial_mean(envs)
+            self._batch_shape = batch_shape
+        elif is_init is not None:
+            reset = is_init.reshape(envs).to(torch.bool).view(1, envs, 1, 1)
+            self._mean = torch.where(reset, self._initial_mean(envs), self._mean)
+
+        def score(candidates: torch.Tensor) -> torch.Tensor:
+            scores, nonfinite = trajectory_sampling_returns(
+                model,
+                obs_p,
+                candidates,
+                self.reward_fn,
+                termination_fn=self.termination_fn,
+                propagation=self.propagation,
+                particles=self.particles,
+                dtype=self.dtype,
+                generator=self.generator,
+            )
+            self.nonfinite_rewards += nonfinite
+            return scores
+
+        mu = self.optimizer.optimize(score, self._mean, self.action_low, self.action_high)
+        self._warn_nonfinite()
+        self._solution = mu
+        action = torch.clamp(mu[:, :, 0], self.action_low[:, 0], self.action_high[:, 0])
+        # Warm start: shift the plan by one step, pad with the centre of the box.
+        self._mean = torch.cat([mu[:, :, 1:], self._initial_mean(envs)[:, :, :1]], dim=2)
+        return action.transpose(0, 1).reshape(*batch_shape, n_agents, model.action_dim)
