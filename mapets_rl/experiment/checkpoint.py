@@ -222,7 +222,7 @@ def load_latest_checkpoint(run_dir: str | os.PathLike,
         try:
             return path, load_checkpoint(path, map_location)
         except CheckpointError as err:
-            logger.warning("skipped %s: %s", path.name, err)
+            logger.warning("%s; skipped", err)
     raise CheckpointError(f"none of the {len(candidates)} checkpoints of {str(run_dir)!r} "
                           "verifies (see the warnings above); the run cannot be restored")
 

@@ -38,6 +38,7 @@ from mapets_rl.experiment.config import (
     ExperimentConfig,
     atomic_write,
     atomic_write_text,
+    check_device,
     check_writable_dir,
     make_writable_dir,
     parse_override,
@@ -347,9 +348,11 @@ class Experiment:
 
     # ----------------------------------------------------------------------- checkpoints
     def state_dict(self) -> dict[str, Any]:
-        """Whole training state: components, counters, evaluations and RNG states."""
+        """Whole training state: components, counters, evaluations and RNG states, plus the
+        env's tensor shapes (so that a resume with another scenario shape is refused)."""
         return {
             "recipe": self.name,
+            "env_shapes": env_shapes(self.env),
             "frames": self.frames,
             "batches": self.batches,
             "boundaries": self.boundaries,
@@ -438,6 +441,7 @@ class Experiment:
         # a run may move to another device: apply a device override before validating
         devices = [value for key, value in map(parse_override, overrides) if key == "device"]
         if devices:
+            check_device(devices[-1])
             data["device"] = devices[-1]
         try:
             saved = cls.Config.from_dict(data)
@@ -448,10 +452,19 @@ class Experiment:
     def _restore(self, state: Mapping[str, Any], path: Path, changed: list[str]) -> None:
         """Load checkpoint ``state`` (from ``path``) into this fresh experiment; ValueError
         naming the changed config keys when the state's tensor shapes do not fit."""
-        mismatch = _shape_mismatches(state.get("components", {}),
-                                     self.state_dict()["components"])
+        fresh = self.state_dict()
+        mismatch = [(f"env {key}", saved, fresh["env_shapes"][key])
+                    for key, saved in state.get("env_shapes", {}).items()
+                    if key in fresh["env_shapes"] and saved != fresh["env_shapes"][key]]
+        mismatch += _shape_mismatches(state.get("components", {}), fresh["components"])
         if mismatch:
             key, saved_shape, new_shape = mismatch[0]
+            # name the keys that can change shapes: the env's for the env's shapes, the
+            # recipe's own fields (network sizes, ...) for the components'
+            env_keys = [k for k in changed if k.partition(".")[0] in ("env", "env_config")]
+            recipe_keys = [k for k in changed
+                           if k.partition(".")[0] not in ExperimentConfig.field_names()]
+            changed = (env_keys if key.startswith("env ") else recipe_keys + env_keys) or changed
             if changed:
                 raise ConfigError(
                     f"cannot resume with {', '.join(changed)} changed: it changes the shape of "
@@ -484,6 +497,17 @@ def run_recipe_name(run_dir: str | os.PathLike) -> str:
         raise ValueError(f"{str(path)!r} does not name the run's recipe (it needs a "
                          f"\"recipe\": \"<name>\" entry, got {recipe!r})")
     return recipe
+
+
+def env_shapes(env: EnvBase) -> dict[str, list[int]]:
+    """Shape of every observation, action and reward entry of ``env``'s specs, keyed by the
+    dotted entry name (e.g. ``"agents.observation": [8, 7]``)."""
+    shapes: dict[str, list[int]] = {}
+    for spec in (env.full_observation_spec, env.full_action_spec, env.full_reward_spec):
+        for key in spec.keys(include_nested=True, leaves_only=True):
+            name = ".".join(key) if isinstance(key, tuple) else key
+            shapes[name] = list(spec[key].shape)
+    return shapes
 
 
 def _flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
