@@ -307,8 +307,11 @@ class Experiment:
         return mean_metrics(per_episode)
 
     def _render_env(self) -> EnvBase:
-        """The env with ``render_mode="rgb_array"`` (built once)."""
+        """The env with ``render_mode="rgb_array"`` (built once). Frames are drawn off screen,
+        so SDL gets its dummy video driver (unless the user chose one): no display is needed
+        and SDL prints no XDG_RUNTIME_DIR error."""
         if self._video_env is None:
+            os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
             try:
                 self._video_env = build_env(
                     self.config.env, {**self.config.env_config, "render_mode": "rgb_array"})
