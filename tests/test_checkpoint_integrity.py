@@ -282,3 +282,21 @@ def test_failed_train_leaves_no_half_made_run_dir(tmp_path: Path, toy_recipe, ca
                             capsys)
         assert code == 2 and err.count("\n") == 1
         assert not run.exists()
+
+
+def test_resume_of_a_real_scenario_refuses_another_agent_count(tmp_path: Path, capsys) -> None:
+    run = str(tmp_path / "mappo")
+    tiny = ["total_frames=20", "frames_per_batch=10", "minibatch_size=10", "eval_interval=0",
+            "checkpoint_interval=10", "env_config.horizon=10", "env_config.n_hvs=2",
+            "progress=false", "logger=none"]
+    code, _, _ = _run(["train", "mappo", "--env", "figure-eight", "--run-dir", run, *tiny],
+                      capsys)
+    assert code == 0
+    config = (tmp_path / "mappo" / "config.yaml").read_bytes()
+    for override, needle in (("env_config.n_cavs=4", "env_config.n_cavs changed"),
+                             ("num_cells=[32]", "num_cells changed")):
+        code, _, err = _run(["resume", run, override, "total_frames=30"], capsys)
+        assert code == 2 and err.count("\n") == 1 and needle in err, err
+        assert (tmp_path / "mappo" / "config.yaml").read_bytes() == config
+    code, out, _ = _run(["resume", run, "total_frames=30"], capsys)
+    assert code == 0 and '"frames": 30' in out
