@@ -72,10 +72,6 @@ def _garbage(path: Path) -> None:
     path.write_bytes(os.urandom(4096))
 
 
-def _drop_digest(path: Path) -> None:
-    digest_path(path).unlink()
-
-
 class _Payload:
     marker: Path
 
@@ -94,7 +90,8 @@ BREAKERS: dict[str, tuple[Callable[[Path], None], str]] = {
     "truncated": (_truncate, "does not match its SHA-256 digest"),
     "empty": (_empty, "does not match its SHA-256 digest"),
     "garbage": (_garbage, "does not match its SHA-256 digest"),
-    "no digest": (_drop_digest, "has no readable digest file"),
+    "bad digest file": (lambda p: digest_path(p).write_text("not a digest\n"),
+                        "does not hold the SHA-256 digest"),
     "pickle payload": (_pickle_payload_with_digest, "not a checkpoint this library wrote"),
 }
 
@@ -119,6 +116,15 @@ def test_broken_checkpoint_is_refused_with_one_line_naming_it(tmp_path: Path, ki
     assert path.name in message and "\n" not in message
     assert "weights_only" not in message
     assert not marker.exists()
+
+
+def test_checkpoint_without_digest_file_loads_with_a_warning(tmp_path: Path, caplog) -> None:
+    """Checkpoints written before digests existed stay loadable (weights-only)."""
+    path = save_checkpoint({"w": torch.ones(2), "step": 3}, tmp_path, 3)
+    digest_path(path).unlink()
+    with caplog.at_level(logging.WARNING, logger="mapets_rl"):
+        assert load_checkpoint(path)["step"] == 3
+    assert any("has no digest file" in r.getMessage() for r in caplog.records)
 
 
 def test_pickle_payload_is_refused_with_or_without_a_digest(tmp_path: Path,

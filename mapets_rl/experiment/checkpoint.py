@@ -9,7 +9,8 @@ and every checkpoint that appears has its digest already in place.
 
 :func:`load_checkpoint` verifies the digest before it parses anything and then loads with
 ``torch.load(weights_only=True)``, so a corrupted, truncated or modified file is refused and a
-checkpoint file cannot execute code. Every refusal is a :class:`CheckpointError` whose one-line
+checkpoint file cannot execute code (a checkpoint of an older version, which has no digest file,
+is loaded with a warning). Every refusal is a :class:`CheckpointError` whose one-line
 message names the file. :func:`load_latest_checkpoint` falls back to the newest checkpoint that
 verifies, logging one line per file it skipped.
 
@@ -159,37 +160,52 @@ def save_checkpoint(state: dict[str, Any], run_dir: str | os.PathLike, step: int
     return path
 
 
-def verify_checkpoint(path: str | os.PathLike) -> None:
-    """Raise :class:`CheckpointError` unless ``path`` matches the digest in ``<path>.sha256``."""
+def verify_checkpoint(path: str | os.PathLike) -> bool:
+    """Check ``path`` against the digest in ``<path>.sha256``.
+
+    Returns:
+        True when the digest matches; False when there is no digest file (a checkpoint written
+        before checkpoints carried digests: it cannot be verified).
+
+    Raises:
+        CheckpointError: the file is missing, the digest file is malformed, or the file does not
+            match its digest.
+    """
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {str(path)!r} does not exist")
     digest_file = digest_path(path)
+    if not digest_file.exists():
+        return False
     try:
-        line = digest_file.read_text()
+        match = _DIGEST_LINE.match(digest_file.read_text())
     except (OSError, UnicodeDecodeError):
-        raise CheckpointError(
-            f"checkpoint {str(path)!r} has no readable digest file {digest_file.name} (it was "
-            "not written by this library, or its write was interrupted)") from None
-    match = _DIGEST_LINE.match(line)
+        match = None
     if match is None or match.group(2) != path.name:
         raise CheckpointError(f"digest file {str(digest_file)!r} does not hold the SHA-256 "
                               f"digest of {path.name}")
     if file_sha256(path) != match.group(1):
         raise CheckpointError(f"checkpoint {str(path)!r} does not match its SHA-256 digest (the "
                               "file is corrupted or was modified)")
+    return True
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
     """Verify ``path`` against its digest, then load it with ``torch.load(weights_only=True)``.
 
+    A checkpoint without a digest file (written by an older version) is loaded with a logged
+    warning; weights-only loading still refuses anything but tensors and plain values.
+
     Raises:
-        CheckpointError: one line naming the file: missing, no digest, digest mismatch,
-            unreadable, or holding pickled objects other than tensors and plain values (such
-            a file is never unpickled).
+        CheckpointError: one line naming the file: missing, digest mismatch or malformed
+            digest file, unreadable, or holding pickled objects other than tensors and plain
+            values (such a file is never unpickled).
     """
     path = Path(path)
-    verify_checkpoint(path)
+    if not verify_checkpoint(path):
+        logger.warning("checkpoint %r has no digest file %s (written before checkpoints carried "
+                       "digests); loading it without an integrity check", str(path),
+                       digest_path(path).name)
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError:
