@@ -306,3 +306,14 @@ def test_resume_of_a_real_scenario_refuses_another_agent_count(tmp_path: Path, c
         assert (tmp_path / "mappo" / "config.yaml").read_bytes() == config
     code, out, _ = _run(["resume", run, "total_frames=30"], capsys)
     assert code == 0 and '"frames": 30' in out
+
+
+def test_keys_missing_from_config_yaml_can_be_given_as_overrides(tmp_path: Path) -> None:
+    run = _trained(tmp_path)
+    path = run / "config.yaml"
+    path.write_text("".join(line for line in path.read_text().splitlines(keepends=True)
+                            if not line.startswith("lr:")))
+    with pytest.raises(ConfigError, match=r"lacks the keys \['lr'\]"):
+        ToyLearner.from_run_dir(run)
+    resumed = ToyLearner.from_run_dir(run, overrides=["lr=0.05"])
+    assert resumed.frames == 40 and "lr: 0.05" in path.read_text()

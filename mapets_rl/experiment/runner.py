@@ -403,7 +403,7 @@ class Experiment:
         """
         run_dir = Path(run_dir)
         overrides = list(overrides or [])
-        saved, config = cls._run_config(run_dir, overrides)
+        saved, config, on_disk = cls._run_config(run_dir, overrides)
         if config.env != saved.env:
             raise ConfigError(f"env cannot change when resuming: run_dir {str(run_dir)!r} was "
                               f"trained on {saved.env!r}; start a new run for {config.env!r}")
@@ -417,7 +417,7 @@ class Experiment:
             _RESTORING.remove(run_dir)
         if state is not None:
             exp._restore(state, ckpt, _changed_keys(saved.to_dict(), config.to_dict()))
-        if config != saved:
+        if config.to_dict() != on_disk:
             config.to_yaml(run_dir / CONFIG_FILE)
         if state is not None:
             exp.results.write()
@@ -425,24 +425,30 @@ class Experiment:
 
     @classmethod
     def _run_config(cls, run_dir: Path, overrides: list[str]
-                    ) -> tuple[ExperimentConfig, ExperimentConfig]:
-        """(saved config of ``run_dir``, the config with ``overrides``); one-line ConfigErrors
-        naming ``config.yaml`` when it is missing, malformed, incomplete or another recipe's."""
+                    ) -> tuple[ExperimentConfig, ExperimentConfig, dict[str, Any]]:
+        """(saved config of ``run_dir``, the config with ``overrides``, the mapping in
+        ``config.yaml``); one-line ConfigErrors naming ``config.yaml`` when it is missing,
+        malformed, incomplete or another recipe's."""
         path = run_dir / CONFIG_FILE
         if not path.is_file():
             raise ConfigError(f"run_dir {str(run_dir)!r} has no {CONFIG_FILE}")
-        data = read_yaml_mapping(path)
+        on_disk = read_yaml_mapping(path)
+        data = dict(on_disk)
         fields = cls.Config.field_names()
         unknown = sorted(set(data) - set(fields))
         if unknown:
             raise ConfigError(f"{str(path)!r} is not a {cls.name!r} config (the recipe that "
                               f"run.json names): unknown keys {unknown}; it belongs to another "
                               "recipe or was edited")
-        missing = [name for name in fields if name not in data]
+        parsed = [parse_override(item) for item in overrides]
+        overridden = {key.partition(".")[0] for key, _ in parsed}
+        missing = [name for name in fields if name not in data and name not in overridden]
         if missing:
-            raise ConfigError(f"{str(path)!r} is incomplete: it lacks the keys {missing}")
+            raise ConfigError(f"{str(path)!r} is incomplete: it lacks the keys {missing} (if the "
+                              "recipe gained them after the run was made, pass them as "
+                              "key=value overrides)")
         # a run may move to another device: apply a device override before validating
-        devices = [value for key, value in map(parse_override, overrides) if key == "device"]
+        devices = [value for key, value in parsed if key == "device"]
         if devices:
             check_device(devices[-1])
             data["device"] = devices[-1]
@@ -450,7 +456,7 @@ class Experiment:
             saved = cls.Config.from_dict(data)
         except ConfigError as err:
             raise ConfigError(f"{str(path)!r}: {err}") from None
-        return saved, saved.with_overrides(overrides) if overrides else saved
+        return saved, saved.with_overrides(overrides) if overrides else saved, on_disk
 
     def _restore(self, state: Mapping[str, Any], path: Path, changed: list[str]) -> None:
         """Load checkpoint ``state`` (from ``path``) into this fresh experiment; ValueError
