@@ -6,7 +6,11 @@ from __future__ import annotations
 import logging
 import os
 import pickle
+import signal
 import stat
+import subprocess
+import sys
+import textwrap
 from collections.abc import Callable
 from pathlib import Path
 
@@ -28,6 +32,8 @@ from mapets_rl.experiment import (
 )
 from mapets_rl.experiment.cli import main
 from recipes import _registry
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture
@@ -317,3 +323,58 @@ def test_keys_missing_from_config_yaml_can_be_given_as_overrides(tmp_path: Path)
         ToyLearner.from_run_dir(run)
     resumed = ToyLearner.from_run_dir(run, overrides=["lr=0.05"])
     assert resumed.frames == 40 and "lr: 0.05" in path.read_text()
+
+
+# ------------------------------------------------------------ kill -9 while writing a checkpoint
+KILLERS = {
+    # the process dies inside torch.save of the second checkpoint (a half-written temp file)
+    "inside torch.save": """
+        real_save = torch.save
+        calls = []
+        def dying_save(obj, fh, *args, **kwargs):
+            calls.append(1)
+            if len(calls) == 2:
+                fh.write(b"half a checkpoint")
+                fh.flush()
+                os.kill(os.getpid(), signal.SIGKILL)
+            real_save(obj, fh, *args, **kwargs)
+        torch.save = dying_save
+    """,
+    # the process dies after the second checkpoint's digest, before its rename
+    "before the rename": """
+        real_replace = os.replace
+        def dying_replace(src, dst):
+            if str(dst).endswith("ckpt_000000000040.pt"):
+                os.kill(os.getpid(), signal.SIGKILL)
+            real_replace(src, dst)
+        os.replace = dying_replace
+    """,
+}
+
+
+@pytest.mark.parametrize("moment", sorted(KILLERS))
+def test_kill_9_during_a_checkpoint_write_resumes_bit_exactly(tmp_path: Path,
+                                                             moment: str) -> None:
+    full = ToyLearner(ToyConfig(), tmp_path / "full")
+    full_evals = full.train()
+    run = tmp_path / "killed"
+    script = "\n".join([
+        "import os, signal, sys",
+        f"sys.path.insert(0, {str(ROOT / 'tests')!r})",
+        "import torch",
+        "import test_experiment",
+        textwrap.dedent(KILLERS[moment]),
+        f"test_experiment.ToyLearner(test_experiment.ToyConfig(), {str(run)!r}).train()",
+    ])
+    proc = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    assert [p.name for p in list_checkpoints(run)] == ["ckpt_000000000020.pt"]
+    leftovers = sorted(p.name for p in (run / "checkpoints").iterdir()
+                       if p.name not in ("ckpt_000000000020.pt", "ckpt_000000000020.pt.sha256"))
+    assert leftovers  # a temp file (and, before the rename, the new digest) left behind
+    resumed = ToyLearner.from_run_dir(run, overrides=["total_frames=60"])
+    assert resumed.frames == 20
+    assert all(not (run / "checkpoints" / name).exists() for name in leftovers)
+    assert resumed.train() == full_evals
+    assert torch.equal(_params(resumed), _params(full))
