@@ -114,10 +114,11 @@ class ExperimentConfig:
     environment step, all agents of that step included).
 
     Attributes:
-        env: scenario name passed to ``mapets_rl.envs.make_env``.
+        env: a registered scenario name (``mapets_rl.envs.make_env`` or ``register_env``).
         env_config: keyword arguments for ``make_env`` (e.g. ``{"n_cavs": 8}``).
         seed: seed of torch / numpy / python RNGs and of the environments.
-        device: torch device of the learner (``"cpu"``, ``"cuda"``, ...).
+        device: torch device of the learner (``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"mps"``),
+            one this machine has.
         total_frames: environment steps to train for (> 0).
         frames_per_batch: environment steps per collected batch (> 0).
         num_envs: environment processes; 1 uses ``Collector`` in this process, > 1 uses
@@ -130,7 +131,8 @@ class ExperimentConfig:
             bit-exact with ``num_envs=1``; worker processes of ``num_envs > 1`` re-seed their
             environments but not their own torch RNG).
         keep_last: checkpoints to keep on disk (>= 1).
-        logger: ``csv`` (default), ``tensorboard``, ``wandb`` or ``none``.
+        logger: ``csv`` (default), ``tensorboard``, ``wandb`` or ``none``; tensorboard and
+            wandb need their package installed.
         video: record a GIF of the first episode of each evaluation.
         progress: show a tqdm progress bar.
     """
@@ -359,7 +361,7 @@ def make_writable_dir(path: str | os.PathLike, what: str = "run_dir") -> Path:
     check_writable_dir(path, what)
     try:
         path.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(dir=path, prefix=".write-probe.")
+        fd, probe = tempfile.mkstemp(dir=path, prefix=".write-probe.", suffix=".tmp")
         os.close(fd)
         os.unlink(probe)
     except OSError as err:
