@@ -308,10 +308,11 @@ class Experiment:
 
     def _render_env(self) -> EnvBase:
         """The env with ``render_mode="rgb_array"`` (built once). Frames are drawn off screen,
-        so SDL gets its dummy video driver (unless the user chose one): no display is needed
-        and SDL prints no XDG_RUNTIME_DIR error."""
+        so SDL gets its ``offscreen`` video driver (unless the user chose one): no display is
+        needed and SDL prints no XDG_RUNTIME_DIR error. (Its ``dummy`` driver would make
+        highway-env skip drawing.)"""
         if self._video_env is None:
-            os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+            os.environ.setdefault("SDL_VIDEODRIVER", "offscreen")
             try:
                 self._video_env = build_env(
                     self.config.env, {**self.config.env_config, "render_mode": "rgb_array"})
