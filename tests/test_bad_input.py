@@ -155,7 +155,7 @@ CLI_CASES = [
     ("env_config n_hvs=many", ["train", "toy", "--env", "figure-eight", "env_config.n_hvs=many"],
      "n_hvs must be an int >= 0 or a range"),
     ("compare --out under a file", ["compare", "{finished_run}", "--out", "{a_file}/cmp"],
-     "out .* cannot be created"),
+     "out_dir .* cannot be created"),
     ("compare --metrics ,", ["compare", "{finished_run}", "--out", "{tmp_path}/cmp",
                              "--metrics", ","], "--metrics must name at least one metric"),
     ("compare unknown metric", ["compare", "{finished_run}", "--out", "{tmp_path}/cmp",

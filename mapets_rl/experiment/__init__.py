@@ -50,7 +50,7 @@ the newest one that verifies; a resume that fails (bad override, no usable check
 the run directory as it was.
 
 Custom scenarios: ``register_env("name", factory)`` makes ``factory(**env_config)`` available
-to every recipe and to ``--env name``.
+to every recipe and to ``--env name`` (replacing an existing scenario needs ``overwrite=True``).
 """
 
 import importlib

@@ -88,7 +88,7 @@ def compare(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike,
         raise ValueError("run_dirs must name at least one run directory")
     if metrics is not None and not list(metrics):
         raise ValueError("metrics must name at least one metric (or None for all common ones)")
-    check_writable_dir(out_dir, "out")
+    check_writable_dir(out_dir, "out_dir")
     results = [read_results(d) for d in run_dirs]
     for d, res in zip(run_dirs, results, strict=True):
         if not res["evaluations"]:
@@ -106,7 +106,7 @@ def compare(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike,
     if unknown:
         raise ValueError(f"metrics {unknown} are not in every run (available: {sorted(common)})")
 
-    out_dir = make_writable_dir(out_dir, "out")
+    out_dir = make_writable_dir(out_dir, "out_dir")
     summary: dict[str, dict[str, dict[str, float]]] = {}
     for label, runs in groups.items():
         summary[label] = {}
