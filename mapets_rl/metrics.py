@@ -1,10 +1,15 @@
 """Episode metrics of the papers.
 
-Figure-eight (MA-PETS paper eqs. 27-28), over CAVs ``i`` with collision step ``t_c(i)`` (the
-horizon ``H`` if the CAV never collides):
+Figure-eight (MA-PETS paper eqs. 27-28), over CAVs ``i`` with *lasting time* ``t_c(i)``: the
+number of steps CAV ``i`` completed before its collision. A CAV that collides during step ``t``
+(steps counted ``1..H``) has ``t_c(i) = t - 1 < H``; ``t_c(i) = H`` only if it never collides, so
+an episode with a collision always has safety < 1, even when the collision happens in the last
+step.
 
-- Agility ``= mean_i (1 / t_c(i)) * sum_{t < t_c(i)} d_t(i)``: mean distance travelled per step
-  before the collision [m/step].
+- Agility ``= mean_i (1 / n_i) * sum_{t < n_i} d_t(i)`` with ``n_i = min(t_c(i) + 1, T)`` the
+  steps CAV ``i`` drove (the crashing step included, as eq. 27 sums ``t = 0..t_c``; dividing by
+  the number of summed steps instead of ``t_c`` keeps it finite for ``t_c = 0``): mean distance
+  travelled per driven step [m/step].
 - Safety ``= mean_i t_c(i) / H``.
 
 Freeway (Shapley paper, Table I): average velocity and average comfort of all vehicles.
@@ -34,11 +39,12 @@ def agility(distances: object, collision_steps: object) -> float:
 
     Args:
         distances: ``[T, I]`` distance travelled by each CAV in each step [m].
-        collision_steps: ``[I]`` step ``t_c(i)`` in ``1..T`` at which CAV ``i`` collided (its
-            distances from step ``t_c(i)`` on are ignored), or ``>= T`` if it never did.
+        collision_steps: ``[I]`` lasting times ``t_c(i)`` (steps completed before the
+            collision, ``0 <= t_c < T``; ``>= T`` if CAV ``i`` never collided). The distances of
+            steps ``0..t_c(i)`` count (the crashing step included), later ones are ignored.
 
     Returns:
-        Mean over CAVs of the distance travelled per step before the collision [m/step].
+        Mean over CAVs of the distance travelled per driven step [m/step].
     """
     d = _as_array(distances, "distances")
     tc = _as_array(collision_steps, "collision_steps")
@@ -46,24 +52,26 @@ def agility(distances: object, collision_steps: object) -> float:
         raise ValueError(
             f"distances must be [T, I] and collision_steps [I], got {d.shape} and {tc.shape}"
         )
-    if (tc < 1).any():
-        raise ValueError("collision_steps must be >= 1 (steps are counted from 1)")
-    horizon = d.shape[0]
-    tc = np.minimum(tc, horizon)
-    steps = np.arange(1, horizon + 1)[:, None]
-    travelled = (d * (steps <= tc[None, :])).sum(axis=0)
-    return float(np.mean(travelled / tc))
+    if d.shape[0] < 1:
+        raise ValueError("distances must hold at least one step")
+    if (tc < 0).any():
+        raise ValueError("collision_steps must be >= 0 (steps completed before the collision)")
+    driven = np.minimum(tc + 1, d.shape[0])
+    steps = np.arange(d.shape[0])[:, None]
+    travelled = (d * (steps < driven[None, :])).sum(axis=0)
+    return float(np.mean(travelled / driven))
 
 
 def safety(collision_steps: object, horizon: int) -> float:
-    """Safety (paper eq. 28): mean over CAVs of ``t_c(i) / H``, ``t_c(i) = H`` if no collision.
+    """Safety (paper eq. 28): mean over CAVs of ``t_c(i) / H``.
 
     Args:
-        collision_steps: ``[I]`` collision steps (values ``>= horizon`` mean no collision).
+        collision_steps: ``[I]`` lasting times ``t_c(i)``: steps completed before the collision
+            (a collision in step ``t = 1..H`` gives ``t - 1``), ``>= horizon`` if none.
         horizon: episode length ``H`` in steps, >= 1.
     """
-    if horizon < 1:
-        raise ValueError(f"horizon must be >= 1, got {horizon}")
+    if isinstance(horizon, bool) or not isinstance(horizon, int | np.integer) or horizon < 1:
+        raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
     tc = _as_array(collision_steps, "collision_steps")
     if (tc < 0).any():
         raise ValueError("collision_steps must be >= 0")

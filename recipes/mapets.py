@@ -149,7 +149,7 @@ class MAPETSConfig(ExperimentConfig):
     env_config: dict[str, Any] = dataclasses.field(default_factory=_default_env_config)
     episodes: int = 15
     random_episodes: int = 1
-    comm_range: float = 100.0
+    comm_range: float = dataclasses.field(default=100.0, metadata={"allow_inf": True})
     p_fail: float = 0.0
     preset: str = "paper"
     horizon: int | None = None

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -92,3 +93,25 @@ def test_help_explains_every_subcommand(capsys) -> None:
     code, out, _ = _run(["train", "--help"], capsys)
     for option in ("--env", "--seed", "--config", "--run-dir", "key=value"):
         assert option in out
+
+
+def test_evaluate_video_prints_only_our_output(tmp_path: Path) -> None:
+    """No dependency chatter (torchrl INFO lines, PettingZoo version warning, SDL's
+    XDG_RUNTIME_DIR error) on a console without a desktop session, and the GIF is drawn."""
+    import imageio.v2 as imageio
+
+    from recipes.mappo import MAPPO, MAPPOConfig
+
+    run = tmp_path / "run"
+    MAPPO(MAPPOConfig(env="figure-eight", env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},
+                      total_frames=10, frames_per_batch=10, minibatch_size=10, progress=False,
+                      logger="none"), run).train()
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("XDG_RUNTIME_DIR", "SDL_VIDEODRIVER", "RL_LOGGING_LEVEL")}
+    proc = subprocess.run([sys.executable, "-m", "mapets_rl.experiment.cli", "evaluate",
+                           str(run), "--video"], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    assert len(proc.stdout.splitlines()) == 1 and json.loads(proc.stdout)["frames"] == 10
+    frames = imageio.mimread(run / "videos" / "eval_000000000010.gif")
+    assert len(frames) == 5 and all(frame.mean() > 10 for frame in frames)

@@ -79,6 +79,22 @@ def test_two_cavs_sent_into_the_crossing_collide() -> None:
     assert metrics["collisions"] == 2 and metrics["safety"] < 0.3
 
 
+def test_a_crash_on_the_last_step_is_not_safe() -> None:
+    # the two CAVs sent into the crossing collide in step 27; make that the last step
+    env = FigureEightEnv({"n_cavs": 2, "n_hvs": 0, "horizon": 27})
+    env.reset(seed=0)
+    for cav, crossing in zip(env.cavs, env.geometry.crossing_coordinates, strict=True):
+        place(env, cav, crossing - 30.0, 10.0)
+    env.road.refresh()
+    for _ in range(27):
+        _, _, terminated, truncated, info = env.step(np.full((2, 1), 10.0, dtype=np.float32))
+    assert terminated and truncated and info["collided"].all()
+    metrics = info["episode"]
+    assert metrics["collisions"] == 2
+    assert metrics["safety"] == pytest.approx(26 / 27)  # t_c = 26 steps completed
+    assert metrics["agility"] == pytest.approx(1.0, abs=1e-6)  # 27 steps at 10 m/s, 0.1 s
+
+
 def test_observation_and_reward_on_constructed_situation() -> None:
     env = FigureEightEnv({"n_cavs": 1, "n_hvs": 2, "horizon": 10, "observation": "paper"})
     env.reset(seed=0)

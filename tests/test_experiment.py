@@ -19,11 +19,14 @@ from torchrl.envs import EnvBase
 from torchrl.modules import AdditiveGaussianModule
 
 from mapets_rl.experiment import (
+    CheckpointError,
     ConfigError,
     Experiment,
     ExperimentConfig,
     check,
     compare,
+    digest_path,
+    file_sha256,
     latest_checkpoint,
     list_checkpoints,
     load_checkpoint,
@@ -173,13 +176,19 @@ def test_checkpoint_keep_last_and_safe_load(tmp_path: Path) -> None:
     assert names == ["ckpt_000000000020.pt", "ckpt_000000000030.pt"]
     assert load_checkpoint(latest_checkpoint(tmp_path))["step"] == 30
 
+    marker = tmp_path / "pwned"
+
     class Evil:
         def __reduce__(self):
-            return (os.system, ("echo pwned",))
+            return (os.system, (f"touch {marker}",))
 
-    torch.save({"x": Evil()}, tmp_path / "checkpoints" / "ckpt_000000000099.pt")
-    with pytest.raises(Exception, match="(?i)weights_only|unsupported|global"):
-        load_checkpoint(tmp_path / "checkpoints" / "ckpt_000000000099.pt")
+    evil = tmp_path / "checkpoints" / "ckpt_000000000099.pt"
+    torch.save({"x": Evil()}, evil)
+    # even with a matching digest beside it, a pickle with a payload is refused, not run
+    digest_path(evil).write_text(f"{file_sha256(evil)}  {evil.name}\n")
+    with pytest.raises(CheckpointError, match="not a checkpoint this library wrote") as err:
+        load_checkpoint(evil)
+    assert "weights_only" not in str(err.value) and not marker.exists()
 
 
 def test_truncated_write_never_replaces_good_checkpoint(tmp_path: Path, monkeypatch) -> None:
@@ -196,7 +205,8 @@ def test_truncated_write_never_replaces_good_checkpoint(tmp_path: Path, monkeypa
         save_checkpoint({"w": torch.zeros(3)}, tmp_path, 5)
     monkeypatch.undo()
     assert list_checkpoints(tmp_path) == [good]
-    assert sorted(p.name for p in good.parent.iterdir()) == [good.name]  # temp file cleaned
+    # temp file cleaned, the good checkpoint's digest untouched
+    assert sorted(p.name for p in good.parent.iterdir()) == [good.name, digest_path(good).name]
     assert torch.equal(load_checkpoint(good)["w"], torch.ones(3))
 
 

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torchrl.data import OneHot
 from torchrl.envs import EnvBase
 from torchrl.envs.libs.pettingzoo import PettingZooWrapper
 
@@ -87,7 +88,26 @@ class TrafficPettingZooWrapper(PettingZooWrapper):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action_spec = self.input_spec["full_action_spec", "agents", "action"]
-        joint = np.asarray(action_spec.to_numpy(tensordict.get(("agents", "action"))))
+        action = tensordict.get(("agents", "action"), None)
+        if action is None:
+            raise ValueError("step needs the CAVs' actions under ('agents', 'action'); the "
+                             "tensordict has none")
+        if action.shape != action_spec.shape:
+            raise ValueError(f"('agents', 'action') must have shape {list(action_spec.shape)}, "
+                             f"got {list(action.shape)}")
+        if isinstance(action_spec, OneHot):
+            # within 1e-4 of a one-hot vector: straight-through estimators (hard + soft -
+            # soft.detach()) give 0.99999994 where they mean 1
+            near_binary = ((action.abs() <= 1e-4) | ((action - 1).abs() <= 1e-4)).all(-1)
+            valid = near_binary & ((action.sum(-1) - 1).abs() <= 1e-4)
+            if not valid.all():
+                agent = int((~valid).nonzero()[0, 0])
+                raise ValueError(
+                    "('agents', 'action') must be one-hot per CAV (exactly one 1, zeros "
+                    f"elsewhere, over {action_spec.shape[-1]} actions), got "
+                    f"{action[agent].tolist()} for CAV {agent}"
+                )
+        joint = np.asarray(action_spec.to_numpy(action))
         obs, rewards, terminated, truncated, acting, info = self._env.step_joint(joint)
         device = self.device
         terminated_t = torch.as_tensor(terminated, device=device).unsqueeze(-1)

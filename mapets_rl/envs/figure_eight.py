@@ -36,6 +36,7 @@ from highway_env.envs.common.action import ActionType
 from mapets_rl.envs.figure_eight_road import FigureEightGeometry
 from mapets_rl.envs.road import SortedNeighbourRoad
 from mapets_rl.envs.traffic import AgentObservation, MultiAgentTrafficEnv, require
+from mapets_rl.envs.validation import is_integer, require_number, require_range
 from mapets_rl.envs.vehicles import HumanVehicle, TargetSpeedVehicle, idm_acceleration
 from mapets_rl.metrics import agility, safety
 
@@ -226,22 +227,32 @@ class FigureEightEnv(MultiAgentTrafficEnv):
     @classmethod
     def validate_config(cls, config: dict) -> None:
         super().validate_config(config)
-        require(config["lanes"] in (1, 2), f"lanes must be 1 or 2, got {config['lanes']!r}")
+        require(
+            is_integer(config["lanes"]) and config["lanes"] in (1, 2),
+            f"lanes must be 1 or 2, got {config['lanes']!r}",
+        )
         require(
             config["observation"] in OBSERVATIONS,
             f"observation must be one of {sorted(OBSERVATIONS)}, got {config['observation']!r}",
         )
-        require(config["length"] > 0, f"length must be > 0 m, got {config['length']!r}")
+        require_number(config, "length", low=0.0, low_open=True, unit="m")
+        require_number(config, "max_speed", low=0.0, low_open=True, unit="m/s")
+        require_range(config, "initial_speed", low=0.0, high=config["max_speed"], unit="m/s")
+        require_range(config, "hv_target_speed", low=0.0, unit="m/s")
+        require_number(config, "min_spacing", low=7.0, unit="m")
+        n_hvs = config["n_hvs"]
         require(
-            config["min_spacing"] >= 7.0,
-            f"min_spacing must be >= 7.0 m (vehicle length 5 m + 2 m), got {config['min_spacing']}",
+            (is_integer(n_hvs) and n_hvs >= 0)
+            or (
+                isinstance(n_hvs, list | tuple)
+                and len(n_hvs) == 2
+                and all(is_integer(n) for n in n_hvs)
+                and 0 <= n_hvs[0] <= n_hvs[1]
+            ),
+            f"n_hvs must be an int >= 0 or a range (lo, hi) of ints with 0 <= lo <= hi, got "
+            f"{n_hvs!r}",
         )
-        lo, hi = cls.hv_range(config["n_hvs"])
-        require(
-            0 <= lo <= hi,
-            f"n_hvs must be an int >= 0 or a range (lo, hi) with 0 <= lo <= hi, got "
-            f"{config['n_hvs']!r}",
-        )
+        lo, hi = cls.hv_range(n_hvs)
         capacity = cls.capacity(config)
         require(
             config["n_cavs"] + hi <= capacity,
@@ -425,7 +436,7 @@ class FigureEightEnv(MultiAgentTrafficEnv):
         distances = np.stack(self._episode_distances, axis=0) if self._episode_distances else None
         horizon = self.config["horizon"]
         steps = max(len(self._episode_distances), 1)
-        collision_steps = np.where(self.alive, horizon, self.collision_step)
+        collision_steps = np.where(self.alive, horizon, self.collision_step - 1)
         return {
             "agility": float(agility(distances, collision_steps)) if distances is not None else 0.0,
             "safety": float(safety(collision_steps, horizon)),

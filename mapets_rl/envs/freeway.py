@@ -35,6 +35,7 @@ from highway_env.vehicle.kinematics import Vehicle
 
 from mapets_rl.envs.road import SortedNeighbourRoad
 from mapets_rl.envs.traffic import AgentObservation, MultiAgentTrafficEnv, require
+from mapets_rl.envs.validation import is_integer, is_real, require_number, require_range
 from mapets_rl.envs.vehicles import ACC_MIN, HumanVehicle, RouteVehicleMixin
 from mapets_rl.metrics import average_comfort, average_velocity
 
@@ -134,11 +135,11 @@ class FreewayEnv(MultiAgentTrafficEnv):
         config = dict(config or {})
         merged = {**self.default_config(), **config}
         require(
-            0.0 <= merged["cav_ratio"] <= 1.0,
-            f"cav_ratio must be in [0, 1], got {merged['cav_ratio']!r}",
+            is_real(merged["cav_ratio"]) and 0.0 <= merged["cav_ratio"] <= 1.0,
+            f"cav_ratio must be a number in [0, 1], got {merged['cav_ratio']!r}",
         )
         require(
-            isinstance(merged["n_vehicles"], int | np.integer) and merged["n_vehicles"] >= 1,
+            is_integer(merged["n_vehicles"]) and merged["n_vehicles"] >= 1,
             f"n_vehicles must be an integer >= 1, got {merged['n_vehicles']!r}",
         )
         config["n_cavs"] = int(round(merged["cav_ratio"] * merged["n_vehicles"]))
@@ -177,13 +178,17 @@ class FreewayEnv(MultiAgentTrafficEnv):
     def validate_config(cls, config: dict) -> None:
         super().validate_config(config)
         require(
-            isinstance(config["lanes"], int | np.integer) and config["lanes"] >= 2,
+            is_integer(config["lanes"]) and config["lanes"] >= 2,
             f"lanes must be an integer >= 2, got {config['lanes']!r}",
         )
-        require(
-            config["min_spacing"] >= 7.0,
-            f"min_spacing must be >= 7.0 m, got {config['min_spacing']!r}",
-        )
+        positive = {"speed_limit": "m/s", "cav_target_speed": "m/s", "road_length": "m",
+                    "spawn_length": "m", "perception": "m", "comfort_threshold": "m/s^2"}
+        for key, unit in positive.items():
+            require_number(config, key, low=0.0, low_open=True, unit=unit)
+        require_number(config, "min_spacing", low=7.0, unit="m")
+        require_number(config, "velocity_weight")
+        require_range(config, "initial_speed", low=0.0, high=config["speed_limit"], unit="m/s")
+        require_range(config, "hv_target_speed", low=0.0, unit="m/s")
         capacity = cls.capacity(config)
         require(
             config["n_vehicles"] <= capacity,
@@ -199,10 +204,6 @@ class FreewayEnv(MultiAgentTrafficEnv):
             config["road_length"] >= needed,
             f"road_length={config['road_length']} m is too short for horizon="
             f"{config['horizon']} steps at {config['speed_limit']} m/s: must be >= {needed:.0f}",
-        )
-        require(
-            config["comfort_threshold"] > 0,
-            f"comfort_threshold must be > 0 m/s^2, got {config['comfort_threshold']!r}",
         )
 
     @staticmethod

@@ -24,6 +24,7 @@ from highway_env.envs.common.observation import ObservationType
 from highway_env.vehicle.kinematics import Vehicle
 
 from mapets_rl.envs.road import SortedNeighbourRoad
+from mapets_rl.envs.validation import is_integer, require_number
 
 
 def require(condition: bool, message: str) -> None:
@@ -93,20 +94,21 @@ class MultiAgentTrafficEnv(AbstractEnv):
     def validate_config(cls, config: dict) -> None:
         """Raise ``ValueError`` naming the first invalid key of ``config``."""
         require(
-            isinstance(config["n_cavs"], int | np.integer) and config["n_cavs"] >= cls.min_cavs,
+            is_integer(config["n_cavs"]) and config["n_cavs"] >= cls.min_cavs,
             f"n_cavs must be an integer >= {cls.min_cavs}, got {config['n_cavs']!r}",
         )
         require(
-            isinstance(config["horizon"], int | np.integer) and config["horizon"] >= 1,
+            is_integer(config["horizon"]) and config["horizon"] >= 1,
             f"horizon must be an integer >= 1, got {config['horizon']!r}",
         )
+        require_number(config, "collision_reward")
         policy, sim = config["policy_frequency"], config["simulation_frequency"]
         require(
-            isinstance(policy, int | np.integer) and policy >= 1,
+            is_integer(policy) and policy >= 1,
             f"policy_frequency must be an integer >= 1 [Hz], got {policy!r}",
         )
         require(
-            isinstance(sim, int | np.integer) and sim >= policy and sim % policy == 0,
+            is_integer(sim) and sim >= policy and sim % policy == 0,
             f"simulation_frequency must be a positive multiple of policy_frequency={policy} "
             f"[Hz] (otherwise simulated time is silently lost), got {sim!r}",
         )
@@ -184,6 +186,20 @@ class MultiAgentTrafficEnv(AbstractEnv):
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Advance all vehicles by one policy step; see the module docstring for the outputs."""
+        require(action is not None, "step needs the CAVs' action (got None)")
+        try:
+            dtype = np.asarray(action).dtype
+        except ValueError:  # ragged nested sequences
+            dtype = np.dtype(object)
+        require(
+            dtype.kind in "iuf",
+            f"action must be an array of numbers, got a {type(action).__name__} of dtype {dtype}",
+        )
+        require(
+            self.steps_taken < self.config["horizon"] and not self._is_terminated(),
+            "the episode is over (truncated at the horizon or every CAV crashed); call reset() "
+            "before stepping again",
+        )
         self.action_type.validate(action)
         self.time += self.dt
         self._simulate(action)

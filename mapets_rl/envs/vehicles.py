@@ -1,9 +1,11 @@
 """Vehicles of the traffic scenarios, built on highway-env's vehicle classes.
 
 - ``RouteVehicleMixin``: longitudinal distances along the road's route coordinate (correct across
-  segment boundaries and around a loop) and lane tracking restricted to the current and next
+  segment boundaries and around a loop), lane tracking restricted to the current and next
   segment when the road provides them (stock tracking tests every lane of the network and, at
-  the figure-eight crossing, must rely on the heading penalty alone).
+  the figure-eight crossing, must rely on the heading penalty alone), and speeds bounded below
+  by ``MIN_SPEED = 0`` within every integration step (stock highway-env clips the acceleration
+  only once the speed is already below the minimum, so braking vehicles roll backwards).
 - ``HumanVehicle``: highway-env IDM/MOBIL driver that additionally obeys a crossing rule (it
   brakes for a virtual stop line when the road says it must yield).
 - ``TargetSpeedVehicle``: a CAV whose action is a target speed (plus an optional lane change),
@@ -68,6 +70,14 @@ class RouteVehicleMixin:
 
     road: object
     MIN_SPEED = 0.0
+
+    def step(self, dt: float) -> None:
+        """Integrate one step of ``dt`` seconds with the braking limited so that the speed
+        ends at ``MIN_SPEED`` or above (vehicles never roll backwards)."""
+        floor = (self.MIN_SPEED - self.speed) / dt
+        if not self.crashed and self.action["acceleration"] < floor:
+            self.action["acceleration"] = floor
+        super().step(dt)
 
     def lane_distance_to(self, other: Vehicle, lane: object = None) -> float:
         if other is None:

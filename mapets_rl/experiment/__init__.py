@@ -37,12 +37,20 @@ A recipe whose data flow does not fit a collector (none of ours) can still satis
 protocol directly: ``Config``, ``__init__(config, run_dir)``, ``train()``,
 ``evaluate(episodes, video)``, ``state_dict()`` / ``load_state_dict()`` and ``from_run_dir``.
 
-Run directory layout: ``config.yaml`` (resolved config), ``results.json`` (per evaluation:
-frames and metrics; read by :func:`compare`), ``checkpoints/ckpt_<frames>.pt`` (atomic, the
-newest ``keep_last``), ``logs/`` (torchrl logger), ``videos/`` (GIFs when ``video=true``).
+Run directory layout: ``config.yaml`` (resolved config), ``run.json`` (recipe, scenario, seed),
+``results.json`` (per evaluation: frames and metrics; read by :func:`compare`),
+``checkpoints/ckpt_<frames>.pt`` (atomic, the newest ``keep_last``, each with its SHA-256 digest
+``ckpt_<frames>.pt.sha256``), ``logs/`` (torchrl logger), ``videos/`` (GIFs when
+``video=true``). Every file is written atomically with the same permissions.
+
+Reliability: a config is validated when it is built (finite numbers, a device this machine has,
+a registered scenario, installed logger packages), an env config when the env is built, and both
+before anything is written to the run directory. Resuming verifies checkpoints and falls back to
+the newest one that verifies; a resume that fails (bad override, no usable checkpoint) leaves
+the run directory as it was.
 
 Custom scenarios: ``register_env("name", factory)`` makes ``factory(**env_config)`` available
-to every recipe and to ``--env name``.
+to every recipe and to ``--env name`` (replacing an existing scenario needs ``overwrite=True``).
 """
 
 import importlib
@@ -50,14 +58,20 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from mapets_rl.experiment.checkpoint import (
+        CheckpointError,
         atomic_torch_save,
+        digest_path,
+        file_sha256,
         latest_checkpoint,
         list_checkpoints,
         load_checkpoint,
+        load_latest_checkpoint,
+        remove_stale_files,
         rng_state,
         save_checkpoint,
         seed_everything,
         set_rng_state,
+        verify_checkpoint,
     )
     from mapets_rl.experiment.comparison import compare, mean_ci95, student_t_quantile
     from mapets_rl.experiment.config import (
@@ -87,6 +101,7 @@ if TYPE_CHECKING:
 # Exports are imported on first use, so that `mapets-rl --help` and its error messages do not
 # pay for importing torch and torchrl.
 _EXPORTS = {
+    "CheckpointError": "checkpoint",
     "ConfigError": "config",
     "Experiment": "runner",
     "ExperimentConfig": "config",
@@ -100,21 +115,26 @@ _EXPORTS = {
     "check": "config",
     "compare": "comparison",
     "default_run_dir": "runner",
+    "digest_path": "checkpoint",
+    "file_sha256": "checkpoint",
     "latest_checkpoint": "checkpoint",
     "list_checkpoints": "checkpoint",
     "load_checkpoint": "checkpoint",
+    "load_latest_checkpoint": "checkpoint",
     "log_scalars": "results",
     "make_logger": "results",
     "mean_ci95": "comparison",
     "mean_metrics": "results",
     "read_results": "results",
     "register_env": "runner",
+    "remove_stale_files": "checkpoint",
     "rng_state": "checkpoint",
     "run_recipe_name": "runner",
     "save_checkpoint": "checkpoint",
     "seed_everything": "checkpoint",
     "set_rng_state": "checkpoint",
     "student_t_quantile": "comparison",
+    "verify_checkpoint": "checkpoint",
 }
 
 
@@ -131,6 +151,7 @@ def __dir__() -> list[str]:
 
 
 __all__ = [
+    "CheckpointError",
     "ConfigError",
     "Experiment",
     "ExperimentConfig",
@@ -144,19 +165,24 @@ __all__ = [
     "check",
     "compare",
     "default_run_dir",
+    "digest_path",
+    "file_sha256",
     "latest_checkpoint",
     "list_checkpoints",
     "load_checkpoint",
+    "load_latest_checkpoint",
     "log_scalars",
     "make_logger",
     "mean_ci95",
     "mean_metrics",
     "read_results",
     "register_env",
+    "remove_stale_files",
     "rng_state",
     "run_recipe_name",
     "save_checkpoint",
     "seed_everything",
     "set_rng_state",
     "student_t_quantile",
+    "verify_checkpoint",
 ]

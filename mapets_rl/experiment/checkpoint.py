@@ -1,26 +1,51 @@
-"""Atomic, safe-to-load checkpoints of a whole training state.
+"""Atomic, self-verifying, safe-to-load checkpoints of a whole training state.
 
 A checkpoint is a nested dict of tensors and plain Python values (str, int, float, bool, None,
-lists, tuples, dicts), saved with ``torch.save`` to a temp file in the checkpoint directory,
-fsynced, then renamed over its final name, so a crash mid-write never leaves a truncated file
-under a checkpoint name. Loading uses ``torch.load(weights_only=True)``: a checkpoint file cannot
-execute code. RNG states of python, numpy and torch are stored as tensors (:func:`rng_state`).
+lists, tuples, dicts). :func:`atomic_torch_save` writes it with ``torch.save`` to a temp file in
+the checkpoint directory, fsyncs it, writes the file's SHA-256 digest beside it
+(``ckpt_<frames>.pt.sha256``, in ``sha256sum`` format), and only then renames the temp file over
+the checkpoint's name: a crash mid-write never leaves a truncated file under a checkpoint name,
+and every checkpoint that appears has its digest already in place.
+
+:func:`load_checkpoint` verifies the digest before it parses anything and then loads with
+``torch.load(weights_only=True)``, so a corrupted, truncated or modified file is refused and a
+checkpoint file cannot execute code (a checkpoint of an older version, which has no digest file,
+is loaded with a warning). Every refusal is a :class:`CheckpointError` whose one-line
+message names the file. :func:`load_latest_checkpoint` falls back to the newest checkpoint that
+verifies, logging one line per file it skipped.
+
+RNG states of python, numpy and torch are stored as tensors (:func:`rng_state`).
 """
 
 from __future__ import annotations
 
+import hashlib
+import logging
 import os
+import pickle
 import random
 import re
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from mapets_rl.experiment.config import atomic_write, atomic_write_text
+
 CHECKPOINT_DIR = "checkpoints"
+DIGEST_SUFFIX = ".sha256"
 _NAME = re.compile(r"^ckpt_(\d+)\.pt$")
+_DIGEST_LINE = re.compile(r"^([0-9a-f]{64})  (\S+)\n?$")
+_TEMP_NAME = re.compile(r"^\..+\.[a-z0-9_]{8}\.tmp(\.[^.]+)?$")
+"""Temp files of :func:`~mapets_rl.experiment.config.atomic_write` (``.<name>.<random>.tmp<ext>``)
+and of older checkpoint writes (``.ckpt_<frames>.pt.<random>.tmp``)."""
+
+logger = logging.getLogger(__name__)
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, corrupted, modified or not one this library wrote."""
 
 
 def rng_state() -> dict[str, Any]:
@@ -61,26 +86,52 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:
-    """``torch.save`` to a temp file next to ``path``, fsync, then ``os.replace``."""
+def digest_path(path: str | os.PathLike) -> Path:
+    """Where the SHA-256 digest of checkpoint ``path`` lives: ``<path>.sha256``."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    return path.with_name(path.name + DIGEST_SUFFIX)
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """Hex SHA-256 digest of the file at ``path``."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _fsync_dir(directory: Path) -> None:
+    fd = os.open(directory, os.O_RDONLY)
     try:
-        with os.fdopen(fd, "wb") as fh:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:
+    """``torch.save(obj)`` to ``path`` atomically, with its digest written first.
+
+    Order: temp file (``torch.save``, fsync) -> ``<path>.sha256`` (atomic) -> rename of the temp
+    file to ``path`` -> fsync of the directory. Files get the permissions of any other file
+    the run writes (see :func:`~mapets_rl.experiment.config.atomic_write`).
+    """
+    path = Path(path)
+
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as fh:
             torch.save(obj, fh)
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        atomic_write_text(digest_path(path), f"{file_sha256(tmp)}  {path.name}\n")
+
+    atomic_write(path, write)
+    _fsync_dir(path.parent)
     return path
 
 
 def list_checkpoints(run_dir: str | os.PathLike) -> list[Path]:
-    """Complete checkpoints of ``run_dir``, oldest first (temp files are ignored)."""
+    """Checkpoint files of ``run_dir``, oldest first (temp and digest files are ignored)."""
     ckpt_dir = Path(run_dir) / CHECKPOINT_DIR
     if not ckpt_dir.is_dir():
         return []
@@ -89,14 +140,15 @@ def list_checkpoints(run_dir: str | os.PathLike) -> list[Path]:
 
 
 def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
+    """The newest checkpoint file of ``run_dir`` (not verified), ``None`` if there is none."""
     ckpts = list_checkpoints(run_dir)
     return ckpts[-1] if ckpts else None
 
 
 def save_checkpoint(state: dict[str, Any], run_dir: str | os.PathLike, step: int,
                     keep_last: int = 2) -> Path:
-    """Write ``state`` as ``run_dir/checkpoints/ckpt_<step>.pt`` atomically; keep the newest
-    ``keep_last`` checkpoints and delete older ones (only after the new one is in place)."""
+    """Write ``state`` as ``run_dir/checkpoints/ckpt_<step>.pt`` (+ digest) atomically; keep the
+    newest ``keep_last`` checkpoints and delete older ones (only after the new one is in place)."""
     if step < 0:
         raise ValueError(f"step must be >= 0, got {step}")
     if keep_last < 1:
@@ -104,9 +156,113 @@ def save_checkpoint(state: dict[str, Any], run_dir: str | os.PathLike, step: int
     path = atomic_torch_save(state, Path(run_dir) / CHECKPOINT_DIR / f"ckpt_{step:012d}.pt")
     for old in list_checkpoints(run_dir)[:-keep_last]:
         old.unlink(missing_ok=True)
+        digest_path(old).unlink(missing_ok=True)
     return path
 
 
+def verify_checkpoint(path: str | os.PathLike) -> bool:
+    """Check ``path`` against the digest in ``<path>.sha256``.
+
+    Returns:
+        True when the digest matches; False when there is no digest file (a checkpoint written
+        before checkpoints carried digests: it cannot be verified).
+
+    Raises:
+        CheckpointError: the file is missing, the digest file is malformed, or the file does not
+            match its digest.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {str(path)!r} does not exist")
+    digest_file = digest_path(path)
+    if not digest_file.exists():
+        return False
+    try:
+        match = _DIGEST_LINE.match(digest_file.read_text())
+    except (OSError, UnicodeDecodeError):
+        match = None
+    if match is None or match.group(2) != path.name:
+        raise CheckpointError(f"digest file {str(digest_file)!r} does not hold the SHA-256 "
+                              f"digest of {path.name}")
+    if file_sha256(path) != match.group(1):
+        raise CheckpointError(f"checkpoint {str(path)!r} does not match its SHA-256 digest (the "
+                              "file is corrupted or was modified)")
+    return True
+
+
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
-    """Load a checkpoint with ``torch.load(weights_only=True)`` (never runs pickled code)."""
-    return torch.load(Path(path), map_location=map_location, weights_only=True)
+    """Verify ``path`` against its digest, then load it with ``torch.load(weights_only=True)``.
+
+    A checkpoint without a digest file (written by an older version) is loaded with a logged
+    warning; weights-only loading still refuses anything but tensors and plain values.
+
+    Raises:
+        CheckpointError: one line naming the file: missing, digest mismatch or malformed
+            digest file, unreadable, or holding pickled objects other than tensors and plain
+            values (such a file is never unpickled).
+    """
+    path = Path(path)
+    if not verify_checkpoint(path):
+        logger.warning("checkpoint %r has no digest file %s (written before checkpoints carried "
+                       "digests); loading it without an integrity check", str(path),
+                       digest_path(path).name)
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError:
+        raise CheckpointError(
+            f"{str(path)!r} is not a checkpoint this library wrote (it holds pickled Python "
+            "objects, not only tensors and plain values) and will not be loaded") from None
+    except Exception as err:  # noqa: BLE001 - torch raises many types for unreadable files
+        raise CheckpointError(f"checkpoint {str(path)!r} cannot be read: "
+                              f"{first_line(err)}") from None
+    if not isinstance(state, dict):
+        raise CheckpointError(f"checkpoint {str(path)!r} does not hold a state dict "
+                              f"(got {type(state).__name__})")
+    return state
+
+
+def load_latest_checkpoint(run_dir: str | os.PathLike,
+                           map_location: str | torch.device = "cpu") -> tuple[Path, dict]:
+    """The newest checkpoint of ``run_dir`` that verifies and loads, and its state.
+
+    Each newer checkpoint that fails is skipped with one logged warning naming the file and
+    the reason.
+
+    Raises:
+        CheckpointError: when ``run_dir`` has no checkpoint, or none of them verifies.
+    """
+    candidates = list_checkpoints(run_dir)
+    if not candidates:
+        raise CheckpointError(f"run_dir {str(run_dir)!r} has no checkpoint to load")
+    for path in reversed(candidates):
+        try:
+            return path, load_checkpoint(path, map_location)
+        except CheckpointError as err:
+            logger.warning("%s; skipped", err)
+    raise CheckpointError(f"none of the {len(candidates)} checkpoints of {str(run_dir)!r} "
+                          "verifies (see the warnings above); the run cannot be restored")
+
+
+def remove_stale_files(run_dir: str | os.PathLike) -> list[Path]:
+    """Delete what interrupted writes left in ``run_dir``: temp files of atomic writes (in the
+    run dir, ``checkpoints/`` and ``videos/``) and digest files whose checkpoint is gone.
+
+    Call it only when no other process writes to ``run_dir``. Returns the removed paths.
+    """
+    run_dir = Path(run_dir)
+    ckpt_dir = run_dir / CHECKPOINT_DIR
+    stale = [path for directory in (run_dir, ckpt_dir, run_dir / "videos")
+             if directory.is_dir() for path in directory.iterdir()
+             if path.is_file() and _TEMP_NAME.match(path.name)]
+    if ckpt_dir.is_dir():
+        stale += [path for path in ckpt_dir.glob(f"ckpt_*.pt{DIGEST_SUFFIX}")
+                  if not path.with_name(path.name.removesuffix(DIGEST_SUFFIX)).exists()]
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return stale
+
+
+def first_line(err: BaseException) -> str:
+    """The first non-empty line of ``str(err)`` (or the exception's type name)."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    return lines[0] if lines else type(err).__name__

@@ -5,14 +5,17 @@
     mapets-rl evaluate RUN_DIR [--episodes N] [--video]
     mapets-rl compare RUN_DIR... --out DIR [--metrics a,b,...]
 
-Errors in what the user typed (unknown recipe, scenario or config key, a bad value) print one
-line ``mapets-rl: error: ...`` and exit with code 2.
+Errors in what the user typed (unknown recipe, scenario or config key, a bad value, an unusable
+run directory or checkpoint) print one line ``mapets-rl: error: ...`` and exit with code 2;
+warnings of the library (e.g. a checkpoint skipped because it does not verify) print one line
+``mapets-rl: warning: ...``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 from collections.abc import Sequence
 from typing import NoReturn
@@ -28,8 +31,25 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _fail(message: str) -> NoReturn:
-    sys.stderr.write(f"{PROG}: error: {message}\n")
+    lines = [line.strip() for line in str(message).splitlines() if line.strip()]
+    sys.stderr.write(f"{PROG}: error: {lines[0] if lines else 'failed'}\n")
     raise SystemExit(2)
+
+
+class _StderrLineHandler(logging.Handler):
+    """Writes ``mapets-rl: <level>: <message>`` lines to the current ``sys.stderr``."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        message = " ".join(self.format(record).split())
+        sys.stderr.write(f"{PROG}: {record.levelname.lower()}: {message}\n")
+
+
+def _show_library_warnings() -> None:
+    """Route the ``mapets_rl`` loggers' warnings to stderr as single lines (once)."""
+    log = logging.getLogger("mapets_rl")
+    if not any(isinstance(h, _StderrLineHandler) for h in log.handlers):
+        handler = _StderrLineHandler(logging.WARNING)
+        log.addHandler(handler)
 
 
 def _overrides(items: Sequence[str]) -> list[str]:
@@ -122,7 +142,7 @@ def _check_env(name: str) -> None:
 def _cmd_train(args: argparse.Namespace) -> int:
     cls = _recipe_class(args.recipe)  # an unknown name fails before torch is imported
     _check_env(args.env)
-    from mapets_rl.experiment.config import ConfigError
+    from mapets_rl.experiment.config import ConfigError, check_writable_dir
     from mapets_rl.experiment.runner import default_run_dir
 
     overrides = [f"env={args.env}"]
@@ -131,10 +151,16 @@ def _cmd_train(args: argparse.Namespace) -> int:
     try:
         config = cls.Config.from_yaml(args.config) if args.config else cls.Config()
         config = config.with_overrides(overrides + _overrides(args.overrides))
-    except (ConfigError, OSError) as err:
+    except ConfigError as err:
         _fail(str(err))
-    run_dir = args.run_dir or default_run_dir(cls.name, config.env, config.seed,
-                                              args.runs_root)
+    if args.run_dir:
+        run_dir = args.run_dir
+    else:
+        try:
+            check_writable_dir(args.runs_root, "--runs-root")
+        except ValueError as err:
+            _fail(str(err))
+        run_dir = default_run_dir(cls.name, config.env, config.seed, args.runs_root)
     try:
         exp = cls(config, run_dir)
     except ValueError as err:
@@ -168,7 +194,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         _fail(f"--episodes must be >= 1, got {args.episodes}")
     exp = _load_run(args.run_dir)
     episodes = args.episodes or exp.config.eval_episodes
-    metrics = exp.evaluate(episodes=episodes, video=args.video)
+    try:
+        metrics = exp.evaluate(episodes=episodes, video=args.video)
+    except ValueError as err:
+        _fail(str(err))
     exp.write_evaluation(metrics, episodes)
     print(json.dumps({"run_dir": str(exp.run_dir), "frames": exp.frames, "episodes": episodes,
                       "metrics": metrics}))
@@ -178,7 +207,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_compare(args: argparse.Namespace) -> int:
     from mapets_rl.experiment.comparison import compare
 
-    metrics = [m for m in args.metrics.split(",") if m] if args.metrics else None
+    metrics = None
+    if args.metrics is not None:
+        metrics = [m.strip() for m in args.metrics.split(",") if m.strip()]
+        if not metrics:
+            _fail(f"--metrics must name at least one metric (a,b,...), got {args.metrics!r}")
     try:
         out = compare(args.run_dirs, args.out, metrics)
     except ValueError as err:
@@ -199,6 +232,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"unrecognized arguments: {' '.join(stray)}")
     if extra:
         args.overrides = [*args.overrides, *extra]
+    _show_library_warnings()
     commands = {"train": _cmd_train, "resume": _cmd_resume, "evaluate": _cmd_evaluate,
                 "compare": _cmd_compare}
     return commands[args.command](args)

@@ -12,7 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
-from mapets_rl.experiment.config import atomic_savefig, atomic_write_text
+from mapets_rl.experiment.config import (
+    atomic_savefig,
+    atomic_write_text,
+    check_writable_dir,
+    make_writable_dir,
+)
 from mapets_rl.experiment.results import read_results
 
 
@@ -71,12 +76,19 @@ def compare(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike,
     Args:
         run_dirs: run directories, each holding ``results.json``.
         out_dir: output directory (created).
-        metrics: metric names to show (default: every metric present in all runs).
+        metrics: metric names to show (default: every metric present in all runs); when
+            given, at least one.
     Returns:
         ``{"plot": Path, "table": Path, "summary": Path}``.
+    Raises:
+        ValueError: one line, before anything is written, when a run has no usable results,
+            a metric is unknown, ``metrics`` is empty or ``out_dir`` cannot be written.
     """
     if not run_dirs:
         raise ValueError("run_dirs must name at least one run directory")
+    if metrics is not None and not list(metrics):
+        raise ValueError("metrics must name at least one metric (or None for all common ones)")
+    check_writable_dir(out_dir, "out_dir")
     results = [read_results(d) for d in run_dirs]
     for d, res in zip(run_dirs, results, strict=True):
         if not res["evaluations"]:
@@ -88,12 +100,13 @@ def compare(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike,
     common = set.intersection(*(set(e["metrics"]) for r in results for e in r["evaluations"]))
     if metrics is None:
         metrics = sorted(common)
+        if not metrics:
+            raise ValueError("the runs have no metric in common to compare")
     unknown = [m for m in metrics if m not in common]
     if unknown:
         raise ValueError(f"metrics {unknown} are not in every run (available: {sorted(common)})")
 
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = make_writable_dir(out_dir, "out_dir")
     summary: dict[str, dict[str, dict[str, float]]] = {}
     for label, runs in groups.items():
         summary[label] = {}

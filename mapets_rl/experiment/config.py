@@ -5,6 +5,13 @@ type hints and defaults) and validates them in ``__post_init__`` (call ``super()
 first), raising :class:`ConfigError` through :func:`check` so that the message names the field
 and the allowed range.
 
+Every float field must be finite (NaN and +-inf are refused) unless its dataclass field says
+``metadata={"allow_inf": True}`` (then only NaN is refused), e.g.
+``comm_range: float = dataclasses.field(default=100.0, metadata={"allow_inf": True})``.
+``device`` must name a device this machine has, ``env`` a registered scenario and ``logger`` a
+logger whose package is installed, so that a bad value fails when the config is built, before a
+run directory is created.
+
 Overrides are strings ``key=value``: the value is parsed as YAML (``lr=3e-4``, ``hidden=[64,64]``,
 ``video=true``) and coerced to the field's annotated type; dotted keys reach into dict fields
 (``env_config.n_cavs=4``). An unknown key or a value of the wrong type raises ConfigError.
@@ -13,6 +20,8 @@ Overrides are strings ``key=value``: the value is parsed as YAML (``lr=3e-4``, `
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
+import math
 import os
 import tempfile
 import types
@@ -24,6 +33,9 @@ from typing import Any, Literal, Union, get_args, get_origin
 import yaml
 
 LOGGERS = ("csv", "tensorboard", "wandb", "none")
+LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb"}
+"""Logger kind -> the package it needs (checked when a config is built)."""
+DEVICE_TYPES = ("cpu", "cuda", "mps")
 
 
 class ConfigError(ValueError):
@@ -102,10 +114,11 @@ class ExperimentConfig:
     environment step, all agents of that step included).
 
     Attributes:
-        env: scenario name passed to ``mapets_rl.envs.make_env``.
+        env: a registered scenario name (``mapets_rl.envs.make_env`` or ``register_env``).
         env_config: keyword arguments for ``make_env`` (e.g. ``{"n_cavs": 8}``).
         seed: seed of torch / numpy / python RNGs and of the environments.
-        device: torch device of the learner (``"cpu"``, ``"cuda"``, ...).
+        device: torch device of the learner (``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"mps"``),
+            one this machine has.
         total_frames: environment steps to train for (> 0).
         frames_per_batch: environment steps per collected batch (> 0).
         num_envs: environment processes; 1 uses ``Collector`` in this process, > 1 uses
@@ -118,7 +131,8 @@ class ExperimentConfig:
             bit-exact with ``num_envs=1``; worker processes of ``num_envs > 1`` re-seed their
             environments but not their own torch RNG).
         keep_last: checkpoints to keep on disk (>= 1).
-        logger: ``csv`` (default), ``tensorboard``, ``wandb`` or ``none``.
+        logger: ``csv`` (default), ``tensorboard``, ``wandb`` or ``none``; tensorboard and
+            wandb need their package installed.
         video: record a GIF of the first episode of each evaluation.
         progress: show a tqdm progress bar.
     """
@@ -140,7 +154,10 @@ class ExperimentConfig:
 
     def __post_init__(self) -> None:
         self._coerce_fields()
+        self._check_finite()
         check(bool(self.env), "env", "a non-empty scenario name", self.env)
+        check_env_name(self.env)
+        check_device(self.device)
         check(self.seed >= 0, "seed", ">= 0", self.seed)
         check(self.total_frames > 0, "total_frames", "> 0", self.total_frames)
         check(self.frames_per_batch > 0, "frames_per_batch", "> 0", self.frames_per_batch)
@@ -153,12 +170,22 @@ class ExperimentConfig:
               self.checkpoint_interval)
         check(self.keep_last >= 1, "keep_last", ">= 1", self.keep_last)
         check(self.logger in LOGGERS, "logger", f"one of {list(LOGGERS)}", self.logger)
+        check_logger_package(self.logger)
 
     def _coerce_fields(self) -> None:
         hints = typing.get_type_hints(type(self))
         for f in dataclasses.fields(self):
             object.__setattr__(self, f.name, _coerce(getattr(self, f.name), hints[f.name],
                                                      f.name))
+
+    def _check_finite(self) -> None:
+        """Refuse NaN and infinite floats (infinite ones where the field allows them)."""
+        for f in dataclasses.fields(self):
+            allow_inf = f.metadata.get("allow_inf", False)
+            value = getattr(self, f.name)
+            bad = [x for x in _floats(value) if math.isnan(x) or (math.isinf(x) and not allow_inf)]
+            allowed = "a number (inf allowed), not NaN" if allow_inf else "a finite number"
+            check(not bad, f.name, allowed, value)
 
     # ----------------------------------------------------------------------------- conversions
     @classmethod
@@ -176,10 +203,12 @@ class ExperimentConfig:
 
     @classmethod
     def from_yaml(cls, path: str | os.PathLike) -> ExperimentConfig:
-        data = yaml.safe_load(Path(path).read_text()) or {}
-        if not isinstance(data, Mapping):
-            raise ConfigError(f"config file {str(path)!r} must hold a mapping of fields")
-        return cls.from_dict(data)
+        """Build from a YAML file of fields; every error is a one-line ConfigError naming it."""
+        data = read_yaml_mapping(path)
+        try:
+            return cls.from_dict(data)
+        except ConfigError as err:
+            raise ConfigError(f"config file {str(path)!r}: {err}") from None
 
     def to_dict(self) -> dict[str, Any]:
         return {f.name: _plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
@@ -192,14 +221,7 @@ class ExperimentConfig:
         """A new config with ``key=value`` strings applied (values parsed as YAML)."""
         data = self.to_dict()
         for item in overrides:
-            key, sep, raw = item.partition("=")
-            key = key.strip()
-            if not sep or not key:
-                raise ConfigError(f"override {item!r} must look like key=value")
-            try:
-                value = yaml.safe_load(raw) if raw.strip() else ""
-            except yaml.YAMLError:
-                value = raw
+            key, value = parse_override(item)
             head, _, rest = key.partition(".")
             if head not in data:
                 raise ConfigError(f"unknown config key {head!r} for {type(self).__name__} "
@@ -217,6 +239,97 @@ class ExperimentConfig:
         return type(self).from_dict(data)
 
 
+def parse_override(item: str) -> tuple[str, Any]:
+    """``"key=value"`` -> ``(key, value parsed as YAML)`` (the raw string if it is not YAML)."""
+    key, sep, raw = item.partition("=")
+    key = key.strip()
+    if not sep or not key:
+        raise ConfigError(f"override {item!r} must look like key=value")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError:
+        value = raw
+    return key, value
+
+
+def read_yaml_mapping(path: str | os.PathLike) -> dict[str, Any]:
+    """The mapping a YAML file holds; ConfigError (one line naming the file) when it cannot be
+    read, is not valid YAML or does not hold a mapping."""
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+        raise ConfigError(f"config file {str(path)!r} cannot be read: {reason}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(err, "problem", None) or type(err).__name__
+        raise ConfigError(f"config file {str(path)!r} is not valid YAML: {problem}{where}"
+                          ) from None
+    if data is None:
+        return {}
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"config file {str(path)!r} must hold a mapping of config fields, "
+                          f"got a {type(data).__name__}")
+    return dict(data)
+
+
+def _floats(value: Any) -> Iterable[float]:
+    """The floats of a field value (itself, or the items of a list / tuple)."""
+    if isinstance(value, float):
+        yield value
+    elif isinstance(value, (list, tuple)):
+        for item in value:
+            yield from _floats(item)
+
+
+def check_env_name(env: str) -> None:
+    """ConfigError unless ``env`` is a registered scenario (see ``register_env``)."""
+    from mapets_rl.experiment.runner import available_envs
+
+    known = available_envs()
+    check(env in known, "env", f"one of the registered scenarios {known}", env)
+
+
+def available_devices() -> list[str]:
+    """Device names this machine can run on: ``cpu``, ``cuda`` / ``cuda:<i>``, ``mps``."""
+    import torch
+
+    devices = ["cpu"]
+    if torch.cuda.is_available():
+        devices += ["cuda", *(f"cuda:{i}" for i in range(torch.cuda.device_count()))]
+    mps = getattr(torch.backends, "mps", None)
+    if mps is not None and mps.is_available():
+        devices.append("mps")
+    return devices
+
+
+def check_device(device: str) -> None:
+    """ConfigError unless ``device`` names a torch device that this machine has."""
+    import torch
+
+    available = available_devices()
+    allowed = f"one of {available} on this machine"
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        parsed = None
+    name = None
+    if parsed is not None and parsed.type in DEVICE_TYPES:
+        name = parsed.type if parsed.index is None else f"{parsed.type}:{parsed.index}"
+    check(name in available, "device", allowed, device)
+
+
+def check_logger_package(kind: str) -> None:
+    """ConfigError when logger ``kind`` needs a package that is not installed."""
+    package = LOGGER_PACKAGES.get(kind)
+    if package is not None and importlib.util.find_spec(package) is None:
+        raise ConfigError(f"logger={kind!r} needs the {package} package, which is not "
+                          "installed; install it or use logger=csv")
+
+
 def _plain(value: Any) -> Any:
     """YAML/JSON-safe copy: tuples become lists, nested mappings become dicts."""
     if isinstance(value, Mapping):
@@ -226,16 +339,51 @@ def _plain(value: Any) -> Any:
     return value
 
 
+def check_writable_dir(path: str | os.PathLike, what: str = "run_dir") -> None:
+    """ValueError (one line naming ``what``) unless ``path`` is, or can be created as, a
+    directory this process can write to. Creates nothing."""
+    path = Path(path)
+    probe = path
+    while not probe.exists() and probe.parent != probe:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ValueError(f"{what} {str(path)!r} cannot be created: {str(probe)!r} is not a "
+                         "directory")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise ValueError(f"{what} {str(path)!r} cannot be written: {str(probe)!r} is not "
+                         "writable (permission denied or a read-only file system)")
+
+
+def make_writable_dir(path: str | os.PathLike, what: str = "run_dir") -> Path:
+    """Create directory ``path`` (and parents) and prove it writable with a probe file;
+    ValueError (one line naming ``what``) otherwise."""
+    path = Path(path)
+    check_writable_dir(path, what)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=path, prefix=".write-probe.", suffix=".tmp")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        raise ValueError(f"{what} {str(path)!r} cannot be written: "
+                         f"{err.strerror or type(err).__name__}") from None
+    return path
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
     """Create ``path`` by ``write(tmp)`` on a temp file in the same directory + ``os.replace``.
 
-    The temp file keeps ``path``'s suffix (so writers that infer a format from it work) and gets
-    the permissions of a normally created file (``mkstemp`` makes it private); it is removed if
-    ``write`` fails, and ``path`` is then left as it was.
+    The temp file, ``.<name>.<random>.tmp<suffix>``, keeps ``path``'s suffix (so writers that
+    infer a format from it work) and gets the permissions of a normally created file
+    (``mkstemp`` makes it private): every file a run writes, checkpoints included, is created
+    ``0666 & ~umask``. It is removed if ``write`` fails, and ``path`` is then left as it was; a
+    process killed mid-write leaves it behind for
+    :func:`~mapets_rl.experiment.checkpoint.remove_stale_files`.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.",
+                               suffix=f".tmp{path.suffix}")
     os.close(fd)
     umask = os.umask(0)
     os.umask(umask)

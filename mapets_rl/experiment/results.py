@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import os
@@ -12,7 +11,7 @@ from typing import Any
 
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLogger
 
-from mapets_rl.experiment.config import atomic_write_text
+from mapets_rl.experiment.config import LOGGERS, atomic_write_text, check_logger_package
 
 RESULTS_FILE = "results.json"
 
@@ -27,22 +26,18 @@ def make_logger(kind: str, run_dir: str | os.PathLike, exp_name: str) -> Logger 
         run_dir: the run directory.
         exp_name: experiment name (a sub-directory of ``logs``).
     """
+    if kind not in LOGGERS:
+        raise ValueError(f"logger must be one of {list(LOGGERS)}, got {kind!r}")
+    check_logger_package(kind)
     log_dir = str(Path(run_dir) / "logs")
     if kind == "none":
         return None
     if kind == "csv":
         return CSVLogger(exp_name=exp_name, log_dir=log_dir)
     if kind == "tensorboard":
-        if importlib.util.find_spec("tensorboard") is None:
-            raise ValueError("logger='tensorboard' needs the tensorboard package; "
-                             "install it or use logger=csv")
         return TensorboardLogger(exp_name=exp_name, log_dir=log_dir)
-    if kind == "wandb":
-        if importlib.util.find_spec("wandb") is None:
-            raise ValueError("logger='wandb' needs the wandb package; install it or use logger=csv")
-        return WandbLogger(exp_name=exp_name, save_dir=log_dir,
-                           offline=os.environ.get("WANDB_MODE", "offline") == "offline")
-    raise ValueError(f"logger must be one of ['csv', 'tensorboard', 'wandb', 'none'], got {kind!r}")
+    return WandbLogger(exp_name=exp_name, save_dir=log_dir,
+                       offline=os.environ.get("WANDB_MODE", "offline") == "offline")
 
 
 def log_scalars(logger: Logger | None, prefix: str, values: Mapping[str, float], step: int) -> None:
@@ -94,8 +89,37 @@ class ResultsWriter:
 
 
 def read_results(run_dir: str | os.PathLike) -> dict[str, Any]:
-    """Read ``run_dir/results.json`` (ValueError when the run has none)."""
+    """Read ``run_dir/results.json``; a ValueError naming the file when the run has none or it
+    is not a results file (invalid JSON, missing ``recipe`` / ``env`` / ``evaluations``)."""
     path = Path(run_dir) / RESULTS_FILE
     if not path.is_file():
         raise ValueError(f"run_dir {str(run_dir)!r} has no {RESULTS_FILE}")
-    return json.loads(path.read_text())
+    data = read_json_object(path)
+    missing = [key for key in ("recipe", "env", "evaluations") if key not in data]
+    if missing:
+        raise ValueError(f"{str(path)!r} is not a results file: it lacks {missing}")
+    evaluations = data["evaluations"]
+    if not isinstance(evaluations, list) or not all(
+            isinstance(e, dict) and isinstance(e.get("frames"), int)
+            and isinstance(e.get("metrics"), dict) for e in evaluations):
+        raise ValueError(f"{str(path)!r} is not a results file: 'evaluations' must be a list "
+                         "of {'frames': int, 'metrics': {...}}")
+    return data
+
+
+def read_json_object(path: str | os.PathLike) -> dict[str, Any]:
+    """The JSON object in ``path``; a one-line ValueError naming the file when it cannot be
+    read, is not valid JSON or is not an object."""
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+        raise ValueError(f"{str(path)!r} cannot be read: {reason}") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{str(path)!r} is not valid JSON: {err.msg} at line {err.lineno}, "
+                         f"column {err.colno}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{str(path)!r} must hold a JSON object, got {type(data).__name__}")
+    return data

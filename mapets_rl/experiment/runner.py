@@ -24,8 +24,10 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from tqdm import tqdm
 
 from mapets_rl.experiment.checkpoint import (
+    first_line,
     latest_checkpoint,
-    load_checkpoint,
+    load_latest_checkpoint,
+    remove_stale_files,
     rng_state,
     save_checkpoint,
     seed_everything,
@@ -36,6 +38,11 @@ from mapets_rl.experiment.config import (
     ExperimentConfig,
     atomic_write,
     atomic_write_text,
+    check_device,
+    check_writable_dir,
+    make_writable_dir,
+    parse_override,
+    read_yaml_mapping,
 )
 from mapets_rl.experiment.multiagent import masked_mean
 from mapets_rl.experiment.results import (
@@ -43,6 +50,7 @@ from mapets_rl.experiment.results import (
     log_scalars,
     make_logger,
     mean_metrics,
+    read_json_object,
 )
 
 CONFIG_FILE = "config.yaml"
@@ -54,24 +62,40 @@ _ENV_REGISTRY: dict[str, Callable[..., EnvBase]] = {}
 _RESTORING: list[Path] = []  # run dirs being rebuilt by Experiment.from_run_dir
 
 
-def register_env(name: str, factory: Callable[..., EnvBase]) -> None:
+def register_env(name: str, factory: Callable[..., EnvBase], overwrite: bool = False) -> None:
     """Make scenario ``name`` available to every recipe and the CLI: ``factory(**env_config)``
-    returns a torchrl EnvBase with the multi-agent ``"agents"`` layout."""
-    if not name:
-        raise ValueError("name must be a non-empty scenario name")
+    returns a torchrl EnvBase with the multi-agent ``"agents"`` layout.
+
+    Registering a name that already exists (a built-in scenario, or another factory under the
+    same name) raises ValueError unless ``overwrite=True``; registering the same factory again
+    is a no-op.
+    """
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"name must be a non-empty scenario name, got {name!r}")
+    if not callable(factory):
+        raise ValueError(f"factory must be callable (factory(**env_config) -> EnvBase), got "
+                         f"{type(factory).__name__} {factory!r}")
+    existing = _ENV_REGISTRY.get(name)
+    if existing is factory:
+        return
+    if not overwrite and (existing is not None or name in _builtin_envs()):
+        kind = "a built-in scenario" if existing is None else "already registered"
+        raise ValueError(f"scenario {name!r} is {kind}; pass overwrite=True to replace it or "
+                         "choose another name")
     _ENV_REGISTRY[name] = factory
+
+
+def _builtin_envs() -> tuple[str, ...]:
+    try:
+        from mapets_rl import envs
+    except ImportError:
+        return ()
+    return tuple(getattr(envs, "SCENARIOS", ()))
 
 
 def available_envs() -> list[str]:
     """Scenario names: the registered ones plus those of ``mapets_rl.envs``."""
-    names = set(_ENV_REGISTRY)
-    try:
-        from mapets_rl import envs
-
-        names.update(getattr(envs, "SCENARIOS", ()))
-    except ImportError:
-        pass
-    return sorted(names)
+    return sorted(set(_ENV_REGISTRY) | set(_builtin_envs()))
 
 
 def build_env(name: str, env_config: Mapping[str, Any] | None = None) -> EnvBase:
@@ -110,24 +134,28 @@ class Experiment:
         self.config = config
         self.run_dir = Path(run_dir) if run_dir is not None else default_run_dir(
             self.name, config.env, config.seed)
-        if latest_checkpoint(self.run_dir) is not None and self.run_dir not in _RESTORING:
+        restoring = self.run_dir in _RESTORING
+        if latest_checkpoint(self.run_dir) is not None and not restoring:
             raise ValueError(f"run_dir {str(self.run_dir)!r} already holds a run with "
                              "checkpoints; continue it with from_run_dir / `mapets-rl resume` "
                              "or choose another run_dir")
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        config.to_yaml(self.run_dir / CONFIG_FILE)
-        if not (self.run_dir / RUN_FILE).exists():
-            atomic_write_text(self.run_dir / RUN_FILE, json.dumps(
-                {"recipe": self.name, "env": config.env, "seed": config.seed}))
+        check_writable_dir(self.run_dir)
         seed_everything(config.seed)
         self.device = torch.device(config.device)
         self.frames = 0
         self.batches = 0
         self.boundaries = 0
+        # a bad env_config fails here, before the run directory is touched
+        self.env = self.make_env()
+        make_writable_dir(self.run_dir)
+        remove_stale_files(self.run_dir)
+        if not restoring:  # from_run_dir writes config.yaml once the checkpoint is restored
+            config.to_yaml(self.run_dir / CONFIG_FILE)
+            atomic_write_text(self.run_dir / RUN_FILE, json.dumps(
+                {"recipe": self.name, "env": config.env, "seed": config.seed}))
         self.logger = make_logger(config.logger, self.run_dir, f"{self.name}_{config.env}")
         self.results = ResultsWriter(self.run_dir, self.name, config.env, config.seed,
                                      config.to_dict())
-        self.env = self.make_env()
         self.collector: Collector | MultiSyncCollector | None = None
         self._collector_args: tuple[TensorDictModuleBase, int, dict[str, Any]] | None = None
         self.eval_policy: TensorDictModuleBase | None = None
@@ -279,8 +307,12 @@ class Experiment:
         return mean_metrics(per_episode)
 
     def _render_env(self) -> EnvBase:
-        """The env with ``render_mode="rgb_array"`` (built once)."""
+        """The env with ``render_mode="rgb_array"`` (built once). Frames are drawn off screen,
+        so SDL gets its ``offscreen`` video driver (unless the user chose one): no display is
+        needed and SDL prints no XDG_RUNTIME_DIR error. (Its ``dummy`` driver would make
+        highway-env skip drawing.)"""
         if self._video_env is None:
+            os.environ.setdefault("SDL_VIDEODRIVER", "offscreen")
             try:
                 self._video_env = build_env(
                     self.config.env, {**self.config.env_config, "render_mode": "rgb_array"})
@@ -320,9 +352,11 @@ class Experiment:
 
     # ----------------------------------------------------------------------- checkpoints
     def state_dict(self) -> dict[str, Any]:
-        """Whole training state: components, counters, evaluations and RNG states."""
+        """Whole training state: components, counters, evaluations and RNG states, plus the
+        env's tensor shapes (so that a resume with another scenario shape is refused)."""
         return {
             "recipe": self.name,
+            "env_shapes": env_shapes(self.env),
             "frames": self.frames,
             "batches": self.batches,
             "boundaries": self.boundaries,
@@ -360,25 +394,99 @@ class Experiment:
     @classmethod
     def from_run_dir(cls, run_dir: str | os.PathLike, overrides: list[str] | None = None,
                      load: bool = True) -> Experiment:
-        """Rebuild from ``run_dir/config.yaml`` (+ overrides) and load the latest checkpoint."""
+        """Rebuild from ``run_dir/config.yaml`` (+ overrides) and load the newest checkpoint
+        that verifies (newer ones that do not are skipped with a logged warning).
+
+        Nothing in ``run_dir`` changes unless the restore succeeds: overrides are validated
+        first, overrides that change the shape of the saved state (scenario, agent count,
+        network sizes) are refused naming the key, and ``config.yaml`` is rewritten (atomically)
+        only after the checkpoint is loaded. Every failure is a one-line ValueError.
+        """
         run_dir = Path(run_dir)
-        if not (run_dir / CONFIG_FILE).is_file():
-            raise ValueError(f"run_dir {str(run_dir)!r} has no {CONFIG_FILE}")
-        config = cls.Config.from_yaml(run_dir / CONFIG_FILE)
-        if overrides:
-            config = config.with_overrides(overrides)
+        overrides = list(overrides or [])
+        saved, config, on_disk = cls._run_config(run_dir, overrides)
+        if config.env != saved.env:
+            raise ConfigError(f"env cannot change when resuming: run_dir {str(run_dir)!r} was "
+                              f"trained on {saved.env!r}; start a new run for {config.env!r}")
+        state = ckpt = None
+        if load:
+            ckpt, state = load_latest_checkpoint(run_dir, map_location=config.device)
         _RESTORING.append(run_dir)
         try:
             exp = cls(config, run_dir)
         finally:
             _RESTORING.remove(run_dir)
-        if load:
-            ckpt = latest_checkpoint(run_dir)
-            if ckpt is None:
-                raise ValueError(f"run_dir {str(run_dir)!r} has no checkpoint to load")
-            exp.load_state_dict(load_checkpoint(ckpt, map_location=exp.device))
+        if state is not None:
+            exp._restore(state, ckpt, _changed_keys(saved.to_dict(), config.to_dict()))
+        if config.to_dict() != on_disk:
+            config.to_yaml(run_dir / CONFIG_FILE)
+        if state is not None:
             exp.results.write()
         return exp
+
+    @classmethod
+    def _run_config(cls, run_dir: Path, overrides: list[str]
+                    ) -> tuple[ExperimentConfig, ExperimentConfig, dict[str, Any]]:
+        """(saved config of ``run_dir``, the config with ``overrides``, the mapping in
+        ``config.yaml``); one-line ConfigErrors naming ``config.yaml`` when it is missing,
+        malformed, incomplete or another recipe's."""
+        path = run_dir / CONFIG_FILE
+        if not path.is_file():
+            raise ConfigError(f"run_dir {str(run_dir)!r} has no {CONFIG_FILE}")
+        on_disk = read_yaml_mapping(path)
+        data = dict(on_disk)
+        fields = cls.Config.field_names()
+        unknown = sorted(set(data) - set(fields))
+        if unknown:
+            raise ConfigError(f"{str(path)!r} is not a {cls.name!r} config (the recipe that "
+                              f"run.json names): unknown keys {unknown}; it belongs to another "
+                              "recipe or was edited")
+        parsed = [parse_override(item) for item in overrides]
+        overridden = {key.partition(".")[0] for key, _ in parsed}
+        missing = [name for name in fields if name not in data and name not in overridden]
+        if missing:
+            raise ConfigError(f"{str(path)!r} is incomplete: it lacks the keys {missing} (if the "
+                              "recipe gained them after the run was made, pass them as "
+                              "key=value overrides)")
+        # a run may move to another device: apply a device override before validating
+        devices = [value for key, value in parsed if key == "device"]
+        if devices:
+            check_device(devices[-1])
+            data["device"] = devices[-1]
+        try:
+            saved = cls.Config.from_dict(data)
+        except ConfigError as err:
+            raise ConfigError(f"{str(path)!r}: {err}") from None
+        return saved, saved.with_overrides(overrides) if overrides else saved, on_disk
+
+    def _restore(self, state: Mapping[str, Any], path: Path, changed: list[str]) -> None:
+        """Load checkpoint ``state`` (from ``path``) into this fresh experiment; ValueError
+        naming the changed config keys when the state's tensor shapes do not fit."""
+        fresh = self.state_dict()
+        mismatch = [(f"env {key}", saved, fresh["env_shapes"][key])
+                    for key, saved in state.get("env_shapes", {}).items()
+                    if key in fresh["env_shapes"] and saved != fresh["env_shapes"][key]]
+        mismatch += _shape_mismatches(state.get("components", {}), fresh["components"])
+        if mismatch:
+            key, saved_shape, new_shape = mismatch[0]
+            # name the keys that can change shapes: the env's for the env's shapes, the
+            # recipe's own fields (network sizes, ...) for the components'
+            env_keys = [k for k in changed if k.partition(".")[0] in ("env", "env_config")]
+            recipe_keys = [k for k in changed
+                           if k.partition(".")[0] not in ExperimentConfig.field_names()]
+            changed = (env_keys if key.startswith("env ") else recipe_keys + env_keys) or changed
+            if changed:
+                raise ConfigError(
+                    f"cannot resume with {', '.join(changed)} changed: it changes the shape of "
+                    f"the saved state ({key}: {saved_shape} -> {new_shape}); scenario, agent "
+                    "count and network sizes are fixed for a run, start a new run instead")
+            raise ValueError(f"checkpoint {str(path)!r} does not fit this {self.name} run "
+                             f"({key}: {saved_shape} in the checkpoint, {new_shape} here)")
+        try:
+            self.load_state_dict(state)
+        except (KeyError, RuntimeError, TypeError, ValueError) as err:
+            raise ValueError(f"checkpoint {str(path)!r} cannot be restored into this "
+                             f"{self.name} run: {first_line(err)}") from None
 
     def write_evaluation(self, metrics: Mapping[str, float], episodes: int) -> Path:
         """Save a standalone evaluation as ``run_dir/evaluation.json``."""
@@ -389,11 +497,56 @@ class Experiment:
 
 
 def run_recipe_name(run_dir: str | os.PathLike) -> str:
-    """The recipe name recorded in ``run_dir/run.json`` (ValueError if it is not a run)."""
+    """The recipe name recorded in ``run_dir/run.json``; a one-line ValueError naming the file
+    when it is not a run directory or ``run.json`` is malformed."""
     path = Path(run_dir) / RUN_FILE
     if not path.is_file():
         raise ValueError(f"run_dir {str(run_dir)!r} is not a run directory (no {RUN_FILE})")
-    return json.loads(path.read_text())["recipe"]
+    recipe = read_json_object(path).get("recipe")
+    if not isinstance(recipe, str) or not recipe:
+        raise ValueError(f"{str(path)!r} does not name the run's recipe (it needs a "
+                         f"\"recipe\": \"<name>\" entry, got {recipe!r})")
+    return recipe
+
+
+def env_shapes(env: EnvBase) -> dict[str, list[int]]:
+    """Shape of every observation, action and reward entry of ``env``'s specs, keyed by the
+    dotted entry name (e.g. ``"agents.observation": [8, 7]``)."""
+    shapes: dict[str, list[int]] = {}
+    for spec in (env.full_observation_spec, env.full_action_spec, env.full_reward_spec):
+        for key in spec.keys(include_nested=True, leaves_only=True):
+            name = ".".join(key) if isinstance(key, tuple) else key
+            shapes[name] = list(spec[key].shape)
+    return shapes
+
+
+def _flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested mappings -> ``{"a.b.c": leaf}``."""
+    if not isinstance(tree, Mapping):
+        return {prefix: tree}
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        out.update(_flatten(value, f"{prefix}.{key}" if prefix else str(key)))
+    return out
+
+
+def _changed_keys(saved: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
+    """Dotted config keys whose values differ between two ``to_dict()`` configs."""
+    old_flat, new_flat = _flatten(saved), _flatten(new)
+    return sorted(k for k in old_flat.keys() | new_flat.keys()
+                  if old_flat.get(k) != new_flat.get(k))
+
+
+def _shape_mismatches(saved: Any, fresh: Any) -> list[tuple[str, list[int], list[int]]]:
+    """``(key, saved shape, fresh shape)`` of every tensor present in both state trees whose
+    shape differs (entries only one side has, e.g. a replay buffer not filled yet, are
+    skipped)."""
+    saved_flat, fresh_flat = _flatten(saved), _flatten(fresh)
+    return [(key, list(saved_flat[key].shape), list(fresh_flat[key].shape))
+            for key in sorted(saved_flat.keys() & fresh_flat.keys())
+            if isinstance(saved_flat[key], torch.Tensor)
+            and isinstance(fresh_flat[key], torch.Tensor)
+            and saved_flat[key].shape != fresh_flat[key].shape]
 
 
 def _crossed(prev: int, now: int, interval: int) -> bool:

@@ -55,6 +55,15 @@ def _check_values(values: torch.Tensor, n: int) -> None:
         )
     if not values.is_floating_point():
         raise ValueError(f"values must be a floating-point tensor, got dtype {values.dtype}")
+    _check_finite(values, "values")
+
+
+def _check_finite(values: torch.Tensor, name: str) -> None:
+    finite = torch.isfinite(values)
+    if not bool(finite.all()):
+        bad = int((~finite).sum())
+        raise ValueError(f"{name} must be finite, got {bad} NaN or infinite entries of "
+                         f"{values.numel()}")
 
 
 def coalition_masks(n: int, device: torch.device | str | None = None) -> torch.Tensor:
@@ -98,7 +107,8 @@ def exact_shapley(values: torch.Tensor, n: int) -> torch.Tensor:
     """Exact Shapley value (eq. 3) of every game in a batch.
 
     Args:
-        values: ``[..., 2**n]`` floating tensor, ``values[..., k] = v(C_k)`` (see module doc).
+        values: ``[..., 2**n]`` finite floating tensor, ``values[..., k] = v(C_k)`` (see module
+            doc); NaN or infinite values raise ValueError.
         n: number of agents, ``1 <= n <= MAX_EXACT_AGENTS``.
 
     Returns:
@@ -219,6 +229,7 @@ def sampled_shapley(
                 f"value_fn must return values [..., K] with K = {masks.shape[0]} "
                 f"(one per mask), got shape {tuple(part.shape)}"
             )
+        _check_finite(part, "value_fn's values")
         parts.append(part)
     values = torch.cat(parts, dim=-1)
     values = values.unflatten(-1, (num_permutations, n + 1))

@@ -1,0 +1,133 @@
+"""How many training epochs the MA-PETS world model needs: NLL and gap error against epochs.
+
+Takes the datasets ``D(i)+`` of a finished MA-PETS run (its latest checkpoint), holds out 20% of
+every agent's transitions, and trains a fresh ensemble of the run's size on the rest one epoch at
+a time (the recipe's loss, optimiser and batch size). After each epoch it reports, on the
+held-out transitions:
+
+* the Gaussian NLL (normalised delta space, eq. 9, members averaged, no bootstrap);
+* the error of the predicted change of the gap ahead in metres per step, over all rows and over
+  rows where the CAV drives faster than 8 m/s: bias (mean predicted - true) and RMSE of the
+  members' mean, and the predicted noise (mean predicted std of that delta).
+
+The transitions in which the CAV's neighbours changed identity are not in ``D(i)+`` (the recipe
+filters them), so the gap changes here are dynamics.
+
+    python benchmarks/model_epochs.py RUN_DIR [--epochs 60] [--seed 0]
+
+``RUN_DIR`` e.g. ``outputs/mapets_figure_eight/crossing/d100_seed0`` (from
+``examples/mapets_figure_eight.py``). The run directory is only read.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import tempfile
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+
+from mapets_rl.models import ProbabilisticEnsemble, train_ensemble
+from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss
+from recipes.mapets import MAPETS
+
+GAP_AHEAD = 5
+SPEED = 0
+
+
+def load_data(run_dir: Path) -> tuple[MAPETS, TensorDict]:
+    """The run (restored from a private copy) and its ``D(i)+`` as a padded batch ``[N, I]``."""
+    with tempfile.TemporaryDirectory() as tmp:
+        copy = Path(tmp) / "run"
+        shutil.copytree(run_dir, copy)
+        exp = MAPETS.from_run_dir(copy)
+    datasets = exp.datasets
+    sets = [datasets.dataset(i) for i in range(exp.n_agents)]
+    rows = max(len(d) for d in sets)
+    keys = ("observation", "action", "next_observation")
+    padded = {key: [] for key in keys}
+    for d in sets:
+        pad = rows - len(d)
+        for key in keys:
+            value = d.get(key)
+            padded[key].append(torch.cat([value, value[:1].expand(pad, *value.shape[1:])]))
+    data = TensorDict({k: torch.stack(v, 1) for k, v in padded.items()}, batch_size=[rows])
+    sizes = torch.tensor([len(d) for d in sets])
+    data.set("mask", torch.arange(rows)[:, None] < sizes[None, :])
+    return exp, data
+
+
+@torch.no_grad()
+def gap_errors(model: ProbabilisticEnsemble, data: TensorDict) -> dict[str, float]:
+    """Bias, RMSE and predicted std [m/step] of the gap-ahead delta, all rows and v > 8 m/s."""
+    obs, action, nxt, mask = (data.get(k) for k in ("observation", "action", "next_observation",
+                                                     "mask"))
+    obs_t, act_t = obs.transpose(0, 1).unsqueeze(1), action.transpose(0, 1).unsqueeze(1)
+    mean, logvar = model.predict(obs_t, act_t)  # [I, B, N, S] (every member on every row)
+    pred = mean[..., GAP_AHEAD].mean(1)  # [I, N]
+    std = logvar[..., GAP_AHEAD].mul(0.5).exp().mean(1)
+    true = (nxt - obs)[..., GAP_AHEAD].transpose(0, 1)
+    valid = mask.transpose(0, 1)
+    fast = valid & (obs[..., SPEED].transpose(0, 1) > 8.0)
+    out = {}
+    for name, rows in (("all", valid), ("fast", fast)):
+        err = (pred - true)[rows]
+        out[f"bias_{name}"] = err.mean().item()
+        out[f"rmse_{name}"] = err.pow(2).mean().sqrt().item()
+        out[f"std_{name}"] = std[rows].mean().item()
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run_dir", type=Path)
+    parser.add_argument("--epochs", type=int, default=60)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--report", type=int, nargs="+", default=[1, 2, 5, 10, 15, 20, 30, 40, 60])
+    args = parser.parse_args()
+    if args.epochs < 1:
+        parser.error(f"--epochs must be >= 1, got {args.epochs}")
+    torch.manual_seed(args.seed)
+    exp, data = load_data(args.run_dir)
+    cfg = exp.config
+    gen = torch.Generator().manual_seed(args.seed)
+    holdout = torch.rand(data.batch_size, generator=gen) < 0.2
+    train = data.clone()
+    train.set("mask", data.get("mask") & ~holdout[:, None])
+    test = data.clone()
+    test.set("mask", data.get("mask") & holdout[:, None])
+    model = ProbabilisticEnsemble(
+        exp.model.obs_dim, exp.model.action_dim, exp.n_agents,
+        ensemble_size=cfg.ensemble_size, hidden=tuple(cfg.hidden),
+    )
+    loss = EnsembleNLLLoss(model, logvar_bound_coef=cfg.logvar_bound_coef, generator=gen)
+    loss.set_keys(observation="observation", action="action",
+                  next_observation="next_observation", mask="mask")
+    holdout_loss = EnsembleNLLLoss(model, bootstrap=False)
+    holdout_loss.set_keys(observation="observation", action="action",
+                          next_observation="next_observation", mask="mask")
+    optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
+    print(f"run {args.run_dir}: {exp.n_agents} agents, |D(i)+| = "
+          f"{data.get('mask').sum(0).tolist()}, hidden {cfg.hidden}, B = {cfg.ensemble_size}, "
+          f"batch {cfg.batch_size}, lr {cfg.lr}; holdout 20%; torch "
+          f"{torch.__version__}, {torch.backends.cpu.get_cpu_capability()}")
+    print("| epochs | train NLL | holdout NLL | gap bias [m/step] | gap RMSE | gap pred. std "
+          "| bias v>8 | RMSE v>8 | pred. std v>8 |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for epoch in range(1, args.epochs + 1):
+        history = train_ensemble(loss, optimizer, train, epochs=1, batch_size=cfg.batch_size,
+                                 fit_normalizer=epoch == 1, generator=gen)
+        if epoch in args.report or epoch == args.epochs:
+            with torch.no_grad():
+                test_nll = holdout_loss(test)["nll_per_member"].mean().item()
+            e = gap_errors(model, test)
+            print(f"| {epoch} | {history.mean().item():.2f} | {test_nll:.2f} | "
+                  f"{e['bias_all']:+.3f} | {e['rmse_all']:.3f} | {e['std_all']:.3f} | "
+                  f"{e['bias_fast']:+.3f} | {e['rmse_fast']:.3f} | {e['std_fast']:.3f} |",
+                  flush=True)
+
+
+if __name__ == "__main__":
+    main()
