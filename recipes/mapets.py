@@ -89,10 +89,6 @@ def _preset_value(preset: PlannerConfig, name: str) -> Any:
     return list(value) if name == "hidden" else value
 
 
-def _default_env_config() -> dict[str, Any]:
-    return {"n_cavs": 8}
-
-
 @dataclasses.dataclass
 class MAPETSConfig(ExperimentConfig):
     """MA-PETS hyper-parameters; defaults are the paper's Table II except where noted.
@@ -146,7 +142,6 @@ class MAPETSConfig(ExperimentConfig):
     ``checkpoint_interval``) are not used: MA-PETS trains and checkpoints after every episode.
     """
 
-    env_config: dict[str, Any] = dataclasses.field(default_factory=_default_env_config)
     episodes: int = 15
     random_episodes: int = 1
     comm_range: float = dataclasses.field(default=100.0, metadata={"allow_inf": True})

@@ -14,6 +14,7 @@ from mapets_rl.envs.scripted import ScriptedCAVPolicy, traffic_env
 
 __all__ = [
     "ACTION_NAMES",
+    "GYM_IDS",
     "SCENARIOS",
     "ScriptedCAVPolicy",
     "FigureEightEnv",
@@ -28,14 +29,18 @@ __all__ = [
     "traffic_env",
 ]
 
-_IDS = {
-    "mapets_rl/FigureEight-v0": ("mapets_rl.envs.figure_eight:FigureEightEnv", {}),
-    "mapets_rl/FigureEightMultiLane-v0": (
-        "mapets_rl.envs.figure_eight:FigureEightEnv",
-        {"config": {"lanes": 2, "n_cavs": 22, "horizon": 400}},
-    ),
-    "mapets_rl/Freeway-v0": ("mapets_rl.envs.freeway:FreewayEnv", {}),
+GYM_IDS = {
+    "figure-eight": "mapets_rl/FigureEight-v0",
+    "figure-eight-multilane": "mapets_rl/FigureEightMultiLane-v0",
+    "freeway": "mapets_rl/Freeway-v0",
 }
-for _id, (_entry, _kwargs) in _IDS.items():
+"""Scenario name -> gymnasium id of its raw (array-valued) highway-env environment."""
+
+for _name, _id in GYM_IDS.items():
     if _id not in registry:
-        register(id=_id, entry_point=_entry, kwargs=_kwargs)
+        _cls = SCENARIOS[_name][0].env_class
+        register(
+            id=_id,
+            entry_point=f"{_cls.__module__}:{_cls.__name__}",
+            kwargs={"config": dict(SCENARIOS[_name][1])},
+        )

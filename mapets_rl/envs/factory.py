@@ -29,11 +29,13 @@ from torchrl.envs.libs.pettingzoo import PettingZooWrapper
 from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, TrafficParallelEnv
 
 SCENARIOS: dict[str, tuple[type[TrafficParallelEnv], dict[str, Any]]] = {
-    "figure-eight": (FigureEightParallelEnv, {"lanes": 1}),
-    "figure-eight-multilane": (FigureEightParallelEnv, {"lanes": 2, "n_cavs": 22}),
+    "figure-eight": (FigureEightParallelEnv, {}),
+    "figure-eight-multilane": (FigureEightParallelEnv, {"lanes": 2, "n_cavs": 22, "horizon": 400}),
     "freeway": (FreewayParallelEnv, {}),
 }
-"""Scenario name -> (PettingZoo env class, default config)."""
+"""Scenario name -> (PettingZoo env class, what the scenario changes from the env class's
+defaults). The one place a scenario's defaults are declared: ``make_env``, the recipes, the CLI
+and the gymnasium ids (``mapets_rl.envs.GYM_IDS``) all read them from here."""
 
 
 class TrafficPettingZooWrapper(PettingZooWrapper):

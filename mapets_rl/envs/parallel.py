@@ -27,6 +27,8 @@ class TrafficParallelEnv(ParallelEnv):
     """Wraps a ``MultiAgentTrafficEnv`` as a PettingZoo ``ParallelEnv``."""
 
     metadata = {"render_modes": ["rgb_array"], "name": "traffic_v0", "is_parallelizable": True}
+    env_class: type[MultiAgentTrafficEnv]
+    """The raw highway-env environment class the subclass wraps."""
 
     def __init__(self, env: MultiAgentTrafficEnv, render_mode: str | None = None) -> None:
         self.env = env
@@ -179,11 +181,12 @@ class FigureEightParallelEnv(TrafficParallelEnv):
         n_hvs: human-driven vehicles, an int or an inclusive range drawn per episode.
         lanes: 1 or 2.
         render_mode: ``None`` or ``"rgb_array"``.
-        **config: further ``FigureEightEnv`` config keys (``horizon``, ``length``, ...). The
-            horizon defaults to 200 steps on one lane and 400 on two.
+        **config: further ``FigureEightEnv`` config keys (``horizon``, ``length``, ...);
+            unknown keys raise ``ValueError`` listing the accepted ones.
     """
 
     metadata = {**TrafficParallelEnv.metadata, "name": "figure_eight_v0"}
+    env_class = FigureEightEnv
 
     def __init__(
         self,
@@ -193,7 +196,6 @@ class FigureEightParallelEnv(TrafficParallelEnv):
         render_mode: str | None = None,
         **config: Any,
     ) -> None:
-        config.setdefault("horizon", 400 if lanes == 2 else 200)
         env = FigureEightEnv(
             {"n_cavs": n_cavs, "n_hvs": n_hvs, "lanes": lanes, **config}, render_mode=render_mode
         )
@@ -211,6 +213,7 @@ class FreewayParallelEnv(TrafficParallelEnv):
     """
 
     metadata = {**TrafficParallelEnv.metadata, "name": "freeway_v0"}
+    env_class = FreewayEnv
 
     def __init__(
         self,

@@ -68,6 +68,12 @@ class MultiAgentTrafficEnv(AbstractEnv):
 
     def __init__(self, config: dict | None = None, render_mode: str | None = None) -> None:
         merged = self.default_config()
+        unknown = sorted(set(config or {}) - set(merged))
+        require(
+            not unknown,
+            f"unknown config key(s) {unknown} for {type(self).__name__}; accepted keys: "
+            f"{sorted(merged)}",
+        )
         merged.update(config or {})
         self.validate_config(merged)
         self.cavs: list[Vehicle] = []
