@@ -159,3 +159,19 @@ def test_discrete_env_is_rejected(tmp_path):
     with pytest.raises(ValueError, match="continuous actions"):
         MAPETS(tiny(env="freeway", env_config={"n_vehicles": 4, "cav_ratio": 0.5}),
                tmp_path / "freeway")
+
+
+def test_transitions_whose_neighbours_changed_stay_out_of_the_datasets(tmp_path):
+    exp = MAPETS(tiny(episodes=1, comm_range=0.0, seed=5), tmp_path / "run")
+    rollout = exp.run_episode(random_actions=True)
+    changed = torch.zeros_like(rollout["next", "agents", "info", "neighbour_changed"])
+    changed[:, 0] = True  # agent 0: every step had a new neighbour
+    changed[0, 1] = True  # agent 1: the first step only
+    rollout["next", "agents", "info", "neighbour_changed"] = changed
+    driving = rollout["agents", "mask"] & ~rollout["next", "agents", "terminated"].squeeze(-1)
+    stats = exp.store_and_share(rollout)
+    sizes = exp.datasets.sizes
+    assert sizes[0] == 0  # d = 0: nothing received either
+    assert sizes[1] == int(driving[:, 1].sum()) - int(driving[0, 1])
+    assert sizes[2] == int(driving[:, 2].sum())
+    assert stats["transitions_filtered"] == int(driving[:, 0].sum()) + int(driving[0, 1])
