@@ -48,9 +48,9 @@ from mapets_rl.comm import CommunicationRange, NeighbourDatasets
 from mapets_rl.envs import figure_eight_collision, figure_eight_reward
 from mapets_rl.envs.figure_eight import OBSERVATIONS
 from mapets_rl.experiment import Experiment, ExperimentConfig, check, log_scalars
-from mapets_rl.experiment.multiagent import AgentGroupSpec, masked_mean
 from mapets_rl.experiment.runner import build_env
 from mapets_rl.models import ProbabilisticEnsemble, train_ensemble
+from mapets_rl.modules import AgentGroupSpec, masked_mean
 from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss
 from mapets_rl.planning import (
     PRESETS,

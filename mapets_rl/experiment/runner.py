@@ -44,7 +44,6 @@ from mapets_rl.experiment.config import (
     parse_override,
     read_yaml_mapping,
 )
-from mapets_rl.experiment.multiagent import masked_mean
 from mapets_rl.experiment.results import (
     ResultsWriter,
     log_scalars,
@@ -52,6 +51,7 @@ from mapets_rl.experiment.results import (
     mean_metrics,
     read_json_object,
 )
+from mapets_rl.modules import masked_mean
 
 CONFIG_FILE = "config.yaml"
 RUN_FILE = "run.json"
