@@ -1,9 +1,14 @@
 """``mapets-rl``: train, resume, evaluate and compare recipes from the command line.
 
     mapets-rl train RECIPE --env SCENARIO [--seed N] [--config FILE] [--run-dir DIR] [key=value ...]
+    mapets-rl train RECIPE --help          (RECIPE's config fields, their types and defaults)
     mapets-rl resume RUN_DIR [key=value ...]
     mapets-rl evaluate RUN_DIR [--episodes N] [--video]
     mapets-rl compare RUN_DIR... --out DIR [--metrics a,b,...]
+
+Recipes are found by name among the entry points of the group ``mapets_rl.recipes`` of the
+installed packages (see :mod:`mapets_rl.experiment.plugins`); nothing is imported until a
+command needs it, so ``--help`` stays fast.
 
 Errors in what the user typed (unknown recipe, scenario or config key, a bad value, an unusable
 run directory or checkpoint) print one line ``mapets-rl: error: ...`` and exit with code 2;
@@ -59,9 +64,18 @@ def _overrides(items: Sequence[str]) -> list[str]:
     return list(items)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from recipes._registry import RECIPES
+def _recipe_names() -> str:
+    """The installed recipes for help texts (names only: nothing is imported)."""
+    from mapets_rl.experiment.plugins import available_recipes
 
+    try:
+        names = available_recipes()
+    except ValueError as err:  # a name declared twice: `train` reports it
+        return f"(the installed recipes clash: {err})"
+    return f"one of {', '.join(names)}" if names else "(none installed: pip install -e .)"
+
+
+def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog=PROG, description="Multi-agent RL for connected autonomous vehicles: "
                      "train, resume, evaluate and compare recipes.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -72,10 +86,9 @@ def build_parser() -> argparse.ArgumentParser:
         "resolved config), results.json (per-evaluation metrics), checkpoints/ and logs/.",
         epilog="Any config field can be set as key=value (value parsed as YAML), e.g. "
         "total_frames=30000 lr=3e-4 env_config.n_cavs=8 logger=tensorboard video=true. "
-        "`python -c 'from recipes.mappo import MAPPOConfig; help(MAPPOConfig)'` lists a "
-        "recipe's fields.")
-    train.add_argument("recipe", metavar="RECIPE",
-                       help=f"algorithm: one of {', '.join(sorted(RECIPES))}")
+        "`mapets-rl train RECIPE --help` lists RECIPE's fields with their defaults. "
+        "Recipes are the installed packages' entry points of the group mapets_rl.recipes.")
+    train.add_argument("recipe", metavar="RECIPE", help=f"algorithm: {_recipe_names()}")
     train.add_argument("--env", required=True, metavar="SCENARIO",
                        help="scenario name, e.g. figure-eight, figure-eight-multilane, freeway")
     train.add_argument("--seed", type=int, default=None, metavar="N",
@@ -121,14 +134,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _recipe_class(name: str) -> type:
-    from recipes._registry import load_recipe
+    from mapets_rl.experiment.plugins import load_recipe
 
     try:
         return load_recipe(name)
     except ValueError as err:
         _fail(str(err))
-    except ImportError as err:
-        _fail(f"recipe {name!r} cannot be imported: {err}")
 
 
 def _check_env(name: str) -> None:
@@ -221,8 +232,38 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def _recipe_help(name: str) -> str:
+    """Help of ``mapets-rl train RECIPE --help``: RECIPE's config documentation and every
+    field with its type and default (imports the recipe)."""
+    import dataclasses
+    import inspect
+    import typing
+
+    config_cls = _recipe_class(name).Config
+    hints = typing.get_type_hints(config_cls)
+    lines = [f"usage: {PROG} train {name} --env SCENARIO [--seed N] [--config FILE] "
+             "[--run-dir DIR] [key=value ...]", "", inspect.getdoc(config_cls) or "", "",
+             f"fields of {config_cls.__name__} (set as key=value; values parsed as YAML):"]
+    for f in dataclasses.fields(config_cls):
+        if f.default is not dataclasses.MISSING:
+            default = repr(f.default)
+        elif f.default_factory is not dataclasses.MISSING:
+            default = repr(f.default_factory())
+        else:
+            default = "(required)"
+        tp = hints[f.name]
+        type_name = tp.__name__ if isinstance(tp, type) else str(tp).replace("typing.", "")
+        lines.append(f"  {f.name}: {type_name} = {default}")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``mapets-rl`` console script."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if (len(argv) >= 3 and argv[0] == "train" and not argv[1].startswith("-")
+            and {"-h", "--help"} & set(argv[2:])):
+        sys.stdout.write(_recipe_help(argv[1]))
+        return 0
     parser = build_parser()
     # key=value overrides may follow options (argparse does not intermix positionals)
     args, extra = parser.parse_known_args(argv)
