@@ -107,7 +107,7 @@ def main() -> None:
         )
 
     exp.train(on_episode_end=report)
-    history = [e["metrics"] for e in exp.results.evaluations]
+    history = [e["metrics"] for e in exp.results.train]
     plot_path = args.out / "learning_curve.png"
     plot(history, plot_path,
          f"MA-PETS, figure-eight, {args.cavs} CAVs, d = {args.comm_range:g} m "

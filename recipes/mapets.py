@@ -523,7 +523,7 @@ class MAPETS(Experiment):
             metrics["step_time"] = act_time / rollout.shape[0]
             self.frames += rollout.shape[0]
             self.counters.episode = episode
-            self.results.add(self.frames, metrics)
+            self.results.add_train(self.frames, metrics)
             log_scalars(self.logger, "train", metrics, self.frames)
             self.latest_metrics = metrics
             self.save_checkpoint()
@@ -534,7 +534,7 @@ class MAPETS(Experiment):
             if on_episode_end is not None:
                 on_episode_end(metrics)
         bar.close()
-        return self.results.evaluations
+        return self.results.train
 
     # ------------------------------------------------------------------ evaluation
     def _eval_episode(self, frames: list[Any] | None) -> TensorDictBase:

@@ -27,9 +27,12 @@ How a recipe plugs in
    Everything else is inherited: ``train()`` (the loop: collect, ``train_step``, log, evaluate
    every ``eval_interval`` frames, checkpoint every ``checkpoint_interval`` frames),
    ``evaluate(episodes, video)``, ``state_dict()`` / ``load_state_dict()`` (components +
-   counters + evaluations + python/numpy/torch RNG states), ``from_run_dir(run_dir)``
+   counters + results entries + python/numpy/torch RNG states), ``from_run_dir(run_dir)``
    (resume / evaluate a saved run). Override ``episode_metrics`` / ``batch_metrics`` only to
    add metrics.
+   A recipe with its own loop (MA-PETS) records its training episodes with
+   ``self.results.add_train(frames, metrics)`` and deterministic evaluations with
+   ``self.results.add_evaluation(frames, metrics)``; ``compare`` never mixes the two.
 4. Register it for the CLI with an entry point in the ``pyproject.toml`` of the package that
    holds it (then reinstall it, ``pip install -e .``)::
 
@@ -44,7 +47,9 @@ protocol directly: ``Config``, ``__init__(config, run_dir)``, ``train()``,
 ``evaluate(episodes, video)``, ``state_dict()`` / ``load_state_dict()`` and ``from_run_dir``.
 
 Run directory layout: ``config.yaml`` (resolved config), ``run.json`` (recipe, scenario, seed),
-``results.json`` (per evaluation: frames and metrics; read by :func:`compare`),
+``results.json`` (frames and metrics of every deterministic evaluation under
+``evaluations`` and of training entries, e.g. MA-PETS's episodes, under ``train``; read by
+:func:`read_results` and :func:`compare`),
 ``checkpoints/ckpt_<frames>.pt`` (atomic, the newest ``keep_last``, each with its SHA-256 digest
 ``ckpt_<frames>.pt.sha256``), ``logs/`` (torchrl logger), ``videos/`` (GIFs when
 ``video=true``). Every file is written atomically with the same permissions.

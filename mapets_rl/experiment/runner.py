@@ -275,7 +275,7 @@ class Experiment:
             last = self.frames >= cfg.total_frames
             if last or _crossed(prev, self.frames, cfg.eval_interval):
                 metrics = self.evaluate()
-                self.results.add(self.frames, metrics)
+                self.results.add_evaluation(self.frames, metrics)
                 log_scalars(self.logger, "eval", metrics, self.frames)
                 self.latest_metrics = metrics
             if last or _crossed(prev, self.frames, cfg.checkpoint_interval):
@@ -371,15 +371,16 @@ class Experiment:
 
     # ----------------------------------------------------------------------- checkpoints
     def state_dict(self) -> dict[str, Any]:
-        """Whole training state: components, counters, evaluations and RNG states, plus the
-        env's tensor shapes (so that a resume with another scenario shape is refused)."""
+        """Whole training state: components, counters, results entries (``evaluations``,
+        ``train``) and RNG states, plus the env's tensor shapes (so that a resume with another
+        scenario shape is refused)."""
         return {
             "recipe": self.name,
             "env_shapes": env_shapes(self.env),
             "frames": self.frames,
             "batches": self.batches,
             "boundaries": self.boundaries,
-            "evaluations": json.dumps(self.results.evaluations),
+            **self.results.state_dict(),
             "rng": rng_state(),
             "components": {k: v.state_dict() for k, v in self.stateful_components().items()},
         }
@@ -396,9 +397,8 @@ class Experiment:
         self.frames = int(state["frames"])
         self.batches = int(state["batches"])
         self.boundaries = int(state["boundaries"])
-        self.results.evaluations = json.loads(state["evaluations"])
-        self.latest_metrics = (self.results.evaluations[-1]["metrics"]
-                               if self.results.evaluations else {})
+        self.results.load_state_dict(state)
+        self.latest_metrics = self.results.latest_metrics()
         if self._collector_args is not None and self._collector_args[1] > 0:
             # the random-action warm-up is counted over the run: rebuild for what is left
             self.collector.shutdown()
