@@ -4,7 +4,8 @@
     mapets-rl train RECIPE --help          (RECIPE's config fields, their types and defaults)
     mapets-rl resume RUN_DIR [key=value ...]
     mapets-rl evaluate RUN_DIR [--episodes N] [--video]
-    mapets-rl compare RUN_DIR... --out DIR [--metrics a,b,...]
+    mapets-rl compare RUN_DIR... --out DIR [--metrics a,b,...] [--source eval|train]
+                      [--group-by FIELD[,FIELD...]] [--x frames|METRIC] [--allow-mixed-env]
 
 Recipes are found by name among the entry points of the group ``mapets_rl.recipes`` of the
 installed packages (see :mod:`mapets_rl.experiment.plugins`); nothing is imported until a
@@ -83,7 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
     train = sub.add_parser(
         "train", help="train a recipe on a scenario",
         description="Train RECIPE on SCENARIO. The run directory receives config.yaml (the "
-        "resolved config), results.json (per-evaluation metrics), checkpoints/ and logs/.",
+        "resolved config), results.json (metrics of every evaluation, and of training episodes for "
+        "recipes that record them), checkpoints/ and logs/.",
         epilog="Any config field can be set as key=value (value parsed as YAML), e.g. "
         "total_frames=30000 lr=3e-4 env_config.n_cavs=8 logger=tensorboard video=true. "
         "`mapets-rl train RECIPE --help` lists RECIPE's fields with their defaults. "
@@ -123,13 +125,32 @@ def build_parser() -> argparse.ArgumentParser:
 
     compare = sub.add_parser(
         "compare", help="learning curves and a final-metrics table over runs",
-        description="Group RUN_DIRs by recipe (and scenario), plot mean learning curves with a "
-        "95%% Student-t confidence band over seeds (learning_curves.png) and write a markdown "
-        "table of final metrics (final_metrics.md) and summary.json into --out.")
+        description="Group RUN_DIRs by recipe (and --group-by fields), plot mean learning "
+        "curves with a 95%% Student-t confidence band over the runs of each group "
+        "(learning_curves.png) and write a markdown table of final metrics (final_metrics.md), "
+        "summary.json and curves.json into --out. Runs on different scenarios (env or "
+        "env_config) are refused unless --allow-mixed-env.")
     compare.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="run directories")
     compare.add_argument("--out", required=True, metavar="DIR", help="output directory")
     compare.add_argument("--metrics", default=None, metavar="a,b,...",
                          help="comma-separated metrics to show (default: all common ones)")
+    compare.add_argument("--source", choices=["eval", "train"], default="eval",
+                         help="eval (default): deterministic evaluations; a run without any "
+                         "(e.g. mapets) falls back to its training entries, with a note. "
+                         "train: training entries (e.g. mapets's episodes)")
+    compare.add_argument("--group-by", default=None, metavar="FIELD[,FIELD...]",
+                         help="config fields (dotted for nested ones, e.g. comm_range or "
+                         "env_config.observation) whose values split each recipe's runs into "
+                         "groups, e.g. one curve per communication range")
+    compare.add_argument("--x", default="frames", metavar="NAME",
+                         help="x axis: frames (default) or a metric numbering the entries, "
+                         "e.g. episode (mapets's episodes differ in length)")
+    compare.add_argument("--allow-mixed-env", action="store_true",
+                         help="compare runs on different scenarios (env or env_config), each "
+                         "group labelled with its scenario, instead of refusing them")
+    compare.add_argument("--legacy-as", choices=["eval", "train"], default="eval",
+                         help="what the entries of a results.json from before training and "
+                         "evaluation entries were kept apart are (old mapets runs: train)")
     return parser
 
 
@@ -223,8 +244,15 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         metrics = [m.strip() for m in args.metrics.split(",") if m.strip()]
         if not metrics:
             _fail(f"--metrics must name at least one metric (a,b,...), got {args.metrics!r}")
+    group_by = None
+    if args.group_by is not None:
+        group_by = [f.strip() for f in args.group_by.split(",") if f.strip()]
+        if not group_by:
+            _fail(f"--group-by must name at least one config field, got {args.group_by!r}")
     try:
-        out = compare(args.run_dirs, args.out, metrics)
+        out = compare(args.run_dirs, args.out, metrics, source=args.source, group_by=group_by,
+                      x=args.x, allow_mixed_env=args.allow_mixed_env,
+                      legacy_as=args.legacy_as)
     except ValueError as err:
         _fail(str(err))
     print(out["table"].read_text(), end="")
