@@ -6,6 +6,7 @@
     mapets-rl evaluate RUN_DIR [--episodes N] [--video]
     mapets-rl compare RUN_DIR... --out DIR [--metrics a,b,...] [--source eval|train]
                       [--group-by FIELD[,FIELD...]] [--x frames|METRIC] [--allow-mixed-env]
+                      [--legacy-as eval|train]
 
 Recipes are found by name among the entry points of the group ``mapets_rl.recipes`` of the
 installed packages (see :mod:`mapets_rl.experiment.plugins`); nothing is imported until a
