@@ -43,8 +43,7 @@ def run_one(recipe: str, seed: int, steps: int, run_dir: str, eval_interval: int
     import torch
 
     torch.set_num_threads(1)
-    from mapets_rl.experiment import latest_checkpoint, read_results
-    from recipes._registry import load_recipe
+    from mapets_rl.experiment import latest_checkpoint, load_recipe, read_results
 
     cls = load_recipe(recipe)
     overrides = [*RECIPE_OVERRIDES[recipe], f"total_frames={steps}", f"seed={seed}",

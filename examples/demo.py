@@ -107,7 +107,7 @@ def main() -> None:
         )
 
     exp.train(on_episode_end=report)
-    history = [e["metrics"] for e in exp.results.evaluations]
+    history = [e["metrics"] for e in exp.results.train]
     random, planned = history[0], history[1:]
     if planned:
         print(f"random-action episode: safety {random['safety']:.3f}; last episode: safety "

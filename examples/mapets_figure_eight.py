@@ -6,13 +6,16 @@ observation option of ``--observations`` (default ``crossing``, the library's de
 ``paper``, the paper's 7 features) and every seed of ``--seeds``; then prints a per-episode table
 of agility and safety (mean +- std over seeds), the paper's two claims checked on the runs
 (safety over episodes 13-15; d = 100 ahead of d = 0 over episodes 2-8, with the seeds' spread;
-crashes over episodes 2-15) and writes ``table.md``, ``summary.json`` and
-``learning_curves.png`` to ``--out``.
+crashes over episodes 2-15) and writes ``table.md`` (those two tables) to ``--out``. The
+per-episode statistics and the plot come from :func:`mapets_rl.experiment.compare` on the
+runs' training episodes, grouped by observation option and d (``learning_curves.png``,
+``curves.json``, ``summary.json``, ``final_metrics.md`` in ``--out``); it refuses runs of
+different scenarios (e.g. another ``--cavs``) in one ``--out``.
 
-Each run lives in ``OUT/d<range>_seed<seed>/`` (config.yaml, results.json, checkpoints, CSV
-logs); an interrupted sweep resumes every unfinished run from its latest checkpoint when the
-same command is run again. Several processes can share one ``--out`` (e.g. one per range);
-``--report-only`` then aggregates what has finished.
+Each run lives in ``OUT/<observation>/d<range>_seed<seed>/`` (config.yaml, results.json,
+checkpoints, CSV logs); an interrupted sweep resumes every unfinished run from its latest
+checkpoint when the same command is run again. Several processes can share one ``--out`` (e.g.
+one per range); ``--report-only`` then aggregates what has finished.
 
     python examples/mapets_figure_eight.py               # 3 seeds x d in {100, 0} x 2 options
     python examples/mapets_figure_eight.py --ranges 100 --seeds 0 --observations crossing
@@ -27,24 +30,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from mapets_rl.experiment import (  # noqa: E402
-    atomic_savefig,
+from mapets_rl.experiment import (
     atomic_write_text,
+    compare,
     latest_checkpoint,
-    mean_ci95,
     read_results,
 )
-from recipes.mapets import MAPETS, MAPETSConfig  # noqa: E402
+from recipes.mapets import MAPETS, MAPETSConfig
 
 METRICS = ("agility", "safety")
+GROUP_BY = ["env_config.observation", "comm_range"]
+"""Config fields of the groups: observation option and communication range d."""
 
 
 def run_dir(out: Path, observation: str, comm_range: float, seed: int) -> Path:
@@ -85,21 +83,32 @@ def train_one(args: argparse.Namespace, observation: str, comm_range: float, see
     exp.train(on_episode_end=report)
 
 
-def collect(out: Path) -> dict[str, dict[int, dict[int, dict[str, float]]]]:
-    """``{"<observation> d=<range>": {seed: {episode: metrics}}}`` of every run under ``out``."""
+def group_name(observation: str, comm_range: float) -> str:
+    return f"{observation} d={comm_range:g}"
+
+
+def collect(out: Path) -> tuple[list[Path], dict[str, dict[int, dict[int, dict[str, float]]]]]:
+    """The run directories under ``out`` with finished episodes, and their episodes'
+    metrics, ``{"<observation> d=<range>": {seed: {episode: metrics}}}``.
+
+    Results files written before training and evaluation entries were kept apart hold the
+    episodes under ``evaluations``; they are read as the training entries they are.
+    """
+    paths: list[Path] = []
     runs: dict[str, dict[int, dict[int, dict[str, float]]]] = {}
     for path in sorted(out.glob("*/d*_seed*"), key=lambda p: (p.parent.name, p.name)):
         if not (path / "results.json").is_file():
             continue
-        results = read_results(path)
-        comm_range = float(results["config"]["comm_range"])
-        episodes = {
-            int(e["metrics"]["episode"]): e["metrics"] for e in results["evaluations"]
+        results = read_results(path, legacy_as="train")
+        if not results["train"]:
+            continue
+        paths.append(path)
+        group = group_name(results["config"]["env_config"]["observation"],
+                           float(results["config"]["comm_range"]))
+        runs.setdefault(group, {})[int(results["seed"])] = {
+            int(e["metrics"]["episode"]): e["metrics"] for e in results["train"]
         }
-        runs.setdefault(f"{path.parent.name} d={comm_range:g}", {})[int(results["seed"])] = (
-            episodes
-        )
-    return runs
+    return paths, runs
 
 
 def _per_seed_means(seeds: dict, metric: str, first: int, last: int) -> list[float]:
@@ -144,77 +153,30 @@ def claims(runs: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def summarise(runs: dict) -> dict[str, dict[str, list]]:
-    """Per group and metric: per-episode mean, std, CI95 half-width and seed count."""
-    summary: dict[str, dict[str, list]] = {}
-    for group, seeds in runs.items():
-        last = max(max(eps) for eps in seeds.values())
-        entry: dict[str, list] = {"episode": list(range(1, last + 1)), "n": []}
-        for metric in METRICS:
-            means, stds, halves = [], [], []
-            for episode in entry["episode"]:
-                values = [eps[episode][metric] for eps in seeds.values() if episode in eps]
-                mean, half = mean_ci95(values) if values else (math.nan, math.nan)
-                var = (
-                    sum((v - mean) ** 2 for v in values) / (len(values) - 1)
-                    if len(values) > 1
-                    else 0.0
-                )
-                means.append(mean)
-                stds.append(math.sqrt(var))
-                halves.append(half)
-            entry[f"{metric}_mean"], entry[f"{metric}_std"] = means, stds
-            entry[f"{metric}_ci95"] = halves
-        entry["n"] = [
-            sum(episode in eps for eps in seeds.values()) for episode in entry["episode"]
-        ]
-        summary[group] = entry
-    return summary
-
-
-def table(summary: dict[str, dict[str, list]]) -> str:
-    """Markdown table: one row per episode, agility and safety per group (mean +- std, n)."""
-    ranges = list(summary)
+def table(curves: dict) -> str:
+    """Markdown table: one row per episode, agility and safety per group (mean +- std over
+    seeds, n seeds), from ``compare``'s ``curves.json``."""
+    groups = {
+        group_name(g["group"]["env_config.observation"], g["group"]["comm_range"]): g
+        for g in curves["groups"].values()
+    }
     header = "| episode | " + " | ".join(
-        f"agility {d} | safety {d}" for d in ranges
+        f"agility {d} | safety {d}" for d in groups
     ) + " |"
-    lines = [header, "|" + "---|" * (1 + 2 * len(ranges))]
-    last = max(len(s["episode"]) for s in summary.values())
-    for k in range(last):
-        cells = [str(k + 1)]
-        for d in ranges:
-            s = summary[d]
-            if k < len(s["episode"]):
-                for metric in METRICS:
-                    cells.append(
-                        f"{s[f'{metric}_mean'][k]:.3f} +- {s[f'{metric}_std'][k]:.3f} "
-                        f"(n={s['n'][k]})"
-                    )
-            else:
+    lines = [header, "|" + "---|" * (1 + 2 * len(groups))]
+    last = max(int(max(g["x"])) for g in groups.values())
+    for episode in range(1, last + 1):
+        cells = [str(episode)]
+        for g in groups.values():
+            if float(episode) not in g["x"]:
                 cells += ["", ""]
+                continue
+            i = g["x"].index(float(episode))
+            for metric in METRICS:
+                stats = g["metrics"][metric]
+                cells.append(f"{stats['mean'][i]:.3f} +- {stats['std'][i]:.3f} (n={g['n'][i]})")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
-
-
-def plot(summary: dict[str, dict[str, list]], path: Path) -> None:
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
-    for d, s in summary.items():
-        for ax, metric in zip(axes, METRICS, strict=True):
-            mean, half = s[f"{metric}_mean"], s[f"{metric}_ci95"]
-            line = ax.plot(s["episode"], mean, marker="o", label=d)[0]
-            lo = [m - (h if math.isfinite(h) else 0.0) for m, h in zip(mean, half, strict=True)]
-            hi = [m + (h if math.isfinite(h) else 0.0) for m, h in zip(mean, half, strict=True)]
-            ax.fill_between(s["episode"], lo, hi, color=line.get_color(), alpha=0.2)
-    axes[0].set_ylabel("agility [m/step]")
-    axes[1].set_ylabel("safety")
-    for ax in axes:
-        ax.set_xlabel("episode")
-        ax.grid(alpha=0.3)
-        ax.legend()
-    fig.suptitle("MA-PETS, figure-eight, 8 CAVs (mean and 95% CI over seeds)")
-    fig.tight_layout()
-    atomic_savefig(fig, path)
-    plt.close(fig)
 
 
 def main() -> None:
@@ -247,17 +209,19 @@ def main() -> None:
             for seed in args.seeds:
                 for comm_range in args.ranges:
                     train_one(args, observation, comm_range, seed)
-    runs = collect(args.out)
-    if not runs:
+    paths, runs = collect(args.out)
+    if not paths:
         raise SystemExit(f"no finished episodes under {args.out}")
-    summary = summarise(runs)
-    text = table(summary) + "\n" + claims(runs)
+    try:
+        out = compare(paths, args.out, list(METRICS), source="train", group_by=GROUP_BY,
+                      x="episode", legacy_as="train", title="MA-PETS, figure-eight")
+    except ValueError as err:  # e.g. runs of another --cavs or --horizon in the same --out
+        raise SystemExit(f"cannot aggregate the runs under {args.out}: {err}") from None
+    text = table(json.loads(out["curves"].read_text())) + "\n" + claims(runs)
     print(text, end="")
     atomic_write_text(args.out / "table.md", text)
-    atomic_write_text(args.out / "summary.json", json.dumps(summary, indent=1))
-    plot(summary, args.out / "learning_curves.png")
-    print(f"wrote {args.out / 'table.md'}, {args.out / 'summary.json'} and "
-          f"{args.out / 'learning_curves.png'}")
+    print(f"wrote {args.out / 'table.md'}, {out['plot']}, {out['curves']}, {out['summary']} "
+          f"and {out['table']}")
 
 
 if __name__ == "__main__":

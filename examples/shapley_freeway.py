@@ -32,10 +32,10 @@ from mapets_rl.experiment import (  # noqa: E402
     atomic_savefig,
     atomic_write_text,
     latest_checkpoint,
+    load_recipe,
     mean_ci95,
     read_results,
 )
-from recipes._registry import RECIPES, load_recipe  # noqa: E402
 
 ALGORITHMS = ("shapley_ac", "maddpg", "mappo")
 LABELS = {"shapley_ac": "Shapley AC", "maddpg": "MADDPG", "mappo": "MAPPO"}
@@ -43,17 +43,9 @@ LABELS = {"shapley_ac": "Shapley AC", "maddpg": "MADDPG", "mappo": "MAPPO"}
 ON_POLICY_FRAMES_PER_BATCH = 200
 
 
-def _recipe(name: str) -> type:
-    if name == "shapley_ac" and name not in RECIPES:
-        from recipes.shapley_ac import ShapleyAC
-
-        return ShapleyAC
-    return load_recipe(name)
-
-
 def run_one(algo: str, seed: int, args: argparse.Namespace) -> Path:
     """Train (or finish training) one run; returns its run directory."""
-    cls = _recipe(algo)
+    cls = load_recipe(algo)
     run_dir = Path(args.out) / "runs" / f"{algo}_seed{seed}"
     overrides = [f"total_frames={args.frames}"]
     if latest_checkpoint(run_dir) is not None:

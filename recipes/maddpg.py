@@ -6,7 +6,7 @@ config -> env -> modules (actors o_i -> a_i; critic Q_i(o_1..o_I, a_1..a_I) as a
 ``Experiment.train``).
 
 Discrete actions (freeway): the actor outputs logits and a Gumbel-softmax head
-(:class:`~mapets_rl.experiment.multiagent.GumbelSoftmaxHead`) turns them into one-hot actions
+(:class:`~mapets_rl.modules.GumbelSoftmaxHead`) turns them into one-hot actions
 that carry gradients — a hard Gumbel sample at temperature ``gumbel_tau`` while collecting (this
 is the exploration; the Gaussian noise applies to continuous actions only) and the greedy
 one-hot with the straight-through softmax gradient in the actor update and evaluation. This is
@@ -27,24 +27,20 @@ from torchrl.modules import AdditiveGaussianModule, MultiAgentMLP, TanhModule
 from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
 from mapets_rl.experiment import Experiment, ExperimentConfig, check
-from mapets_rl.experiment.multiagent import (
+from mapets_rl.modules import (
     ACTION,
     GROUP,
     LOSS_KEYS,
     MASK,
     OBS,
+    OBS_ACTION,
+    OBS_NORM,
+    Q_VALUE,
     AgentGroupSpec,
     GumbelSoftmaxHead,
+    concat_last,
+    make_obs_norm,
 )
-from recipes.mappo import OBS_NORM, make_obs_norm
-
-OBS_ACTION = (GROUP, "obs_action")
-Q_VALUE = (GROUP, "state_action_value")
-
-
-def concat_last(*tensors: torch.Tensor) -> torch.Tensor:
-    """Concatenate along the last dim ([*, I, obs] + [*, I, act] -> [*, I, obs + act])."""
-    return torch.cat(tensors, dim=-1)
 
 
 @dataclasses.dataclass

@@ -48,9 +48,9 @@ from mapets_rl.comm import CommunicationRange, NeighbourDatasets
 from mapets_rl.envs import figure_eight_collision, figure_eight_reward
 from mapets_rl.envs.figure_eight import OBSERVATIONS
 from mapets_rl.experiment import Experiment, ExperimentConfig, check, log_scalars
-from mapets_rl.experiment.multiagent import AgentGroupSpec, masked_mean
 from mapets_rl.experiment.runner import build_env
 from mapets_rl.models import ProbabilisticEnsemble, train_ensemble
+from mapets_rl.modules import AgentGroupSpec, masked_mean
 from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss
 from mapets_rl.planning import (
     PRESETS,
@@ -518,7 +518,7 @@ class MAPETS(Experiment):
             metrics["step_time"] = act_time / rollout.shape[0]
             self.frames += rollout.shape[0]
             self.counters.episode = episode
-            self.results.add(self.frames, metrics)
+            self.results.add_train(self.frames, metrics)
             log_scalars(self.logger, "train", metrics, self.frames)
             self.latest_metrics = metrics
             self.save_checkpoint()
@@ -529,7 +529,7 @@ class MAPETS(Experiment):
             if on_episode_end is not None:
                 on_episode_end(metrics)
         bar.close()
-        return self.results.evaluations
+        return self.results.train
 
     # ------------------------------------------------------------------ evaluation
     def _eval_episode(self, frames: list[Any] | None) -> TensorDictBase:

@@ -14,35 +14,27 @@ import dataclasses
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
+from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
-from torchrl.modules import MultiAgentMLP, OneHotCategorical, ProbabilisticActor, TanhNormal
+from torchrl.modules import MultiAgentMLP
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.multiagent import IPPOLoss, MAPPOLoss
 
 from mapets_rl.experiment import Experiment, ExperimentConfig, check
-from mapets_rl.experiment.multiagent import (
+from mapets_rl.modules import (
     ACTION,
-    GROUP,
+    LOG_PROB,
     LOSS_KEYS,
     MASK,
     OBS,
+    OBS_NORM,
+    VALUE,
     AgentGroupSpec,
-    RunningObsNorm,
+    make_obs_norm,
+    make_stochastic_policy,
 )
-
-VALUE = (GROUP, "state_value")
-LOG_PROB = (GROUP, "action_log_prob")
-OBS_NORM = (GROUP, "observation_normalized")
-
-
-def make_obs_norm(spec: AgentGroupSpec) -> tuple[RunningObsNorm, TensorDictModule]:
-    """A running observation normaliser and the module writing ``("agents",
-    "observation_normalized")`` [*, I, obs] from ``("agents", "observation")``."""
-    norm = RunningObsNorm(spec.obs_dim)
-    return norm, TensorDictModule(norm, in_keys=[OBS], out_keys=[OBS_NORM])
 
 
 @dataclasses.dataclass
@@ -93,34 +85,6 @@ class MAPPOConfig(ExperimentConfig):
         check(self.max_grad_norm > 0, "max_grad_norm", "> 0", self.max_grad_norm)
         check(len(self.num_cells) >= 1 and min(self.num_cells) >= 1, "num_cells",
               "a non-empty list of positive layer sizes", self.num_cells)
-
-
-def make_stochastic_policy(spec: AgentGroupSpec, num_cells: list[int], share_params: bool,
-                           return_log_prob: bool = True,
-                           obs_norm: TensorDictModule | None = None) -> ProbabilisticActor:
-    """Decentralised stochastic policy: ``("agents","observation")`` [*, I, obs] (through
-    ``obs_norm`` when given) -> ``("agents","action")`` [*, I, act] (TanhNormal within the
-    action bounds, or one-hot categorical [*, I, n]) and its log-probability
-    ``("agents","action_log_prob")`` [*, I]."""
-    obs_key = OBS if obs_norm is None else OBS_NORM
-    n_out = spec.action_dim if spec.discrete else 2 * spec.action_dim
-    mlp = MultiAgentMLP(n_agent_inputs=spec.obs_dim, n_agent_outputs=n_out,
-                        n_agents=spec.n_agents, centralized=False, share_params=share_params,
-                        depth=len(num_cells), num_cells=num_cells, activation_class=nn.Tanh)
-    if spec.discrete:
-        module = TensorDictModule(mlp, in_keys=[obs_key], out_keys=[(GROUP, "logits")])
-        dist_keys, dist_cls, dist_kwargs = [(GROUP, "logits")], OneHotCategorical, {}
-    else:
-        module = TensorDictModule(nn.Sequential(mlp, NormalParamExtractor()),
-                                  in_keys=[obs_key], out_keys=[(GROUP, "loc"), (GROUP, "scale")])
-        dist_keys, dist_cls = [(GROUP, "loc"), (GROUP, "scale")], TanhNormal
-        dist_kwargs = {"low": spec.action_spec.space.low, "high": spec.action_spec.space.high}
-    if obs_norm is not None:
-        module = TensorDictSequential(obs_norm, module)
-    return ProbabilisticActor(module, in_keys=dist_keys, out_keys=[ACTION],
-                              spec=spec.action_spec, distribution_class=dist_cls,
-                              distribution_kwargs=dist_kwargs, return_log_prob=return_log_prob,
-                              log_prob_key=LOG_PROB)
 
 
 class MAPPO(Experiment):

@@ -22,11 +22,20 @@ from torchrl.modules import MultiAgentMLP
 from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate, ValueEstimators
 
 from mapets_rl.experiment import Experiment, ExperimentConfig, check
-from mapets_rl.experiment.multiagent import ACTION, GROUP, LOSS_KEYS, MASK, OBS, AgentGroupSpec
-from recipes.maddpg import OBS_ACTION, Q_VALUE, concat_last
-from recipes.mappo import OBS_NORM, make_obs_norm, make_stochastic_policy
-
-ACTION_VALUE = (GROUP, "action_value")
+from mapets_rl.modules import (
+    ACTION,
+    ACTION_VALUE,
+    LOSS_KEYS,
+    MASK,
+    OBS,
+    OBS_ACTION,
+    OBS_NORM,
+    Q_VALUE,
+    AgentGroupSpec,
+    concat_last,
+    make_obs_norm,
+    make_stochastic_policy,
+)
 
 
 @dataclasses.dataclass

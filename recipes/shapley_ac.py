@@ -30,7 +30,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SoftUpdate
 
 from mapets_rl.experiment import Experiment, ExperimentConfig, check
-from mapets_rl.experiment.multiagent import AgentGroupSpec, GumbelSoftmaxHead
+from mapets_rl.modules import AgentGroupSpec, GumbelSoftmaxHead
 from mapets_rl.objectives import ShapleyActorCriticLoss
 from mapets_rl.shapley import CoalitionCritic, RandomCoalition, make_coalition_actor
 

@@ -22,7 +22,6 @@ from mapets_rl.experiment import register_env
 from mapets_rl.experiment.cli import main
 from mapets_rl.experiment.runner import _ENV_REGISTRY
 from mapets_rl.shapley import exact_shapley, sampled_shapley
-from recipes import _registry
 from recipes.maddpg import MADDPGConfig
 from recipes.mapets import MAPETSConfig
 from recipes.mappo import MAPPOConfig
@@ -108,11 +107,6 @@ def test_missing_config_file_is_one_line() -> None:
 
 
 # -------------------------------------------------------------------------------- the CLI
-@pytest.fixture
-def toy_recipe(monkeypatch):
-    monkeypatch.setitem(_registry.RECIPES, "toy", "test_experiment:ToyLearner")
-
-
 @pytest.fixture
 def a_file(tmp_path: Path) -> Path:
     path = tmp_path / "a_file"

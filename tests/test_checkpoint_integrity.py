@@ -31,14 +31,8 @@ from mapets_rl.experiment import (
     save_checkpoint,
 )
 from mapets_rl.experiment.cli import main
-from recipes import _registry
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture
-def toy_recipe(monkeypatch):
-    monkeypatch.setitem(_registry.RECIPES, "toy", "test_experiment:ToyLearner")
 
 
 def _run(argv: list[str], capsys) -> tuple[int, str, str]:

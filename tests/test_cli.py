@@ -13,16 +13,8 @@ import pytest
 
 from mapets_rl.experiment import read_results
 from mapets_rl.experiment.cli import main
-from recipes import _registry
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture
-def toy_recipe(monkeypatch):
-    import test_experiment  # noqa: F401  (registers the "toy" scenario)
-
-    monkeypatch.setitem(_registry.RECIPES, "toy", "test_experiment:ToyLearner")
 
 
 def _run(argv, capsys) -> tuple[int, str, str]:

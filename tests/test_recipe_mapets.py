@@ -49,7 +49,7 @@ def test_two_episodes_write_metrics_and_checkpoint(two_episodes):
     assert [m["random"] for m in seen] == [1.0, 0.0]  # episode 1 random, then the planner
     results = json.loads((run_dir / "results.json").read_text())
     assert results["recipe"] == "mapets"
-    entries = results["evaluations"]
+    entries = results["train"]
     assert [e["metrics"]["episode"] for e in entries] == [1.0, 2.0]
     frames = [e["frames"] for e in entries]
     assert frames[0] == entries[0]["metrics"]["length"] and frames[1] > frames[0]
@@ -81,12 +81,12 @@ def test_resume_continues_at_episode_3_like_an_uninterrupted_run(two_episodes, t
     seen = []
     resumed.train(on_episode_end=seen.append)
     assert [m["episode"] for m in seen] == [3.0]
-    entries = json.loads((run_dir / "results.json").read_text())["evaluations"]
+    entries = json.loads((run_dir / "results.json").read_text())["train"]
     assert [e["metrics"]["episode"] for e in entries] == [1.0, 2.0, 3.0]
 
     straight = MAPETS(tiny(episodes=3, seed=3), tmp_path / "straight")
     straight.train()
-    ref = straight.results.evaluations
+    ref = straight.results.train
     for key in ("agility", "safety", "reward", "transitions_shared", "model_nll"):
         assert entries[2]["metrics"][key] == pytest.approx(ref[2]["metrics"][key], rel=1e-5)
     for a, b in zip(resumed.model.parameters(), straight.model.parameters(), strict=True):

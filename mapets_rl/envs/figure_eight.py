@@ -1,4 +1,4 @@
-"""Figure-eight scenario (MA-PETS paper; SPEC section 2a).
+"""Figure-eight scenario (MA-PETS paper, Wen et al., sec. VI: SMARTS unprotected intersection).
 
 CAVs (learning agents) and human-driven vehicles (IDM/MOBIL with a first-come-first-served
 crossing rule) share a ~480 m figure-eight loop whose two straights cross at one unsignalised

@@ -1,4 +1,4 @@
-"""Freeway scenario (Shapley reallocation paper; SPEC section 2b).
+"""Freeway scenario (Shapley reward-reallocation paper, Han et al.; CARLA Town05 freeway).
 
 A straight 3-lane freeway (highway-env ``StraightLane``s) with ``n_vehicles`` vehicles, of which
 ``round(cav_ratio * n_vehicles)`` are CAVs (learning agents) and the rest highway-env IDM/MOBIL

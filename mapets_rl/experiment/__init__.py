@@ -27,18 +27,29 @@ How a recipe plugs in
    Everything else is inherited: ``train()`` (the loop: collect, ``train_step``, log, evaluate
    every ``eval_interval`` frames, checkpoint every ``checkpoint_interval`` frames),
    ``evaluate(episodes, video)``, ``state_dict()`` / ``load_state_dict()`` (components +
-   counters + evaluations + python/numpy/torch RNG states), ``from_run_dir(run_dir)``
+   counters + results entries + python/numpy/torch RNG states), ``from_run_dir(run_dir)``
    (resume / evaluate a saved run). Override ``episode_metrics`` / ``batch_metrics`` only to
    add metrics.
-4. Register it for the CLI with one line in ``recipes/_registry.py``:
-   ``"myalgo": "recipes.myalgo:MyAlgo"``.
+   A recipe with its own loop (MA-PETS) records its training episodes with
+   ``self.results.add_train(frames, metrics)`` and deterministic evaluations with
+   ``self.results.add_evaluation(frames, metrics)``; ``compare`` never mixes the two.
+4. Register it for the CLI with an entry point in the ``pyproject.toml`` of the package that
+   holds it (then reinstall it, ``pip install -e .``)::
+
+       [project.entry-points."mapets_rl.recipes"]
+       myalgo = "mypackage.myalgo:MyAlgo"
+
+   ``mapets-rl train myalgo``, ``resume`` and ``evaluate`` (which find the recipe by the name
+   in ``run.json``) then load it; :func:`load_recipe` does the same in Python.
 
 A recipe whose data flow does not fit a collector (none of ours) can still satisfy the CLI's
 protocol directly: ``Config``, ``__init__(config, run_dir)``, ``train()``,
 ``evaluate(episodes, video)``, ``state_dict()`` / ``load_state_dict()`` and ``from_run_dir``.
 
 Run directory layout: ``config.yaml`` (resolved config), ``run.json`` (recipe, scenario, seed),
-``results.json`` (per evaluation: frames and metrics; read by :func:`compare`),
+``results.json`` (frames and metrics of every deterministic evaluation under
+``evaluations`` and of training entries, e.g. MA-PETS's episodes, under ``train``; read by
+:func:`read_results` and :func:`compare`),
 ``checkpoints/ckpt_<frames>.pt`` (atomic, the newest ``keep_last``, each with its SHA-256 digest
 ``ckpt_<frames>.pt.sha256``), ``logs/`` (torchrl logger), ``videos/`` (GIFs when
 ``video=true``). Every file is written atomically with the same permissions.
@@ -50,7 +61,14 @@ the newest one that verifies; a resume that fails (bad override, no usable check
 the run directory as it was.
 
 Custom scenarios: ``register_env("name", factory)`` makes ``factory(**env_config)`` available
-to every recipe and to ``--env name`` (replacing an existing scenario needs ``overwrite=True``).
+to every recipe and to ``--env name`` in this process (replacing an existing scenario needs
+``overwrite=True``); an entry point ``name = "mypackage.roads:factory"`` in the group
+``mapets_rl.scenarios`` makes it available to every process, ``mapets-rl`` and ``resume``
+included (see :mod:`mapets_rl.experiment.plugins`).
+
+The building blocks recipes share (keys of the ``"agents"`` group, ``AgentGroupSpec``,
+observation normalisation, one-hot action heads, ...) live in :mod:`mapets_rl.modules`; recipes
+import them from there, never from each other.
 """
 
 import importlib
@@ -82,6 +100,7 @@ if TYPE_CHECKING:
         atomic_write_text,
         check,
     )
+    from mapets_rl.experiment.plugins import available_recipes, load_recipe
     from mapets_rl.experiment.results import (
         ResultsWriter,
         log_scalars,
@@ -111,6 +130,7 @@ _EXPORTS = {
     "atomic_write": "config",
     "atomic_write_text": "config",
     "available_envs": "runner",
+    "available_recipes": "plugins",
     "build_env": "runner",
     "check": "config",
     "compare": "comparison",
@@ -121,6 +141,7 @@ _EXPORTS = {
     "list_checkpoints": "checkpoint",
     "load_checkpoint": "checkpoint",
     "load_latest_checkpoint": "checkpoint",
+    "load_recipe": "plugins",
     "log_scalars": "results",
     "make_logger": "results",
     "mean_ci95": "comparison",
@@ -161,6 +182,7 @@ __all__ = [
     "atomic_write",
     "atomic_write_text",
     "available_envs",
+    "available_recipes",
     "build_env",
     "check",
     "compare",
@@ -171,6 +193,7 @@ __all__ = [
     "list_checkpoints",
     "load_checkpoint",
     "load_latest_checkpoint",
+    "load_recipe",
     "log_scalars",
     "make_logger",
     "mean_ci95",

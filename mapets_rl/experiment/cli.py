@@ -1,9 +1,16 @@
 """``mapets-rl``: train, resume, evaluate and compare recipes from the command line.
 
     mapets-rl train RECIPE --env SCENARIO [--seed N] [--config FILE] [--run-dir DIR] [key=value ...]
+    mapets-rl train RECIPE --help          (RECIPE's config fields, their types and defaults)
     mapets-rl resume RUN_DIR [key=value ...]
     mapets-rl evaluate RUN_DIR [--episodes N] [--video]
-    mapets-rl compare RUN_DIR... --out DIR [--metrics a,b,...]
+    mapets-rl compare RUN_DIR... --out DIR [--metrics a,b,...] [--source eval|train]
+                      [--group-by FIELD[,FIELD...]] [--x frames|METRIC] [--allow-mixed-env]
+                      [--legacy-as eval|train]
+
+Recipes are found by name among the entry points of the group ``mapets_rl.recipes`` of the
+installed packages (see :mod:`mapets_rl.experiment.plugins`); nothing is imported until a
+command needs it, so ``--help`` stays fast.
 
 Errors in what the user typed (unknown recipe, scenario or config key, a bad value, an unusable
 run directory or checkpoint) print one line ``mapets-rl: error: ...`` and exit with code 2;
@@ -59,9 +66,18 @@ def _overrides(items: Sequence[str]) -> list[str]:
     return list(items)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from recipes._registry import RECIPES
+def _recipe_names() -> str:
+    """The installed recipes for help texts (names only: nothing is imported)."""
+    from mapets_rl.experiment.plugins import available_recipes
 
+    try:
+        names = available_recipes()
+    except ValueError as err:  # a name declared twice: `train` reports it
+        return f"(the installed recipes clash: {err})"
+    return f"one of {', '.join(names)}" if names else "(none installed: pip install -e .)"
+
+
+def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog=PROG, description="Multi-agent RL for connected autonomous vehicles: "
                      "train, resume, evaluate and compare recipes.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -69,13 +85,13 @@ def build_parser() -> argparse.ArgumentParser:
     train = sub.add_parser(
         "train", help="train a recipe on a scenario",
         description="Train RECIPE on SCENARIO. The run directory receives config.yaml (the "
-        "resolved config), results.json (per-evaluation metrics), checkpoints/ and logs/.",
+        "resolved config), results.json (metrics of every evaluation, and of training episodes for "
+        "recipes that record them), checkpoints/ and logs/.",
         epilog="Any config field can be set as key=value (value parsed as YAML), e.g. "
         "total_frames=30000 lr=3e-4 env_config.n_cavs=8 logger=tensorboard video=true. "
-        "`python -c 'from recipes.mappo import MAPPOConfig; help(MAPPOConfig)'` lists a "
-        "recipe's fields.")
-    train.add_argument("recipe", metavar="RECIPE",
-                       help=f"algorithm: one of {', '.join(sorted(RECIPES))}")
+        "`mapets-rl train RECIPE --help` lists RECIPE's fields with their defaults. "
+        "Recipes are the installed packages' entry points of the group mapets_rl.recipes.")
+    train.add_argument("recipe", metavar="RECIPE", help=f"algorithm: {_recipe_names()}")
     train.add_argument("--env", required=True, metavar="SCENARIO",
                        help="scenario name, e.g. figure-eight, figure-eight-multilane, freeway")
     train.add_argument("--seed", type=int, default=None, metavar="N",
@@ -110,25 +126,42 @@ def build_parser() -> argparse.ArgumentParser:
 
     compare = sub.add_parser(
         "compare", help="learning curves and a final-metrics table over runs",
-        description="Group RUN_DIRs by recipe (and scenario), plot mean learning curves with a "
-        "95%% Student-t confidence band over seeds (learning_curves.png) and write a markdown "
-        "table of final metrics (final_metrics.md) and summary.json into --out.")
+        description="Group RUN_DIRs by recipe (and --group-by fields), plot mean learning "
+        "curves with a 95%% Student-t confidence band over the runs of each group "
+        "(learning_curves.png) and write a markdown table of final metrics (final_metrics.md), "
+        "summary.json and curves.json into --out. Runs on different scenarios (env or "
+        "env_config) are refused unless --allow-mixed-env.")
     compare.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="run directories")
     compare.add_argument("--out", required=True, metavar="DIR", help="output directory")
     compare.add_argument("--metrics", default=None, metavar="a,b,...",
                          help="comma-separated metrics to show (default: all common ones)")
+    compare.add_argument("--source", choices=["eval", "train"], default="eval",
+                         help="eval (default): deterministic evaluations; a run without any "
+                         "(e.g. mapets) falls back to its training entries, with a note. "
+                         "train: training entries (e.g. mapets's episodes)")
+    compare.add_argument("--group-by", default=None, metavar="FIELD[,FIELD...]",
+                         help="config fields (dotted for nested ones, e.g. comm_range or "
+                         "env_config.observation) whose values split each recipe's runs into "
+                         "groups, e.g. one curve per communication range")
+    compare.add_argument("--x", default="frames", metavar="NAME",
+                         help="x axis: frames (default) or a metric numbering the entries, "
+                         "e.g. episode (mapets's episodes differ in length)")
+    compare.add_argument("--allow-mixed-env", action="store_true",
+                         help="compare runs on different scenarios (env or env_config), each "
+                         "group labelled with its scenario, instead of refusing them")
+    compare.add_argument("--legacy-as", choices=["eval", "train"], default="eval",
+                         help="what the entries of a results.json from before training and "
+                         "evaluation entries were kept apart are (old mapets runs: train)")
     return parser
 
 
 def _recipe_class(name: str) -> type:
-    from recipes._registry import load_recipe
+    from mapets_rl.experiment.plugins import load_recipe
 
     try:
         return load_recipe(name)
     except ValueError as err:
         _fail(str(err))
-    except ImportError as err:
-        _fail(f"recipe {name!r} cannot be imported: {err}")
 
 
 def _check_env(name: str) -> None:
@@ -212,8 +245,15 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         metrics = [m.strip() for m in args.metrics.split(",") if m.strip()]
         if not metrics:
             _fail(f"--metrics must name at least one metric (a,b,...), got {args.metrics!r}")
+    group_by = None
+    if args.group_by is not None:
+        group_by = [f.strip() for f in args.group_by.split(",") if f.strip()]
+        if not group_by:
+            _fail(f"--group-by must name at least one config field, got {args.group_by!r}")
     try:
-        out = compare(args.run_dirs, args.out, metrics)
+        out = compare(args.run_dirs, args.out, metrics, source=args.source, group_by=group_by,
+                      x=args.x, allow_mixed_env=args.allow_mixed_env,
+                      legacy_as=args.legacy_as)
     except ValueError as err:
         _fail(str(err))
     print(out["table"].read_text(), end="")
@@ -221,8 +261,38 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def _recipe_help(name: str) -> str:
+    """Help of ``mapets-rl train RECIPE --help``: RECIPE's config documentation and every
+    field with its type and default (imports the recipe)."""
+    import dataclasses
+    import inspect
+    import typing
+
+    config_cls = _recipe_class(name).Config
+    hints = typing.get_type_hints(config_cls)
+    lines = [f"usage: {PROG} train {name} --env SCENARIO [--seed N] [--config FILE] "
+             "[--run-dir DIR] [key=value ...]", "", inspect.getdoc(config_cls) or "", "",
+             f"fields of {config_cls.__name__} (set as key=value; values parsed as YAML):"]
+    for f in dataclasses.fields(config_cls):
+        if f.default is not dataclasses.MISSING:
+            default = repr(f.default)
+        elif f.default_factory is not dataclasses.MISSING:
+            default = repr(f.default_factory())
+        else:
+            default = "(required)"
+        tp = hints[f.name]
+        type_name = tp.__name__ if isinstance(tp, type) else str(tp).replace("typing.", "")
+        lines.append(f"  {f.name}: {type_name} = {default}")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``mapets-rl`` console script."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if (len(argv) >= 3 and argv[0] == "train" and not argv[1].startswith("-")
+            and {"-h", "--help"} & set(argv[2:])):
+        sys.stdout.write(_recipe_help(argv[1]))
+        return 0
     parser = build_parser()
     # key=value overrides may follow options (argparse does not intermix positionals)
     args, extra = parser.parse_known_args(argv)

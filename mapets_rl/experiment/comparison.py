@@ -1,14 +1,29 @@
 """Compare runs: learning curves (mean and 95% confidence band over seeds) and a final-metrics
-markdown table, from the ``results.json`` of each run directory."""
+markdown table, from the ``results.json`` of each run directory.
+
+A comparison says what it compares and refuses what would mislead:
+
+- *what is plotted*: deterministic evaluations (``source="eval"``, the default) or training
+  entries (``source="train"``, e.g. MA-PETS's training episodes), never a mix without a word:
+  a run without evaluations falls back to its training entries with a logged note and its group
+  is marked ``(train)``; the table and the plot title name the source;
+- *on what*: runs whose scenario (``env``) or scenario config (``env_config``) differ are
+  refused unless ``allow_mixed_env`` (then each group is labelled with its scenario and a
+  warning is logged), except the keys that ``group_by`` names;
+- *grouped how*: by recipe, plus the values of the config fields in ``group_by`` (e.g. a sweep
+  over ``comm_range``), each group a mean and 95% band over its runs (seeds).
+"""
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
-from collections import defaultdict
-from collections.abc import Sequence
+import textwrap
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -18,7 +33,11 @@ from mapets_rl.experiment.config import (
     check_writable_dir,
     make_writable_dir,
 )
-from mapets_rl.experiment.results import read_results
+from mapets_rl.experiment.results import ENTRY_LISTS, SOURCES, read_results
+
+log = logging.getLogger(__name__)
+
+SOURCE_NAMES = {"eval": "deterministic evaluations", "train": "training entries"}
 
 
 def student_t_quantile(p: float, df: int) -> float:
@@ -59,45 +78,180 @@ def mean_ci95(values: Sequence[float]) -> tuple[float, float]:
     return float(x.mean()), float(half)
 
 
-def _label(res: dict, multi_env: bool) -> str:
-    return f"{res['recipe']} ({res['env']})" if multi_env else res["recipe"]
+def mean_std_ci95(values: Sequence[float]) -> tuple[float, float, float]:
+    """Mean, sample standard deviation (ddof 1; 0 for one value) and the 95% Student-t
+    half-width (0 for one value)."""
+    mean, half = mean_ci95(values)
+    std = float(np.std(np.asarray(values, dtype=float), ddof=1)) if len(values) > 1 else 0.0
+    return mean, std, half
+
+
+def _fmt(value: Any) -> str:
+    """A config value for a label: numbers as ``%g``, strings as they are, others as JSON."""
+    if isinstance(value, bool) or value is None:
+        return json.dumps(value)
+    if isinstance(value, (int, float)):
+        return f"{value:g}"
+    return value if isinstance(value, str) else json.dumps(value, sort_keys=True)
+
+
+def _config_field(res: Mapping[str, Any], field: str, run: str) -> Any:
+    """Value of the dotted config ``field`` (e.g. ``env_config.observation``) of a run."""
+    value: Any = res.get("config", {})
+    for part in field.split("."):
+        if not isinstance(value, Mapping) or part not in value:
+            raise ValueError(f"group_by field {field!r} is not in the config of run_dir "
+                             f"{run!r}")
+        value = value[part]
+    return value
+
+
+def _scenario(res: Mapping[str, Any]) -> dict[str, str]:
+    """``{"env": name, "env_config.<key>": value as JSON}`` of a run."""
+    env_config = res.get("config", {}).get("env_config") or {}
+    out = {"env": json.dumps(res["env"])}
+    out.update({f"env_config.{k}": json.dumps(v, sort_keys=True) for k, v in env_config.items()})
+    return out
+
+
+def _scenario_differences(runs: Sequence[str], results: Sequence[Mapping[str, Any]],
+                          group_by: Sequence[str]) -> dict[str, dict[str, list[str]]]:
+    """Scenario keys whose values differ between runs -> {value: [runs]}; the keys that
+    ``group_by`` names (``env``, ``env_config`` or ``env_config.<key>``) are exempt."""
+    scenarios = [_scenario(res) for res in results]
+    keys = sorted(set().union(*scenarios))
+    exempt = [k for k in keys
+              if any(k == f or k.startswith(f + ".") for f in group_by)]
+    diffs: dict[str, dict[str, list[str]]] = {}
+    for key in keys:
+        if key in exempt:
+            continue
+        by_value: dict[str, list[str]] = {}
+        for run, scenario in zip(runs, scenarios, strict=True):
+            by_value.setdefault(scenario.get(key, "unset"), []).append(run)
+        if len(by_value) > 1:
+            diffs[key] = by_value
+    return diffs
+
+
+def _describe(diffs: Mapping[str, Mapping[str, list[str]]]) -> str:
+    return "; ".join(f"{key}: " + " vs ".join(f"{value} ({', '.join(runs)})"
+                                              for value, runs in by_value.items())
+                     for key, by_value in diffs.items())
 
 
 def compare(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike,
-            metrics: Sequence[str] | None = None) -> dict[str, Path]:
-    """Group runs by recipe (and scenario when several), and write to ``out_dir``:
+            metrics: Sequence[str] | None = None, *, source: str = "eval",
+            group_by: Sequence[str] | str | None = None, x: str = "frames",
+            allow_mixed_env: bool = False, legacy_as: str = "eval",
+            title: str | None = None) -> dict[str, Path]:
+    """Group runs by recipe (and the values of ``group_by`` fields), and write to ``out_dir``:
 
-    - ``learning_curves.png``: one panel per metric, x = environment frames, the mean over
-      seeds with a shaded 95% Student-t confidence band (at evaluation frames every seed of
-      the group reached);
-    - ``final_metrics.md``: markdown table of the last evaluation, ``mean ± half-width (n=seeds)``;
-    - ``summary.json``: the same numbers, machine-readable.
+    - ``learning_curves.png``: one panel per metric against ``x``, the mean over the group's
+      runs with a shaded 95% Student-t confidence band, at the ``x`` values every run of the
+      group reached; the title names the source;
+    - ``final_metrics.md``: markdown table of each run's last entry, ``mean ± half-width
+      (n=runs)``, with the source of every group;
+    - ``summary.json``: those numbers, ``{group: {metric: {"mean", "ci95", "n", "frames",
+      "source"}}}``;
+    - ``curves.json``: ``{"source": the requested source, "x": x, "groups": {group: ...}}``,
+      per group its recipe, ``group_by`` values, scenario, source, runs and, at every ``x``
+      value any of its runs reached (``x``, ``n`` runs), ``mean`` / ``std`` / ``ci95`` of
+      every metric.
 
     Args:
         run_dirs: run directories, each holding ``results.json``.
         out_dir: output directory (created).
-        metrics: metric names to show (default: every metric present in all runs); when
-            given, at least one.
+        metrics: metric names to show (default: every metric present in all compared
+            entries); when given, at least one.
+        source: ``"eval"``: deterministic evaluations; a run without any (e.g. MA-PETS, which
+            records training episodes) falls back to its training entries, with a logged note,
+            and its group is marked ``(train)``. ``"train"``: training entries, every run must
+            have some.
+        group_by: config fields (dotted for nested ones, e.g. ``"comm_range"``,
+            ``"env_config.observation"``) whose values split each recipe's runs into groups.
+        x: the x axis: ``"frames"`` (environment frames) or a metric of every entry that
+            numbers the entries, e.g. ``"episode"`` (runs whose episodes differ in length
+            share episodes, not frames).
+        allow_mixed_env: compare runs whose ``env`` or ``env_config`` differ (beyond the
+            ``group_by`` fields): a warning is logged and each group is labelled with its
+            scenario. Without it such runs are refused.
+        legacy_as: where the entries of a results file from before training and evaluation
+            entries were kept apart go (``"eval"`` or ``"train"``; see :func:`read_results`);
+            such runs are named in a logged note.
+        title: prefix of the plot title (e.g. the experiment's name).
     Returns:
-        ``{"plot": Path, "table": Path, "summary": Path}``.
+        ``{"plot": Path, "table": Path, "summary": Path, "curves": Path}``.
     Raises:
         ValueError: one line, before anything is written, when a run has no usable results,
-            a metric is unknown, ``metrics`` is empty or ``out_dir`` cannot be written.
+            runs of different scenarios are mixed without ``allow_mixed_env``, a ``group_by``
+            field or the ``x`` metric is missing, a metric is unknown, ``metrics`` is empty, an
+            option is not one of its choices or ``out_dir`` cannot be written.
     """
     if not run_dirs:
         raise ValueError("run_dirs must name at least one run directory")
     if metrics is not None and not list(metrics):
         raise ValueError("metrics must name at least one metric (or None for all common ones)")
+    if source not in SOURCES:
+        raise ValueError(f"source must be one of {list(SOURCES)}, got {source!r}")
+    fields = [group_by] if isinstance(group_by, str) else list(group_by or [])
+    if any(not f or not isinstance(f, str) for f in fields):
+        raise ValueError(f"group_by must name config fields, got {group_by!r}")
     check_writable_dir(out_dir, "out_dir")
-    results = [read_results(d) for d in run_dirs]
-    for d, res in zip(run_dirs, results, strict=True):
-        if not res["evaluations"]:
-            raise ValueError(f"run_dir {str(d)!r} has no evaluations yet")
-    multi_env = len({r["env"] for r in results}) > 1
-    groups: dict[str, list[dict]] = defaultdict(list)
-    for res in results:
-        groups[_label(res, multi_env)].append(res)
-    common = set.intersection(*(set(e["metrics"]) for r in results for e in r["evaluations"]))
+    runs = [str(d) for d in run_dirs]
+    results = [read_results(d, legacy_as=legacy_as) for d in run_dirs]
+
+    # what each run contributes
+    sources: list[str] = []
+    fallback = []
+    for run, res in zip(runs, results, strict=True):
+        if res[ENTRY_LISTS[source]]:
+            sources.append(source)
+        elif source == "train":
+            raise ValueError(f"run_dir {run!r} has no training entries (its recipe records "
+                             "only evaluations); compare its evaluations (source 'eval')")
+        elif res["train"]:
+            sources.append("train")
+            fallback.append(run)
+        else:
+            raise ValueError(f"run_dir {run!r} has no evaluations yet")
+    legacy = [run for run, res in zip(runs, results, strict=True) if res["legacy"]]
+
+    # on what: one scenario unless told otherwise
+    diffs = _scenario_differences(runs, results, fields)
+    if diffs and not allow_mixed_env:
+        raise ValueError(f"the runs are on different scenarios ({_describe(diffs)}); pass "
+                         "allow_mixed_env=True (--allow-mixed-env) to compare them anyway, "
+                         "or group_by the differing keys")
+
+    # groups: recipe + group_by values (+ scenario when mixed, + source when mixed)
+    mixed_sources = len(set(sources)) > 1
+    groups: dict[str, dict[str, Any]] = {}
+    for run, res, src in zip(runs, results, sources, strict=True):
+        values = {f: _config_field(res, f, run) for f in fields}
+        label = " ".join([res["recipe"], *(f"{f}={_fmt(v)}" for f, v in values.items())])
+        if diffs:
+            scenario = _scenario(res)
+            parts = [_fmt(json.loads(scenario[k])) if k == "env"
+                     else f"{k.removeprefix('env_config.')}="
+                     + (_fmt(json.loads(scenario[k])) if k in scenario else "unset")
+                     for k in diffs]
+            label += f" [{', '.join(parts)}]"
+        if mixed_sources:
+            label += f" ({src})"
+        group = groups.setdefault(label, {"recipe": res["recipe"], "group": values,
+                                          "env": res["env"], "source": src, "runs": [],
+                                          "entries": []})
+        group["runs"].append(run)
+        group["entries"].append(res[ENTRY_LISTS[src]])
+
+    all_entries = [e for g in groups.values() for entries in g["entries"] for e in entries]
+    common = set.intersection(*(set(e["metrics"]) for e in all_entries))
+    if x != "frames":
+        if x not in common:
+            raise ValueError(f"x {x!r} is not a metric of every compared entry (common "
+                             f"metrics: {sorted(common)}); use 'frames' or one of those")
+        common.discard(x)
     if metrics is None:
         metrics = sorted(common)
         if not metrics:
@@ -107,31 +261,70 @@ def compare(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike,
         raise ValueError(f"metrics {unknown} are not in every run (available: {sorted(common)})")
 
     out_dir = make_writable_dir(out_dir, "out_dir")
-    summary: dict[str, dict[str, dict[str, float]]] = {}
-    for label, runs in groups.items():
+    if legacy:
+        log.warning("%s: results.json predates the split of training and evaluation entries; "
+                    "its entries are read as %s (legacy_as=%r)", ", ".join(legacy),
+                    SOURCE_NAMES[legacy_as], legacy_as)
+    if fallback:
+        log.warning("%s: no evaluations; comparing their training entries instead%s",
+                    ", ".join(fallback), " (groups marked (train))" if mixed_sources else "")
+    if diffs:
+        log.warning("comparing runs on different scenarios (%s); each group is labelled with "
+                    "its scenario", _describe(diffs))
+    summary: dict[str, dict[str, dict[str, Any]]] = {}
+    curves: dict[str, Any] = {"source": source, "x": x, "groups": {}}
+    for label, group in groups.items():
+        last = [entries[-1] for entries in group["entries"]]
         summary[label] = {}
         for m in metrics:
-            mean, half = mean_ci95([r["evaluations"][-1]["metrics"][m] for r in runs])
-            summary[label][m] = {"mean": mean, "ci95": half, "n": len(runs),
-                                 "frames": min(r["evaluations"][-1]["frames"] for r in runs)}
+            mean, half = mean_ci95([e["metrics"][m] for e in last])
+            summary[label][m] = {"mean": mean, "ci95": half, "n": len(last),
+                                 "frames": min(e["frames"] for e in last),
+                                 "source": group["source"]}
+        by_x = [{_x_value(e, x): e["metrics"] for e in entries} for entries in group["entries"]]
+        xs = sorted(set().union(*by_x))
+        stats: dict[str, dict[str, list[float]]] = {}
+        for m in metrics:
+            rows = [mean_std_ci95([bx[v][m] for bx in by_x if v in bx]) for v in xs]
+            stats[m] = {"mean": [r[0] for r in rows], "std": [r[1] for r in rows],
+                        "ci95": [r[2] for r in rows]}
+        curves["groups"][label] = {
+            "recipe": group["recipe"], "group": group["group"], "env": group["env"],
+            "source": group["source"], "runs": group["runs"], "x": xs,
+            "n": [sum(v in bx for bx in by_x) for v in xs], "metrics": stats}
 
+    described = (SOURCE_NAMES[sources[0]] if not mixed_sources else
+                 f"{SOURCE_NAMES['eval']}, training entries for the groups marked (train)")
     plot = out_dir / "learning_curves.png"
-    _plot(groups, metrics, plot)
+    _plot(curves["groups"], metrics, x, plot,
+          f"{title}: {described}" if title else described)
     table = out_dir / "final_metrics.md"
-    header = "| recipe | frames | " + " | ".join(metrics) + " |"
-    lines = [header, "|" + "---|" * (len(metrics) + 2)]
+    lines = [f"Last entry of each run: {described}; mean ± 95% CI half-width (n = runs).", "",
+             "| group | source | frames | " + " | ".join(metrics) + " |",
+             "|" + "---|" * (len(metrics) + 3)]
     for label, row in summary.items():
         cells = [f"{row[m]['mean']:.4g} ± {row[m]['ci95']:.2g} (n={row[m]['n']})"
                  for m in metrics]
-        frames = row[metrics[0]]["frames"] if metrics else 0
-        lines.append(f"| {label} | {frames} | " + " | ".join(cells) + " |")
+        first = row[metrics[0]]
+        lines.append(f"| {label} | {SOURCE_NAMES[first['source']]} | {first['frames']} | "
+                     + " | ".join(cells) + " |")
     atomic_write_text(table, "\n".join(lines) + "\n")
     summary_path = out_dir / "summary.json"
     atomic_write_text(summary_path, json.dumps(summary, indent=1))
-    return {"plot": plot, "table": table, "summary": summary_path}
+    curves_path = out_dir / "curves.json"
+    atomic_write_text(curves_path, json.dumps(curves, indent=1))
+    return {"plot": plot, "table": table, "summary": summary_path, "curves": curves_path}
 
 
-def _plot(groups: dict[str, list[dict]], metrics: Sequence[str], path: Path) -> None:
+def _x_value(entry: Mapping[str, Any], x: str) -> float:
+    """The x of an entry: its frames, or its metric ``x``."""
+    return entry["frames"] if x == "frames" else entry["metrics"][x]
+
+
+def _plot(groups: Mapping[str, Mapping[str, Any]], metrics: Sequence[str], x: str, path: Path,
+          title: str) -> None:
+    """One panel per metric: every group's mean and 95% band at the x values all its runs
+    reached (a group whose runs share none is left out, with a logged note)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -140,25 +333,31 @@ def _plot(groups: dict[str, list[dict]], metrics: Sequence[str], path: Path) -> 
     n = max(len(metrics), 1)
     cols = min(n, 3)
     rows = math.ceil(n / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.6 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.6 * rows + 0.5), squeeze=False,
+                             layout="constrained")
+    for label, group in groups.items():
+        full = [i for i, count in enumerate(group["n"]) if count == len(group["runs"])]
+        if not full:
+            log.warning("group %r: its runs share no %s value, so its curve is not drawn (runs "
+                        "whose episodes differ in length share episodes, not frames: plot "
+                        "against a metric that numbers them, e.g. x='episode')", label, x)
     for ax, m in zip(list(axes.flat)[:n], metrics, strict=False):
-        for label, runs in groups.items():
-            frames = sorted(set.intersection(*({e["frames"] for e in r["evaluations"]}
-                                               for r in runs)))
-            if not frames:
+        for label, group in groups.items():
+            full = [i for i, count in enumerate(group["n"]) if count == len(group["runs"])]
+            if not full:
                 continue
-            by_frame = [{e["frames"]: e["metrics"][m] for e in r["evaluations"]} for r in runs]
-            stats = [mean_ci95([bf[f] for bf in by_frame]) for f in frames]
-            mean = np.array([s[0] for s in stats])
-            half = np.array([s[1] for s in stats])
-            (line,) = ax.plot(frames, mean, marker="o", ms=3, label=f"{label} (n={len(runs)})")
-            ax.fill_between(frames, mean - half, mean + half, alpha=0.2, color=line.get_color())
+            xs = [group["x"][i] for i in full]
+            mean = np.array([group["metrics"][m]["mean"][i] for i in full])
+            half = np.array([group["metrics"][m]["ci95"][i] for i in full])
+            (line,) = ax.plot(xs, mean, marker="o", ms=3,
+                              label=f"{label} (n={len(group['runs'])})")
+            ax.fill_between(xs, mean - half, mean + half, alpha=0.2, color=line.get_color())
         ax.set_title(m)
-        ax.set_xlabel("environment frames")
+        ax.set_xlabel("environment frames" if x == "frames" else x)
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[n:]:
         ax.set_visible(False)
     axes.flat[0].legend(fontsize=8)
-    fig.tight_layout()
+    fig.suptitle(textwrap.fill(f"{title}: mean and 95% CI over runs", 55 * cols), fontsize=10)
     atomic_savefig(fig, path, dpi=110)
     plt.close(fig)

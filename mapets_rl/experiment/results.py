@@ -61,15 +61,32 @@ def mean_metrics(items: Iterable[Mapping[str, float]]) -> dict[str, float]:
     return {key: sums[key] / counts[key] for key in sums}
 
 
+SOURCES = ("eval", "train")
+"""Kinds of results entries: ``"eval"`` (deterministic evaluations, ``results.json``'s
+``evaluations``) and ``"train"`` (training entries, e.g. MA-PETS's episodes, its ``train``)."""
+ENTRY_LISTS = {"eval": "evaluations", "train": "train"}
+"""Source -> the ``results.json`` key of its entries."""
+
+
 class ResultsWriter:
-    """The run's ``results.json``: identity of the run plus one entry per evaluation.
+    """The run's ``results.json``: identity of the run plus its entries, training and
+    evaluation kept apart.
 
     Layout::
 
         {"recipe": str, "env": str, "seed": int, "config": {...},
+         "train": [{"frames": int, "metrics": {name: float}}, ...],
          "evaluations": [{"frames": int, "metrics": {name: float}}, ...]}
 
-    Rewritten atomically after every evaluation; :func:`read_results` reads it back.
+    ``evaluations`` holds deterministic evaluations (the runner's periodic ones);
+    ``train`` holds metrics of training itself (e.g. each MA-PETS episode, whose actions come
+    from the planner while it learns). Rewritten atomically after every entry;
+    :func:`read_results` reads it back.
+
+    Results files and checkpoints written before the two were kept apart hold one list,
+    ``evaluations``, of whichever kind the recipe wrote (each recipe wrote one kind). Restored
+    from such a checkpoint, the entries stay unsorted, and the file keeps that layout, until
+    the first new entry arrives: its kind is theirs.
     """
 
     def __init__(self, run_dir: str | os.PathLike, recipe: str, env: str, seed: int,
@@ -77,20 +94,74 @@ class ResultsWriter:
         self.path = Path(run_dir) / RESULTS_FILE
         self.header = {"recipe": recipe, "env": env, "seed": seed, "config": dict(config)}
         self.evaluations: list[dict[str, Any]] = []
+        self.train: list[dict[str, Any]] = []
+        self._unsorted: list[dict[str, Any]] | None = None
 
-    def add(self, frames: int, metrics: Mapping[str, float]) -> None:
-        self.evaluations.append({"frames": int(frames),
-                                 "metrics": {k: float(v) for k, v in metrics.items()}})
+    def add_evaluation(self, frames: int, metrics: Mapping[str, float]) -> None:
+        """Append a deterministic evaluation at ``frames`` and rewrite the file."""
+        self._add(self.evaluations, frames, metrics)
+
+    def add_train(self, frames: int, metrics: Mapping[str, float]) -> None:
+        """Append a training entry (e.g. one training episode) at ``frames`` and rewrite the
+        file."""
+        self._add(self.train, frames, metrics)
+
+    def _add(self, entries: list[dict[str, Any]], frames: int,
+             metrics: Mapping[str, float]) -> None:
+        if self._unsorted is not None:
+            entries[:0] = self._unsorted
+            self._unsorted = None
+        entries.append({"frames": int(frames),
+                        "metrics": {k: float(v) for k, v in metrics.items()}})
         self.write()
 
+    def latest_metrics(self) -> dict[str, float]:
+        """Metrics of the last evaluation, else of the last training entry, else ``{}``."""
+        entries = self.evaluations or self.train or self._unsorted or []
+        return dict(entries[-1]["metrics"]) if entries else {}
+
+    def state_dict(self) -> dict[str, str]:
+        """The entries as JSON strings (for checkpoints): ``evaluations`` and ``train``; only
+        ``evaluations`` while entries of an old checkpoint are still unsorted."""
+        if self._unsorted is not None:
+            return {"evaluations": json.dumps(self._unsorted)}
+        return {"evaluations": json.dumps(self.evaluations), "train": json.dumps(self.train)}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore :meth:`state_dict`'s entries; a state without ``train`` (a checkpoint
+        written before training and evaluation entries were kept apart) leaves its entries
+        unsorted until the next entry is added."""
+        entries = json.loads(state["evaluations"])
+        if "train" in state:
+            self.evaluations, self.train = entries, json.loads(state["train"])
+            self._unsorted = None
+        else:
+            self.evaluations, self.train, self._unsorted = [], [], entries
+
     def write(self) -> None:
-        atomic_write_text(self.path, json.dumps({**self.header, "evaluations": self.evaluations},
-                                                indent=1))
+        if self._unsorted is not None:
+            data = {**self.header, "evaluations": self._unsorted}
+        else:
+            data = {**self.header, "train": self.train, "evaluations": self.evaluations}
+        atomic_write_text(self.path, json.dumps(data, indent=1))
 
 
-def read_results(run_dir: str | os.PathLike) -> dict[str, Any]:
-    """Read ``run_dir/results.json``; a ValueError naming the file when the run has none or it
-    is not a results file (invalid JSON, missing ``recipe`` / ``env`` / ``evaluations``)."""
+def read_results(run_dir: str | os.PathLike, legacy_as: str = "eval") -> dict[str, Any]:
+    """Read ``run_dir/results.json``: the header (``recipe``, ``env``, ``seed``, ``config``)
+    and the entry lists ``train`` and ``evaluations`` (each ``[{"frames": int, "metrics":
+    {...}}, ...]``), plus ``legacy``: whether the file predates the split of the two.
+
+    A file written before training and evaluation entries were kept apart has only
+    ``evaluations``, which held whatever its recipe wrote (MA-PETS: its training episodes);
+    ``legacy_as`` says where those entries go: ``"eval"`` (default) or ``"train"``.
+
+    Raises:
+        ValueError: naming the file, when the run has none or it is not a results file
+            (invalid JSON, missing ``recipe`` / ``env`` / ``evaluations``, malformed entries),
+            or when ``legacy_as`` is not ``"eval"`` / ``"train"``.
+    """
+    if legacy_as not in SOURCES:
+        raise ValueError(f"legacy_as must be one of {list(SOURCES)}, got {legacy_as!r}")
     path = Path(run_dir) / RESULTS_FILE
     if not path.is_file():
         raise ValueError(f"run_dir {str(run_dir)!r} has no {RESULTS_FILE}")
@@ -98,12 +169,17 @@ def read_results(run_dir: str | os.PathLike) -> dict[str, Any]:
     missing = [key for key in ("recipe", "env", "evaluations") if key not in data]
     if missing:
         raise ValueError(f"{str(path)!r} is not a results file: it lacks {missing}")
-    evaluations = data["evaluations"]
-    if not isinstance(evaluations, list) or not all(
-            isinstance(e, dict) and isinstance(e.get("frames"), int)
-            and isinstance(e.get("metrics"), dict) for e in evaluations):
-        raise ValueError(f"{str(path)!r} is not a results file: 'evaluations' must be a list "
-                         "of {'frames': int, 'metrics': {...}}")
+    for key in ("evaluations", "train"):
+        entries = data.get(key, [])
+        if not isinstance(entries, list) or not all(
+                isinstance(e, dict) and isinstance(e.get("frames"), int)
+                and isinstance(e.get("metrics"), dict) for e in entries):
+            raise ValueError(f"{str(path)!r} is not a results file: {key!r} must be a list "
+                             "of {'frames': int, 'metrics': {...}}")
+    data["legacy"] = "train" not in data
+    if data["legacy"]:
+        entries = data.pop("evaluations")
+        data["train"], data["evaluations"] = ([], entries) if legacy_as == "eval" else (entries, [])
     return data
 
 

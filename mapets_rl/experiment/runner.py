@@ -44,7 +44,7 @@ from mapets_rl.experiment.config import (
     parse_override,
     read_yaml_mapping,
 )
-from mapets_rl.experiment.multiagent import masked_mean
+from mapets_rl.experiment.plugins import SCENARIO_GROUP, entry_points, load_entry_point
 from mapets_rl.experiment.results import (
     ResultsWriter,
     log_scalars,
@@ -52,6 +52,7 @@ from mapets_rl.experiment.results import (
     mean_metrics,
     read_json_object,
 )
+from mapets_rl.modules import masked_mean
 
 CONFIG_FILE = "config.yaml"
 RUN_FILE = "run.json"
@@ -63,12 +64,15 @@ _RESTORING: list[Path] = []  # run dirs being rebuilt by Experiment.from_run_dir
 
 
 def register_env(name: str, factory: Callable[..., EnvBase], overwrite: bool = False) -> None:
-    """Make scenario ``name`` available to every recipe and the CLI: ``factory(**env_config)``
-    returns a torchrl EnvBase with the multi-agent ``"agents"`` layout.
+    """Make scenario ``name`` available to every recipe and the CLI in this process:
+    ``factory(**env_config)`` returns a torchrl EnvBase with the multi-agent ``"agents"``
+    layout. (A package makes a scenario available to every process, ``mapets-rl resume``
+    included, with an entry point in the group ``mapets_rl.scenarios``; see
+    :mod:`mapets_rl.experiment.plugins`.)
 
-    Registering a name that already exists (a built-in scenario, or another factory under the
-    same name) raises ValueError unless ``overwrite=True``; registering the same factory again
-    is a no-op.
+    Registering a name that already exists (a built-in scenario, an installed one, or another
+    factory under the same name) raises ValueError unless ``overwrite=True``; registering the
+    same factory again is a no-op.
     """
     if not isinstance(name, str) or not name:
         raise ValueError(f"name must be a non-empty scenario name, got {name!r}")
@@ -78,10 +82,14 @@ def register_env(name: str, factory: Callable[..., EnvBase], overwrite: bool = F
     existing = _ENV_REGISTRY.get(name)
     if existing is factory:
         return
-    if not overwrite and (existing is not None or name in _builtin_envs()):
-        kind = "a built-in scenario" if existing is None else "already registered"
-        raise ValueError(f"scenario {name!r} is {kind}; pass overwrite=True to replace it or "
-                         "choose another name")
+    if not overwrite:
+        kind = ("already registered" if existing is not None
+                else "a built-in scenario" if name in _builtin_envs()
+                else "an installed scenario (entry point)" if name in _installed_envs()
+                else None)
+        if kind is not None:
+            raise ValueError(f"scenario {name!r} is {kind}; pass overwrite=True to replace it "
+                             "or choose another name")
     _ENV_REGISTRY[name] = factory
 
 
@@ -93,16 +101,27 @@ def _builtin_envs() -> tuple[str, ...]:
     return tuple(getattr(envs, "SCENARIOS", ()))
 
 
+def _installed_envs() -> tuple[str, ...]:
+    """Scenario names of the entry-point group ``mapets_rl.scenarios``."""
+    return tuple(entry_points(SCENARIO_GROUP))
+
+
 def available_envs() -> list[str]:
-    """Scenario names: the registered ones plus those of ``mapets_rl.envs``."""
-    return sorted(set(_ENV_REGISTRY) | set(_builtin_envs()))
+    """Scenario names: those registered in this process, those of ``mapets_rl.envs`` and those
+    installed packages declare in the entry-point group ``mapets_rl.scenarios``."""
+    return sorted(set(_ENV_REGISTRY) | set(_builtin_envs()) | set(_installed_envs()))
 
 
 def build_env(name: str, env_config: Mapping[str, Any] | None = None) -> EnvBase:
-    """``factory(**env_config)`` of a registered scenario, else ``mapets_rl.envs.make_env``."""
+    """``factory(**env_config)`` of scenario ``name``: a factory registered in this process
+    first, then a built-in scenario (``mapets_rl.envs.make_env``), then an installed one (entry
+    point of the group ``mapets_rl.scenarios``)."""
     env_config = dict(env_config or {})
     if name in _ENV_REGISTRY:
         return _ENV_REGISTRY[name](**env_config)
+    if name not in _builtin_envs() and name in _installed_envs():
+        factory = load_entry_point(SCENARIO_GROUP, name, "scenario")
+        return factory(**env_config)
     from mapets_rl.envs import make_env
 
     return make_env(name, **env_config)
@@ -256,7 +275,7 @@ class Experiment:
             last = self.frames >= cfg.total_frames
             if last or _crossed(prev, self.frames, cfg.eval_interval):
                 metrics = self.evaluate()
-                self.results.add(self.frames, metrics)
+                self.results.add_evaluation(self.frames, metrics)
                 log_scalars(self.logger, "eval", metrics, self.frames)
                 self.latest_metrics = metrics
             if last or _crossed(prev, self.frames, cfg.checkpoint_interval):
@@ -352,15 +371,16 @@ class Experiment:
 
     # ----------------------------------------------------------------------- checkpoints
     def state_dict(self) -> dict[str, Any]:
-        """Whole training state: components, counters, evaluations and RNG states, plus the
-        env's tensor shapes (so that a resume with another scenario shape is refused)."""
+        """Whole training state: components, counters, results entries (``evaluations``,
+        ``train``) and RNG states, plus the env's tensor shapes (so that a resume with another
+        scenario shape is refused)."""
         return {
             "recipe": self.name,
             "env_shapes": env_shapes(self.env),
             "frames": self.frames,
             "batches": self.batches,
             "boundaries": self.boundaries,
-            "evaluations": json.dumps(self.results.evaluations),
+            **self.results.state_dict(),
             "rng": rng_state(),
             "components": {k: v.state_dict() for k, v in self.stateful_components().items()},
         }
@@ -377,9 +397,8 @@ class Experiment:
         self.frames = int(state["frames"])
         self.batches = int(state["batches"])
         self.boundaries = int(state["boundaries"])
-        self.results.evaluations = json.loads(state["evaluations"])
-        self.latest_metrics = (self.results.evaluations[-1]["metrics"]
-                               if self.results.evaluations else {})
+        self.results.load_state_dict(state)
+        self.latest_metrics = self.results.latest_metrics()
         if self._collector_args is not None and self._collector_args[1] > 0:
             # the random-action warm-up is counted over the run: rebuild for what is left
             self.collector.shutdown()

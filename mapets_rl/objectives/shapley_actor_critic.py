@@ -11,6 +11,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 from torchrl.objectives.utils import distance_loss
 
+from mapets_rl.modules.heads import gumbel_one_hot, one_hot_argmax
 from mapets_rl.shapley.critic import CoalitionCritic
 from mapets_rl.shapley.game import (
     coalition_masks,
@@ -229,10 +230,8 @@ class ShapleyActorCriticLoss(LossModule):
             return td.get(keys.action), None
         logits = td.get(keys.logits)
         if greedy:
-            hard = torch.nn.functional.one_hot(logits.argmax(-1), logits.shape[-1])
-            return hard.to(logits.dtype), logits
-        action = torch.nn.functional.gumbel_softmax(logits, tau=self.gumbel_temperature, hard=True)
-        return action, logits
+            return one_hot_argmax(logits), logits
+        return gumbel_one_hot(logits, self.gumbel_temperature), logits
 
     def loss_value(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """TD loss of the characteristic function (Algorithm 1 lines 10-11)."""

@@ -11,6 +11,8 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import MultiAgentMLP, TanhModule
 
+from mapets_rl.modules.heads import one_hot_argmax
+
 __all__ = ["CoalitionObservation", "make_coalition_actor"]
 
 
@@ -67,10 +69,6 @@ class CoalitionObservation(TensorDictModuleBase):
         return tensordict
 
 
-def _one_hot_argmax(logits: torch.Tensor) -> torch.Tensor:
-    return nn.functional.one_hot(logits.argmax(-1), logits.shape[-1]).to(logits.dtype)
-
-
 def make_coalition_actor(
     n_agents: int,
     observation_dim: int,
@@ -123,7 +121,7 @@ def make_coalition_actor(
     )
     if discrete:
         head = TensorDictModule(net, in_keys=[view_key], out_keys=[logits_key])
-        to_action = action_head if action_head is not None else _one_hot_argmax
+        to_action = action_head if action_head is not None else one_hot_argmax
         greedy = TensorDictModule(to_action, in_keys=[logits_key], out_keys=[action_key])
         return TensorDictSequential(view, head, greedy)
     param_key = ("agents", "param")

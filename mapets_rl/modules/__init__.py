@@ -1,0 +1,52 @@
+"""Building blocks that the recipes share (as torchrl's ``modules``): the ``"agents"`` group's
+keys and spec, the masked mean over driving agents, running observation normalisation, one-hot
+action heads (greedy and Gumbel-softmax) and the baselines' stochastic policy.
+
+Recipes import these from here, never from each other."""
+
+from mapets_rl.modules.agents import AgentGroupSpec, masked_mean
+from mapets_rl.modules.heads import GumbelSoftmaxHead, gumbel_one_hot, one_hot_argmax
+from mapets_rl.modules.keys import (
+    ACTION,
+    ACTION_VALUE,
+    DONE,
+    GROUP,
+    LOG_PROB,
+    LOSS_KEYS,
+    MASK,
+    OBS,
+    OBS_ACTION,
+    OBS_NORM,
+    Q_VALUE,
+    REWARD,
+    TERMINATED,
+    VALUE,
+)
+from mapets_rl.modules.normalization import RunningObsNorm, make_obs_norm
+from mapets_rl.modules.policies import concat_last, make_stochastic_policy
+
+__all__ = [
+    "ACTION",
+    "ACTION_VALUE",
+    "DONE",
+    "GROUP",
+    "LOG_PROB",
+    "LOSS_KEYS",
+    "MASK",
+    "OBS",
+    "OBS_ACTION",
+    "OBS_NORM",
+    "Q_VALUE",
+    "REWARD",
+    "TERMINATED",
+    "VALUE",
+    "AgentGroupSpec",
+    "GumbelSoftmaxHead",
+    "RunningObsNorm",
+    "concat_last",
+    "gumbel_one_hot",
+    "make_obs_norm",
+    "make_stochastic_policy",
+    "masked_mean",
+    "one_hot_argmax",
+]

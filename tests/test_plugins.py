@@ -1,0 +1,187 @@
+"""The library never imports its applications: recipes and extra scenarios come from entry
+points (``mapets_rl.recipes``, ``mapets_rl.scenarios``), and ``mapets-rl --help`` imports
+neither recipes nor torch."""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import inspect
+import json
+import subprocess
+import sys
+from importlib import metadata
+from pathlib import Path
+
+import pytest
+
+from mapets_rl.experiment import (
+    Experiment,
+    available_envs,
+    available_recipes,
+    build_env,
+    load_recipe,
+    read_results,
+    register_env,
+)
+from mapets_rl.experiment.cli import main
+from mapets_rl.experiment.plugins import RECIPE_GROUP, SCENARIO_GROUP, entry_points
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _run(argv, capsys) -> tuple[int, str, str]:
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = exc.code
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _imports(path: Path) -> list[str]:
+    """Every module name ``path`` imports (``import a.b`` and ``from a.b import c``)."""
+    names = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names += [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.append(node.module)
+    return names
+
+
+# ------------------------------------------------------------------------ import direction
+def test_the_library_never_imports_recipes() -> None:
+    offenders = [f"{path.relative_to(ROOT)}: {name}"
+                 for path in sorted((ROOT / "mapets_rl").rglob("*.py"))
+                 for name in _imports(path) if name == "recipes" or name.startswith("recipes.")]
+    assert offenders == []
+
+
+def test_help_imports_neither_recipes_nor_torch() -> None:
+    code = ("import sys\n"
+            "from mapets_rl.experiment.cli import main\n"
+            "for argv in (['--help'], ['train', '--help']):\n"
+            "    try:\n"
+            "        main(argv)\n"
+            "    except SystemExit:\n"
+            "        pass\n"
+            "loaded = sorted(m for m in sys.modules if m.split('.')[0] in ('recipes', 'torch'))\n"
+            "print('LOADED', loaded)\n")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines()[-1] == "LOADED []"
+
+
+# ------------------------------------------------------------------------------ recipes
+def _recipe_classes() -> dict[str, str]:
+    """``{Experiment.name: "recipes.<module>:<Class>"}`` of every recipe defined in recipes/."""
+    found = {}
+    for path in sorted((ROOT / "recipes").glob("*.py")):
+        if path.name.startswith("_"):
+            continue
+        module = importlib.import_module(f"recipes.{path.stem}")
+        for cls_name, cls in inspect.getmembers(module, inspect.isclass):
+            if issubclass(cls, Experiment) and cls.__module__ == module.__name__:
+                found[cls.name] = f"{module.__name__}:{cls_name}"
+    return found
+
+
+def test_pyproject_declares_exactly_the_recipes_of_the_recipes_package() -> None:
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    declared = project["entry-points"][RECIPE_GROUP]
+    assert declared == _recipe_classes()
+    assert set(declared) == {"maddpg", "mapets", "mappo", "sac", "shapley_ac"}
+    for name, value in declared.items():
+        assert metadata.EntryPoint(name=name, value=value, group=RECIPE_GROUP).load().name == name
+
+
+def test_recipes_are_loaded_from_entry_points(add_entry_point) -> None:
+    add_entry_point(RECIPE_GROUP, "toy", "test_experiment:ToyLearner")
+    import test_experiment
+
+    assert "toy" in available_recipes()
+    assert load_recipe("toy") is test_experiment.ToyLearner
+
+
+def test_unknown_recipe_names_the_installed_ones(add_entry_point, capsys) -> None:
+    add_entry_point(RECIPE_GROUP, "zz_first", "test_experiment:ToyLearner")
+    add_entry_point(RECIPE_GROUP, "zz_second", "test_experiment:ToyLearner")
+    with pytest.raises(ValueError, match=r"unknown recipe 'nope' \(choose from: .*zz_first, "
+                                         r"zz_second\)"):
+        load_recipe("nope")
+    code, _, err = _run(["train", "nope", "--env", "figure-eight"], capsys)
+    assert code == 2 and err.count("\n") == 1
+    assert err.startswith("mapets-rl: error: unknown recipe 'nope' (choose from: ")
+    assert "zz_first, zz_second" in err
+
+
+def test_no_installed_recipe_says_to_reinstall(monkeypatch, capsys) -> None:
+    monkeypatch.setattr(metadata, "entry_points", lambda **params: metadata.EntryPoints([]))
+    code, _, err = _run(["train", "mappo", "--env", "figure-eight"], capsys)
+    assert code == 2 and err.count("\n") == 1
+    assert "no recipes are registered" in err and "pip install -e ." in err
+
+
+def test_unimportable_recipe_is_one_line(add_entry_point, capsys) -> None:
+    add_entry_point(RECIPE_GROUP, "ghost", "no_such_module_here:Ghost")
+    code, _, err = _run(["train", "ghost", "--env", "figure-eight"], capsys)
+    assert code == 2 and err.count("\n") == 1
+    assert "recipe 'ghost' (no_such_module_here:Ghost) cannot be imported" in err
+
+
+def test_a_recipe_seen_twice_counts_once_and_a_clash_is_refused(add_entry_point) -> None:
+    add_entry_point(RECIPE_GROUP, "toy", "test_experiment:ToyLearner")
+    add_entry_point(RECIPE_GROUP, "toy", "test_experiment:ToyLearner")
+    assert available_recipes().count("toy") == 1
+    add_entry_point(RECIPE_GROUP, "toy", "test_experiment:ToyConfig")
+    with pytest.raises(ValueError, match="'toy' is declared twice, as "
+                                         "'test_experiment:ToyLearner' and "
+                                         "'test_experiment:ToyConfig'"):
+        entry_points(RECIPE_GROUP)
+
+
+def test_train_recipe_help_lists_its_fields(toy_recipe, capsys) -> None:
+    code, out, _ = _run(["train", "toy", "--help"], capsys)
+    assert code == 0 and out.startswith("usage: mapets-rl train toy --env SCENARIO")
+    assert "  lr: float = 0.05\n" in out and "  env_config: dict[str, Any] = {}\n" in out
+    assert "  total_frames: int = 60\n" in out
+
+
+# ---------------------------------------------------------------------------- scenarios
+@pytest.fixture
+def plugin_scenario(add_entry_point) -> str:
+    """``ToyAgentsEnv`` installed as scenario ``toy-plugin`` (not registered in-process)."""
+    add_entry_point(SCENARIO_GROUP, "toy-plugin", "test_experiment:ToyAgentsEnv")
+    return "toy-plugin"
+
+
+def test_installed_scenario_is_available_and_built(plugin_scenario: str) -> None:
+    assert plugin_scenario in available_envs()
+    assert {"figure-eight", "freeway", "toy"} <= set(available_envs())
+    env = build_env(plugin_scenario, {"n_agents": 2, "horizon": 4})
+    assert env.full_observation_spec["agents", "observation"].shape == (2, 2)
+    with pytest.raises(ValueError, match="'toy-plugin' is an installed scenario"):
+        register_env(plugin_scenario, lambda: None)
+
+
+def test_installed_scenario_trains_and_resumes_from_the_cli(plugin_scenario: str, toy_recipe,
+                                                            tmp_path: Path, capsys) -> None:
+    run = tmp_path / "run"
+    code, out, err = _run(["train", "toy", "--env", plugin_scenario, "--run-dir", str(run),
+                           "total_frames=20", "env_config.n_agents=2"], capsys)
+    assert code == 0, err
+    code, out, err = _run(["resume", str(run), "total_frames=40"], capsys)
+    assert code == 0, err
+    assert json.loads(out.splitlines()[-1])["frames"] == 40
+    results = read_results(run)
+    assert results["env"] == plugin_scenario
+    assert [e["frames"] for e in results["evaluations"]] == [20, 40]
+
+
+def test_builtin_scenarios_win_over_an_installed_one_of_the_same_name(add_entry_point) -> None:
+    add_entry_point(SCENARIO_GROUP, "figure-eight", "no_such_module_here:make")
+    env = build_env("figure-eight", {"n_cavs": 2, "n_hvs": 1, "horizon": 5})
+    assert env.full_observation_spec["agents", "observation"].shape[0] == 2
