@@ -19,6 +19,7 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m ruff check mapets_rl recipes examples benchmarks tests
+	$(PY) -m ruff format --check mapets_rl recipes examples benchmarks tests
 	$(PY) -m pytest tests
 
 bench: $(STAMP)

@@ -62,8 +62,9 @@ def load_data(run_dir: Path) -> tuple[MAPETS, TensorDict]:
 @torch.no_grad()
 def gap_errors(model: ProbabilisticEnsemble, data: TensorDict) -> dict[str, float]:
     """Bias, RMSE and predicted std [m/step] of the gap-ahead delta, all rows and v > 8 m/s."""
-    obs, action, nxt, mask = (data.get(k) for k in ("observation", "action", "next_observation",
-                                                     "mask"))
+    obs, action, nxt, mask = (
+        data.get(k) for k in ("observation", "action", "next_observation", "mask")
+    )
     obs_t, act_t = obs.transpose(0, 1).unsqueeze(1), action.transpose(0, 1).unsqueeze(1)
     mean, logvar = model.predict(obs_t, act_t)  # [I, B, N, S] (every member on every row)
     pred = mean[..., GAP_AHEAD].mean(1)  # [I, N]
@@ -99,34 +100,52 @@ def main() -> None:
     test = data.clone()
     test.set("mask", data.get("mask") & holdout[:, None])
     model = ProbabilisticEnsemble(
-        exp.model.obs_dim, exp.model.action_dim, exp.n_agents,
-        ensemble_size=cfg.ensemble_size, hidden=tuple(cfg.hidden),
+        exp.model.obs_dim,
+        exp.model.action_dim,
+        exp.n_agents,
+        ensemble_size=cfg.ensemble_size,
+        hidden=tuple(cfg.hidden),
     )
     loss = EnsembleNLLLoss(model, logvar_bound_coef=cfg.logvar_bound_coef, generator=gen)
-    loss.set_keys(observation="observation", action="action",
-                  next_observation="next_observation", mask="mask")
+    loss.set_keys(
+        observation="observation", action="action", next_observation="next_observation", mask="mask"
+    )
     holdout_loss = EnsembleNLLLoss(model, bootstrap=False)
-    holdout_loss.set_keys(observation="observation", action="action",
-                          next_observation="next_observation", mask="mask")
+    holdout_loss.set_keys(
+        observation="observation", action="action", next_observation="next_observation", mask="mask"
+    )
     optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
-    print(f"run {args.run_dir}: {exp.n_agents} agents, |D(i)+| = "
-          f"{data.get('mask').sum(0).tolist()}, hidden {cfg.hidden}, B = {cfg.ensemble_size}, "
-          f"batch {cfg.batch_size}, lr {cfg.lr}; holdout 20%; torch "
-          f"{torch.__version__}, {torch.backends.cpu.get_cpu_capability()}")
-    print("| epochs | train NLL | holdout NLL | gap bias [m/step] | gap RMSE | gap pred. std "
-          "| bias v>8 | RMSE v>8 | pred. std v>8 |")
+    print(
+        f"run {args.run_dir}: {exp.n_agents} agents, |D(i)+| = "
+        f"{data.get('mask').sum(0).tolist()}, hidden {cfg.hidden}, B = {cfg.ensemble_size}, "
+        f"batch {cfg.batch_size}, lr {cfg.lr}; holdout 20%; torch "
+        f"{torch.__version__}, {torch.backends.cpu.get_cpu_capability()}"
+    )
+    print(
+        "| epochs | train NLL | holdout NLL | gap bias [m/step] | gap RMSE | gap pred. std "
+        "| bias v>8 | RMSE v>8 | pred. std v>8 |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for epoch in range(1, args.epochs + 1):
-        history = train_ensemble(loss, optimizer, train, epochs=1, batch_size=cfg.batch_size,
-                                 fit_normalizer=epoch == 1, generator=gen)
+        history = train_ensemble(
+            loss,
+            optimizer,
+            train,
+            epochs=1,
+            batch_size=cfg.batch_size,
+            fit_normalizer=epoch == 1,
+            generator=gen,
+        )
         if epoch in args.report or epoch == args.epochs:
             with torch.no_grad():
                 test_nll = holdout_loss(test)["nll_per_member"].mean().item()
             e = gap_errors(model, test)
-            print(f"| {epoch} | {history.mean().item():.2f} | {test_nll:.2f} | "
-                  f"{e['bias_all']:+.3f} | {e['rmse_all']:.3f} | {e['std_all']:.3f} | "
-                  f"{e['bias_fast']:+.3f} | {e['rmse_fast']:.3f} | {e['std_fast']:.3f} |",
-                  flush=True)
+            print(
+                f"| {epoch} | {history.mean().item():.2f} | {test_nll:.2f} | "
+                f"{e['bias_all']:+.3f} | {e['rmse_all']:.3f} | {e['std_all']:.3f} | "
+                f"{e['bias_fast']:+.3f} | {e['rmse_fast']:.3f} | {e['std_fast']:.3f} |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -30,15 +30,25 @@ MAPETS_EPISODES = 15
 # 50 gradient steps per episode.
 RECIPE_OVERRIDES: dict[str, list[str]] = {
     "mappo": ["frames_per_batch=200", "minibatch_size=50", "epochs=10", "lr=1e-3"],
-    "maddpg": ["frames_per_batch=200", "updates_per_batch=50", "batch_size=256",
-               "init_random_frames=200"],
-    "sac": ["frames_per_batch=200", "updates_per_batch=50", "batch_size=256",
-            "init_random_frames=200", "lr=1e-3"],
+    "maddpg": [
+        "frames_per_batch=200",
+        "updates_per_batch=50",
+        "batch_size=256",
+        "init_random_frames=200",
+    ],
+    "sac": [
+        "frames_per_batch=200",
+        "updates_per_batch=50",
+        "batch_size=256",
+        "init_random_frames=200",
+        "lr=1e-3",
+    ],
 }
 
 
-def run_one(recipe: str, seed: int, steps: int, run_dir: str, eval_interval: int,
-            eval_episodes: int) -> dict:
+def run_one(
+    recipe: str, seed: int, steps: int, run_dir: str, eval_interval: int, eval_episodes: int
+) -> dict:
     """Train (or resume, or skip if finished) one run; returns its last evaluation."""
     import torch
 
@@ -46,9 +56,16 @@ def run_one(recipe: str, seed: int, steps: int, run_dir: str, eval_interval: int
     from mapets_rl.experiment import latest_checkpoint, load_recipe, read_results
 
     cls = load_recipe(recipe)
-    overrides = [*RECIPE_OVERRIDES[recipe], f"total_frames={steps}", f"seed={seed}",
-                 f"eval_interval={eval_interval}", f"eval_episodes={eval_episodes}",
-                 f"checkpoint_interval={eval_interval}", "keep_last=1", "progress=false"]
+    overrides = [
+        *RECIPE_OVERRIDES[recipe],
+        f"total_frames={steps}",
+        f"seed={seed}",
+        f"eval_interval={eval_interval}",
+        f"eval_episodes={eval_episodes}",
+        f"checkpoint_interval={eval_interval}",
+        "keep_last=1",
+        "progress=false",
+    ]
     if recipe == "maddpg":  # anneal the exploration noise over the whole budget
         overrides.append(f"sigma_anneal_frames={steps}")
     if latest_checkpoint(run_dir) is not None:
@@ -64,11 +81,16 @@ def run_one(recipe: str, seed: int, steps: int, run_dir: str, eval_interval: int
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--budget-multiplier", type=int, default=1,
-                        help="multiple of MA-PETS's 3000 environment steps (default 1)")
+    parser.add_argument(
+        "--budget-multiplier",
+        type=int,
+        default=1,
+        help="multiple of MA-PETS's 3000 environment steps (default 1)",
+    )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--recipes", nargs="+", default=["mappo", "maddpg", "sac"],
-                        choices=sorted(RECIPE_OVERRIDES))
+    parser.add_argument(
+        "--recipes", nargs="+", default=["mappo", "maddpg", "sac"], choices=sorted(RECIPE_OVERRIDES)
+    )
     parser.add_argument("--out", default="runs/baselines_figure_eight")
     parser.add_argument("--workers", type=int, default=1, help="runs in parallel processes")
     parser.add_argument("--eval-episodes", type=int, default=3)
@@ -81,22 +103,30 @@ def main() -> None:
     steps = args.budget_multiplier * MAPETS_EPISODES * EPISODE_STEPS
     eval_interval = steps // 3 if args.budget_multiplier == 1 else steps // 10
     root = Path(args.out) / f"steps{steps}"
-    jobs = [(r, s, steps, str(root / f"{r}_seed{s}"), eval_interval, args.eval_episodes)
-            for r in args.recipes for s in args.seeds]
+    jobs = [
+        (r, s, steps, str(root / f"{r}_seed{s}"), eval_interval, args.eval_episodes)
+        for r in args.recipes
+        for s in args.seeds
+    ]
     print(f"{len(jobs)} runs of {steps} environment steps into {root}", flush=True)
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         futures = {job[:2]: pool.submit(run_one, *job) for job in jobs}
         for (recipe, seed), fut in futures.items():
             last = fut.result()
             m = last["metrics"]
-            print(f"{recipe:7s} seed {seed}: frames {last['frames']}  agility "
-                  f"{m['agility']:.3f}  safety {m['safety']:.3f}  reward {m['reward']:.2f}",
-                  flush=True)
+            print(
+                f"{recipe:7s} seed {seed}: frames {last['frames']}  agility "
+                f"{m['agility']:.3f}  safety {m['safety']:.3f}  reward {m['reward']:.2f}",
+                flush=True,
+            )
 
     from mapets_rl.experiment import compare
 
-    out = compare([job[3] for job in jobs], root / "compare",
-                  metrics=["agility", "safety", "reward", "collisions"])
+    out = compare(
+        [job[3] for job in jobs],
+        root / "compare",
+        metrics=["agility", "safety", "reward", "collisions"],
+    )
     print(out["table"].read_text())
     print(json.dumps({k: os.fspath(v) for k, v in out.items()}))
 

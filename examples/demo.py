@@ -36,8 +36,7 @@ def plot(history: list[dict[str, float]], path: Path, title: str) -> None:
     for ax, key, label in ((ax_a, "agility", "agility [m/step]"), (ax_s, "safety", "safety")):
         values = [m[key] for m in history]
         ax.plot(episodes, values, marker="o", color="tab:blue", label="MA-PETS (planner)")
-        random = [(e, v) for e, v, m in zip(episodes, values, history, strict=True)
-                  if m["random"]]
+        random = [(e, v) for e, v, m in zip(episodes, values, history, strict=True) if m["random"]]
         if random:
             ax.plot(*zip(*random, strict=True), "s", color="tab:gray", label="random actions")
         ax.set_xlabel("episode")
@@ -54,18 +53,28 @@ def plot(history: list[dict[str, float]], path: Path, title: str) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--episodes", type=int, default=6,
-                        help="episodes, the first with random actions (default 6)")
-    parser.add_argument("--steps", type=int, default=200,
-                        help="steps per episode (0.1 s each; paper: 200)")
+    parser.add_argument(
+        "--episodes",
+        type=int,
+        default=6,
+        help="episodes, the first with random actions (default 6)",
+    )
+    parser.add_argument(
+        "--steps", type=int, default=200, help="steps per episode (0.1 s each; paper: 200)"
+    )
     parser.add_argument("--cavs", type=int, default=8, help="CAVs (paper: 8)")
     parser.add_argument("--comm-range", type=float, default=100.0, help="d in metres")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch threads (1 is fastest on a shared 2-core machine)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch threads (1 is fastest on a shared 2-core machine)",
+    )
     parser.add_argument("--out", type=Path, default=Path("outputs/demo"))
-    parser.add_argument("--gif", action="store_true",
-                        help="after training, record one planned episode as a GIF")
+    parser.add_argument(
+        "--gif", action="store_true", help="after training, record one planned episode as a GIF"
+    )
     args = parser.parse_args()
     for name in ("episodes", "steps", "cavs", "threads"):
         if getattr(args, name) < 1:
@@ -110,20 +119,27 @@ def main() -> None:
     history = [e["metrics"] for e in exp.results.train]
     random, planned = history[0], history[1:]
     if planned:
-        print(f"random-action episode: safety {random['safety']:.3f}; last episode: safety "
-              f"{planned[-1]['safety']:.3f}; planned episodes: mean safety "
-              f"{sum(m['safety'] for m in planned) / len(planned):.3f}, collisions "
-              f"{int(sum(m['collisions'] for m in planned))} in {len(planned)} episodes")
+        print(
+            f"random-action episode: safety {random['safety']:.3f}; last episode: safety "
+            f"{planned[-1]['safety']:.3f}; planned episodes: mean safety "
+            f"{sum(m['safety'] for m in planned) / len(planned):.3f}, collisions "
+            f"{int(sum(m['collisions'] for m in planned))} in {len(planned)} episodes"
+        )
     plot_path = args.out / "learning_curve.png"
-    plot(history, plot_path,
-         f"MA-PETS, figure-eight, {args.cavs} CAVs, d = {args.comm_range:g} m "
-         f"({args.steps}-step episodes)")
+    plot(
+        history,
+        plot_path,
+        f"MA-PETS, figure-eight, {args.cavs} CAVs, d = {args.comm_range:g} m "
+        f"({args.steps}-step episodes)",
+    )
     print(f"wrote {plot_path} (metrics: {run_dir / 'results.json'})")
     if args.gif:
         metrics = exp.evaluate(episodes=1, video=True)
         gif = next((run_dir / "videos").glob("*.gif"))
-        print(f"planned episode: agility {metrics['agility']:.3f} m/step, "
-              f"safety {metrics['safety']:.3f}; wrote {gif}")
+        print(
+            f"planned episode: agility {metrics['agility']:.3f} m/step, "
+            f"safety {metrics['safety']:.3f}; wrote {gif}"
+        )
     print(f"total {time.perf_counter() - start:.0f} s")
 
 

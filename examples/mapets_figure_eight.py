@@ -103,8 +103,9 @@ def collect(out: Path) -> tuple[list[Path], dict[str, dict[int, dict[int, dict[s
         if not results["train"]:
             continue
         paths.append(path)
-        group = group_name(results["config"]["env_config"]["observation"],
-                           float(results["config"]["comm_range"]))
+        group = group_name(
+            results["config"]["env_config"]["observation"], float(results["config"]["comm_range"])
+        )
         runs.setdefault(group, {})[int(results["seed"])] = {
             int(e["metrics"]["episode"]): e["metrics"] for e in results["train"]
         }
@@ -160,9 +161,7 @@ def table(curves: dict) -> str:
         group_name(g["group"]["env_config.observation"], g["group"]["comm_range"]): g
         for g in curves["groups"].values()
     }
-    header = "| episode | " + " | ".join(
-        f"agility {d} | safety {d}" for d in groups
-    ) + " |"
+    header = "| episode | " + " | ".join(f"agility {d} | safety {d}" for d in groups) + " |"
     lines = [header, "|" + "---|" * (1 + 2 * len(groups))]
     last = max(int(max(g["x"])) for g in groups.values())
     for episode in range(1, last + 1):
@@ -183,20 +182,35 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--episodes", type=int, default=15, help="K (paper: 15)")
-    parser.add_argument("--ranges", type=float, nargs="+", default=[100.0, 0.0],
-                        help="communication ranges d in metres")
-    parser.add_argument("--observations", nargs="+", default=["crossing", "paper"],
-                        choices=["crossing", "paper"], help="figure-eight observation options")
+    parser.add_argument(
+        "--ranges",
+        type=float,
+        nargs="+",
+        default=[100.0, 0.0],
+        help="communication ranges d in metres",
+    )
+    parser.add_argument(
+        "--observations",
+        nargs="+",
+        default=["crossing", "paper"],
+        choices=["crossing", "paper"],
+        help="figure-eight observation options",
+    )
     parser.add_argument("--cavs", type=int, default=8, help="CAVs I (paper: 8)")
     parser.add_argument("--horizon", type=int, default=200, help="steps per episode H")
     parser.add_argument("--preset", default="cpu", choices=["cpu", "paper"])
     parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
-    parser.add_argument("--set", nargs="*", default=[], metavar="key=value",
-                        help="further MAPETSConfig overrides of new runs, e.g. "
-                        "epochs=5 horizon=10")
+    parser.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="key=value",
+        help="further MAPETSConfig overrides of new runs, e.g. epochs=5 horizon=10",
+    )
     parser.add_argument("--out", type=Path, default=Path("outputs/mapets_figure_eight"))
-    parser.add_argument("--report-only", action="store_true",
-                        help="only aggregate the runs already in --out")
+    parser.add_argument(
+        "--report-only", action="store_true", help="only aggregate the runs already in --out"
+    )
     args = parser.parse_args()
     for name in ("episodes", "cavs", "horizon", "threads"):
         if getattr(args, name) < 1:
@@ -213,15 +227,25 @@ def main() -> None:
     if not paths:
         raise SystemExit(f"no finished episodes under {args.out}")
     try:
-        out = compare(paths, args.out, list(METRICS), source="train", group_by=GROUP_BY,
-                      x="episode", legacy_as="train", title="MA-PETS, figure-eight")
+        out = compare(
+            paths,
+            args.out,
+            list(METRICS),
+            source="train",
+            group_by=GROUP_BY,
+            x="episode",
+            legacy_as="train",
+            title="MA-PETS, figure-eight",
+        )
     except ValueError as err:  # e.g. runs of another --cavs or --horizon in the same --out
         raise SystemExit(f"cannot aggregate the runs under {args.out}: {err}") from None
     text = table(json.loads(out["curves"].read_text())) + "\n" + claims(runs)
     print(text, end="")
     atomic_write_text(args.out / "table.md", text)
-    print(f"wrote {args.out / 'table.md'}, {out['plot']}, {out['curves']}, {out['summary']} "
-          f"and {out['table']}")
+    print(
+        f"wrote {args.out / 'table.md'}, {out['plot']}, {out['curves']}, {out['summary']} "
+        f"and {out['table']}"
+    )
 
 
 if __name__ == "__main__":

@@ -33,10 +33,24 @@ from recipes.shapley_ac import ShapleyAC, ShapleyACConfig
 RATIOS = (0.0, 0.17, 0.33, 0.5, 0.67, 0.83, 1.0)
 MPS_TO_MPH = 2.2369362920544
 # Paper Table I: CAV ratio -> (average velocity mph, average comfort), Shapley and COMA.
-PAPER_SHAPLEY = {0.0: (60.06, 2.61), 0.17: (61.75, 2.63), 0.33: (64.71, 2.68),
-                 0.5: (65.12, 2.71), 0.67: (65.19, 2.74), 0.83: (65.49, 2.76), 1.0: (66.14, 2.81)}
-PAPER_COMA = {0.0: (60.06, 2.61), 0.17: (61.19, 2.62), 0.33: (63.15, 2.65),
-              0.5: (63.44, 2.68), 0.67: (63.48, 2.69), 0.83: (63.69, 2.71), 1.0: (64.12, 2.75)}
+PAPER_SHAPLEY = {
+    0.0: (60.06, 2.61),
+    0.17: (61.75, 2.63),
+    0.33: (64.71, 2.68),
+    0.5: (65.12, 2.71),
+    0.67: (65.19, 2.74),
+    0.83: (65.49, 2.76),
+    1.0: (66.14, 2.81),
+}
+PAPER_COMA = {
+    0.0: (60.06, 2.61),
+    0.17: (61.19, 2.62),
+    0.33: (63.15, 2.65),
+    0.5: (63.44, 2.68),
+    0.67: (63.48, 2.69),
+    0.83: (63.69, 2.71),
+    1.0: (64.12, 2.75),
+}
 
 
 def all_human(n_vehicles: int, episodes: int, seed: int) -> dict[str, float]:
@@ -59,8 +73,9 @@ def train_and_evaluate(ratio: float, args: argparse.Namespace) -> dict[str, floa
     run_dir = Path(args.out) / "runs" / f"ratio{ratio:.2f}"
     results = run_dir / "results.json"
     if results.is_file():
-        done = [e for e in json.loads(results.read_text())["evaluations"]
-                if e["frames"] >= args.frames]
+        done = [
+            e for e in json.loads(results.read_text())["evaluations"] if e["frames"] >= args.frames
+        ]
         if done:
             return done[-1]["metrics"]
     config = ShapleyACConfig(
@@ -109,23 +124,35 @@ def main() -> None:
             metrics = train_and_evaluate(ratio, args)
         velocity = metrics["average_velocity"] * MPS_TO_MPH
         comfort = metrics["average_comfort"]
-        results[f"{ratio:.2f}"] = {"cavs": n_cavs, "velocity_mph": velocity, "comfort": comfort,
-                                   "collisions": metrics.get("collisions", 0.0)}
+        results[f"{ratio:.2f}"] = {
+            "cavs": n_cavs,
+            "velocity_mph": velocity,
+            "comfort": comfort,
+            "collisions": metrics.get("collisions", 0.0),
+        }
         paper = PAPER_SHAPLEY.get(round(ratio, 2))
         coma = PAPER_COMA.get(round(ratio, 2))
-        paper_txt = f"{paper[0]:.2f} | {paper[1]:.2f} | {coma[0]:.2f} | {coma[1]:.2f}" \
-            if paper else "- | - | - | -"
-        rows.append(f"| {ratio:.2f} | {n_cavs} | {args.n_vehicles - n_cavs} | {velocity:.2f} | "
-                    f"{comfort:.2f} | {paper_txt} |")
-    table = "\n".join([
-        f"Average velocity (mph) and comfort of all {args.n_vehicles} vehicles; Shapley AC "
-        f"trained {args.frames} frames per ratio, {args.eval_episodes} evaluation episodes.",
-        "",
-        "| CAV ratio | CAVs | HVs | velocity (ours) | comfort (ours) | velocity (paper, Shapley) "
-        "| comfort (paper, Shapley) | velocity (paper, COMA) | comfort (paper, COMA) |",
-        "|---|---|---|---|---|---|---|---|---|",
-        *rows,
-    ])
+        paper_txt = (
+            f"{paper[0]:.2f} | {paper[1]:.2f} | {coma[0]:.2f} | {coma[1]:.2f}"
+            if paper
+            else "- | - | - | -"
+        )
+        rows.append(
+            f"| {ratio:.2f} | {n_cavs} | {args.n_vehicles - n_cavs} | {velocity:.2f} | "
+            f"{comfort:.2f} | {paper_txt} |"
+        )
+    table = "\n".join(
+        [
+            f"Average velocity (mph) and comfort of all {args.n_vehicles} vehicles; Shapley AC "
+            f"trained {args.frames} frames per ratio, {args.eval_episodes} evaluation episodes.",
+            "",
+            "| CAV ratio | CAVs | HVs | velocity (ours) | comfort (ours) "
+            "| velocity (paper, Shapley) | comfort (paper, Shapley) "
+            "| velocity (paper, COMA) | comfort (paper, COMA) |",
+            "|---|---|---|---|---|---|---|---|---|",
+            *rows,
+        ]
+    )
     atomic_write_text(out / "table.md", table + "\n")
     atomic_write_text(out / "results.json", json.dumps(results, indent=1))
     print(table)

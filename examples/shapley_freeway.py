@@ -123,25 +123,34 @@ def main() -> None:
         ax.plot(episodes, mean, label=LABELS[algo])
         ax.fill_between(episodes, mean - half, mean + half, alpha=0.2)
         first, last = stats[0], stats[-1]
-        summary[algo] = {"first_mean": first[0], "first_ci95": first[1],
-                         "final_mean": last[0], "final_ci95": last[1], "seeds": len(runs),
-                         "frames": int(frames[length - 1])}
-        rows.append(f"| {LABELS[algo]} | {first[0]:.1f} ± {first[1]:.1f} | "
-                    f"{last[0]:.1f} ± {last[1]:.1f} | {len(runs)} |")
+        summary[algo] = {
+            "first_mean": first[0],
+            "first_ci95": first[1],
+            "final_mean": last[0],
+            "final_ci95": last[1],
+            "seeds": len(runs),
+            "frames": int(frames[length - 1]),
+        }
+        rows.append(
+            f"| {LABELS[algo]} | {first[0]:.1f} ± {first[1]:.1f} | "
+            f"{last[0]:.1f} ± {last[1]:.1f} | {len(runs)} |"
+        )
     ax.set_xlabel("training episodes (40 steps)")
     ax.set_ylabel("mean episode system reward")
     ax.set_title(f"freeway, {n_cavs} CAVs / {args.n_vehicles} vehicles")
     ax.legend()
     fig.tight_layout()
     atomic_savefig(fig, out / "system_reward.png")
-    table = "\n".join([
-        f"Mean episode system reward (sum over {n_cavs} CAVs and 40 steps), mean ± 95% CI over "
-        f"seeds, {args.frames} training frames per run.",
-        "",
-        "| algorithm | first evaluation | final evaluation | seeds |",
-        "|---|---|---|---|",
-        *rows,
-    ])
+    table = "\n".join(
+        [
+            f"Mean episode system reward (sum over {n_cavs} CAVs and 40 steps), mean ± 95% CI over "
+            f"seeds, {args.frames} training frames per run.",
+            "",
+            "| algorithm | first evaluation | final evaluation | seeds |",
+            "|---|---|---|---|",
+            *rows,
+        ]
+    )
     atomic_write_text(out / "system_reward.md", table + "\n")
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
     print(table)

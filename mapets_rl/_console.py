@@ -20,7 +20,8 @@ def _warnings_and_above(record: logging.LogRecord) -> bool:
 
 def quiet_dependencies() -> None:
     """Install the filters described in the module docstring (idempotent)."""
-    warnings.filterwarnings("ignore", message=r"PettingZoo in TorchRL is tested",
-                            category=UserWarning)
+    warnings.filterwarnings(
+        "ignore", message=r"PettingZoo in TorchRL is tested", category=UserWarning
+    )
     if "RL_LOGGING_LEVEL" not in os.environ:
         logging.getLogger("torchrl").addFilter(_warnings_and_above)

@@ -88,17 +88,29 @@ class MADDPGConfig(ExperimentConfig):
         check(0 <= self.gamma <= 1, "gamma", "in [0, 1]", self.gamma)
         check(0 < self.tau <= 1, "tau", "in (0, 1]", self.tau)
         check(self.batch_size >= 1, "batch_size", ">= 1", self.batch_size)
-        check(self.buffer_size >= self.batch_size, "buffer_size",
-              f">= batch_size={self.batch_size}", self.buffer_size)
+        check(
+            self.buffer_size >= self.batch_size,
+            "buffer_size",
+            f">= batch_size={self.batch_size}",
+            self.buffer_size,
+        )
         check(self.updates_per_batch >= 1, "updates_per_batch", ">= 1", self.updates_per_batch)
-        check(self.init_random_frames >= 0, "init_random_frames", ">= 0",
-              self.init_random_frames)
-        check(0 <= self.sigma_end <= self.sigma_init, "sigma_end", "in [0, sigma_init]",
-              self.sigma_end)
-        check(self.sigma_anneal_frames >= 1, "sigma_anneal_frames", ">= 1",
-              self.sigma_anneal_frames)
-        check(len(self.num_cells) >= 1 and min(self.num_cells) >= 1, "num_cells",
-              "a non-empty list of positive layer sizes", self.num_cells)
+        check(self.init_random_frames >= 0, "init_random_frames", ">= 0", self.init_random_frames)
+        check(
+            0 <= self.sigma_end <= self.sigma_init,
+            "sigma_end",
+            "in [0, sigma_init]",
+            self.sigma_end,
+        )
+        check(
+            self.sigma_anneal_frames >= 1, "sigma_anneal_frames", ">= 1", self.sigma_anneal_frames
+        )
+        check(
+            len(self.num_cells) >= 1 and min(self.num_cells) >= 1,
+            "num_cells",
+            "a non-empty list of positive layer sizes",
+            self.num_cells,
+        )
 
 
 class MADDPG(Experiment):
@@ -117,56 +129,90 @@ class MADDPG(Experiment):
         self.obs_norm, norm_module = make_obs_norm(spec) if config.normalize_obs else (None, None)
         obs_key = OBS if norm_module is None else OBS_NORM
         front = [] if norm_module is None else [norm_module]
-        actor_mlp = MultiAgentMLP(n_agent_inputs=spec.obs_dim, n_agent_outputs=spec.action_dim,
-                                  n_agents=spec.n_agents, centralized=False,
-                                  share_params=config.share_params, depth=depth,
-                                  num_cells=cells, activation_class=nn.ReLU)
+        actor_mlp = MultiAgentMLP(
+            n_agent_inputs=spec.obs_dim,
+            n_agent_outputs=spec.action_dim,
+            n_agents=spec.n_agents,
+            centralized=False,
+            share_params=config.share_params,
+            depth=depth,
+            num_cells=cells,
+            activation_class=nn.ReLU,
+        )
         if spec.discrete:
-            self.actor = TensorDictSequential(*front, TensorDictModule(
-                nn.Sequential(actor_mlp, GumbelSoftmaxHead(config.gumbel_tau)),
-                in_keys=[obs_key], out_keys=[ACTION]))
+            self.actor = TensorDictSequential(
+                *front,
+                TensorDictModule(
+                    nn.Sequential(actor_mlp, GumbelSoftmaxHead(config.gumbel_tau)),
+                    in_keys=[obs_key],
+                    out_keys=[ACTION],
+                ),
+            )
             self.exploration = None
             collection_policy = self.actor
         else:
             self.actor = TensorDictSequential(
                 *front,
                 TensorDictModule(actor_mlp, in_keys=[obs_key], out_keys=[(GROUP, "param")]),
-                TanhModule(in_keys=[(GROUP, "param")], out_keys=[ACTION],
-                           spec=spec.action_spec))
+                TanhModule(in_keys=[(GROUP, "param")], out_keys=[ACTION], spec=spec.action_spec),
+            )
             self.exploration = AdditiveGaussianModule(
-                spec=self.env.full_action_spec_unbatched, sigma_init=config.sigma_init,
-                sigma_end=config.sigma_end, annealing_num_steps=config.sigma_anneal_frames,
-                std=spec.action_half_range, action_key=ACTION)
+                spec=self.env.full_action_spec_unbatched,
+                sigma_init=config.sigma_init,
+                sigma_end=config.sigma_end,
+                annealing_num_steps=config.sigma_anneal_frames,
+                std=spec.action_half_range,
+                action_key=ACTION,
+            )
             collection_policy = TensorDictSequential(self.actor, self.exploration)
         # centralised critic Q_i(o_1..o_I, a_1..a_I), one output per agent
         self.critic = TensorDictSequential(
             *front,
             TensorDictModule(concat_last, in_keys=[obs_key, ACTION], out_keys=[OBS_ACTION]),
             TensorDictModule(
-                MultiAgentMLP(n_agent_inputs=spec.obs_dim + spec.action_dim, n_agent_outputs=1,
-                              n_agents=spec.n_agents, centralized=True, share_params=True,
-                              depth=depth, num_cells=cells, activation_class=nn.ReLU),
-                in_keys=[OBS_ACTION], out_keys=[Q_VALUE]))
+                MultiAgentMLP(
+                    n_agent_inputs=spec.obs_dim + spec.action_dim,
+                    n_agent_outputs=1,
+                    n_agents=spec.n_agents,
+                    centralized=True,
+                    share_params=True,
+                    depth=depth,
+                    num_cells=cells,
+                    activation_class=nn.ReLU,
+                ),
+                in_keys=[OBS_ACTION],
+                out_keys=[Q_VALUE],
+            ),
+        )
 
         # collector
-        self.collector = self.make_collector(collection_policy,
-                                             init_random_frames=config.init_random_frames)
+        self.collector = self.make_collector(
+            collection_policy, init_random_frames=config.init_random_frames
+        )
         self.eval_policy = self.actor
 
         # buffer
-        self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(config.buffer_size),
-                                             batch_size=config.batch_size)
+        self.buffer = TensorDictReplayBuffer(
+            storage=LazyTensorStorage(config.buffer_size), batch_size=config.batch_size
+        )
 
         # loss: DDPG with per-agent TD(0) targets through target actor and critic
-        self.loss = DDPGLoss(actor_network=self.actor, value_network=self.critic,
-                             delay_actor=True, delay_value=True, loss_function="l2")
+        self.loss = DDPGLoss(
+            actor_network=self.actor,
+            value_network=self.critic,
+            delay_actor=True,
+            delay_value=True,
+            loss_function="l2",
+        )
         self.loss.set_keys(**LOSS_KEYS, state_action_value=Q_VALUE)
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=config.gamma)
         self.target_updater = SoftUpdate(self.loss, tau=config.tau)
-        self.optim_actor = torch.optim.Adam(self.loss.actor_network_params.values(True, True),
-                                            lr=config.lr_actor)
-        self.optim_critic = torch.optim.Adam(self.loss.value_network_params.values(True, True),
-                                             lr=config.lr_critic)
+        self.optim_actor = torch.optim.Adam(
+            self.loss.actor_network_params.values(True, True), lr=config.lr_actor
+        )
+        self.optim_critic = torch.optim.Adam(
+            self.loss.value_network_params.values(True, True), lr=config.lr_critic
+        )
 
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
         """Store the batch; ``updates_per_batch`` critic + actor steps; soft target update."""
@@ -195,8 +241,12 @@ class MADDPG(Experiment):
         return logs
 
     def stateful_components(self) -> dict:
-        parts = {"loss": self.loss, "optim_actor": self.optim_actor,
-                 "optim_critic": self.optim_critic, "buffer": self.buffer}
+        parts = {
+            "loss": self.loss,
+            "optim_actor": self.optim_actor,
+            "optim_critic": self.optim_critic,
+            "buffer": self.buffer,
+        }
         if self.exploration is not None:
             parts["exploration"] = self.exploration
         return parts

@@ -368,9 +368,7 @@ class MAPETS(Experiment):
         self.eval_policy = self.planner
 
         # D(i)+ of every CAV over one shared storage
-        self.datasets = NeighbourDatasets(
-            n, config.buffer_size, device=device, seed=config.seed
-        )
+        self.datasets = NeighbourDatasets(n, config.buffer_size, device=device, seed=config.seed)
         self.counters = _Counters()
 
     # ------------------------------------------------------------------ env
@@ -523,9 +521,7 @@ class MAPETS(Experiment):
             self.latest_metrics = metrics
             self.save_checkpoint()
             bar.update(1)
-            bar.set_postfix(
-                {k: f"{metrics[k]:.3g}" for k in ("agility", "safety") if k in metrics}
-            )
+            bar.set_postfix({k: f"{metrics[k]:.3g}" for k in ("agility", "safety") if k in metrics})
             if on_episode_end is not None:
                 on_episode_end(metrics)
         bar.close()

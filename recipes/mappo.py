@@ -80,11 +80,19 @@ class MAPPOConfig(ExperimentConfig):
         check(self.entropy_coeff >= 0, "entropy_coeff", ">= 0", self.entropy_coeff)
         check(self.critic_coeff > 0, "critic_coeff", "> 0", self.critic_coeff)
         check(self.epochs >= 1, "epochs", ">= 1", self.epochs)
-        check(1 <= self.minibatch_size <= self.frames_per_batch, "minibatch_size",
-              f"in [1, frames_per_batch={self.frames_per_batch}]", self.minibatch_size)
+        check(
+            1 <= self.minibatch_size <= self.frames_per_batch,
+            "minibatch_size",
+            f"in [1, frames_per_batch={self.frames_per_batch}]",
+            self.minibatch_size,
+        )
         check(self.max_grad_norm > 0, "max_grad_norm", "> 0", self.max_grad_norm)
-        check(len(self.num_cells) >= 1 and min(self.num_cells) >= 1, "num_cells",
-              "a non-empty list of positive layer sizes", self.num_cells)
+        check(
+            len(self.num_cells) >= 1 and min(self.num_cells) >= 1,
+            "num_cells",
+            "a non-empty list of positive layer sizes",
+            self.num_cells,
+        )
 
 
 class MAPPO(Experiment):
@@ -100,14 +108,22 @@ class MAPPO(Experiment):
         # modules: (observation normaliser ->) decentralised policy; value V(o_1..o_I) per
         # agent (MAPPO) or V(o_i) (IPPO)
         self.obs_norm, norm_module = make_obs_norm(spec) if config.normalize_obs else (None, None)
-        self.policy = make_stochastic_policy(spec, config.num_cells, config.share_params,
-                                             obs_norm=norm_module)
-        value_mlp = MultiAgentMLP(n_agent_inputs=spec.obs_dim, n_agent_outputs=1,
-                                  n_agents=spec.n_agents, centralized=not config.ippo,
-                                  share_params=True, depth=len(config.num_cells),
-                                  num_cells=config.num_cells, activation_class=nn.Tanh)
-        self.critic = TensorDictModule(value_mlp, in_keys=[OBS if norm_module is None
-                                                           else OBS_NORM], out_keys=[VALUE])
+        self.policy = make_stochastic_policy(
+            spec, config.num_cells, config.share_params, obs_norm=norm_module
+        )
+        value_mlp = MultiAgentMLP(
+            n_agent_inputs=spec.obs_dim,
+            n_agent_outputs=1,
+            n_agents=spec.n_agents,
+            centralized=not config.ippo,
+            share_params=True,
+            depth=len(config.num_cells),
+            num_cells=config.num_cells,
+            activation_class=nn.Tanh,
+        )
+        self.critic = TensorDictModule(
+            value_mlp, in_keys=[OBS if norm_module is None else OBS_NORM], out_keys=[VALUE]
+        )
         if norm_module is not None:
             self.critic = TensorDictSequential(norm_module, self.critic)
 
@@ -118,23 +134,33 @@ class MAPPO(Experiment):
         # buffer: the latest batch, minibatches without replacement
         self.buffer = TensorDictReplayBuffer(
             storage=LazyTensorStorage(config.frames_per_batch),
-            sampler=SamplerWithoutReplacement(), batch_size=config.minibatch_size)
+            sampler=SamplerWithoutReplacement(),
+            batch_size=config.minibatch_size,
+        )
 
         # loss: clipped surrogate + value + entropy, advantages by MultiAgentGAE
         loss_cls = IPPOLoss if config.ippo else MAPPOLoss
-        self.loss = loss_cls(self.policy, self.critic, clip_epsilon=config.clip_epsilon,
-                             entropy_coeff=config.entropy_coeff,
-                             critic_coeff=config.critic_coeff)
+        self.loss = loss_cls(
+            self.policy,
+            self.critic,
+            clip_epsilon=config.clip_epsilon,
+            entropy_coeff=config.entropy_coeff,
+            critic_coeff=config.critic_coeff,
+        )
         self.loss.set_keys(**LOSS_KEYS, action=ACTION, value=VALUE, sample_log_prob=LOG_PROB)
-        self.loss.make_value_estimator(ValueEstimators.MAGAE, gamma=config.gamma,
-                                       lmbda=config.lmbda)
+        self.loss.make_value_estimator(
+            ValueEstimators.MAGAE, gamma=config.gamma, lmbda=config.lmbda
+        )
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=config.lr)
 
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
         """GAE on the batch [T], then ``epochs`` passes of minibatch PPO updates."""
         with torch.no_grad():
-            self.loss.value_estimator(batch, params=self.loss.critic_network_params,
-                                      target_params=self.loss.target_critic_network_params)
+            self.loss.value_estimator(
+                batch,
+                params=self.loss.critic_network_params,
+                target_params=self.loss.target_critic_network_params,
+            )
         self.buffer.empty()
         self.buffer.extend(batch.reshape(-1))
         logs: dict[str, float] = {}

@@ -77,13 +77,20 @@ class SACConfig(ExperimentConfig):
         check(0 <= self.gamma <= 1, "gamma", "in [0, 1]", self.gamma)
         check(0 < self.tau <= 1, "tau", "in (0, 1]", self.tau)
         check(self.batch_size >= 1, "batch_size", ">= 1", self.batch_size)
-        check(self.buffer_size >= self.batch_size, "buffer_size",
-              f">= batch_size={self.batch_size}", self.buffer_size)
+        check(
+            self.buffer_size >= self.batch_size,
+            "buffer_size",
+            f">= batch_size={self.batch_size}",
+            self.buffer_size,
+        )
         check(self.updates_per_batch >= 1, "updates_per_batch", ">= 1", self.updates_per_batch)
-        check(self.init_random_frames >= 0, "init_random_frames", ">= 0",
-              self.init_random_frames)
-        check(len(self.num_cells) >= 1 and min(self.num_cells) >= 1, "num_cells",
-              "a non-empty list of positive layer sizes", self.num_cells)
+        check(self.init_random_frames >= 0, "init_random_frames", ">= 0", self.init_random_frames)
+        check(
+            len(self.num_cells) >= 1 and min(self.num_cells) >= 1,
+            "num_cells",
+            "a non-empty list of positive layer sizes",
+            self.num_cells,
+        )
 
 
 class SAC(Experiment):
@@ -102,45 +109,79 @@ class SAC(Experiment):
         self.obs_norm, norm_module = make_obs_norm(spec) if config.normalize_obs else (None, None)
         obs_key = OBS if norm_module is None else OBS_NORM
         front = [] if norm_module is None else [norm_module]
-        self.actor = make_stochastic_policy(spec, cells, config.share_params,
-                                            return_log_prob=False, obs_norm=norm_module)
+        self.actor = make_stochastic_policy(
+            spec, cells, config.share_params, return_log_prob=False, obs_norm=norm_module
+        )
         if spec.discrete:
-            self.qvalue = TensorDictSequential(*front, TensorDictModule(
-                MultiAgentMLP(n_agent_inputs=spec.obs_dim, n_agent_outputs=spec.action_dim,
-                              n_agents=spec.n_agents, centralized=False,
-                              share_params=config.share_params, depth=depth, num_cells=cells,
-                              activation_class=nn.ReLU),
-                in_keys=[obs_key], out_keys=[ACTION_VALUE]))
+            self.qvalue = TensorDictSequential(
+                *front,
+                TensorDictModule(
+                    MultiAgentMLP(
+                        n_agent_inputs=spec.obs_dim,
+                        n_agent_outputs=spec.action_dim,
+                        n_agents=spec.n_agents,
+                        centralized=False,
+                        share_params=config.share_params,
+                        depth=depth,
+                        num_cells=cells,
+                        activation_class=nn.ReLU,
+                    ),
+                    in_keys=[obs_key],
+                    out_keys=[ACTION_VALUE],
+                ),
+            )
         else:
             self.qvalue = TensorDictSequential(
                 *front,
                 TensorDictModule(concat_last, in_keys=[obs_key, ACTION], out_keys=[OBS_ACTION]),
                 TensorDictModule(
-                    MultiAgentMLP(n_agent_inputs=spec.obs_dim + spec.action_dim,
-                                  n_agent_outputs=1, n_agents=spec.n_agents, centralized=False,
-                                  share_params=config.share_params, depth=depth,
-                                  num_cells=cells, activation_class=nn.ReLU),
-                    in_keys=[OBS_ACTION], out_keys=[Q_VALUE]))
+                    MultiAgentMLP(
+                        n_agent_inputs=spec.obs_dim + spec.action_dim,
+                        n_agent_outputs=1,
+                        n_agents=spec.n_agents,
+                        centralized=False,
+                        share_params=config.share_params,
+                        depth=depth,
+                        num_cells=cells,
+                        activation_class=nn.ReLU,
+                    ),
+                    in_keys=[OBS_ACTION],
+                    out_keys=[Q_VALUE],
+                ),
+            )
 
         # collector
-        self.collector = self.make_collector(self.actor,
-                                             init_random_frames=config.init_random_frames)
+        self.collector = self.make_collector(
+            self.actor, init_random_frames=config.init_random_frames
+        )
         self.eval_policy = self.actor
 
         # buffer
-        self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(config.buffer_size),
-                                             batch_size=config.batch_size)
+        self.buffer = TensorDictReplayBuffer(
+            storage=LazyTensorStorage(config.buffer_size), batch_size=config.batch_size
+        )
 
         # loss: twin-Q soft Bellman targets, learned temperature (target entropy per agent)
         if spec.discrete:
-            self.loss = DiscreteSACLoss(self.actor, self.qvalue, action_space="one-hot",
-                                        num_actions=spec.action_dim, num_qvalue_nets=2,
-                                        alpha_init=config.alpha_init, loss_function="l2")
+            self.loss = DiscreteSACLoss(
+                self.actor,
+                self.qvalue,
+                action_space="one-hot",
+                num_actions=spec.action_dim,
+                num_qvalue_nets=2,
+                alpha_init=config.alpha_init,
+                loss_function="l2",
+            )
             self.loss.set_keys(**LOSS_KEYS, action=ACTION, action_value=ACTION_VALUE)
         else:
-            self.loss = SACLoss(self.actor, self.qvalue, num_qvalue_nets=2,
-                                alpha_init=config.alpha_init, loss_function="l2",
-                                target_entropy=-float(spec.action_dim))
+            self.loss = SACLoss(
+                self.actor,
+                self.qvalue,
+                num_qvalue_nets=2,
+                alpha_init=config.alpha_init,
+                loss_function="l2",
+                target_entropy=-float(spec.action_dim),
+            )
             self.loss.set_keys(**LOSS_KEYS, action=ACTION, state_action_value=Q_VALUE)
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=config.gamma)
         self.target_updater = SoftUpdate(self.loss, tau=config.tau)

@@ -45,37 +45,61 @@ def _refused(call: Callable[[], Any], match: str) -> str:
 CONFIG_CASES = [
     ("lr=inf", lambda: ToyConfig(lr=INF), "lr must be a finite number"),
     ("lr=nan", lambda: ToyConfig(lr=NAN), "lr must be a finite number"),
-    ("lr=1e400 override", lambda: ToyConfig().with_overrides(["lr=1e400"]),
-     "lr must be a finite number"),
-    ("lr=.inf override", lambda: ToyConfig().with_overrides(["lr=.inf"]),
-     "lr must be a finite number"),
+    (
+        "lr=1e400 override",
+        lambda: ToyConfig().with_overrides(["lr=1e400"]),
+        "lr must be a finite number",
+    ),
+    (
+        "lr=.inf override",
+        lambda: ToyConfig().with_overrides(["lr=.inf"]),
+        "lr must be a finite number",
+    ),
     ("mapets lr=inf", lambda: MAPETSConfig(lr=INF), "lr must be a finite number"),
     ("mapets epsilon=inf", lambda: MAPETSConfig(epsilon=INF), "epsilon must be a finite"),
-    ("mapets collision_gap=inf", lambda: MAPETSConfig(collision_gap=INF),
-     "collision_gap must be a finite"),
-    ("mapets collision_reward=-inf", lambda: MAPETSConfig(collision_reward=-INF),
-     "collision_reward must be a finite"),
-    ("mapets comm_range=nan", lambda: MAPETSConfig(comm_range=NAN),
-     r"comm_range must be a number \(inf allowed\), not NaN"),
+    (
+        "mapets collision_gap=inf",
+        lambda: MAPETSConfig(collision_gap=INF),
+        "collision_gap must be a finite",
+    ),
+    (
+        "mapets collision_reward=-inf",
+        lambda: MAPETSConfig(collision_reward=-INF),
+        "collision_reward must be a finite",
+    ),
+    (
+        "mapets comm_range=nan",
+        lambda: MAPETSConfig(comm_range=NAN),
+        r"comm_range must be a number \(inf allowed\), not NaN",
+    ),
     ("mappo lr=inf", lambda: MAPPOConfig(lr=INF), "lr must be a finite number"),
-    ("mappo max_grad_norm=inf", lambda: MAPPOConfig(max_grad_norm=INF),
-     "max_grad_norm must be a finite number"),
+    (
+        "mappo max_grad_norm=inf",
+        lambda: MAPPOConfig(max_grad_norm=INF),
+        "max_grad_norm must be a finite number",
+    ),
     ("maddpg tau=nan", lambda: MADDPGConfig(tau=NAN), "tau must be a finite number"),
     ("sac alpha_init=inf", lambda: SACConfig(alpha_init=INF), "alpha_init must be a finite"),
-    ("shapley critic_lr=inf", lambda: ShapleyACConfig(critic_lr=INF),
-     "critic_lr must be a finite number"),
+    (
+        "shapley critic_lr=inf",
+        lambda: ShapleyACConfig(critic_lr=INF),
+        "critic_lr must be a finite number",
+    ),
     ("device=tpu", lambda: ToyConfig(device="tpu"), r"device must be one of \['cpu'"),
     ("device=bogus", lambda: ToyConfig(device="bogus"), "device must be one of"),
-    ("device=cuda without cuda", lambda: ToyConfig(device=NO_CUDA_DEVICE),
-     "device must be one of"),
-    ("env=nowhere", lambda: ToyConfig(env="nowhere"),
-     "env must be one of the registered scenarios"),
+    ("device=cuda without cuda", lambda: ToyConfig(device=NO_CUDA_DEVICE), "device must be one of"),
+    (
+        "env=nowhere",
+        lambda: ToyConfig(env="nowhere"),
+        "env must be one of the registered scenarios",
+    ),
     ("seed=-1", lambda: ToyConfig(seed=-1), "seed must be >= 0"),
 ]
 
 
-@pytest.mark.parametrize("call, match", [c[1:] for c in CONFIG_CASES],
-                         ids=[c[0] for c in CONFIG_CASES])
+@pytest.mark.parametrize(
+    "call, match", [c[1:] for c in CONFIG_CASES], ids=[c[0] for c in CONFIG_CASES]
+)
 def test_config_refuses(call: Callable[[], Any], match: str) -> None:
     _refused(call, match)
 
@@ -89,13 +113,17 @@ def test_logger_without_its_package_is_refused_by_the_config() -> None:
     _refused(lambda: ToyConfig(logger="wandb"), "logger='wandb' needs the wandb package")
 
 
-@pytest.mark.parametrize("content, match", [
-    ("lr: [1, 2\n", r"is not valid YAML: .* at line 2"),
-    ("lr: 1\n  bad: indent\n", "is not valid YAML"),
-    ("- lr\n", "must hold a mapping of config fields, got a list"),
-    ("lr: .inf\n", "lr must be a finite number"),
-    ("nokey: 1\n", "unknown config key 'nokey'"),
-], ids=["unclosed list", "bad indent", "a list", "inf", "unknown key"])
+@pytest.mark.parametrize(
+    "content, match",
+    [
+        ("lr: [1, 2\n", r"is not valid YAML: .* at line 2"),
+        ("lr: 1\n  bad: indent\n", "is not valid YAML"),
+        ("- lr\n", "must hold a mapping of config fields, got a list"),
+        ("lr: .inf\n", "lr must be a finite number"),
+        ("nokey: 1\n", "unknown config key 'nokey'"),
+    ],
+    ids=["unclosed list", "bad indent", "a list", "inf", "unknown key"],
+)
 def test_config_file_errors_name_the_file(tmp_path: Path, content: str, match: str) -> None:
     path = tmp_path / "cfg.yaml"
     path.write_text(content)
@@ -138,32 +166,59 @@ CLI_CASES = [
     ("env=nowhere override", TRAIN + ["env=nowhere"], "env must be one of the registered"),
     ("malformed --config", TRAIN + ["--config", "{bad_yaml}"], "is not valid YAML"),
     ("missing --config", TRAIN + ["--config", "/nonexistent/c.yaml"], "cannot be read"),
-    ("--run-dir under a file", TRAIN + ["--run-dir", "{a_file}/run"],
-     "run_dir .* cannot be created: .* is not a directory"),
-    ("--run-dir is a file", TRAIN + ["--run-dir", "{a_file}"],
-     "run_dir .* cannot be created: .* is not a directory"),
-    ("--runs-root under a file", TRAIN + ["--runs-root", "{a_file}/runs"],
-     "--runs-root .* cannot be created"),
-    ("env_config length=inf", ["train", "toy", "--env", "figure-eight", "env_config.length=.inf"],
-     "length must be a finite number > 0"),
-    ("env_config n_hvs=many", ["train", "toy", "--env", "figure-eight", "env_config.n_hvs=many"],
-     "n_hvs must be an int >= 0 or a range"),
-    ("compare --out under a file", ["compare", "{finished_run}", "--out", "{a_file}/cmp"],
-     "out_dir .* cannot be created"),
-    ("compare --metrics ,", ["compare", "{finished_run}", "--out", "{tmp_path}/cmp",
-                             "--metrics", ","], "--metrics must name at least one metric"),
-    ("compare unknown metric", ["compare", "{finished_run}", "--out", "{tmp_path}/cmp",
-                                "--metrics", "nope"], r"metrics \['nope'\] are not in every run"),
-    ("resume env override", ["resume", "{finished_run}", "env=freeway"],
-     "env cannot change when resuming"),
-    ("resume device=bogus", ["resume", "{finished_run}", "device=bogus"],
-     "device must be one of"),
+    (
+        "--run-dir under a file",
+        TRAIN + ["--run-dir", "{a_file}/run"],
+        "run_dir .* cannot be created: .* is not a directory",
+    ),
+    (
+        "--run-dir is a file",
+        TRAIN + ["--run-dir", "{a_file}"],
+        "run_dir .* cannot be created: .* is not a directory",
+    ),
+    (
+        "--runs-root under a file",
+        TRAIN + ["--runs-root", "{a_file}/runs"],
+        "--runs-root .* cannot be created",
+    ),
+    (
+        "env_config length=inf",
+        ["train", "toy", "--env", "figure-eight", "env_config.length=.inf"],
+        "length must be a finite number > 0",
+    ),
+    (
+        "env_config n_hvs=many",
+        ["train", "toy", "--env", "figure-eight", "env_config.n_hvs=many"],
+        "n_hvs must be an int >= 0 or a range",
+    ),
+    (
+        "compare --out under a file",
+        ["compare", "{finished_run}", "--out", "{a_file}/cmp"],
+        "out_dir .* cannot be created",
+    ),
+    (
+        "compare --metrics ,",
+        ["compare", "{finished_run}", "--out", "{tmp_path}/cmp", "--metrics", ","],
+        "--metrics must name at least one metric",
+    ),
+    (
+        "compare unknown metric",
+        ["compare", "{finished_run}", "--out", "{tmp_path}/cmp", "--metrics", "nope"],
+        r"metrics \['nope'\] are not in every run",
+    ),
+    (
+        "resume env override",
+        ["resume", "{finished_run}", "env=freeway"],
+        "env cannot change when resuming",
+    ),
+    ("resume device=bogus", ["resume", "{finished_run}", "device=bogus"], "device must be one of"),
 ]
 
 
 @pytest.mark.parametrize("argv, match", [c[1:] for c in CLI_CASES], ids=[c[0] for c in CLI_CASES])
-def test_cli_exits_2_with_one_line(argv: list[str], match: str, toy_recipe, tmp_path: Path,
-                                   request, capsys) -> None:
+def test_cli_exits_2_with_one_line(
+    argv: list[str], match: str, toy_recipe, tmp_path: Path, request, capsys
+) -> None:
     names = {"a_file", "bad_yaml", "finished_run", "tmp_path"}
     values = {n: request.getfixturevalue(n) for n in names if any(f"{{{n}}}" in a for a in argv)}
     argv = [a.format(**values) for a in argv]
@@ -179,17 +234,19 @@ def test_cli_exits_2_with_one_line(argv: list[str], match: str, toy_recipe, tmp_
     assert not (tmp_path / "cmp").exists()
 
 
-def test_read_only_run_dir_is_refused_before_anything_starts(tmp_path: Path,
-                                                             monkeypatch) -> None:
+def test_read_only_run_dir_is_refused_before_anything_starts(tmp_path: Path, monkeypatch) -> None:
     read_only = tmp_path / "ro"
     read_only.mkdir()
     real_access = os.access
-    monkeypatch.setattr(os, "access", lambda p, mode, **kw: Path(p) != read_only
-                        and real_access(p, mode, **kw))
+    monkeypatch.setattr(
+        os, "access", lambda p, mode, **kw: Path(p) != read_only and real_access(p, mode, **kw)
+    )
     built = []
     monkeypatch.setattr(ToyLearner, "make_env", lambda self: built.append(1))
-    _refused(lambda: ToyLearner(ToyConfig(), read_only / "run"),
-             "run_dir .* cannot be written: .* is not writable")
+    _refused(
+        lambda: ToyLearner(ToyConfig(), read_only / "run"),
+        "run_dir .* cannot be written: .* is not writable",
+    )
     assert built == [] and list(read_only.iterdir()) == []
 
 
@@ -197,42 +254,90 @@ def test_read_only_run_dir_is_refused_before_anything_starts(tmp_path: Path,
 ENV_CASES = [
     ("length=inf", lambda: FigureEightEnv({"length": INF}), "length must be a finite number > 0"),
     ("length=-1", lambda: FigureEightEnv({"length": -1.0}), "length must be a finite number > 0"),
-    ("max_speed=-5", lambda: FigureEightEnv({"max_speed": -5.0}),
-     "max_speed must be a finite number > 0"),
-    ("max_speed=nan", lambda: FigureEightEnv({"max_speed": NAN}),
-     "max_speed must be a finite number > 0"),
-    ("initial_speed low > high", lambda: FigureEightEnv({"initial_speed": (8.0, 4.0)}),
-     "initial_speed must be a range"),
-    ("initial_speed negative", lambda: FigureEightEnv({"initial_speed": (-5.0, -1.0)}),
-     "initial_speed must be a range .* 0 <= lo <= hi"),
-    ("initial_speed above max_speed", lambda: FigureEightEnv({"initial_speed": (4.0, 30.0)}),
-     r"initial_speed .* hi <= 13.89"),
-    ("hv_target_speed nan", lambda: FigureEightEnv({"hv_target_speed": (NAN, 10.0)}),
-     "hv_target_speed must be a range"),
+    (
+        "max_speed=-5",
+        lambda: FigureEightEnv({"max_speed": -5.0}),
+        "max_speed must be a finite number > 0",
+    ),
+    (
+        "max_speed=nan",
+        lambda: FigureEightEnv({"max_speed": NAN}),
+        "max_speed must be a finite number > 0",
+    ),
+    (
+        "initial_speed low > high",
+        lambda: FigureEightEnv({"initial_speed": (8.0, 4.0)}),
+        "initial_speed must be a range",
+    ),
+    (
+        "initial_speed negative",
+        lambda: FigureEightEnv({"initial_speed": (-5.0, -1.0)}),
+        "initial_speed must be a range .* 0 <= lo <= hi",
+    ),
+    (
+        "initial_speed above max_speed",
+        lambda: FigureEightEnv({"initial_speed": (4.0, 30.0)}),
+        r"initial_speed .* hi <= 13.89",
+    ),
+    (
+        "hv_target_speed nan",
+        lambda: FigureEightEnv({"hv_target_speed": (NAN, 10.0)}),
+        "hv_target_speed must be a range",
+    ),
     ("n_hvs=many", lambda: FigureEightEnv({"n_hvs": "many"}), "n_hvs must be an int >= 0"),
     ("n_hvs=2.5", lambda: FigureEightEnv({"n_hvs": 2.5}), "n_hvs must be an int >= 0"),
     ("lanes=1.5", lambda: FigureEightEnv({"lanes": 1.5}), "lanes must be 1 or 2"),
-    ("collision_reward=nan", lambda: FigureEightEnv({"collision_reward": NAN}),
-     "collision_reward must be a finite number"),
+    (
+        "collision_reward=nan",
+        lambda: FigureEightEnv({"collision_reward": NAN}),
+        "collision_reward must be a finite number",
+    ),
     ("n_cavs=True", lambda: FigureEightEnv({"n_cavs": True}), "n_cavs must be an integer"),
-    ("min_spacing=nan", lambda: FigureEightEnv({"min_spacing": NAN}),
-     "min_spacing must be a finite number >= 7"),
-    ("freeway velocity_weight=nan", lambda: FreewayEnv({"velocity_weight": NAN}),
-     "velocity_weight must be a finite number"),
-    ("freeway speed_limit=-1", lambda: FreewayEnv({"speed_limit": -1.0}),
-     "speed_limit must be a finite number > 0"),
-    ("freeway cav_ratio='half'", lambda: FreewayEnv({"cav_ratio": "half"}),
-     r"cav_ratio must be a number in \[0, 1\]"),
-    ("freeway initial_speed low > high", lambda: FreewayEnv({"initial_speed": (28.0, 22.0)}),
-     "initial_speed must be a range"),
-    ("freeway perception=0", lambda: FreewayEnv({"perception": 0.0}),
-     "perception must be a finite number > 0"),
-    ("freeway collision_reward=nan", lambda: FreewayEnv({"collision_reward": NAN}),
-     "collision_reward must be a finite number"),
-    ("torchrl env length=inf", lambda: make_env("figure-eight", length=INF),
-     "length must be a finite number"),
-    ("torchrl env speed_limit=nan", lambda: make_env("freeway", speed_limit=NAN),
-     "speed_limit must be a finite number"),
+    (
+        "min_spacing=nan",
+        lambda: FigureEightEnv({"min_spacing": NAN}),
+        "min_spacing must be a finite number >= 7",
+    ),
+    (
+        "freeway velocity_weight=nan",
+        lambda: FreewayEnv({"velocity_weight": NAN}),
+        "velocity_weight must be a finite number",
+    ),
+    (
+        "freeway speed_limit=-1",
+        lambda: FreewayEnv({"speed_limit": -1.0}),
+        "speed_limit must be a finite number > 0",
+    ),
+    (
+        "freeway cav_ratio='half'",
+        lambda: FreewayEnv({"cav_ratio": "half"}),
+        r"cav_ratio must be a number in \[0, 1\]",
+    ),
+    (
+        "freeway initial_speed low > high",
+        lambda: FreewayEnv({"initial_speed": (28.0, 22.0)}),
+        "initial_speed must be a range",
+    ),
+    (
+        "freeway perception=0",
+        lambda: FreewayEnv({"perception": 0.0}),
+        "perception must be a finite number > 0",
+    ),
+    (
+        "freeway collision_reward=nan",
+        lambda: FreewayEnv({"collision_reward": NAN}),
+        "collision_reward must be a finite number",
+    ),
+    (
+        "torchrl env length=inf",
+        lambda: make_env("figure-eight", length=INF),
+        "length must be a finite number",
+    ),
+    (
+        "torchrl env speed_limit=nan",
+        lambda: make_env("freeway", speed_limit=NAN),
+        "speed_limit must be a finite number",
+    ),
 ]
 
 
@@ -261,8 +366,9 @@ FREEWAY_ACTIONS = [
 ]
 
 
-@pytest.mark.parametrize("rows", [a[1] for a in FREEWAY_ACTIONS],
-                         ids=[a[0] for a in FREEWAY_ACTIONS])
+@pytest.mark.parametrize(
+    "rows", [a[1] for a in FREEWAY_ACTIONS], ids=[a[0] for a in FREEWAY_ACTIONS]
+)
 def test_freeway_torchrl_env_refuses_actions_that_are_not_one_hot(freeway, rows) -> None:
     td = freeway.reset()
     td["agents", "action"] = _one_hot_rows(rows)
@@ -290,8 +396,9 @@ RAW_ACTIONS = [
 ]
 
 
-@pytest.mark.parametrize("action, match", [a[1:] for a in RAW_ACTIONS],
-                         ids=[a[0] for a in RAW_ACTIONS])
+@pytest.mark.parametrize(
+    "action, match", [a[1:] for a in RAW_ACTIONS], ids=[a[0] for a in RAW_ACTIONS]
+)
 def test_raw_env_refuses_bad_actions(action: Any, match: str) -> None:
     env = FigureEightEnv({"n_hvs": 4})
     _refused(lambda: env.step(action), match)

@@ -21,13 +21,20 @@ SCENARIOS = {
 }
 RECIPES = {
     "mappo": (MAPPO, MAPPOConfig, {"minibatch_size": 20, "epochs": 2}),
-    "maddpg": (MADDPG, MADDPGConfig, {"batch_size": 32, "updates_per_batch": 3,
-                                      "init_random_frames": 40}),
-    "sac": (SAC, SACConfig, {"batch_size": 32, "updates_per_batch": 3,
-                             "init_random_frames": 40}),
+    "maddpg": (
+        MADDPG,
+        MADDPGConfig,
+        {"batch_size": 32, "updates_per_batch": 3, "init_random_frames": 40},
+    ),
+    "sac": (SAC, SACConfig, {"batch_size": 32, "updates_per_batch": 3, "init_random_frames": 40}),
 }
-COMMON = {"frames_per_batch": 40, "eval_interval": 0, "checkpoint_interval": 0,
-          "progress": False, "logger": "none"}
+COMMON = {
+    "frames_per_batch": 40,
+    "eval_interval": 0,
+    "checkpoint_interval": 0,
+    "progress": False,
+    "logger": "none",
+}
 
 
 def _params(exp) -> torch.Tensor:
@@ -53,8 +60,7 @@ def _train_recording_losses(exp) -> list[dict[str, float]]:
 def test_recipe_trains_on_scenario(recipe: str, scenario: str, tmp_path: Path) -> None:
     cls, config_cls, extra = RECIPES[recipe]
     env_config, frames, metrics = SCENARIOS[scenario]
-    config = config_cls(env=scenario, env_config=env_config, total_frames=frames,
-                        **COMMON, **extra)
+    config = config_cls(env=scenario, env_config=env_config, total_frames=frames, **COMMON, **extra)
     exp = cls(config, tmp_path)
     before = _params(exp)
     logs = _train_recording_losses(exp)
@@ -67,15 +73,28 @@ def test_recipe_trains_on_scenario(recipe: str, scenario: str, tmp_path: Path) -
         assert torch.isfinite(torch.tensor(final["metrics"][name]))
 
 
-@pytest.mark.parametrize("cls, config", [
-    (MAPPO, MAPPOConfig(ippo=True, share_params=False, minibatch_size=20)),
-    (SAC, SACConfig(share_params=False, batch_size=16, updates_per_batch=2,
-                    init_random_frames=0)),
-    (MADDPG, MADDPGConfig(share_params=False, batch_size=16, updates_per_batch=2)),
-])
+@pytest.mark.parametrize(
+    "cls, config",
+    [
+        (MAPPO, MAPPOConfig(ippo=True, share_params=False, minibatch_size=20)),
+        (
+            SAC,
+            SACConfig(share_params=False, batch_size=16, updates_per_batch=2, init_random_frames=0),
+        ),
+        (MADDPG, MADDPGConfig(share_params=False, batch_size=16, updates_per_batch=2)),
+    ],
+)
 def test_variants_on_toy_env(cls, config, tmp_path: Path) -> None:
-    config = config.with_overrides(["env=toy", "total_frames=80", "frames_per_batch=40",
-                                    "progress=false", "logger=none", "eval_interval=0"])
+    config = config.with_overrides(
+        [
+            "env=toy",
+            "total_frames=80",
+            "frames_per_batch=40",
+            "progress=false",
+            "logger=none",
+            "eval_interval=0",
+        ]
+    )
     exp = cls(config, tmp_path)
     before = _params(exp)
     exp.train()
@@ -91,15 +110,34 @@ def test_ippo_value_is_decentralised(tmp_path: Path) -> None:
     assert centralised(MAPPO(MAPPOConfig(**cfg), tmp_path / "m")) == [True]
 
 
-@pytest.mark.parametrize("cls, config_cls, extra", [
-    (MADDPG, MADDPGConfig, {"batch_size": 16, "updates_per_batch": 2, "init_random_frames": 30,
-                            "sigma_anneal_frames": 60}),
-    (MAPPO, MAPPOConfig, {"minibatch_size": 10}),
-])
+@pytest.mark.parametrize(
+    "cls, config_cls, extra",
+    [
+        (
+            MADDPG,
+            MADDPGConfig,
+            {
+                "batch_size": 16,
+                "updates_per_batch": 2,
+                "init_random_frames": 30,
+                "sigma_anneal_frames": 60,
+            },
+        ),
+        (MAPPO, MAPPOConfig, {"minibatch_size": 10}),
+    ],
+)
 def test_resume_matches_uninterrupted(cls, config_cls, extra, tmp_path: Path) -> None:
     def config(total: int):
-        return config_cls(env="toy", total_frames=total, frames_per_batch=20, eval_interval=20,
-                          checkpoint_interval=40, progress=False, logger="none", **extra)
+        return config_cls(
+            env="toy",
+            total_frames=total,
+            frames_per_batch=20,
+            eval_interval=20,
+            checkpoint_interval=40,
+            progress=False,
+            logger="none",
+            **extra,
+        )
 
     full = cls(config(100), tmp_path / "full")
     expected = full.train()
@@ -109,14 +147,17 @@ def test_resume_matches_uninterrupted(cls, config_cls, extra, tmp_path: Path) ->
     assert torch.equal(_params(resumed), _params(full))
 
 
-@pytest.mark.parametrize("config_cls, override, field", [
-    (MAPPOConfig, "minibatch_size=1000", "minibatch_size"),
-    (MAPPOConfig, "lmbda=1.5", "lmbda"),
-    (MADDPGConfig, "tau=0", "tau"),
-    (MADDPGConfig, "sigma_end=0.9", "sigma_end"),
-    (SACConfig, "buffer_size=2", "buffer_size"),
-    (SACConfig, "num_cells=[]", "num_cells"),
-])
+@pytest.mark.parametrize(
+    "config_cls, override, field",
+    [
+        (MAPPOConfig, "minibatch_size=1000", "minibatch_size"),
+        (MAPPOConfig, "lmbda=1.5", "lmbda"),
+        (MADDPGConfig, "tau=0", "tau"),
+        (MADDPGConfig, "sigma_end=0.9", "sigma_end"),
+        (SACConfig, "buffer_size=2", "buffer_size"),
+        (SACConfig, "num_cells=[]", "num_cells"),
+    ],
+)
 def test_config_validation(config_cls, override: str, field: str) -> None:
     with pytest.raises(ConfigError, match=field):
         config_cls().with_overrides([override])
@@ -125,8 +166,12 @@ def test_config_validation(config_cls, override: str, field: str) -> None:
 def test_evaluation_video_is_a_gif(tmp_path: Path) -> None:
     import imageio.v2 as imageio
 
-    config = MAPPOConfig(env="figure-eight", env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},
-                         progress=False, logger="none")
+    config = MAPPOConfig(
+        env="figure-eight",
+        env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},
+        progress=False,
+        logger="none",
+    )
     exp = MAPPO(config, tmp_path)
     metrics = exp.evaluate(episodes=1, video=True)
     frames = imageio.mimread(tmp_path / "videos" / "eval_000000000000.gif")

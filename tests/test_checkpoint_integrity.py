@@ -48,8 +48,10 @@ def _trained(tmp_path: Path, frames: int = 40) -> Path:
     """A toy run stopped at ``frames`` with checkpoints at 20 and 40 frames."""
     run = tmp_path / "run"
     ToyLearner(ToyConfig(total_frames=frames), run).train()
-    assert [p.name for p in list_checkpoints(run)] == ["ckpt_000000000020.pt",
-                                                       "ckpt_000000000040.pt"]
+    assert [p.name for p in list_checkpoints(run)] == [
+        "ckpt_000000000020.pt",
+        "ckpt_000000000040.pt",
+    ]
     return run
 
 
@@ -90,8 +92,10 @@ BREAKERS: dict[str, tuple[Callable[[Path], None], str]] = {
     "truncated": (_truncate, "does not match its SHA-256 digest"),
     "empty": (_empty, "does not match its SHA-256 digest"),
     "garbage": (_garbage, "does not match its SHA-256 digest"),
-    "bad digest file": (lambda p: digest_path(p).write_text("not a digest\n"),
-                        "does not hold the SHA-256 digest"),
+    "bad digest file": (
+        lambda p: digest_path(p).write_text("not a digest\n"),
+        "does not hold the SHA-256 digest",
+    ),
     "pickle payload": (_pickle_payload_with_digest, "not a checkpoint this library wrote"),
 }
 
@@ -105,8 +109,9 @@ def marker(tmp_path: Path, monkeypatch) -> Path:
 
 # ------------------------------------------------------------------ load_checkpoint refuses
 @pytest.mark.parametrize("kind", sorted(BREAKERS))
-def test_broken_checkpoint_is_refused_with_one_line_naming_it(tmp_path: Path, kind: str,
-                                                              marker: Path) -> None:
+def test_broken_checkpoint_is_refused_with_one_line_naming_it(
+    tmp_path: Path, kind: str, marker: Path
+) -> None:
     path = save_checkpoint({"w": torch.arange(1000.0), "step": 7}, tmp_path, 7)
     breaker, reason = BREAKERS[kind]
     breaker(path)
@@ -127,8 +132,7 @@ def test_checkpoint_without_digest_file_loads_with_a_warning(tmp_path: Path, cap
     assert any("has no digest file" in r.getMessage() for r in caplog.records)
 
 
-def test_pickle_payload_is_refused_with_or_without_a_digest(tmp_path: Path,
-                                                                     marker: Path) -> None:
+def test_pickle_payload_is_refused_with_or_without_a_digest(tmp_path: Path, marker: Path) -> None:
     path = tmp_path / "checkpoints" / "ckpt_000000000001.pt"
     path.parent.mkdir()
     with open(path, "wb") as fh:
@@ -142,8 +146,9 @@ def test_pickle_payload_is_refused_with_or_without_a_digest(tmp_path: Path,
 
 # ------------------------------------------------------------------- fallback on resume
 @pytest.mark.parametrize("kind", sorted(BREAKERS))
-def test_resume_falls_back_to_the_previous_good_checkpoint(tmp_path: Path, kind: str,
-                                                           marker: Path, caplog) -> None:
+def test_resume_falls_back_to_the_previous_good_checkpoint(
+    tmp_path: Path, kind: str, marker: Path, caplog
+) -> None:
     full = ToyLearner(ToyConfig(), tmp_path / "full")
     full_evals = full.train()
     run = _trained(tmp_path)
@@ -161,7 +166,8 @@ def test_resume_falls_back_to_the_previous_good_checkpoint(tmp_path: Path, kind:
 
 
 def test_cli_evaluate_skips_a_tampered_checkpoint_with_one_warning_line(
-        tmp_path: Path, toy_recipe, capsys) -> None:
+    tmp_path: Path, toy_recipe, capsys
+) -> None:
     run = _trained(tmp_path)
     code, _, err = _run(["evaluate", str(run)], capsys)
     assert code == 0 and err == ""
@@ -184,19 +190,22 @@ def test_no_checkpoint_verifies_fails_with_one_line(tmp_path: Path, toy_recipe, 
         code, _, err = _run([command, str(run)], capsys)
         lines = err.splitlines()
         assert code == 2 and lines[-1].startswith("mapets-rl: error: none of the 2 checkpoints")
-        assert len(lines) == 3 and all(x.startswith("mapets-rl: warning: checkpoint")
-                                       and x.endswith("; skipped") for x in lines[:2])
+        assert len(lines) == 3 and all(
+            x.startswith("mapets-rl: warning: checkpoint") and x.endswith("; skipped")
+            for x in lines[:2]
+        )
 
 
 # ---------------------------------------------------------- temp files and permissions
-def test_stale_temp_files_and_orphan_digests_are_removed_on_the_next_start(
-        tmp_path: Path) -> None:
+def test_stale_temp_files_and_orphan_digests_are_removed_on_the_next_start(tmp_path: Path) -> None:
     run = _trained(tmp_path)
     ckpt_dir = run / "checkpoints"
-    stale = [ckpt_dir / ".ckpt_000000000060.pt.abcd1234.tmp",  # an older writer's temp file
-             ckpt_dir / ".ckpt_000000000060.pt.k2j4h5g6.tmp.pt",
-             ckpt_dir / "ckpt_000000000060.pt.sha256",  # digest of a checkpoint never renamed
-             run / ".results.json.zz99yy88.tmp.json"]
+    stale = [
+        ckpt_dir / ".ckpt_000000000060.pt.abcd1234.tmp",  # an older writer's temp file
+        ckpt_dir / ".ckpt_000000000060.pt.k2j4h5g6.tmp.pt",
+        ckpt_dir / "ckpt_000000000060.pt.sha256",  # digest of a checkpoint never renamed
+        run / ".results.json.zz99yy88.tmp.json",
+    ]
     for path in stale:
         path.write_text("x")
     keep = run / "notes.txt"
@@ -210,8 +219,12 @@ def test_stale_temp_files_and_orphan_digests_are_removed_on_the_next_start(
 def test_checkpoints_have_the_permissions_of_every_other_file(tmp_path: Path) -> None:
     run = _trained(tmp_path)
     mode = stat.S_IMODE((run / "config.yaml").stat().st_mode)
-    for path in [*list_checkpoints(run), *map(digest_path, list_checkpoints(run)),
-                 run / "results.json", run / "run.json"]:
+    for path in [
+        *list_checkpoints(run),
+        *map(digest_path, list_checkpoints(run)),
+        run / "results.json",
+        run / "run.json",
+    ]:
         assert stat.S_IMODE(path.stat().st_mode) == mode, path.name
     umask = os.umask(0)
     os.umask(umask)
@@ -219,22 +232,32 @@ def test_checkpoints_have_the_permissions_of_every_other_file(tmp_path: Path) ->
 
 
 # -------------------------------------------------- a failed resume leaves the run usable
-@pytest.mark.parametrize("override, needle", [
-    ("env_config.n_agents=2", "cannot resume with env_config.n_agents changed"),
-    ("env=freeway", "env cannot change when resuming"),
-    ("device=bogus", "device must be one of"),
-    ("lr=.inf", "lr must be a finite number"),
-    ("nope=1", "unknown config key 'nope'"),
-])
-def test_failed_resume_leaves_the_run_directory_usable(tmp_path: Path, toy_recipe, capsys,
-                                                       override: str, needle: str) -> None:
+@pytest.mark.parametrize(
+    "override, needle",
+    [
+        ("env_config.n_agents=2", "cannot resume with env_config.n_agents changed"),
+        ("env=freeway", "env cannot change when resuming"),
+        ("device=bogus", "device must be one of"),
+        ("lr=.inf", "lr must be a finite number"),
+        ("nope=1", "unknown config key 'nope'"),
+    ],
+)
+def test_failed_resume_leaves_the_run_directory_usable(
+    tmp_path: Path, toy_recipe, capsys, override: str, needle: str
+) -> None:
     run = _trained(tmp_path)
-    before = {p.relative_to(run): p.read_bytes() for p in run.rglob("*") if p.is_file()
-              and "logs" not in p.parts}
+    before = {
+        p.relative_to(run): p.read_bytes()
+        for p in run.rglob("*")
+        if p.is_file() and "logs" not in p.parts
+    }
     code, _, err = _run(["resume", str(run), override, "total_frames=60"], capsys)
     assert code == 2 and err.count("\n") == 1 and needle in err, err
-    after = {p.relative_to(run): p.read_bytes() for p in run.rglob("*") if p.is_file()
-             and "logs" not in p.parts}
+    after = {
+        p.relative_to(run): p.read_bytes()
+        for p in run.rglob("*")
+        if p.is_file() and "logs" not in p.parts
+    }
     assert after == before  # nothing was rewritten
     code, out, _ = _run(["resume", str(run), "total_frames=60"], capsys)
     assert code == 0 and '"frames": 60' in out
@@ -250,14 +273,18 @@ def test_override_that_keeps_shapes_is_saved_after_the_restore(tmp_path: Path) -
     assert "lr: 0.01" in (run / "config.yaml").read_text()
 
 
-@pytest.mark.parametrize("content, needle", [
-    ("lr: [1, 2\n", "is not valid YAML"),
-    ("- a\n- b\n", "must hold a mapping"),
-    ("lr: 0.05\n", "is incomplete"),
-    ("episodes: 3\ncomm_range: 100\n", "is not a 'toy' config"),
-])
-def test_malformed_config_yaml_gives_one_line_naming_it(tmp_path: Path, toy_recipe, capsys,
-                                                        content: str, needle: str) -> None:
+@pytest.mark.parametrize(
+    "content, needle",
+    [
+        ("lr: [1, 2\n", "is not valid YAML"),
+        ("- a\n- b\n", "must hold a mapping"),
+        ("lr: 0.05\n", "is incomplete"),
+        ("episodes: 3\ncomm_range: 100\n", "is not a 'toy' config"),
+    ],
+)
+def test_malformed_config_yaml_gives_one_line_naming_it(
+    tmp_path: Path, toy_recipe, capsys, content: str, needle: str
+) -> None:
     run = _trained(tmp_path)
     (run / "config.yaml").write_text(content)
     code, _, err = _run(["resume", str(run)], capsys)
@@ -266,14 +293,18 @@ def test_malformed_config_yaml_gives_one_line_naming_it(tmp_path: Path, toy_reci
         ToyLearner.from_run_dir(run)
 
 
-@pytest.mark.parametrize("content, needle", [
-    ('{"recipe": "toy"', "is not valid JSON"),
-    ('{"env": "toy"}', "does not name the run's recipe"),
-    ("[1, 2]", "must hold a JSON object"),
-    ("", "is not valid JSON"),
-])
-def test_malformed_run_json_gives_one_line_naming_it(tmp_path: Path, toy_recipe, capsys,
-                                                     content: str, needle: str) -> None:
+@pytest.mark.parametrize(
+    "content, needle",
+    [
+        ('{"recipe": "toy"', "is not valid JSON"),
+        ('{"env": "toy"}', "does not name the run's recipe"),
+        ("[1, 2]", "must hold a JSON object"),
+        ("", "is not valid JSON"),
+    ],
+)
+def test_malformed_run_json_gives_one_line_naming_it(
+    tmp_path: Path, toy_recipe, capsys, content: str, needle: str
+) -> None:
     run = _trained(tmp_path)
     (run / "run.json").write_text(content)
     for command in ("resume", "evaluate"):
@@ -284,23 +315,31 @@ def test_malformed_run_json_gives_one_line_naming_it(tmp_path: Path, toy_recipe,
 def test_failed_train_leaves_no_half_made_run_dir(tmp_path: Path, toy_recipe, capsys) -> None:
     run = tmp_path / "new"
     for env, override in (("toy", "logger=wandb"), ("figure-eight", "env_config.max_speed=-5")):
-        code, _, err = _run(["train", "toy", "--env", env, "--run-dir", str(run), override],
-                            capsys)
+        code, _, err = _run(["train", "toy", "--env", env, "--run-dir", str(run), override], capsys)
         assert code == 2 and err.count("\n") == 1
         assert not run.exists()
 
 
 def test_resume_of_a_real_scenario_refuses_another_agent_count(tmp_path: Path, capsys) -> None:
     run = str(tmp_path / "mappo")
-    tiny = ["total_frames=20", "frames_per_batch=10", "minibatch_size=10", "eval_interval=0",
-            "checkpoint_interval=10", "env_config.horizon=10", "env_config.n_hvs=2",
-            "progress=false", "logger=none"]
-    code, _, _ = _run(["train", "mappo", "--env", "figure-eight", "--run-dir", run, *tiny],
-                      capsys)
+    tiny = [
+        "total_frames=20",
+        "frames_per_batch=10",
+        "minibatch_size=10",
+        "eval_interval=0",
+        "checkpoint_interval=10",
+        "env_config.horizon=10",
+        "env_config.n_hvs=2",
+        "progress=false",
+        "logger=none",
+    ]
+    code, _, _ = _run(["train", "mappo", "--env", "figure-eight", "--run-dir", run, *tiny], capsys)
     assert code == 0
     config = (tmp_path / "mappo" / "config.yaml").read_bytes()
-    for override, needle in (("env_config.n_cavs=4", "env_config.n_cavs changed"),
-                             ("num_cells=[32]", "num_cells changed")):
+    for override, needle in (
+        ("env_config.n_cavs=4", "env_config.n_cavs changed"),
+        ("num_cells=[32]", "num_cells changed"),
+    ):
         code, _, err = _run(["resume", run, override, "total_frames=30"], capsys)
         assert code == 2 and err.count("\n") == 1 and needle in err, err
         assert (tmp_path / "mappo" / "config.yaml").read_bytes() == config
@@ -311,8 +350,13 @@ def test_resume_of_a_real_scenario_refuses_another_agent_count(tmp_path: Path, c
 def test_keys_missing_from_config_yaml_can_be_given_as_overrides(tmp_path: Path) -> None:
     run = _trained(tmp_path)
     path = run / "config.yaml"
-    path.write_text("".join(line for line in path.read_text().splitlines(keepends=True)
-                            if not line.startswith("lr:")))
+    path.write_text(
+        "".join(
+            line
+            for line in path.read_text().splitlines(keepends=True)
+            if not line.startswith("lr:")
+        )
+    )
     with pytest.raises(ConfigError, match=r"lacks the keys \['lr'\]"):
         ToyLearner.from_run_dir(run)
     resumed = ToyLearner.from_run_dir(run, overrides=["lr=0.05"])
@@ -347,25 +391,30 @@ KILLERS = {
 
 
 @pytest.mark.parametrize("moment", sorted(KILLERS))
-def test_kill_9_during_a_checkpoint_write_resumes_bit_exactly(tmp_path: Path,
-                                                             moment: str) -> None:
+def test_kill_9_during_a_checkpoint_write_resumes_bit_exactly(tmp_path: Path, moment: str) -> None:
     full = ToyLearner(ToyConfig(), tmp_path / "full")
     full_evals = full.train()
     run = tmp_path / "killed"
-    script = "\n".join([
-        "import os, signal, sys",
-        f"sys.path.insert(0, {str(ROOT / 'tests')!r})",
-        "import torch",
-        "import test_experiment",
-        textwrap.dedent(KILLERS[moment]),
-        f"test_experiment.ToyLearner(test_experiment.ToyConfig(), {str(run)!r}).train()",
-    ])
-    proc = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True,
-                          text=True, timeout=300)
+    script = "\n".join(
+        [
+            "import os, signal, sys",
+            f"sys.path.insert(0, {str(ROOT / 'tests')!r})",
+            "import torch",
+            "import test_experiment",
+            textwrap.dedent(KILLERS[moment]),
+            f"test_experiment.ToyLearner(test_experiment.ToyConfig(), {str(run)!r}).train()",
+        ]
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
     assert proc.returncode == -signal.SIGKILL, proc.stderr
     assert [p.name for p in list_checkpoints(run)] == ["ckpt_000000000020.pt"]
-    leftovers = sorted(p.name for p in (run / "checkpoints").iterdir()
-                       if p.name not in ("ckpt_000000000020.pt", "ckpt_000000000020.pt.sha256"))
+    leftovers = sorted(
+        p.name
+        for p in (run / "checkpoints").iterdir()
+        if p.name not in ("ckpt_000000000020.pt", "ckpt_000000000020.pt.sha256")
+    )
     assert leftovers  # a temp file (and, before the rename, the new digest) left behind
     resumed = ToyLearner.from_run_dir(run, overrides=["total_frames=60"])
     assert resumed.frames == 20

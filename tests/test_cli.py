@@ -30,8 +30,20 @@ def test_train_resume_evaluate_compare(tmp_path: Path, toy_recipe, capsys) -> No
     runs = []
     for seed in (0, 1):
         run = tmp_path / f"toy{seed}"
-        code, out, _ = _run(["train", "toy", "--env", "toy", "--seed", str(seed),
-                             "--run-dir", str(run), "total_frames=40"], capsys)
+        code, out, _ = _run(
+            [
+                "train",
+                "toy",
+                "--env",
+                "toy",
+                "--seed",
+                str(seed),
+                "--run-dir",
+                str(run),
+                "total_frames=40",
+            ],
+            capsys,
+        )
         assert code == 0 and json.loads(out.splitlines()[-1])["frames"] == 40
         runs.append(run)
     code, out, _ = _run(["resume", str(runs[0]), "total_frames=60"], capsys)
@@ -48,19 +60,22 @@ def test_train_resume_evaluate_compare(tmp_path: Path, toy_recipe, capsys) -> No
     assert (tmp_path / "cmp" / "final_metrics.md").is_file()
 
 
-@pytest.mark.parametrize("argv, needle", [
-    (["train", "nosuchalgo", "--env", "toy"], "unknown recipe 'nosuchalgo'"),
-    (["train", "toy", "--env", "nowhere"], "unknown scenario 'nowhere'"),
-    (["train", "toy", "--env", "toy", "nokey=3"], "unknown config key 'nokey'"),
-    (["train", "toy", "--env", "toy", "lr=-2"], "lr must be > 0"),
-    (["train", "toy", "--env", "toy", "total_frames=lots"], "total_frames must be an integer"),
-    (["train", "toy", "--env", "toy", "--seed", "x"], "--seed"),
-    (["train", "toy"], "--env"),
-    (["resume", "/nonexistent/run"], "not a run directory"),
-    (["evaluate", "/nonexistent/run", "--episodes", "0"], "--episodes must be >= 1"),
-    (["compare", "/nonexistent/run", "--out", "/tmp/x"], "has no results.json"),
-    (["fly"], "invalid choice"),
-])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["train", "nosuchalgo", "--env", "toy"], "unknown recipe 'nosuchalgo'"),
+        (["train", "toy", "--env", "nowhere"], "unknown scenario 'nowhere'"),
+        (["train", "toy", "--env", "toy", "nokey=3"], "unknown config key 'nokey'"),
+        (["train", "toy", "--env", "toy", "lr=-2"], "lr must be > 0"),
+        (["train", "toy", "--env", "toy", "total_frames=lots"], "total_frames must be an integer"),
+        (["train", "toy", "--env", "toy", "--seed", "x"], "--seed"),
+        (["train", "toy"], "--env"),
+        (["resume", "/nonexistent/run"], "not a run directory"),
+        (["evaluate", "/nonexistent/run", "--episodes", "0"], "--episodes must be >= 1"),
+        (["compare", "/nonexistent/run", "--out", "/tmp/x"], "has no results.json"),
+        (["fly"], "invalid choice"),
+    ],
+)
 def test_error_paths_exit_2_with_one_line(argv, needle, toy_recipe, capsys) -> None:
     code, _, err = _run(argv, capsys)
     assert code == 2
@@ -68,13 +83,26 @@ def test_error_paths_exit_2_with_one_line(argv, needle, toy_recipe, capsys) -> N
 
 
 def test_module_entry_point_errors_without_traceback() -> None:
-    proc = subprocess.run([sys.executable, "-m", "mapets_rl.experiment.cli", "train", "nope",
-                           "--env", "figure-eight"], cwd=ROOT, capture_output=True, text=True,
-                          timeout=120)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapets_rl.experiment.cli",
+            "train",
+            "nope",
+            "--env",
+            "figure-eight",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(
-        "mapets-rl: error: unknown recipe 'nope' (choose from: ")
+        "mapets-rl: error: unknown recipe 'nope' (choose from: "
+    )
     assert all(name in lines[0] for name in ("maddpg", "mappo", "sac"))
 
 
@@ -95,14 +123,31 @@ def test_evaluate_video_prints_only_our_output(tmp_path: Path) -> None:
     from recipes.mappo import MAPPO, MAPPOConfig
 
     run = tmp_path / "run"
-    MAPPO(MAPPOConfig(env="figure-eight", env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},
-                      total_frames=10, frames_per_batch=10, minibatch_size=10, progress=False,
-                      logger="none"), run).train()
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("XDG_RUNTIME_DIR", "SDL_VIDEODRIVER", "RL_LOGGING_LEVEL")}
-    proc = subprocess.run([sys.executable, "-m", "mapets_rl.experiment.cli", "evaluate",
-                           str(run), "--video"], cwd=ROOT, env=env, capture_output=True,
-                          text=True, timeout=300)
+    MAPPO(
+        MAPPOConfig(
+            env="figure-eight",
+            env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},
+            total_frames=10,
+            frames_per_batch=10,
+            minibatch_size=10,
+            progress=False,
+            logger="none",
+        ),
+        run,
+    ).train()
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("XDG_RUNTIME_DIR", "SDL_VIDEODRIVER", "RL_LOGGING_LEVEL")
+    }
+    proc = subprocess.run(
+        [sys.executable, "-m", "mapets_rl.experiment.cli", "evaluate", str(run), "--video"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr
     assert len(proc.stdout.splitlines()) == 1 and json.loads(proc.stdout)["frames"] == 10
     frames = imageio.mimread(run / "videos" / "eval_000000000010.gif")

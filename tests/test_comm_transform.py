@@ -228,8 +228,9 @@ def test_episode_graph_crashed_agents_share_from_their_crash_site():
     graph = CommunicationRange(15.0).episode_graph(rollout)
     # 1 shares from its crash site (20, 0): within 15 m of 2 at (10, 0), not of 0 at (0, 0)
     assert torch.equal(graph, _adj(4, [(0, 2), (1, 2)]))
-    assert torch.equal(CommunicationRange(math.inf).episode_graph(rollout),
-                       _adj(4, [(0, 1), (0, 2), (1, 2)]))
+    assert torch.equal(
+        CommunicationRange(math.inf).episode_graph(rollout), _adj(4, [(0, 1), (0, 2), (1, 2)])
+    )
     assert not CommunicationRange(0.0).episode_graph(rollout).any()
 
 

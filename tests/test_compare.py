@@ -25,24 +25,32 @@ def _run(argv, capsys) -> tuple[int, str, str]:
 
 
 # ------------------------------------------------------------------------------- sources
-def test_default_source_falls_back_to_training_entries_and_says_so(tmp_path: Path,
-                                                                   caplog) -> None:
-    runs = [fake_run(tmp_path / f"mapets{s}", "mapets", s, train=train_entries(0.2, 0.4))
-            for s in (0, 1)]
-    runs += [fake_run(tmp_path / f"mappo{s}", "mappo", s, evaluations=eval_entries(1.0, 2.0))
-             for s in (0, 1)]
+def test_default_source_falls_back_to_training_entries_and_says_so(tmp_path: Path, caplog) -> None:
+    runs = [
+        fake_run(tmp_path / f"mapets{s}", "mapets", s, train=train_entries(0.2, 0.4))
+        for s in (0, 1)
+    ]
+    runs += [
+        fake_run(tmp_path / f"mappo{s}", "mappo", s, evaluations=eval_entries(1.0, 2.0))
+        for s in (0, 1)
+    ]
     with caplog.at_level(logging.WARNING, logger="mapets_rl"):
         out = compare(runs, tmp_path / "cmp", ["safety"])
-    assert any("no evaluations; comparing their training entries instead (groups marked (train))"
-               in r.getMessage()
-               and str(runs[0]) in r.getMessage() for r in caplog.records)
+    assert any(
+        "no evaluations; comparing their training entries instead (groups marked (train))"
+        in r.getMessage()
+        and str(runs[0]) in r.getMessage()
+        for r in caplog.records
+    )
     summary = json.loads(out["summary"].read_text())
     assert set(summary) == {"mapets (train)", "mappo (eval)"}
     assert summary["mapets (train)"]["safety"]["source"] == "train"
     assert summary["mappo (eval)"]["safety"]["source"] == "eval"
     table = out["table"].read_text()
-    assert table.startswith("Last entry of each run: deterministic evaluations, training "
-                            "entries for the groups marked (train);")
+    assert table.startswith(
+        "Last entry of each run: deterministic evaluations, training "
+        "entries for the groups marked (train);"
+    )
     assert "| mapets (train) | training entries |" in table
     assert "| mappo (eval) | deterministic evaluations |" in table
 
@@ -63,10 +71,17 @@ def test_source_train_compares_training_entries_only(tmp_path: Path) -> None:
 def test_old_mapets_results_can_be_read_as_training_entries(tmp_path: Path, caplog) -> None:
     run = tmp_path / "old"
     run.mkdir()
-    (run / "results.json").write_text(json.dumps(
-        {"recipe": "mapets", "env": "figure-eight", "seed": 0,
-         "config": {"env_config": ENV_CONFIG},
-         "evaluations": [{"frames": 21, "metrics": {"episode": 1.0, "safety": 0.3}}]}))
+    (run / "results.json").write_text(
+        json.dumps(
+            {
+                "recipe": "mapets",
+                "env": "figure-eight",
+                "seed": 0,
+                "config": {"env_config": ENV_CONFIG},
+                "evaluations": [{"frames": 21, "metrics": {"episode": 1.0, "safety": 0.3}}],
+            }
+        )
+    )
     with caplog.at_level(logging.WARNING, logger="mapets_rl"):
         out = compare([run], tmp_path / "cmp", source="train", legacy_as="train")
     assert any("predates the split" in r.getMessage() for r in caplog.records)
@@ -76,10 +91,19 @@ def test_old_mapets_results_can_be_read_as_training_entries(tmp_path: Path, capl
 # ----------------------------------------------------------------------------- scenarios
 def test_runs_on_different_scenarios_are_refused(tmp_path: Path) -> None:
     a = fake_run(tmp_path / "a", evaluations=eval_entries(1.0))
-    b = fake_run(tmp_path / "b", seed=1, env_config={"n_cavs": 8, "horizon": 20},
-                 evaluations=eval_entries(2.0))
-    c = fake_run(tmp_path / "c", seed=2, env="freeway", env_config={"horizon": 20},
-                 evaluations=eval_entries(3.0))
+    b = fake_run(
+        tmp_path / "b",
+        seed=1,
+        env_config={"n_cavs": 8, "horizon": 20},
+        evaluations=eval_entries(2.0),
+    )
+    c = fake_run(
+        tmp_path / "c",
+        seed=2,
+        env="freeway",
+        env_config={"horizon": 20},
+        evaluations=eval_entries(3.0),
+    )
     with pytest.raises(ValueError) as err:
         compare([a, b, c], tmp_path / "cmp")
     message = str(err.value)
@@ -90,15 +114,22 @@ def test_runs_on_different_scenarios_are_refused(tmp_path: Path) -> None:
     assert not (tmp_path / "cmp").exists()
 
 
-def test_allow_mixed_env_warns_and_labels_groups_with_their_scenario(tmp_path: Path,
-                                                                     caplog) -> None:
+def test_allow_mixed_env_warns_and_labels_groups_with_their_scenario(
+    tmp_path: Path, caplog
+) -> None:
     a = fake_run(tmp_path / "a", evaluations=eval_entries(1.0))
-    b = fake_run(tmp_path / "b", seed=1, env_config={"n_cavs": 8, "horizon": 20},
-                 evaluations=eval_entries(2.0))
+    b = fake_run(
+        tmp_path / "b",
+        seed=1,
+        env_config={"n_cavs": 8, "horizon": 20},
+        evaluations=eval_entries(2.0),
+    )
     with caplog.at_level(logging.WARNING, logger="mapets_rl"):
         out = compare([a, b], tmp_path / "cmp", ["return"], allow_mixed_env=True)
-    assert any("different scenarios" in r.getMessage() and "env_config.n_cavs" in r.getMessage()
-               for r in caplog.records)
+    assert any(
+        "different scenarios" in r.getMessage() and "env_config.n_cavs" in r.getMessage()
+        for r in caplog.records
+    )
     summary = json.loads(out["summary"].read_text())
     assert summary["toy [n_cavs=4]"]["return"]["mean"] == 1.0
     assert summary["toy [n_cavs=8]"]["return"]["mean"] == 2.0
@@ -109,8 +140,14 @@ def test_group_by_splits_a_sweep_with_bands_per_value(tmp_path: Path) -> None:
     runs = []
     for d, returns in ((100.0, [(1.0, 3.0), (2.0, 5.0)]), (0.0, [(0.0, 1.0), (0.5, 1.5)])):
         for seed, values in enumerate(returns):
-            runs.append(fake_run(tmp_path / f"d{d:g}_seed{seed}", seed=seed, comm_range=d,
-                                 evaluations=eval_entries(*values)))
+            runs.append(
+                fake_run(
+                    tmp_path / f"d{d:g}_seed{seed}",
+                    seed=seed,
+                    comm_range=d,
+                    evaluations=eval_entries(*values),
+                )
+            )
     out = compare(runs, tmp_path / "cmp", ["return"], group_by="comm_range")
     curves = json.loads(out["curves"].read_text())["groups"]
     assert list(curves) == ["toy comm_range=100", "toy comm_range=0"]
@@ -125,20 +162,29 @@ def test_group_by_splits_a_sweep_with_bands_per_value(tmp_path: Path) -> None:
         compare(runs, tmp_path / "cmp2", group_by="nope")
 
 
-def test_group_by_an_env_config_field_exempts_it_from_the_scenario_check(tmp_path: Path
-                                                                          ) -> None:
-    runs = [fake_run(tmp_path / f"{obs}", env_config={**ENV_CONFIG, "observation": obs},
-                     evaluations=eval_entries(1.0)) for obs in ("paper", "crossing")]
+def test_group_by_an_env_config_field_exempts_it_from_the_scenario_check(tmp_path: Path) -> None:
+    runs = [
+        fake_run(
+            tmp_path / f"{obs}",
+            env_config={**ENV_CONFIG, "observation": obs},
+            evaluations=eval_entries(1.0),
+        )
+        for obs in ("paper", "crossing")
+    ]
     with pytest.raises(ValueError, match="env_config.observation"):
         compare(runs, tmp_path / "cmp")
     out = compare(runs, tmp_path / "cmp", group_by=["env_config.observation"])
     assert set(json.loads(out["summary"].read_text())) == {
-        "toy env_config.observation=paper", "toy env_config.observation=crossing"}
+        "toy env_config.observation=paper",
+        "toy env_config.observation=crossing",
+    }
 
 
 def test_x_episode_lines_up_episodes_of_different_lengths(tmp_path: Path) -> None:
-    runs = [fake_run(tmp_path / "s0", train=train_entries(0.2, 0.4, 0.6, length=20)),
-            fake_run(tmp_path / "s1", seed=1, train=train_entries(0.4, 0.8, length=30))]
+    runs = [
+        fake_run(tmp_path / "s0", train=train_entries(0.2, 0.4, 0.6, length=20)),
+        fake_run(tmp_path / "s1", seed=1, train=train_entries(0.4, 0.8, length=30)),
+    ]
     out = compare(runs, tmp_path / "cmp", ["safety"], source="train", x="episode")
     group = json.loads(out["curves"].read_text())["groups"]["toy"]
     assert group["x"] == [1.0, 2.0, 3.0] and group["n"] == [2, 2, 1]
@@ -149,26 +195,58 @@ def test_x_episode_lines_up_episodes_of_different_lengths(tmp_path: Path) -> Non
 
 # ----------------------------------------------------------------------------------- CLI
 def test_cli_compare_options(tmp_path: Path, capsys) -> None:
-    runs = [str(fake_run(tmp_path / f"d{d}_seed{s}", "mapets", s, comm_range=float(d),
-                         train=train_entries(0.1 * s, 0.2 + d / 1000)))
-            for d in (0, 100) for s in (0, 1)]
-    code, out, err = _run(["compare", *runs, "--out", str(tmp_path / "cmp"), "--source",
-                           "train", "--group-by", "comm_range", "--x", "episode"], capsys)
+    runs = [
+        str(
+            fake_run(
+                tmp_path / f"d{d}_seed{s}",
+                "mapets",
+                s,
+                comm_range=float(d),
+                train=train_entries(0.1 * s, 0.2 + d / 1000),
+            )
+        )
+        for d in (0, 100)
+        for s in (0, 1)
+    ]
+    code, out, err = _run(
+        [
+            "compare",
+            *runs,
+            "--out",
+            str(tmp_path / "cmp"),
+            "--source",
+            "train",
+            "--group-by",
+            "comm_range",
+            "--x",
+            "episode",
+        ],
+        capsys,
+    )
     assert code == 0, err
     assert "| mapets comm_range=0 | training entries |" in out
     assert "| mapets comm_range=100 | training entries |" in out
 
-    other = str(fake_run(tmp_path / "n8", "mapets", 2, env_config={"n_cavs": 8, "horizon": 20},
-                         train=train_entries(0.5)))
+    other = str(
+        fake_run(
+            tmp_path / "n8",
+            "mapets",
+            2,
+            env_config={"n_cavs": 8, "horizon": 20},
+            train=train_entries(0.5),
+        )
+    )
     code, _, err = _run(["compare", runs[0], other, "--out", str(tmp_path / "cmp2")], capsys)
     assert code == 2 and err.count("\n") == 1 and "env_config.n_cavs" in err
     assert err.startswith("mapets-rl: error: the runs are on different scenarios")
-    code, out, err = _run(["compare", runs[0], other, "--out", str(tmp_path / "cmp3"),
-                           "--allow-mixed-env"], capsys)
+    code, out, err = _run(
+        ["compare", runs[0], other, "--out", str(tmp_path / "cmp3"), "--allow-mixed-env"], capsys
+    )
     assert code == 0
     assert "mapets-rl: warning: comparing runs on different scenarios" in err
     assert "no evaluations; comparing their training entries instead\n" in err
     assert "| mapets [n_cavs=4] | training entries |" in out
-    code, _, err = _run(["compare", runs[0], "--out", str(tmp_path / "cmp4"), "--group-by",
-                         ","], capsys)
+    code, _, err = _run(
+        ["compare", runs[0], "--out", str(tmp_path / "cmp4"), "--group-by", ","], capsys
+    )
     assert code == 2 and "--group-by must name at least one config field" in err

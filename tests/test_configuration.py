@@ -13,8 +13,15 @@ from mapets_rl.experiment.cli import main
 from recipes.mapets import MAPETS, MAPETSConfig
 
 TINY_PLANNER = dict(
-    preset="cpu", horizon=2, population=4, elites=1, iterations=1, particles=5, hidden=[8],
-    num_threads=1, progress=False,
+    preset="cpu",
+    horizon=2,
+    population=4,
+    elites=1,
+    iterations=1,
+    particles=5,
+    hidden=[8],
+    num_threads=1,
+    progress=False,
 )
 
 
@@ -27,22 +34,34 @@ def test_a_recipe_trains_the_scenario_s_own_agent_count(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("name", sorted(SCENARIOS))
 def test_unknown_scenario_keys_are_refused_with_the_accepted_ones(name: str) -> None:
-    with pytest.raises(ValueError, match=r"unknown config key\(s\) \['bogus'\].*accepted keys.*"
-                       r"'n_cavs'"):
+    with pytest.raises(
+        ValueError,
+        match=r"unknown config key\(s\) \['bogus'\].*accepted keys.*"
+        r"'n_cavs'",
+    ):
         make_env(name, bogus=1)
     with pytest.raises(ValueError, match="n_cav"):
         make_parallel_env(name, n_cav=4)
 
 
-def test_an_env_config_typo_fails_before_the_run_directory_exists(tmp_path: Path,
-                                                                 capsys) -> None:
+def test_an_env_config_typo_fails_before_the_run_directory_exists(tmp_path: Path, capsys) -> None:
     run_dir = tmp_path / "run"
     with pytest.raises(ValueError, match=r"\['n_cav'\]"):
         MAPETS(MAPETSConfig(env_config={"n_cav": 4}, **TINY_PLANNER), run_dir)
     assert not run_dir.exists()
     with pytest.raises(SystemExit) as exit_info:
-        main(["train", "mapets", "--env", "figure-eight", "--run-dir", str(run_dir),
-              "env_config.n_cav=4", "preset=cpu"])
+        main(
+            [
+                "train",
+                "mapets",
+                "--env",
+                "figure-eight",
+                "--run-dir",
+                str(run_dir),
+                "env_config.n_cav=4",
+                "preset=cpu",
+            ]
+        )
     code, err = exit_info.value.code, capsys.readouterr().err
     assert code == 2 and "n_cav" in err and err.count("\n") == 1
     assert not run_dir.exists()

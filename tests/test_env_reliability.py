@@ -23,8 +23,9 @@ def test_figure_eight_vehicles_never_roll_backwards() -> None:
     env = FigureEightEnv({"horizon": 120})
     env.reset(seed=0)
     rng = np.random.default_rng(0)
-    actions = (np.where(rng.random((8, 1)) < 0.5, 0.0, 13.89).astype(np.float32)
-               for _ in range(120))
+    actions = (
+        np.where(rng.random((8, 1)) < 0.5, 0.0, 13.89).astype(np.float32) for _ in range(120)
+    )
     assert _min_speed_over_episode(env, actions) >= 0.0
 
 

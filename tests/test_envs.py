@@ -138,7 +138,12 @@ def test_planning_collision_tests_the_gap_ahead_and_the_crossing() -> None:
     assert collided.tolist() == [False, True, False, True, False, False]
     # the paper's 7 features: only the gap ahead
     assert figure_eight_collision(rows[:, :7], None, rows[:, :7]).tolist() == [
-        False, True, False, False, False, False
+        False,
+        True,
+        False,
+        False,
+        False,
+        False,
     ]
     reward = figure_eight_reward(rows, None, rows)
     torch.testing.assert_close(reward, 22.0 - 10.0 * collided.float())

@@ -46,17 +46,20 @@ class ToyAgentsEnv(EnvBase):
         super().__init__(batch_size=torch.Size([]))
         self.n_agents, self.horizon = n_agents, horizon
         i = n_agents
-        self.observation_spec = Composite(agents=Composite(
-            observation=Unbounded((i, 2)), shape=(i,)))
-        self.action_spec = Composite(agents=Composite(
-            action=Bounded(-1.0, 1.0, (i, 1)), shape=(i,)))
+        self.observation_spec = Composite(
+            agents=Composite(observation=Unbounded((i, 2)), shape=(i,))
+        )
+        self.action_spec = Composite(
+            agents=Composite(action=Bounded(-1.0, 1.0, (i, 1)), shape=(i,))
+        )
         self.reward_spec = Composite(agents=Composite(reward=Unbounded((i, 1)), shape=(i,)))
         flag = Categorical(2, (i, 1), dtype=torch.bool)
         self.done_spec = Composite(
             agents=Composite(done=flag, terminated=flag.clone(), shape=(i,)),
             done=Categorical(2, (1,), dtype=torch.bool),
             terminated=Categorical(2, (1,), dtype=torch.bool),
-            truncated=Categorical(2, (1,), dtype=torch.bool))
+            truncated=Categorical(2, (1,), dtype=torch.bool),
+        )
         self.rng = torch.Generator().manual_seed(0)
 
     def _set_seed(self, seed: int | None) -> None:
@@ -73,21 +76,45 @@ class ToyAgentsEnv(EnvBase):
         self.t = 0
         self.x = torch.rand(self.n_agents, 1, generator=self.rng) * 4 - 2
         false = torch.zeros(1, dtype=torch.bool)
-        agents = TensorDict({"observation": self._obs(), "done": self._flags(False),
-                             "terminated": self._flags(False)}, [self.n_agents])
-        return TensorDict({"agents": agents, "done": false,
-                           "terminated": false.clone(), "truncated": false.clone()})
+        agents = TensorDict(
+            {
+                "observation": self._obs(),
+                "done": self._flags(False),
+                "terminated": self._flags(False),
+            },
+            [self.n_agents],
+        )
+        return TensorDict(
+            {
+                "agents": agents,
+                "done": false,
+                "terminated": false.clone(),
+                "truncated": false.clone(),
+            }
+        )
 
     def _step(self, td: TensorDict) -> TensorDict:
         a = td["agents", "action"].clamp(-1, 1)
         self.x = self.x + 0.5 * a + 0.05 * torch.randn(self.x.shape, generator=self.rng)
         self.t += 1
         trunc = torch.tensor([self.t >= self.horizon])
-        agents = TensorDict({"observation": self._obs(), "reward": -self.x.pow(2),
-                             "done": self._flags(bool(trunc)), "terminated": self._flags(False)},
-                            [self.n_agents])
-        return TensorDict({"agents": agents, "done": trunc, "truncated": trunc.clone(),
-                           "terminated": torch.zeros(1, dtype=torch.bool)})
+        agents = TensorDict(
+            {
+                "observation": self._obs(),
+                "reward": -self.x.pow(2),
+                "done": self._flags(bool(trunc)),
+                "terminated": self._flags(False),
+            },
+            [self.n_agents],
+        )
+        return TensorDict(
+            {
+                "agents": agents,
+                "done": trunc,
+                "truncated": trunc.clone(),
+                "terminated": torch.zeros(1, dtype=torch.bool),
+            }
+        )
 
 
 register_env("toy", ToyAgentsEnv)
@@ -121,15 +148,20 @@ class ToyLearner(Experiment):
 
     def __init__(self, config: ToyConfig, run_dir=None) -> None:
         super().__init__(config, run_dir)
-        self.actor = TensorDictModule(nn.Linear(2, 1), [("agents", "observation")],
-                                      [("agents", "action")])
-        noise = AdditiveGaussianModule(self.env.full_action_spec_unbatched[("agents", "action")],
-                                       sigma_init=config.sigma, sigma_end=config.sigma,
-                                       action_key=("agents", "action"))
+        self.actor = TensorDictModule(
+            nn.Linear(2, 1), [("agents", "observation")], [("agents", "action")]
+        )
+        noise = AdditiveGaussianModule(
+            self.env.full_action_spec_unbatched[("agents", "action")],
+            sigma_init=config.sigma,
+            sigma_end=config.sigma,
+            action_key=("agents", "action"),
+        )
         self.collector = self.make_collector(TensorDictSequential(self.actor, noise))
         self.eval_policy = self.actor
-        self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(200),
-                                             batch_size=config.batch_size)
+        self.buffer = TensorDictReplayBuffer(
+            storage=LazyTensorStorage(200), batch_size=config.batch_size
+        )
         self.optim = torch.optim.Adam(self.actor.parameters(), lr=config.lr)
 
     def train_step(self, batch):
@@ -149,8 +181,9 @@ class ToyLearner(Experiment):
 
 # ------------------------------------------------------------------------------- config
 def test_config_overrides_and_yaml_roundtrip(tmp_path: Path) -> None:
-    cfg = ToyConfig().with_overrides(["lr=3e-4", "seed=7", "env_config.n_agents=2",
-                                      "video=true", "total_frames=100.0"])
+    cfg = ToyConfig().with_overrides(
+        ["lr=3e-4", "seed=7", "env_config.n_agents=2", "video=true", "total_frames=100.0"]
+    )
     assert cfg.lr == pytest.approx(3e-4) and isinstance(cfg.lr, float)
     assert cfg.seed == 7 and cfg.env_config == {"n_agents": 2} and cfg.video is True
     assert cfg.total_frames == 100 and isinstance(cfg.total_frames, int)
@@ -158,10 +191,18 @@ def test_config_overrides_and_yaml_roundtrip(tmp_path: Path) -> None:
     assert ToyConfig.from_yaml(tmp_path / "c.yaml") == cfg
 
 
-@pytest.mark.parametrize("override, field", [
-    ("nope=1", "nope"), ("lr=-1", "lr"), ("seed=abc", "seed"), ("logger=xml", "logger"),
-    ("frames_per_batch=0", "frames_per_batch"), ("video=maybe", "video"), ("lr", "lr"),
-])
+@pytest.mark.parametrize(
+    "override, field",
+    [
+        ("nope=1", "nope"),
+        ("lr=-1", "lr"),
+        ("seed=abc", "seed"),
+        ("logger=xml", "logger"),
+        ("frames_per_batch=0", "frames_per_batch"),
+        ("video=maybe", "video"),
+        ("lr", "lr"),
+    ],
+)
 def test_config_errors_name_the_field(override: str, field: str) -> None:
     with pytest.raises(ConfigError, match=field):
         ToyConfig().with_overrides([override])
@@ -170,8 +211,9 @@ def test_config_errors_name_the_field(override: str, field: str) -> None:
 # -------------------------------------------------------------------------- checkpoints
 def test_checkpoint_keep_last_and_safe_load(tmp_path: Path) -> None:
     for step in (10, 20, 30):
-        save_checkpoint({"w": torch.full((2,), float(step)), "step": step}, tmp_path, step,
-                        keep_last=2)
+        save_checkpoint(
+            {"w": torch.full((2,), float(step)), "step": step}, tmp_path, step, keep_last=2
+        )
     names = [p.name for p in list_checkpoints(tmp_path)]
     assert names == ["ckpt_000000000020.pt", "ckpt_000000000030.pt"]
     assert load_checkpoint(latest_checkpoint(tmp_path))["step"] == 30

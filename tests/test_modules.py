@@ -26,8 +26,11 @@ def _imported_recipes(path: Path) -> list[str]:
 
 
 def test_recipes_do_not_import_each_other() -> None:
-    offenders = [f"{path.name}: {name}" for path in sorted((ROOT / "recipes").glob("*.py"))
-                 for name in _imported_recipes(path)]
+    offenders = [
+        f"{path.name}: {name}"
+        for path in sorted((ROOT / "recipes").glob("*.py"))
+        for name in _imported_recipes(path)
+    ]
     assert offenders == []
 
 
@@ -44,8 +47,9 @@ def test_one_gumbel_softmax_implementation() -> None:
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         greedy = head(logits)
     assert torch.equal(greedy.detach(), one_hot_argmax(logits.detach()))
-    assert torch.equal(one_hot_argmax(logits.detach()), torch.tensor([[0.0, 1, 0, 0],
-                                                                      [1, 0, 0, 0]]))
+    assert torch.equal(
+        one_hot_argmax(logits.detach()), torch.tensor([[0.0, 1, 0, 0], [1, 0, 0, 0]])
+    )
     # straight-through: the gradient of the greedy action is the softmax's
     (greedy * torch.arange(4.0)).sum().backward()
     soft_grad = torch.autograd.grad((logits.softmax(-1) * torch.arange(4.0)).sum(), logits)[0]

@@ -52,24 +52,30 @@ def _imports(path: Path) -> list[str]:
 
 # ------------------------------------------------------------------------ import direction
 def test_the_library_never_imports_recipes() -> None:
-    offenders = [f"{path.relative_to(ROOT)}: {name}"
-                 for path in sorted((ROOT / "mapets_rl").rglob("*.py"))
-                 for name in _imports(path) if name == "recipes" or name.startswith("recipes.")]
+    offenders = [
+        f"{path.relative_to(ROOT)}: {name}"
+        for path in sorted((ROOT / "mapets_rl").rglob("*.py"))
+        for name in _imports(path)
+        if name == "recipes" or name.startswith("recipes.")
+    ]
     assert offenders == []
 
 
 def test_help_imports_neither_recipes_nor_torch() -> None:
-    code = ("import sys\n"
-            "from mapets_rl.experiment.cli import main\n"
-            "for argv in (['--help'], ['train', '--help']):\n"
-            "    try:\n"
-            "        main(argv)\n"
-            "    except SystemExit:\n"
-            "        pass\n"
-            "loaded = sorted(m for m in sys.modules if m.split('.')[0] in ('recipes', 'torch'))\n"
-            "print('LOADED', loaded)\n")
-    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
-                          text=True, timeout=120)
+    code = (
+        "import sys\n"
+        "from mapets_rl.experiment.cli import main\n"
+        "for argv in (['--help'], ['train', '--help']):\n"
+        "    try:\n"
+        "        main(argv)\n"
+        "    except SystemExit:\n"
+        "        pass\n"
+        "loaded = sorted(m for m in sys.modules if m.split('.')[0] in ('recipes', 'torch'))\n"
+        "print('LOADED', loaded)\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.splitlines()[-1] == "LOADED []"
 
@@ -109,8 +115,11 @@ def test_recipes_are_loaded_from_entry_points(add_entry_point) -> None:
 def test_unknown_recipe_names_the_installed_ones(add_entry_point, capsys) -> None:
     add_entry_point(RECIPE_GROUP, "zz_first", "test_experiment:ToyLearner")
     add_entry_point(RECIPE_GROUP, "zz_second", "test_experiment:ToyLearner")
-    with pytest.raises(ValueError, match=r"unknown recipe 'nope' \(choose from: .*zz_first, "
-                                         r"zz_second\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"unknown recipe 'nope' \(choose from: .*zz_first, "
+        r"zz_second\)",
+    ):
         load_recipe("nope")
     code, _, err = _run(["train", "nope", "--env", "figure-eight"], capsys)
     assert code == 2 and err.count("\n") == 1
@@ -137,9 +146,12 @@ def test_a_recipe_seen_twice_counts_once_and_a_clash_is_refused(add_entry_point)
     add_entry_point(RECIPE_GROUP, "toy", "test_experiment:ToyLearner")
     assert available_recipes().count("toy") == 1
     add_entry_point(RECIPE_GROUP, "toy", "test_experiment:ToyConfig")
-    with pytest.raises(ValueError, match="'toy' is declared twice, as "
-                                         "'test_experiment:ToyLearner' and "
-                                         "'test_experiment:ToyConfig'"):
+    with pytest.raises(
+        ValueError,
+        match="'toy' is declared twice, as "
+        "'test_experiment:ToyLearner' and "
+        "'test_experiment:ToyConfig'",
+    ):
         entry_points(RECIPE_GROUP)
 
 
@@ -167,11 +179,23 @@ def test_installed_scenario_is_available_and_built(plugin_scenario: str) -> None
         register_env(plugin_scenario, lambda: None)
 
 
-def test_installed_scenario_trains_and_resumes_from_the_cli(plugin_scenario: str, toy_recipe,
-                                                            tmp_path: Path, capsys) -> None:
+def test_installed_scenario_trains_and_resumes_from_the_cli(
+    plugin_scenario: str, toy_recipe, tmp_path: Path, capsys
+) -> None:
     run = tmp_path / "run"
-    code, out, err = _run(["train", "toy", "--env", plugin_scenario, "--run-dir", str(run),
-                           "total_frames=20", "env_config.n_agents=2"], capsys)
+    code, out, err = _run(
+        [
+            "train",
+            "toy",
+            "--env",
+            plugin_scenario,
+            "--run-dir",
+            str(run),
+            "total_frames=20",
+            "env_config.n_agents=2",
+        ],
+        capsys,
+    )
     assert code == 0, err
     code, out, err = _run(["resume", str(run), "total_frames=40"], capsys)
     assert code == 0, err

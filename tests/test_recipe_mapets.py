@@ -66,8 +66,9 @@ def test_two_episodes_write_metrics_and_checkpoint(two_episodes):
     state = load_checkpoint(ckpt)  # weights_only=True
     assert state["recipe"] == "mapets" and state["components"]["counters"]["episode"] == 2
     # the ensembles trained
-    changed = [not torch.equal(a, b) for a, b in zip(params_before, exp.model.parameters(),
-                                                       strict=True)]
+    changed = [
+        not torch.equal(a, b) for a, b in zip(params_before, exp.model.parameters(), strict=True)
+    ]
     assert all(changed)
     # every CAV's dataset holds its own stored transitions (+ what neighbours sent)
     stored = sum(m["transitions_stored"] for m in seen)
@@ -107,10 +108,27 @@ def test_d0_shares_nothing_and_d_inf_shares(tmp_path):
 
 def test_cli_train_mapets(tmp_path, capsys):
     run_dir = tmp_path / "cli"
-    args = ["train", "mapets", "--env", "figure-eight", "--run-dir", str(run_dir), "episodes=1",
-            "random_episodes=1", "preset=cpu", "hidden=[8]", "horizon=2", "population=4",
-            "elites=1", "iterations=1", "env_config.n_cavs=2", "env_config.n_hvs=1",
-            "env_config.horizon=5", "progress=false", "num_threads=1"]
+    args = [
+        "train",
+        "mapets",
+        "--env",
+        "figure-eight",
+        "--run-dir",
+        str(run_dir),
+        "episodes=1",
+        "random_episodes=1",
+        "preset=cpu",
+        "hidden=[8]",
+        "horizon=2",
+        "population=4",
+        "elites=1",
+        "iterations=1",
+        "env_config.n_cavs=2",
+        "env_config.n_hvs=1",
+        "env_config.horizon=5",
+        "progress=false",
+        "num_threads=1",
+    ]
     assert cli_main(args) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["metrics"]["episode"] == 1.0 and 0 <= out["metrics"]["safety"] <= 1
@@ -120,8 +138,15 @@ def test_cli_train_mapets(tmp_path, capsys):
 
 def test_presets_resolve_and_explicit_fields_win():
     paper = MAPETSConfig()
-    assert (paper.horizon, paper.population, paper.elites, paper.iterations, paper.particles,
-            paper.ensemble_size, paper.hidden) == (25, 400, 40, 5, 20, 5, [300, 300, 300])
+    assert (
+        paper.horizon,
+        paper.population,
+        paper.elites,
+        paper.iterations,
+        paper.particles,
+        paper.ensemble_size,
+        paper.hidden,
+    ) == (25, 400, 40, 5, 20, 5, [300, 300, 300])
     assert (paper.buffer_size, paper.batch_size, paper.epochs, paper.lr) == (2048, 128, 5, 1e-3)
     assert paper.episodes == 15 and paper.comm_range == 100.0 and paper.random_episodes == 1
     cpu = MAPETSConfig(preset="cpu", horizon=15)
@@ -157,8 +182,10 @@ def test_bad_config_raises_naming_the_field(field, value):
 
 def test_discrete_env_is_rejected(tmp_path):
     with pytest.raises(ValueError, match="continuous actions"):
-        MAPETS(tiny(env="freeway", env_config={"n_vehicles": 4, "cav_ratio": 0.5}),
-               tmp_path / "freeway")
+        MAPETS(
+            tiny(env="freeway", env_config={"n_vehicles": 4, "cav_ratio": 0.5}),
+            tmp_path / "freeway",
+        )
 
 
 def test_transitions_whose_neighbours_changed_stay_out_of_the_datasets(tmp_path):

@@ -14,13 +14,24 @@ from mapets_rl.experiment import ResultsWriter, read_results
 ENV_CONFIG = {"n_cavs": 4, "horizon": 20}
 
 
-def fake_run(path: Path, recipe: str = "toy", seed: int = 0, env: str = "figure-eight",
-             env_config: dict[str, Any] | None = None, evaluations=(), train=(),
-             **config: Any) -> Path:
+def fake_run(
+    path: Path,
+    recipe: str = "toy",
+    seed: int = 0,
+    env: str = "figure-eight",
+    env_config: dict[str, Any] | None = None,
+    evaluations=(),
+    train=(),
+    **config: Any,
+) -> Path:
     """A run directory whose results.json holds the given entries, as the runner writes it:
     ``evaluations`` / ``train`` are ``(frames, {metric: value})`` pairs."""
-    cfg = {"env": env, "env_config": dict(ENV_CONFIG if env_config is None else env_config),
-           "seed": seed, **config}
+    cfg = {
+        "env": env,
+        "env_config": dict(ENV_CONFIG if env_config is None else env_config),
+        "seed": seed,
+        **config,
+    }
     writer = ResultsWriter(path, recipe, env, seed, cfg)
     for frames, metrics in train:
         writer.add_train(frames, metrics)
@@ -36,8 +47,10 @@ def eval_entries(*returns: float, every: int = 100) -> list[tuple[int, dict[str,
 
 def train_entries(*safeties: float, length: int = 20) -> list[tuple[int, dict[str, float]]]:
     """MA-PETS-like training entries: episode k, frames = the steps so far."""
-    return [(length * (k + 1) + k, {"episode": float(k + 1), "safety": s, "return": 10 * s})
-            for k, s in enumerate(safeties)]
+    return [
+        (length * (k + 1) + k, {"episode": float(k + 1), "safety": s, "return": 10 * s})
+        for k, s in enumerate(safeties)
+    ]
 
 
 # ------------------------------------------------------------------------- results files
@@ -55,9 +68,17 @@ def test_results_files_from_before_the_split_still_read(tmp_path: Path) -> None:
     run = tmp_path / "old"
     run.mkdir()
     entries = [{"frames": 21, "metrics": {"episode": 1.0, "safety": 0.3}}]
-    (run / "results.json").write_text(json.dumps(
-        {"recipe": "mapets", "env": "figure-eight", "seed": 0, "config": {},
-         "evaluations": entries}))
+    (run / "results.json").write_text(
+        json.dumps(
+            {
+                "recipe": "mapets",
+                "env": "figure-eight",
+                "seed": 0,
+                "config": {},
+                "evaluations": entries,
+            }
+        )
+    )
     res = read_results(run)
     assert res["legacy"] is True and res["evaluations"] == entries and res["train"] == []
     res = read_results(run, legacy_as="train")
@@ -76,8 +97,9 @@ def test_malformed_train_entries_are_refused(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("kind", ["train", "eval"])
-def test_entries_of_an_old_checkpoint_take_the_kind_of_the_next_entry(tmp_path: Path,
-                                                                      kind: str) -> None:
+def test_entries_of_an_old_checkpoint_take_the_kind_of_the_next_entry(
+    tmp_path: Path, kind: str
+) -> None:
     """Before the split every recipe wrote one kind of entry into 'evaluations' (MA-PETS: its
     training episodes); resumed from such a checkpoint, they join the kind added next."""
     old = [{"frames": 21, "metrics": {"safety": 0.3}}]
@@ -99,10 +121,22 @@ def test_entries_of_an_old_checkpoint_take_the_kind_of_the_next_entry(tmp_path: 
 def test_mapets_records_training_episodes_as_train_entries(tmp_path: Path) -> None:
     from recipes.mapets import MAPETS, MAPETSConfig
 
-    config = MAPETSConfig(env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5}, preset="cpu",
-                          episodes=1, horizon=2, population=4, elites=1, iterations=1,
-                          particles=5, hidden=[8], batch_size=8, epochs=1, num_threads=1,
-                          progress=False, logger="none")
+    config = MAPETSConfig(
+        env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},
+        preset="cpu",
+        episodes=1,
+        horizon=2,
+        population=4,
+        elites=1,
+        iterations=1,
+        particles=5,
+        hidden=[8],
+        batch_size=8,
+        epochs=1,
+        num_threads=1,
+        progress=False,
+        logger="none",
+    )
     exp = MAPETS(config, tmp_path / "run")
     history = exp.train()
     res = read_results(tmp_path / "run")

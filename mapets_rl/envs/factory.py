@@ -92,11 +92,14 @@ class TrafficPettingZooWrapper(PettingZooWrapper):
         action_spec = self.input_spec["full_action_spec", "agents", "action"]
         action = tensordict.get(("agents", "action"), None)
         if action is None:
-            raise ValueError("step needs the CAVs' actions under ('agents', 'action'); the "
-                             "tensordict has none")
+            raise ValueError(
+                "step needs the CAVs' actions under ('agents', 'action'); the tensordict has none"
+            )
         if action.shape != action_spec.shape:
-            raise ValueError(f"('agents', 'action') must have shape {list(action_spec.shape)}, "
-                             f"got {list(action.shape)}")
+            raise ValueError(
+                f"('agents', 'action') must have shape {list(action_spec.shape)}, "
+                f"got {list(action.shape)}"
+            )
         if isinstance(action_spec, OneHot):
             # within 1e-4 of a one-hot vector: straight-through estimators (hard + soft -
             # soft.detach()) give 0.99999994 where they mean 1

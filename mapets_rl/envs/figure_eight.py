@@ -405,9 +405,7 @@ class FigureEightEnv(MultiAgentTrafficEnv):
                 features, ids[i, :2] = self._neighbour_features(cav)
                 row = [cav.speed, *cav.position, *features]
                 if crossing:
-                    cross, ids[i, 2:] = self._crossing_features(
-                        coords, speeds, road_index[id(cav)]
-                    )
+                    cross, ids[i, 2:] = self._crossing_features(coords, speeds, road_index[id(cav)])
                     row.extend(cross)
                 obs[i] = row
         self._observed_ids = ids

@@ -181,8 +181,14 @@ class FreewayEnv(MultiAgentTrafficEnv):
             is_integer(config["lanes"]) and config["lanes"] >= 2,
             f"lanes must be an integer >= 2, got {config['lanes']!r}",
         )
-        positive = {"speed_limit": "m/s", "cav_target_speed": "m/s", "road_length": "m",
-                    "spawn_length": "m", "perception": "m", "comfort_threshold": "m/s^2"}
+        positive = {
+            "speed_limit": "m/s",
+            "cav_target_speed": "m/s",
+            "road_length": "m",
+            "spawn_length": "m",
+            "perception": "m",
+            "comfort_threshold": "m/s^2",
+        }
         for key, unit in positive.items():
             require_number(config, key, low=0.0, low_open=True, unit=unit)
         require_number(config, "min_spacing", low=7.0, unit="m")

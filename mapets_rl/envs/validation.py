@@ -11,8 +11,11 @@ import numpy as np
 
 def is_real(value: Any) -> bool:
     """True for a finite int or float (numpy scalars included), False for bools and others."""
-    return (isinstance(value, int | float | np.integer | np.floating)
-            and not isinstance(value, bool | np.bool_) and math.isfinite(value))
+    return (
+        isinstance(value, int | float | np.integer | np.floating)
+        and not isinstance(value, bool | np.bool_)
+        and math.isfinite(value)
+    )
 
 
 def is_integer(value: Any) -> bool:
@@ -29,8 +32,14 @@ def _bounds(low: float | None, high: float | None, low_open: bool) -> str:
     return " and ".join(parts)
 
 
-def require_number(config: dict, key: str, low: float | None = None,
-                   high: float | None = None, low_open: bool = False, unit: str = "") -> None:
+def require_number(
+    config: dict,
+    key: str,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    unit: str = "",
+) -> None:
     """ValueError unless ``config[key]`` is a finite number within ``[low, high]`` (``(low,``
     when ``low_open``)."""
     value = config[key]
@@ -42,17 +51,22 @@ def require_number(config: dict, key: str, low: float | None = None,
     if not ok:
         bounds = _bounds(low, high, low_open)
         unit = f" [{unit}]" if unit else ""
-        raise ValueError(f"{key} must be a finite number{' ' + bounds if bounds else ''}{unit}, "
-                         f"got {value!r}")
+        raise ValueError(
+            f"{key} must be a finite number{' ' + bounds if bounds else ''}{unit}, got {value!r}"
+        )
 
 
-def require_range(config: dict, key: str, low: float | None = None,
-                  high: float | None = None, unit: str = "") -> None:
+def require_range(
+    config: dict, key: str, low: float | None = None, high: float | None = None, unit: str = ""
+) -> None:
     """ValueError unless ``config[key]`` is a pair ``(lo, hi)`` of finite numbers with
     ``low <= lo <= hi <= high``."""
     value = config[key]
-    pair = (isinstance(value, list | tuple | np.ndarray) and len(value) == 2
-            and all(is_real(v) for v in value))
+    pair = (
+        isinstance(value, list | tuple | np.ndarray)
+        and len(value) == 2
+        and all(is_real(v) for v in value)
+    )
     ok = pair and value[0] <= value[1]
     if ok and low is not None:
         ok = value[0] >= low
@@ -62,5 +76,7 @@ def require_range(config: dict, key: str, low: float | None = None,
         lo = f"{low:g} <= " if low is not None else ""
         hi = f" <= {high:g}" if high is not None else ""
         unit = f" [{unit}]" if unit else ""
-        raise ValueError(f"{key} must be a range (lo, hi) of finite numbers with {lo}lo <= hi"
-                         f"{hi}{unit}, got {value!r}")
+        raise ValueError(
+            f"{key} must be a range (lo, hi) of finite numbers with {lo}lo <= hi"
+            f"{hi}{unit}, got {value!r}"
+        )

@@ -53,11 +53,18 @@ def rng_state() -> dict[str, Any]:
     version, mt, gauss = random.getstate()
     np_name, np_keys, np_pos, np_has_gauss, np_gauss = np.random.get_state()
     state: dict[str, Any] = {
-        "python": {"version": version, "state": torch.tensor(mt, dtype=torch.int64),
-                   "gauss": gauss},
-        "numpy": {"name": np_name, "keys": torch.from_numpy(np_keys.astype(np.int64)),
-                  "pos": int(np_pos), "has_gauss": int(np_has_gauss),
-                  "cached_gaussian": float(np_gauss)},
+        "python": {
+            "version": version,
+            "state": torch.tensor(mt, dtype=torch.int64),
+            "gauss": gauss,
+        },
+        "numpy": {
+            "name": np_name,
+            "keys": torch.from_numpy(np_keys.astype(np.int64)),
+            "pos": int(np_pos),
+            "has_gauss": int(np_has_gauss),
+            "cached_gaussian": float(np_gauss),
+        },
         "torch": torch.get_rng_state(),
     }
     if torch.cuda.is_available():
@@ -70,8 +77,15 @@ def set_rng_state(state: dict[str, Any]) -> None:
     py = state["python"]
     random.setstate((py["version"], tuple(int(x) for x in py["state"].tolist()), py["gauss"]))
     npy = state["numpy"]
-    np.random.set_state((npy["name"], npy["keys"].numpy().astype(np.uint32), npy["pos"],
-                         npy["has_gauss"], npy["cached_gaussian"]))
+    np.random.set_state(
+        (
+            npy["name"],
+            npy["keys"].numpy().astype(np.uint32),
+            npy["pos"],
+            npy["has_gauss"],
+            npy["cached_gaussian"],
+        )
+    )
     torch.set_rng_state(state["torch"])
     if "cuda" in state and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])
@@ -145,8 +159,9 @@ def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
     return ckpts[-1] if ckpts else None
 
 
-def save_checkpoint(state: dict[str, Any], run_dir: str | os.PathLike, step: int,
-                    keep_last: int = 2) -> Path:
+def save_checkpoint(
+    state: dict[str, Any], run_dir: str | os.PathLike, step: int, keep_last: int = 2
+) -> Path:
     """Write ``state`` as ``run_dir/checkpoints/ckpt_<step>.pt`` (+ digest) atomically; keep the
     newest ``keep_last`` checkpoints and delete older ones (only after the new one is in place)."""
     if step < 0:
@@ -182,11 +197,14 @@ def verify_checkpoint(path: str | os.PathLike) -> bool:
     except (OSError, UnicodeDecodeError):
         match = None
     if match is None or match.group(2) != path.name:
-        raise CheckpointError(f"digest file {str(digest_file)!r} does not hold the SHA-256 "
-                              f"digest of {path.name}")
+        raise CheckpointError(
+            f"digest file {str(digest_file)!r} does not hold the SHA-256 digest of {path.name}"
+        )
     if file_sha256(path) != match.group(1):
-        raise CheckpointError(f"checkpoint {str(path)!r} does not match its SHA-256 digest (the "
-                              "file is corrupted or was modified)")
+        raise CheckpointError(
+            f"checkpoint {str(path)!r} does not match its SHA-256 digest (the "
+            "file is corrupted or was modified)"
+        )
     return True
 
 
@@ -203,26 +221,33 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     """
     path = Path(path)
     if not verify_checkpoint(path):
-        logger.warning("checkpoint %r has no digest file %s (written before checkpoints carried "
-                       "digests); loading it without an integrity check", str(path),
-                       digest_path(path).name)
+        logger.warning(
+            "checkpoint %r has no digest file %s (written before checkpoints carried "
+            "digests); loading it without an integrity check",
+            str(path),
+            digest_path(path).name,
+        )
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError:
         raise CheckpointError(
             f"{str(path)!r} is not a checkpoint this library wrote (it holds pickled Python "
-            "objects, not only tensors and plain values) and will not be loaded") from None
+            "objects, not only tensors and plain values) and will not be loaded"
+        ) from None
     except Exception as err:  # noqa: BLE001 - torch raises many types for unreadable files
-        raise CheckpointError(f"checkpoint {str(path)!r} cannot be read: "
-                              f"{first_line(err)}") from None
+        raise CheckpointError(
+            f"checkpoint {str(path)!r} cannot be read: {first_line(err)}"
+        ) from None
     if not isinstance(state, dict):
-        raise CheckpointError(f"checkpoint {str(path)!r} does not hold a state dict "
-                              f"(got {type(state).__name__})")
+        raise CheckpointError(
+            f"checkpoint {str(path)!r} does not hold a state dict (got {type(state).__name__})"
+        )
     return state
 
 
-def load_latest_checkpoint(run_dir: str | os.PathLike,
-                           map_location: str | torch.device = "cpu") -> tuple[Path, dict]:
+def load_latest_checkpoint(
+    run_dir: str | os.PathLike, map_location: str | torch.device = "cpu"
+) -> tuple[Path, dict]:
     """The newest checkpoint of ``run_dir`` that verifies and loads, and its state.
 
     Each newer checkpoint that fails is skipped with one logged warning naming the file and
@@ -239,8 +264,10 @@ def load_latest_checkpoint(run_dir: str | os.PathLike,
             return path, load_checkpoint(path, map_location)
         except CheckpointError as err:
             logger.warning("%s; skipped", err)
-    raise CheckpointError(f"none of the {len(candidates)} checkpoints of {str(run_dir)!r} "
-                          "verifies (see the warnings above); the run cannot be restored")
+    raise CheckpointError(
+        f"none of the {len(candidates)} checkpoints of {str(run_dir)!r} "
+        "verifies (see the warnings above); the run cannot be restored"
+    )
 
 
 def remove_stale_files(run_dir: str | os.PathLike) -> list[Path]:
@@ -251,12 +278,19 @@ def remove_stale_files(run_dir: str | os.PathLike) -> list[Path]:
     """
     run_dir = Path(run_dir)
     ckpt_dir = run_dir / CHECKPOINT_DIR
-    stale = [path for directory in (run_dir, ckpt_dir, run_dir / "videos")
-             if directory.is_dir() for path in directory.iterdir()
-             if path.is_file() and _TEMP_NAME.match(path.name)]
+    stale = [
+        path
+        for directory in (run_dir, ckpt_dir, run_dir / "videos")
+        if directory.is_dir()
+        for path in directory.iterdir()
+        if path.is_file() and _TEMP_NAME.match(path.name)
+    ]
     if ckpt_dir.is_dir():
-        stale += [path for path in ckpt_dir.glob(f"ckpt_*.pt{DIGEST_SUFFIX}")
-                  if not path.with_name(path.name.removesuffix(DIGEST_SUFFIX)).exists()]
+        stale += [
+            path
+            for path in ckpt_dir.glob(f"ckpt_*.pt{DIGEST_SUFFIX}")
+            if not path.with_name(path.name.removesuffix(DIGEST_SUFFIX)).exists()
+        ]
     for path in stale:
         path.unlink(missing_ok=True)
     return stale

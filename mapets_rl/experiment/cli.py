@@ -78,80 +78,151 @@ def _recipe_names() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog=PROG, description="Multi-agent RL for connected autonomous vehicles: "
-                     "train, resume, evaluate and compare recipes.")
+    parser = _Parser(
+        prog=PROG,
+        description="Multi-agent RL for connected autonomous vehicles: "
+        "train, resume, evaluate and compare recipes.",
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     train = sub.add_parser(
-        "train", help="train a recipe on a scenario",
+        "train",
+        help="train a recipe on a scenario",
         description="Train RECIPE on SCENARIO. The run directory receives config.yaml (the "
         "resolved config), results.json (metrics of every evaluation, and of training episodes for "
         "recipes that record them), checkpoints/ and logs/.",
         epilog="Any config field can be set as key=value (value parsed as YAML), e.g. "
         "total_frames=30000 lr=3e-4 env_config.n_cavs=8 logger=tensorboard video=true. "
         "`mapets-rl train RECIPE --help` lists RECIPE's fields with their defaults. "
-        "Recipes are the installed packages' entry points of the group mapets_rl.recipes.")
+        "Recipes are the installed packages' entry points of the group mapets_rl.recipes.",
+    )
     train.add_argument("recipe", metavar="RECIPE", help=f"algorithm: {_recipe_names()}")
-    train.add_argument("--env", required=True, metavar="SCENARIO",
-                       help="scenario name, e.g. figure-eight, figure-eight-multilane, freeway")
-    train.add_argument("--seed", type=int, default=None, metavar="N",
-                       help="seed of all RNGs and environments (default: the config's, 0)")
-    train.add_argument("--config", default=None, metavar="FILE",
-                       help="YAML file of config fields, applied before key=value overrides")
-    train.add_argument("--run-dir", default=None, metavar="DIR",
-                       help="run directory (default: RUNS_ROOT/<recipe>_<env>_seed<N>_<time>)")
-    train.add_argument("--runs-root", default="runs", metavar="RUNS_ROOT",
-                       help="parent of the default run directory (default: runs)")
-    train.add_argument("overrides", nargs="*", metavar="key=value",
-                       help="config overrides, e.g. total_frames=30000 lr=3e-4")
+    train.add_argument(
+        "--env",
+        required=True,
+        metavar="SCENARIO",
+        help="scenario name, e.g. figure-eight, figure-eight-multilane, freeway",
+    )
+    train.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        metavar="N",
+        help="seed of all RNGs and environments (default: the config's, 0)",
+    )
+    train.add_argument(
+        "--config",
+        default=None,
+        metavar="FILE",
+        help="YAML file of config fields, applied before key=value overrides",
+    )
+    train.add_argument(
+        "--run-dir",
+        default=None,
+        metavar="DIR",
+        help="run directory (default: RUNS_ROOT/<recipe>_<env>_seed<N>_<time>)",
+    )
+    train.add_argument(
+        "--runs-root",
+        default="runs",
+        metavar="RUNS_ROOT",
+        help="parent of the default run directory (default: runs)",
+    )
+    train.add_argument(
+        "overrides",
+        nargs="*",
+        metavar="key=value",
+        help="config overrides, e.g. total_frames=30000 lr=3e-4",
+    )
 
     resume = sub.add_parser(
-        "resume", help="continue a run from its latest checkpoint",
+        "resume",
+        help="continue a run from its latest checkpoint",
         description="Continue RUN_DIR from its latest checkpoint with the same config and seed; "
         "the result is identical to an uninterrupted run.",
-        epilog="Overrides such as total_frames=60000 extend the budget of a finished run.")
+        epilog="Overrides such as total_frames=60000 extend the budget of a finished run.",
+    )
     resume.add_argument("run_dir", metavar="RUN_DIR", help="a directory written by `train`")
-    resume.add_argument("overrides", nargs="*", metavar="key=value",
-                        help="config overrides applied to the saved config")
+    resume.add_argument(
+        "overrides",
+        nargs="*",
+        metavar="key=value",
+        help="config overrides applied to the saved config",
+    )
 
     evaluate = sub.add_parser(
-        "evaluate", help="evaluate a run's latest checkpoint",
+        "evaluate",
+        help="evaluate a run's latest checkpoint",
         description="Run deterministic evaluation episodes with RUN_DIR's latest checkpoint; "
-        "prints the mean metrics as JSON and writes RUN_DIR/evaluation.json.")
+        "prints the mean metrics as JSON and writes RUN_DIR/evaluation.json.",
+    )
     evaluate.add_argument("run_dir", metavar="RUN_DIR", help="a directory written by `train`")
-    evaluate.add_argument("--episodes", type=int, default=None, metavar="N",
-                          help="evaluation episodes (default: the run's eval_episodes)")
-    evaluate.add_argument("--video", action="store_true",
-                          help="save the first episode as RUN_DIR/videos/eval_<frames>.gif")
+    evaluate.add_argument(
+        "--episodes",
+        type=int,
+        default=None,
+        metavar="N",
+        help="evaluation episodes (default: the run's eval_episodes)",
+    )
+    evaluate.add_argument(
+        "--video",
+        action="store_true",
+        help="save the first episode as RUN_DIR/videos/eval_<frames>.gif",
+    )
 
     compare = sub.add_parser(
-        "compare", help="learning curves and a final-metrics table over runs",
+        "compare",
+        help="learning curves and a final-metrics table over runs",
         description="Group RUN_DIRs by recipe (and --group-by fields), plot mean learning "
         "curves with a 95%% Student-t confidence band over the runs of each group "
         "(learning_curves.png) and write a markdown table of final metrics (final_metrics.md), "
         "summary.json and curves.json into --out. Runs on different scenarios (env or "
-        "env_config) are refused unless --allow-mixed-env.")
+        "env_config) are refused unless --allow-mixed-env.",
+    )
     compare.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="run directories")
     compare.add_argument("--out", required=True, metavar="DIR", help="output directory")
-    compare.add_argument("--metrics", default=None, metavar="a,b,...",
-                         help="comma-separated metrics to show (default: all common ones)")
-    compare.add_argument("--source", choices=["eval", "train"], default="eval",
-                         help="eval (default): deterministic evaluations; a run without any "
-                         "(e.g. mapets) falls back to its training entries, with a note. "
-                         "train: training entries (e.g. mapets's episodes)")
-    compare.add_argument("--group-by", default=None, metavar="FIELD[,FIELD...]",
-                         help="config fields (dotted for nested ones, e.g. comm_range or "
-                         "env_config.observation) whose values split each recipe's runs into "
-                         "groups, e.g. one curve per communication range")
-    compare.add_argument("--x", default="frames", metavar="NAME",
-                         help="x axis: frames (default) or a metric numbering the entries, "
-                         "e.g. episode (mapets's episodes differ in length)")
-    compare.add_argument("--allow-mixed-env", action="store_true",
-                         help="compare runs on different scenarios (env or env_config), each "
-                         "group labelled with its scenario, instead of refusing them")
-    compare.add_argument("--legacy-as", choices=["eval", "train"], default="eval",
-                         help="what the entries of a results.json from before training and "
-                         "evaluation entries were kept apart are (old mapets runs: train)")
+    compare.add_argument(
+        "--metrics",
+        default=None,
+        metavar="a,b,...",
+        help="comma-separated metrics to show (default: all common ones)",
+    )
+    compare.add_argument(
+        "--source",
+        choices=["eval", "train"],
+        default="eval",
+        help="eval (default): deterministic evaluations; a run without any "
+        "(e.g. mapets) falls back to its training entries, with a note. "
+        "train: training entries (e.g. mapets's episodes)",
+    )
+    compare.add_argument(
+        "--group-by",
+        default=None,
+        metavar="FIELD[,FIELD...]",
+        help="config fields (dotted for nested ones, e.g. comm_range or "
+        "env_config.observation) whose values split each recipe's runs into "
+        "groups, e.g. one curve per communication range",
+    )
+    compare.add_argument(
+        "--x",
+        default="frames",
+        metavar="NAME",
+        help="x axis: frames (default) or a metric numbering the entries, "
+        "e.g. episode (mapets's episodes differ in length)",
+    )
+    compare.add_argument(
+        "--allow-mixed-env",
+        action="store_true",
+        help="compare runs on different scenarios (env or env_config), each "
+        "group labelled with its scenario, instead of refusing them",
+    )
+    compare.add_argument(
+        "--legacy-as",
+        choices=["eval", "train"],
+        default="eval",
+        help="what the entries of a results.json from before training and "
+        "evaluation entries were kept apart are (old mapets runs: train)",
+    )
     return parser
 
 
@@ -199,8 +270,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
     except ValueError as err:
         _fail(str(err))
     exp.train()
-    print(json.dumps({"run_dir": str(exp.run_dir), "frames": exp.frames,
-                      "metrics": exp.latest_metrics}))
+    print(
+        json.dumps(
+            {"run_dir": str(exp.run_dir), "frames": exp.frames, "metrics": exp.latest_metrics}
+        )
+    )
     return 0
 
 
@@ -217,8 +291,11 @@ def _load_run(run_dir: str, overrides: Sequence[str] = ()):
 def _cmd_resume(args: argparse.Namespace) -> int:
     exp = _load_run(args.run_dir, _overrides(args.overrides))
     exp.train()
-    print(json.dumps({"run_dir": str(exp.run_dir), "frames": exp.frames,
-                      "metrics": exp.latest_metrics}))
+    print(
+        json.dumps(
+            {"run_dir": str(exp.run_dir), "frames": exp.frames, "metrics": exp.latest_metrics}
+        )
+    )
     return 0
 
 
@@ -232,8 +309,16 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     except ValueError as err:
         _fail(str(err))
     exp.write_evaluation(metrics, episodes)
-    print(json.dumps({"run_dir": str(exp.run_dir), "frames": exp.frames, "episodes": episodes,
-                      "metrics": metrics}))
+    print(
+        json.dumps(
+            {
+                "run_dir": str(exp.run_dir),
+                "frames": exp.frames,
+                "episodes": episodes,
+                "metrics": metrics,
+            }
+        )
+    )
     return 0
 
 
@@ -251,9 +336,16 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         if not group_by:
             _fail(f"--group-by must name at least one config field, got {args.group_by!r}")
     try:
-        out = compare(args.run_dirs, args.out, metrics, source=args.source, group_by=group_by,
-                      x=args.x, allow_mixed_env=args.allow_mixed_env,
-                      legacy_as=args.legacy_as)
+        out = compare(
+            args.run_dirs,
+            args.out,
+            metrics,
+            source=args.source,
+            group_by=group_by,
+            x=args.x,
+            allow_mixed_env=args.allow_mixed_env,
+            legacy_as=args.legacy_as,
+        )
     except ValueError as err:
         _fail(str(err))
     print(out["table"].read_text(), end="")
@@ -270,9 +362,14 @@ def _recipe_help(name: str) -> str:
 
     config_cls = _recipe_class(name).Config
     hints = typing.get_type_hints(config_cls)
-    lines = [f"usage: {PROG} train {name} --env SCENARIO [--seed N] [--config FILE] "
-             "[--run-dir DIR] [key=value ...]", "", inspect.getdoc(config_cls) or "", "",
-             f"fields of {config_cls.__name__} (set as key=value; values parsed as YAML):"]
+    lines = [
+        f"usage: {PROG} train {name} --env SCENARIO [--seed N] [--config FILE] "
+        "[--run-dir DIR] [key=value ...]",
+        "",
+        inspect.getdoc(config_cls) or "",
+        "",
+        f"fields of {config_cls.__name__} (set as key=value; values parsed as YAML):",
+    ]
     for f in dataclasses.fields(config_cls):
         if f.default is not dataclasses.MISSING:
             default = repr(f.default)
@@ -289,22 +386,33 @@ def _recipe_help(name: str) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``mapets-rl`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    if (len(argv) >= 3 and argv[0] == "train" and not argv[1].startswith("-")
-            and {"-h", "--help"} & set(argv[2:])):
+    if (
+        len(argv) >= 3
+        and argv[0] == "train"
+        and not argv[1].startswith("-")
+        and {"-h", "--help"} & set(argv[2:])
+    ):
         sys.stdout.write(_recipe_help(argv[1]))
         return 0
     parser = build_parser()
     # key=value overrides may follow options (argparse does not intermix positionals)
     args, extra = parser.parse_known_args(argv)
-    stray = [x for x in extra if x.startswith("-") or "=" not in x
-             or args.command not in ("train", "resume")]
+    stray = [
+        x
+        for x in extra
+        if x.startswith("-") or "=" not in x or args.command not in ("train", "resume")
+    ]
     if stray:
         parser.error(f"unrecognized arguments: {' '.join(stray)}")
     if extra:
         args.overrides = [*args.overrides, *extra]
     _show_library_warnings()
-    commands = {"train": _cmd_train, "resume": _cmd_resume, "evaluate": _cmd_evaluate,
-                "compare": _cmd_compare}
+    commands = {
+        "train": _cmd_train,
+        "resume": _cmd_resume,
+        "evaluate": _cmd_evaluate,
+        "compare": _cmd_compare,
+    }
     return commands[args.command](args)
 
 

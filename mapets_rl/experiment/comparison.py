@@ -100,8 +100,7 @@ def _config_field(res: Mapping[str, Any], field: str, run: str) -> Any:
     value: Any = res.get("config", {})
     for part in field.split("."):
         if not isinstance(value, Mapping) or part not in value:
-            raise ValueError(f"group_by field {field!r} is not in the config of run_dir "
-                             f"{run!r}")
+            raise ValueError(f"group_by field {field!r} is not in the config of run_dir {run!r}")
         value = value[part]
     return value
 
@@ -114,14 +113,14 @@ def _scenario(res: Mapping[str, Any]) -> dict[str, str]:
     return out
 
 
-def _scenario_differences(runs: Sequence[str], results: Sequence[Mapping[str, Any]],
-                          group_by: Sequence[str]) -> dict[str, dict[str, list[str]]]:
+def _scenario_differences(
+    runs: Sequence[str], results: Sequence[Mapping[str, Any]], group_by: Sequence[str]
+) -> dict[str, dict[str, list[str]]]:
     """Scenario keys whose values differ between runs -> {value: [runs]}; the keys that
     ``group_by`` names (``env``, ``env_config`` or ``env_config.<key>``) are exempt."""
     scenarios = [_scenario(res) for res in results]
     keys = sorted(set().union(*scenarios))
-    exempt = [k for k in keys
-              if any(k == f or k.startswith(f + ".") for f in group_by)]
+    exempt = [k for k in keys if any(k == f or k.startswith(f + ".") for f in group_by)]
     diffs: dict[str, dict[str, list[str]]] = {}
     for key in keys:
         if key in exempt:
@@ -135,16 +134,24 @@ def _scenario_differences(runs: Sequence[str], results: Sequence[Mapping[str, An
 
 
 def _describe(diffs: Mapping[str, Mapping[str, list[str]]]) -> str:
-    return "; ".join(f"{key}: " + " vs ".join(f"{value} ({', '.join(runs)})"
-                                              for value, runs in by_value.items())
-                     for key, by_value in diffs.items())
+    return "; ".join(
+        f"{key}: " + " vs ".join(f"{value} ({', '.join(runs)})" for value, runs in by_value.items())
+        for key, by_value in diffs.items()
+    )
 
 
-def compare(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike,
-            metrics: Sequence[str] | None = None, *, source: str = "eval",
-            group_by: Sequence[str] | str | None = None, x: str = "frames",
-            allow_mixed_env: bool = False, legacy_as: str = "eval",
-            title: str | None = None) -> dict[str, Path]:
+def compare(
+    run_dirs: Sequence[str | os.PathLike],
+    out_dir: str | os.PathLike,
+    metrics: Sequence[str] | None = None,
+    *,
+    source: str = "eval",
+    group_by: Sequence[str] | str | None = None,
+    x: str = "frames",
+    allow_mixed_env: bool = False,
+    legacy_as: str = "eval",
+    title: str | None = None,
+) -> dict[str, Path]:
     """Group runs by recipe (and the values of ``group_by`` fields), and write to ``out_dir``:
 
     - ``learning_curves.png``: one panel per metric against ``x``, the mean over the group's
@@ -208,8 +215,10 @@ def compare(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike,
         if res[ENTRY_LISTS[source]]:
             sources.append(source)
         elif source == "train":
-            raise ValueError(f"run_dir {run!r} has no training entries (its recipe records "
-                             "only evaluations); compare its evaluations (source 'eval')")
+            raise ValueError(
+                f"run_dir {run!r} has no training entries (its recipe records "
+                "only evaluations); compare its evaluations (source 'eval')"
+            )
         elif res["train"]:
             sources.append("train")
             fallback.append(run)
@@ -220,9 +229,11 @@ def compare(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike,
     # on what: one scenario unless told otherwise
     diffs = _scenario_differences(runs, results, fields)
     if diffs and not allow_mixed_env:
-        raise ValueError(f"the runs are on different scenarios ({_describe(diffs)}); pass "
-                         "allow_mixed_env=True (--allow-mixed-env) to compare them anyway, "
-                         "or group_by the differing keys")
+        raise ValueError(
+            f"the runs are on different scenarios ({_describe(diffs)}); pass "
+            "allow_mixed_env=True (--allow-mixed-env) to compare them anyway, "
+            "or group_by the differing keys"
+        )
 
     # groups: recipe + group_by values (+ scenario when mixed, + source when mixed)
     mixed_sources = len(set(sources)) > 1
@@ -232,16 +243,27 @@ def compare(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike,
         label = " ".join([res["recipe"], *(f"{f}={_fmt(v)}" for f, v in values.items())])
         if diffs:
             scenario = _scenario(res)
-            parts = [_fmt(json.loads(scenario[k])) if k == "env"
-                     else f"{k.removeprefix('env_config.')}="
-                     + (_fmt(json.loads(scenario[k])) if k in scenario else "unset")
-                     for k in diffs]
+            parts = [
+                _fmt(json.loads(scenario[k]))
+                if k == "env"
+                else f"{k.removeprefix('env_config.')}="
+                + (_fmt(json.loads(scenario[k])) if k in scenario else "unset")
+                for k in diffs
+            ]
             label += f" [{', '.join(parts)}]"
         if mixed_sources:
             label += f" ({src})"
-        group = groups.setdefault(label, {"recipe": res["recipe"], "group": values,
-                                          "env": res["env"], "source": src, "runs": [],
-                                          "entries": []})
+        group = groups.setdefault(
+            label,
+            {
+                "recipe": res["recipe"],
+                "group": values,
+                "env": res["env"],
+                "source": src,
+                "runs": [],
+                "entries": [],
+            },
+        )
         group["runs"].append(run)
         group["entries"].append(res[ENTRY_LISTS[src]])
 
@@ -249,8 +271,10 @@ def compare(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike,
     common = set.intersection(*(set(e["metrics"]) for e in all_entries))
     if x != "frames":
         if x not in common:
-            raise ValueError(f"x {x!r} is not a metric of every compared entry (common "
-                             f"metrics: {sorted(common)}); use 'frames' or one of those")
+            raise ValueError(
+                f"x {x!r} is not a metric of every compared entry (common "
+                f"metrics: {sorted(common)}); use 'frames' or one of those"
+            )
         common.discard(x)
     if metrics is None:
         metrics = sorted(common)
@@ -262,15 +286,24 @@ def compare(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike,
 
     out_dir = make_writable_dir(out_dir, "out_dir")
     if legacy:
-        log.warning("%s: results.json predates the split of training and evaluation entries; "
-                    "its entries are read as %s (legacy_as=%r)", ", ".join(legacy),
-                    SOURCE_NAMES[legacy_as], legacy_as)
+        log.warning(
+            "%s: results.json predates the split of training and evaluation entries; "
+            "its entries are read as %s (legacy_as=%r)",
+            ", ".join(legacy),
+            SOURCE_NAMES[legacy_as],
+            legacy_as,
+        )
     if fallback:
-        log.warning("%s: no evaluations; comparing their training entries instead%s",
-                    ", ".join(fallback), " (groups marked (train))" if mixed_sources else "")
+        log.warning(
+            "%s: no evaluations; comparing their training entries instead%s",
+            ", ".join(fallback),
+            " (groups marked (train))" if mixed_sources else "",
+        )
     if diffs:
-        log.warning("comparing runs on different scenarios (%s); each group is labelled with "
-                    "its scenario", _describe(diffs))
+        log.warning(
+            "comparing runs on different scenarios (%s); each group is labelled with its scenario",
+            _describe(diffs),
+        )
     summary: dict[str, dict[str, dict[str, Any]]] = {}
     curves: dict[str, Any] = {"source": source, "x": x, "groups": {}}
     for label, group in groups.items():
@@ -278,36 +311,56 @@ def compare(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike,
         summary[label] = {}
         for m in metrics:
             mean, half = mean_ci95([e["metrics"][m] for e in last])
-            summary[label][m] = {"mean": mean, "ci95": half, "n": len(last),
-                                 "frames": min(e["frames"] for e in last),
-                                 "source": group["source"]}
+            summary[label][m] = {
+                "mean": mean,
+                "ci95": half,
+                "n": len(last),
+                "frames": min(e["frames"] for e in last),
+                "source": group["source"],
+            }
         by_x = [{_x_value(e, x): e["metrics"] for e in entries} for entries in group["entries"]]
         xs = sorted(set().union(*by_x))
         stats: dict[str, dict[str, list[float]]] = {}
         for m in metrics:
             rows = [mean_std_ci95([bx[v][m] for bx in by_x if v in bx]) for v in xs]
-            stats[m] = {"mean": [r[0] for r in rows], "std": [r[1] for r in rows],
-                        "ci95": [r[2] for r in rows]}
+            stats[m] = {
+                "mean": [r[0] for r in rows],
+                "std": [r[1] for r in rows],
+                "ci95": [r[2] for r in rows],
+            }
         curves["groups"][label] = {
-            "recipe": group["recipe"], "group": group["group"], "env": group["env"],
-            "source": group["source"], "runs": group["runs"], "x": xs,
-            "n": [sum(v in bx for bx in by_x) for v in xs], "metrics": stats}
+            "recipe": group["recipe"],
+            "group": group["group"],
+            "env": group["env"],
+            "source": group["source"],
+            "runs": group["runs"],
+            "x": xs,
+            "n": [sum(v in bx for bx in by_x) for v in xs],
+            "metrics": stats,
+        }
 
-    described = (SOURCE_NAMES[sources[0]] if not mixed_sources else
-                 f"{SOURCE_NAMES['eval']}, training entries for the groups marked (train)")
+    described = (
+        SOURCE_NAMES[sources[0]]
+        if not mixed_sources
+        else f"{SOURCE_NAMES['eval']}, training entries for the groups marked (train)"
+    )
     plot = out_dir / "learning_curves.png"
-    _plot(curves["groups"], metrics, x, plot,
-          f"{title}: {described}" if title else described)
+    _plot(curves["groups"], metrics, x, plot, f"{title}: {described}" if title else described)
     table = out_dir / "final_metrics.md"
-    lines = [f"Last entry of each run: {described}; mean ± 95% CI half-width (n = runs).", "",
-             "| group | source | frames | " + " | ".join(metrics) + " |",
-             "|" + "---|" * (len(metrics) + 3)]
+    lines = [
+        f"Last entry of each run: {described}; mean ± 95% CI half-width (n = runs).",
+        "",
+        "| group | source | frames | " + " | ".join(metrics) + " |",
+        "|" + "---|" * (len(metrics) + 3),
+    ]
     for label, row in summary.items():
-        cells = [f"{row[m]['mean']:.4g} ± {row[m]['ci95']:.2g} (n={row[m]['n']})"
-                 for m in metrics]
+        cells = [f"{row[m]['mean']:.4g} ± {row[m]['ci95']:.2g} (n={row[m]['n']})" for m in metrics]
         first = row[metrics[0]]
-        lines.append(f"| {label} | {SOURCE_NAMES[first['source']]} | {first['frames']} | "
-                     + " | ".join(cells) + " |")
+        lines.append(
+            f"| {label} | {SOURCE_NAMES[first['source']]} | {first['frames']} | "
+            + " | ".join(cells)
+            + " |"
+        )
     atomic_write_text(table, "\n".join(lines) + "\n")
     summary_path = out_dir / "summary.json"
     atomic_write_text(summary_path, json.dumps(summary, indent=1))
@@ -321,8 +374,9 @@ def _x_value(entry: Mapping[str, Any], x: str) -> float:
     return entry["frames"] if x == "frames" else entry["metrics"][x]
 
 
-def _plot(groups: Mapping[str, Mapping[str, Any]], metrics: Sequence[str], x: str, path: Path,
-          title: str) -> None:
+def _plot(
+    groups: Mapping[str, Mapping[str, Any]], metrics: Sequence[str], x: str, path: Path, title: str
+) -> None:
     """One panel per metric: every group's mean and 95% band at the x values all its runs
     reached (a group whose runs share none is left out, with a logged note)."""
     import matplotlib
@@ -333,14 +387,19 @@ def _plot(groups: Mapping[str, Mapping[str, Any]], metrics: Sequence[str], x: st
     n = max(len(metrics), 1)
     cols = min(n, 3)
     rows = math.ceil(n / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.6 * rows + 0.5), squeeze=False,
-                             layout="constrained")
+    fig, axes = plt.subplots(
+        rows, cols, figsize=(5 * cols, 3.6 * rows + 0.5), squeeze=False, layout="constrained"
+    )
     for label, group in groups.items():
         full = [i for i, count in enumerate(group["n"]) if count == len(group["runs"])]
         if not full:
-            log.warning("group %r: its runs share no %s value, so its curve is not drawn (runs "
-                        "whose episodes differ in length share episodes, not frames: plot "
-                        "against a metric that numbers them, e.g. x='episode')", label, x)
+            log.warning(
+                "group %r: its runs share no %s value, so its curve is not drawn (runs "
+                "whose episodes differ in length share episodes, not frames: plot "
+                "against a metric that numbers them, e.g. x='episode')",
+                label,
+                x,
+            )
     for ax, m in zip(list(axes.flat)[:n], metrics, strict=False):
         for label, group in groups.items():
             full = [i for i, count in enumerate(group["n"]) if count == len(group["runs"])]
@@ -349,8 +408,7 @@ def _plot(groups: Mapping[str, Mapping[str, Any]], metrics: Sequence[str], x: st
             xs = [group["x"][i] for i in full]
             mean = np.array([group["metrics"][m]["mean"][i] for i in full])
             half = np.array([group["metrics"][m]["ci95"][i] for i in full])
-            (line,) = ax.plot(xs, mean, marker="o", ms=3,
-                              label=f"{label} (n={len(group['runs'])})")
+            (line,) = ax.plot(xs, mean, marker="o", ms=3, label=f"{label} (n={len(group['runs'])})")
             ax.fill_between(xs, mean - half, mean + half, alpha=0.2, color=line.get_color())
         ax.set_title(m)
         ax.set_xlabel("environment frames" if x == "frames" else x)

@@ -97,8 +97,12 @@ def _coerce(value: Any, tp: Any, field: str) -> Any:
         check(ok, field, "an integer", value)
         return value
     if tp is float:
-        check(isinstance(value, (int, float)) and not isinstance(value, bool), field,
-              "a number", value)
+        check(
+            isinstance(value, (int, float)) and not isinstance(value, bool),
+            field,
+            "a number",
+            value,
+        )
         return float(value)
     if tp is str:
         check(isinstance(value, str), field, "a string", value)
@@ -162,12 +166,17 @@ class ExperimentConfig:
         check(self.total_frames > 0, "total_frames", "> 0", self.total_frames)
         check(self.frames_per_batch > 0, "frames_per_batch", "> 0", self.frames_per_batch)
         check(self.num_envs >= 1, "num_envs", ">= 1", self.num_envs)
-        check(self.frames_per_batch % self.num_envs == 0, "frames_per_batch",
-              f"a multiple of num_envs={self.num_envs}", self.frames_per_batch)
+        check(
+            self.frames_per_batch % self.num_envs == 0,
+            "frames_per_batch",
+            f"a multiple of num_envs={self.num_envs}",
+            self.frames_per_batch,
+        )
         check(self.eval_interval >= 0, "eval_interval", ">= 0", self.eval_interval)
         check(self.eval_episodes >= 1, "eval_episodes", ">= 1", self.eval_episodes)
-        check(self.checkpoint_interval >= 0, "checkpoint_interval", ">= 0",
-              self.checkpoint_interval)
+        check(
+            self.checkpoint_interval >= 0, "checkpoint_interval", ">= 0", self.checkpoint_interval
+        )
         check(self.keep_last >= 1, "keep_last", ">= 1", self.keep_last)
         check(self.logger in LOGGERS, "logger", f"one of {list(LOGGERS)}", self.logger)
         check_logger_package(self.logger)
@@ -175,8 +184,7 @@ class ExperimentConfig:
     def _coerce_fields(self) -> None:
         hints = typing.get_type_hints(type(self))
         for f in dataclasses.fields(self):
-            object.__setattr__(self, f.name, _coerce(getattr(self, f.name), hints[f.name],
-                                                     f.name))
+            object.__setattr__(self, f.name, _coerce(getattr(self, f.name), hints[f.name], f.name))
 
     def _check_finite(self) -> None:
         """Refuse NaN and infinite floats (infinite ones where the field allows them)."""
@@ -197,8 +205,10 @@ class ExperimentConfig:
         """Build from a mapping; unknown keys raise ConfigError naming them."""
         unknown = sorted(set(data) - set(cls.field_names()))
         if unknown:
-            raise ConfigError(f"unknown config key {unknown[0]!r} for {cls.__name__} "
-                              f"(known: {', '.join(cls.field_names())})")
+            raise ConfigError(
+                f"unknown config key {unknown[0]!r} for {cls.__name__} "
+                f"(known: {', '.join(cls.field_names())})"
+            )
         return cls(**dict(data))
 
     @classmethod
@@ -224,8 +234,10 @@ class ExperimentConfig:
             key, value = parse_override(item)
             head, _, rest = key.partition(".")
             if head not in data:
-                raise ConfigError(f"unknown config key {head!r} for {type(self).__name__} "
-                                  f"(known: {', '.join(self.field_names())})")
+                raise ConfigError(
+                    f"unknown config key {head!r} for {type(self).__name__} "
+                    f"(known: {', '.join(self.field_names())})"
+                )
             if rest:
                 if not isinstance(data[head], dict):
                     raise ConfigError(f"config key {head!r} is not a mapping; cannot set {key!r}")
@@ -266,13 +278,16 @@ def read_yaml_mapping(path: str | os.PathLike) -> dict[str, Any]:
         mark = getattr(err, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(err, "problem", None) or type(err).__name__
-        raise ConfigError(f"config file {str(path)!r} is not valid YAML: {problem}{where}"
-                          ) from None
+        raise ConfigError(
+            f"config file {str(path)!r} is not valid YAML: {problem}{where}"
+        ) from None
     if data is None:
         return {}
     if not isinstance(data, Mapping):
-        raise ConfigError(f"config file {str(path)!r} must hold a mapping of config fields, "
-                          f"got a {type(data).__name__}")
+        raise ConfigError(
+            f"config file {str(path)!r} must hold a mapping of config fields, "
+            f"got a {type(data).__name__}"
+        )
     return dict(data)
 
 
@@ -326,8 +341,10 @@ def check_logger_package(kind: str) -> None:
     """ConfigError when logger ``kind`` needs a package that is not installed."""
     package = LOGGER_PACKAGES.get(kind)
     if package is not None and importlib.util.find_spec(package) is None:
-        raise ConfigError(f"logger={kind!r} needs the {package} package, which is not "
-                          "installed; install it or use logger=csv")
+        raise ConfigError(
+            f"logger={kind!r} needs the {package} package, which is not "
+            "installed; install it or use logger=csv"
+        )
 
 
 def _plain(value: Any) -> Any:
@@ -347,11 +364,14 @@ def check_writable_dir(path: str | os.PathLike, what: str = "run_dir") -> None:
     while not probe.exists() and probe.parent != probe:
         probe = probe.parent
     if not probe.is_dir():
-        raise ValueError(f"{what} {str(path)!r} cannot be created: {str(probe)!r} is not a "
-                         "directory")
+        raise ValueError(
+            f"{what} {str(path)!r} cannot be created: {str(probe)!r} is not a directory"
+        )
     if not os.access(probe, os.W_OK | os.X_OK):
-        raise ValueError(f"{what} {str(path)!r} cannot be written: {str(probe)!r} is not "
-                         "writable (permission denied or a read-only file system)")
+        raise ValueError(
+            f"{what} {str(path)!r} cannot be written: {str(probe)!r} is not "
+            "writable (permission denied or a read-only file system)"
+        )
 
 
 def make_writable_dir(path: str | os.PathLike, what: str = "run_dir") -> Path:
@@ -365,8 +385,9 @@ def make_writable_dir(path: str | os.PathLike, what: str = "run_dir") -> Path:
         os.close(fd)
         os.unlink(probe)
     except OSError as err:
-        raise ValueError(f"{what} {str(path)!r} cannot be written: "
-                         f"{err.strerror or type(err).__name__}") from None
+        raise ValueError(
+            f"{what} {str(path)!r} cannot be written: {err.strerror or type(err).__name__}"
+        ) from None
     return path
 
 
@@ -382,8 +403,9 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.",
-                               suffix=f".tmp{path.suffix}")
+    fd, tmp = tempfile.mkstemp(
+        dir=path.parent, prefix=f".{path.name}.", suffix=f".tmp{path.suffix}"
+    )
     os.close(fd)
     umask = os.umask(0)
     os.umask(umask)

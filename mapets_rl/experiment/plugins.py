@@ -36,8 +36,10 @@ def entry_points(group: str) -> dict[str, metadata.EntryPoint]:
     for ep in metadata.entry_points(group=group):
         seen = found.setdefault(ep.name, ep)
         if seen.value != ep.value:
-            raise ValueError(f"{group} entry point {ep.name!r} is declared twice, as "
-                             f"{seen.value!r} and {ep.value!r}; uninstall one of the packages")
+            raise ValueError(
+                f"{group} entry point {ep.name!r} is declared twice, as "
+                f"{seen.value!r} and {ep.value!r}; uninstall one of the packages"
+            )
     return found
 
 
@@ -53,17 +55,21 @@ def load_entry_point(group: str, name: str, what: str) -> Any:
     known = entry_points(group)
     if name not in known:
         if not known:
-            raise ValueError(f"unknown {what} {name!r}: no {what}s are registered (entry-point "
-                             f"group {group!r} is empty; reinstall the package that provides "
-                             "them, e.g. pip install -e .)")
+            raise ValueError(
+                f"unknown {what} {name!r}: no {what}s are registered (entry-point "
+                f"group {group!r} is empty; reinstall the package that provides "
+                "them, e.g. pip install -e .)"
+            )
         raise ValueError(f"unknown {what} {name!r} (choose from: {', '.join(sorted(known))})")
     ep = known[name]
     try:
         return ep.load()
     except (ImportError, AttributeError) as err:
         lines = str(err).strip().splitlines()
-        raise ValueError(f"{what} {name!r} ({ep.value}) cannot be imported: "
-                         f"{lines[0] if lines else type(err).__name__}") from err
+        raise ValueError(
+            f"{what} {name!r} ({ep.value}) cannot be imported: "
+            f"{lines[0] if lines else type(err).__name__}"
+        ) from err
 
 
 def available_recipes() -> list[str]:

@@ -36,8 +36,11 @@ def make_logger(kind: str, run_dir: str | os.PathLike, exp_name: str) -> Logger 
         return CSVLogger(exp_name=exp_name, log_dir=log_dir)
     if kind == "tensorboard":
         return TensorboardLogger(exp_name=exp_name, log_dir=log_dir)
-    return WandbLogger(exp_name=exp_name, save_dir=log_dir,
-                       offline=os.environ.get("WANDB_MODE", "offline") == "offline")
+    return WandbLogger(
+        exp_name=exp_name,
+        save_dir=log_dir,
+        offline=os.environ.get("WANDB_MODE", "offline") == "offline",
+    )
 
 
 def log_scalars(logger: Logger | None, prefix: str, values: Mapping[str, float], step: int) -> None:
@@ -89,8 +92,14 @@ class ResultsWriter:
     the first new entry arrives: its kind is theirs.
     """
 
-    def __init__(self, run_dir: str | os.PathLike, recipe: str, env: str, seed: int,
-                 config: Mapping[str, Any]) -> None:
+    def __init__(
+        self,
+        run_dir: str | os.PathLike,
+        recipe: str,
+        env: str,
+        seed: int,
+        config: Mapping[str, Any],
+    ) -> None:
         self.path = Path(run_dir) / RESULTS_FILE
         self.header = {"recipe": recipe, "env": env, "seed": seed, "config": dict(config)}
         self.evaluations: list[dict[str, Any]] = []
@@ -106,13 +115,15 @@ class ResultsWriter:
         file."""
         self._add(self.train, frames, metrics)
 
-    def _add(self, entries: list[dict[str, Any]], frames: int,
-             metrics: Mapping[str, float]) -> None:
+    def _add(
+        self, entries: list[dict[str, Any]], frames: int, metrics: Mapping[str, float]
+    ) -> None:
         if self._unsorted is not None:
             entries[:0] = self._unsorted
             self._unsorted = None
-        entries.append({"frames": int(frames),
-                        "metrics": {k: float(v) for k, v in metrics.items()}})
+        entries.append(
+            {"frames": int(frames), "metrics": {k: float(v) for k, v in metrics.items()}}
+        )
         self.write()
 
     def latest_metrics(self) -> dict[str, float]:
@@ -172,10 +183,15 @@ def read_results(run_dir: str | os.PathLike, legacy_as: str = "eval") -> dict[st
     for key in ("evaluations", "train"):
         entries = data.get(key, [])
         if not isinstance(entries, list) or not all(
-                isinstance(e, dict) and isinstance(e.get("frames"), int)
-                and isinstance(e.get("metrics"), dict) for e in entries):
-            raise ValueError(f"{str(path)!r} is not a results file: {key!r} must be a list "
-                             "of {'frames': int, 'metrics': {...}}")
+            isinstance(e, dict)
+            and isinstance(e.get("frames"), int)
+            and isinstance(e.get("metrics"), dict)
+            for e in entries
+        ):
+            raise ValueError(
+                f"{str(path)!r} is not a results file: {key!r} must be a list "
+                "of {'frames': int, 'metrics': {...}}"
+            )
     data["legacy"] = "train" not in data
     if data["legacy"]:
         entries = data.pop("evaluations")
@@ -194,8 +210,9 @@ def read_json_object(path: str | os.PathLike) -> dict[str, Any]:
     try:
         data = json.loads(text)
     except json.JSONDecodeError as err:
-        raise ValueError(f"{str(path)!r} is not valid JSON: {err.msg} at line {err.lineno}, "
-                         f"column {err.colno}") from None
+        raise ValueError(
+            f"{str(path)!r} is not valid JSON: {err.msg} at line {err.lineno}, column {err.colno}"
+        ) from None
     if not isinstance(data, dict):
         raise ValueError(f"{str(path)!r} must hold a JSON object, got {type(data).__name__}")
     return data

@@ -77,19 +77,28 @@ def register_env(name: str, factory: Callable[..., EnvBase], overwrite: bool = F
     if not isinstance(name, str) or not name:
         raise ValueError(f"name must be a non-empty scenario name, got {name!r}")
     if not callable(factory):
-        raise ValueError(f"factory must be callable (factory(**env_config) -> EnvBase), got "
-                         f"{type(factory).__name__} {factory!r}")
+        raise ValueError(
+            f"factory must be callable (factory(**env_config) -> EnvBase), got "
+            f"{type(factory).__name__} {factory!r}"
+        )
     existing = _ENV_REGISTRY.get(name)
     if existing is factory:
         return
     if not overwrite:
-        kind = ("already registered" if existing is not None
-                else "a built-in scenario" if name in _builtin_envs()
-                else "an installed scenario (entry point)" if name in _installed_envs()
-                else None)
+        kind = (
+            "already registered"
+            if existing is not None
+            else "a built-in scenario"
+            if name in _builtin_envs()
+            else "an installed scenario (entry point)"
+            if name in _installed_envs()
+            else None
+        )
         if kind is not None:
-            raise ValueError(f"scenario {name!r} is {kind}; pass overwrite=True to replace it "
-                             "or choose another name")
+            raise ValueError(
+                f"scenario {name!r} is {kind}; pass overwrite=True to replace it "
+                "or choose another name"
+            )
     _ENV_REGISTRY[name] = factory
 
 
@@ -148,16 +157,22 @@ class Experiment:
 
     def __init__(self, config: ExperimentConfig, run_dir: str | os.PathLike | None = None) -> None:
         if not isinstance(config, self.Config):
-            raise ValueError(f"config must be a {self.Config.__name__}, got "
-                             f"{type(config).__name__}")
+            raise ValueError(
+                f"config must be a {self.Config.__name__}, got {type(config).__name__}"
+            )
         self.config = config
-        self.run_dir = Path(run_dir) if run_dir is not None else default_run_dir(
-            self.name, config.env, config.seed)
+        self.run_dir = (
+            Path(run_dir)
+            if run_dir is not None
+            else default_run_dir(self.name, config.env, config.seed)
+        )
         restoring = self.run_dir in _RESTORING
         if latest_checkpoint(self.run_dir) is not None and not restoring:
-            raise ValueError(f"run_dir {str(self.run_dir)!r} already holds a run with "
-                             "checkpoints; continue it with from_run_dir / `mapets-rl resume` "
-                             "or choose another run_dir")
+            raise ValueError(
+                f"run_dir {str(self.run_dir)!r} already holds a run with "
+                "checkpoints; continue it with from_run_dir / `mapets-rl resume` "
+                "or choose another run_dir"
+            )
         check_writable_dir(self.run_dir)
         seed_everything(config.seed)
         self.device = torch.device(config.device)
@@ -170,11 +185,14 @@ class Experiment:
         remove_stale_files(self.run_dir)
         if not restoring:  # from_run_dir writes config.yaml once the checkpoint is restored
             config.to_yaml(self.run_dir / CONFIG_FILE)
-            atomic_write_text(self.run_dir / RUN_FILE, json.dumps(
-                {"recipe": self.name, "env": config.env, "seed": config.seed}))
+            atomic_write_text(
+                self.run_dir / RUN_FILE,
+                json.dumps({"recipe": self.name, "env": config.env, "seed": config.seed}),
+            )
         self.logger = make_logger(config.logger, self.run_dir, f"{self.name}_{config.env}")
-        self.results = ResultsWriter(self.run_dir, self.name, config.env, config.seed,
-                                     config.to_dict())
+        self.results = ResultsWriter(
+            self.run_dir, self.name, config.env, config.seed, config.to_dict()
+        )
         self.collector: Collector | MultiSyncCollector | None = None
         self._collector_args: tuple[TensorDictModuleBase, int, dict[str, Any]] | None = None
         self.eval_policy: TensorDictModuleBase | None = None
@@ -186,8 +204,9 @@ class Experiment:
         """A fresh environment of ``config.env`` with ``config.env_config``."""
         return build_env(self.config.env, self.config.env_config)
 
-    def make_collector(self, policy: TensorDictModuleBase, init_random_frames: int = 0,
-                       **kwargs: Any) -> Collector | MultiSyncCollector:
+    def make_collector(
+        self, policy: TensorDictModuleBase, init_random_frames: int = 0, **kwargs: Any
+    ) -> Collector | MultiSyncCollector:
         """An endless torchrl collector for ``policy`` (``Collector`` in this process when
         ``num_envs == 1``, else ``MultiSyncCollector`` with one env per process); the run loop
         stops it at ``total_frames``. The first ``init_random_frames`` frames of the run use
@@ -201,9 +220,13 @@ class Experiment:
         if remaining:
             kwargs = {**kwargs, "init_random_frames": remaining}
         env_fn = functools.partial(build_env, cfg.env, cfg.env_config)
-        common = dict(frames_per_batch=cfg.frames_per_batch, total_frames=-1,
-                      device=self.device, exploration_type=ExplorationType.RANDOM,
-                      auto_register_policy_transforms=False)
+        common = dict(
+            frames_per_batch=cfg.frames_per_batch,
+            total_frames=-1,
+            device=self.device,
+            exploration_type=ExplorationType.RANDOM,
+            auto_register_policy_transforms=False,
+        )
         common.update(kwargs)
         if cfg.num_envs == 1:
             collector = Collector(env_fn, policy, **common)
@@ -241,13 +264,14 @@ class Experiment:
         velocity, comfort).
         """
         reward = rollout.get(("next", "agents", "reward")).float()  # [T, I, 1]
-        out = {"reward": masked_mean(reward, rollout.get(("next", "agents", "mask"), None)),
-               "return": reward.sum(0).mean().item(),
-               "length": float(rollout.shape[0])}
+        out = {
+            "reward": masked_mean(reward, rollout.get(("next", "agents", "mask"), None)),
+            "return": reward.sum(0).mean().item(),
+            "length": float(rollout.shape[0]),
+        }
         scenario = getattr(self.env, "last_episode_metrics", None)
         if isinstance(scenario, Mapping):
-            out.update({k: float(v) for k, v in scenario.items()
-                        if isinstance(v, (int, float))})
+            out.update({k: float(v) for k, v in scenario.items() if isinstance(v, (int, float))})
         return out
 
     # --------------------------------------------------------------------------- the loop
@@ -255,11 +279,17 @@ class Experiment:
         """Run (or continue) training to ``config.total_frames``; returns the evaluations."""
         cfg = self.config
         if self.collector is None or self.eval_policy is None:
-            raise RuntimeError(f"{type(self).__name__}.__init__ must set self.collector and "
-                               "self.eval_policy")
+            raise RuntimeError(
+                f"{type(self).__name__}.__init__ must set self.collector and self.eval_policy"
+            )
         self._reset_collector()
-        bar = tqdm(total=cfg.total_frames, initial=self.frames, disable=not cfg.progress,
-                   desc=f"{self.name} {cfg.env} seed {cfg.seed}", unit="frame")
+        bar = tqdm(
+            total=cfg.total_frames,
+            initial=self.frames,
+            disable=not cfg.progress,
+            desc=f"{self.name} {cfg.env} seed {cfg.seed}",
+            unit="frame",
+        )
         start, start_frames = time.perf_counter(), self.frames
         while self.frames < cfg.total_frames:
             batch = self.collector.next()
@@ -284,8 +314,9 @@ class Experiment:
                 if not last:
                     self._reset_collector()
             bar.update(self.frames - prev)
-            bar.set_postfix({"fps": f"{fps:.0f}", **{k: f"{v:.3g}" for k, v in
-                                                     self.latest_metrics.items()}})
+            bar.set_postfix(
+                {"fps": f"{fps:.0f}", **{k: f"{v:.3g}" for k, v in self.latest_metrics.items()}}
+            )
         bar.close()
         self.collector.shutdown()
         return self.results.evaluations
@@ -298,8 +329,7 @@ class Experiment:
 
     # ------------------------------------------------------------------------- evaluation
     @torch.no_grad()
-    def evaluate(self, episodes: int | None = None, video: bool | None = None
-                 ) -> dict[str, float]:
+    def evaluate(self, episodes: int | None = None, video: bool | None = None) -> dict[str, float]:
         """Mean metrics over ``episodes`` deterministic episodes (default
         ``config.eval_episodes``) on the evaluation env, re-seeded identically every call.
         With ``video`` the first episode is saved as ``videos/eval_<frames>.gif``."""
@@ -334,10 +364,13 @@ class Experiment:
             os.environ.setdefault("SDL_VIDEODRIVER", "offscreen")
             try:
                 self._video_env = build_env(
-                    self.config.env, {**self.config.env_config, "render_mode": "rgb_array"})
+                    self.config.env, {**self.config.env_config, "render_mode": "rgb_array"}
+                )
             except TypeError as err:
-                raise ValueError(f"video needs scenario {self.config.env!r} to accept "
-                                 f"render_mode='rgb_array' ({err})") from err
+                raise ValueError(
+                    f"video needs scenario {self.config.env!r} to accept "
+                    f"render_mode='rgb_array' ({err})"
+                ) from err
         return self._video_env
 
     def _eval_episode(self, frames: list[Any] | None) -> TensorDictBase:
@@ -354,8 +387,12 @@ class Experiment:
                     frames.append(frame)
             if td.get(("next", "done")).any():
                 break
-            td = step_mdp(td, reward_keys=self.env.reward_keys, done_keys=self.env.done_keys,
-                          action_keys=self.env.action_keys)
+            td = step_mdp(
+                td,
+                reward_keys=self.env.reward_keys,
+                done_keys=self.env.done_keys,
+                action_keys=self.env.action_keys,
+            )
         return torch.stack(steps)
 
     def _render(self) -> Any:
@@ -407,12 +444,12 @@ class Experiment:
         set_rng_state(state["rng"])
 
     def save_checkpoint(self) -> Path:
-        return save_checkpoint(self.state_dict(), self.run_dir, self.frames,
-                               self.config.keep_last)
+        return save_checkpoint(self.state_dict(), self.run_dir, self.frames, self.config.keep_last)
 
     @classmethod
-    def from_run_dir(cls, run_dir: str | os.PathLike, overrides: list[str] | None = None,
-                     load: bool = True) -> Experiment:
+    def from_run_dir(
+        cls, run_dir: str | os.PathLike, overrides: list[str] | None = None, load: bool = True
+    ) -> Experiment:
         """Rebuild from ``run_dir/config.yaml`` (+ overrides) and load the newest checkpoint
         that verifies (newer ones that do not are skipped with a logged warning).
 
@@ -425,8 +462,10 @@ class Experiment:
         overrides = list(overrides or [])
         saved, config, on_disk = cls._run_config(run_dir, overrides)
         if config.env != saved.env:
-            raise ConfigError(f"env cannot change when resuming: run_dir {str(run_dir)!r} was "
-                              f"trained on {saved.env!r}; start a new run for {config.env!r}")
+            raise ConfigError(
+                f"env cannot change when resuming: run_dir {str(run_dir)!r} was "
+                f"trained on {saved.env!r}; start a new run for {config.env!r}"
+            )
         state = ckpt = None
         if load:
             ckpt, state = load_latest_checkpoint(run_dir, map_location=config.device)
@@ -444,8 +483,9 @@ class Experiment:
         return exp
 
     @classmethod
-    def _run_config(cls, run_dir: Path, overrides: list[str]
-                    ) -> tuple[ExperimentConfig, ExperimentConfig, dict[str, Any]]:
+    def _run_config(
+        cls, run_dir: Path, overrides: list[str]
+    ) -> tuple[ExperimentConfig, ExperimentConfig, dict[str, Any]]:
         """(saved config of ``run_dir``, the config with ``overrides``, the mapping in
         ``config.yaml``); one-line ConfigErrors naming ``config.yaml`` when it is missing,
         malformed, incomplete or another recipe's."""
@@ -457,16 +497,20 @@ class Experiment:
         fields = cls.Config.field_names()
         unknown = sorted(set(data) - set(fields))
         if unknown:
-            raise ConfigError(f"{str(path)!r} is not a {cls.name!r} config (the recipe that "
-                              f"run.json names): unknown keys {unknown}; it belongs to another "
-                              "recipe or was edited")
+            raise ConfigError(
+                f"{str(path)!r} is not a {cls.name!r} config (the recipe that "
+                f"run.json names): unknown keys {unknown}; it belongs to another "
+                "recipe or was edited"
+            )
         parsed = [parse_override(item) for item in overrides]
         overridden = {key.partition(".")[0] for key, _ in parsed}
         missing = [name for name in fields if name not in data and name not in overridden]
         if missing:
-            raise ConfigError(f"{str(path)!r} is incomplete: it lacks the keys {missing} (if the "
-                              "recipe gained them after the run was made, pass them as "
-                              "key=value overrides)")
+            raise ConfigError(
+                f"{str(path)!r} is incomplete: it lacks the keys {missing} (if the "
+                "recipe gained them after the run was made, pass them as "
+                "key=value overrides)"
+            )
         # a run may move to another device: apply a device override before validating
         devices = [value for key, value in parsed if key == "device"]
         if devices:
@@ -482,36 +526,48 @@ class Experiment:
         """Load checkpoint ``state`` (from ``path``) into this fresh experiment; ValueError
         naming the changed config keys when the state's tensor shapes do not fit."""
         fresh = self.state_dict()
-        mismatch = [(f"env {key}", saved, fresh["env_shapes"][key])
-                    for key, saved in state.get("env_shapes", {}).items()
-                    if key in fresh["env_shapes"] and saved != fresh["env_shapes"][key]]
+        mismatch = [
+            (f"env {key}", saved, fresh["env_shapes"][key])
+            for key, saved in state.get("env_shapes", {}).items()
+            if key in fresh["env_shapes"] and saved != fresh["env_shapes"][key]
+        ]
         mismatch += _shape_mismatches(state.get("components", {}), fresh["components"])
         if mismatch:
             key, saved_shape, new_shape = mismatch[0]
             # name the keys that can change shapes: the env's for the env's shapes, the
             # recipe's own fields (network sizes, ...) for the components'
             env_keys = [k for k in changed if k.partition(".")[0] in ("env", "env_config")]
-            recipe_keys = [k for k in changed
-                           if k.partition(".")[0] not in ExperimentConfig.field_names()]
+            recipe_keys = [
+                k for k in changed if k.partition(".")[0] not in ExperimentConfig.field_names()
+            ]
             changed = (env_keys if key.startswith("env ") else recipe_keys + env_keys) or changed
             if changed:
                 raise ConfigError(
                     f"cannot resume with {', '.join(changed)} changed: it changes the shape of "
                     f"the saved state ({key}: {saved_shape} -> {new_shape}); scenario, agent "
-                    "count and network sizes are fixed for a run, start a new run instead")
-            raise ValueError(f"checkpoint {str(path)!r} does not fit this {self.name} run "
-                             f"({key}: {saved_shape} in the checkpoint, {new_shape} here)")
+                    "count and network sizes are fixed for a run, start a new run instead"
+                )
+            raise ValueError(
+                f"checkpoint {str(path)!r} does not fit this {self.name} run "
+                f"({key}: {saved_shape} in the checkpoint, {new_shape} here)"
+            )
         try:
             self.load_state_dict(state)
         except (KeyError, RuntimeError, TypeError, ValueError) as err:
-            raise ValueError(f"checkpoint {str(path)!r} cannot be restored into this "
-                             f"{self.name} run: {first_line(err)}") from None
+            raise ValueError(
+                f"checkpoint {str(path)!r} cannot be restored into this "
+                f"{self.name} run: {first_line(err)}"
+            ) from None
 
     def write_evaluation(self, metrics: Mapping[str, float], episodes: int) -> Path:
         """Save a standalone evaluation as ``run_dir/evaluation.json``."""
         path = self.run_dir / "evaluation.json"
-        atomic_write_text(path, json.dumps({"frames": self.frames, "episodes": episodes,
-                                            "metrics": dict(metrics)}, indent=1))
+        atomic_write_text(
+            path,
+            json.dumps(
+                {"frames": self.frames, "episodes": episodes, "metrics": dict(metrics)}, indent=1
+            ),
+        )
         return path
 
 
@@ -523,8 +579,10 @@ def run_recipe_name(run_dir: str | os.PathLike) -> str:
         raise ValueError(f"run_dir {str(run_dir)!r} is not a run directory (no {RUN_FILE})")
     recipe = read_json_object(path).get("recipe")
     if not isinstance(recipe, str) or not recipe:
-        raise ValueError(f"{str(path)!r} does not name the run's recipe (it needs a "
-                         f"\"recipe\": \"<name>\" entry, got {recipe!r})")
+        raise ValueError(
+            f"{str(path)!r} does not name the run's recipe (it needs a "
+            f'"recipe": "<name>" entry, got {recipe!r})'
+        )
     return recipe
 
 
@@ -552,8 +610,9 @@ def _flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
 def _changed_keys(saved: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
     """Dotted config keys whose values differ between two ``to_dict()`` configs."""
     old_flat, new_flat = _flatten(saved), _flatten(new)
-    return sorted(k for k in old_flat.keys() | new_flat.keys()
-                  if old_flat.get(k) != new_flat.get(k))
+    return sorted(
+        k for k in old_flat.keys() | new_flat.keys() if old_flat.get(k) != new_flat.get(k)
+    )
 
 
 def _shape_mismatches(saved: Any, fresh: Any) -> list[tuple[str, list[int], list[int]]]:
@@ -561,11 +620,13 @@ def _shape_mismatches(saved: Any, fresh: Any) -> list[tuple[str, list[int], list
     shape differs (entries only one side has, e.g. a replay buffer not filled yet, are
     skipped)."""
     saved_flat, fresh_flat = _flatten(saved), _flatten(fresh)
-    return [(key, list(saved_flat[key].shape), list(fresh_flat[key].shape))
-            for key in sorted(saved_flat.keys() & fresh_flat.keys())
-            if isinstance(saved_flat[key], torch.Tensor)
-            and isinstance(fresh_flat[key], torch.Tensor)
-            and saved_flat[key].shape != fresh_flat[key].shape]
+    return [
+        (key, list(saved_flat[key].shape), list(fresh_flat[key].shape))
+        for key in sorted(saved_flat.keys() & fresh_flat.keys())
+        if isinstance(saved_flat[key], torch.Tensor)
+        and isinstance(fresh_flat[key], torch.Tensor)
+        and saved_flat[key].shape != fresh_flat[key].shape
+    ]
 
 
 def _crossed(prev: int, now: int, interval: int) -> bool:
@@ -573,5 +634,12 @@ def _crossed(prev: int, now: int, interval: int) -> bool:
     return interval > 0 and now // interval > prev // interval
 
 
-__all__ = ["ConfigError", "Experiment", "available_envs", "build_env", "default_run_dir",
-           "register_env", "run_recipe_name"]
+__all__ = [
+    "ConfigError",
+    "Experiment",
+    "available_envs",
+    "build_env",
+    "default_run_dir",
+    "register_env",
+    "run_recipe_name",
+]

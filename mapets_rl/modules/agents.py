@@ -42,10 +42,17 @@ class AgentGroupSpec:
         elif isinstance(action, Bounded) and action.domain == "continuous":
             discrete = False
         else:
-            raise ValueError(f"env action {ACTION} must be a Bounded continuous or a OneHot "
-                             f"spec, got {type(action).__name__}")
-        return cls(n_agents=obs.shape[0], obs_dim=obs.shape[-1], action_spec=action,
-                   discrete=discrete, action_dim=action.shape[-1])
+            raise ValueError(
+                f"env action {ACTION} must be a Bounded continuous or a OneHot "
+                f"spec, got {type(action).__name__}"
+            )
+        return cls(
+            n_agents=obs.shape[0],
+            obs_dim=obs.shape[-1],
+            action_spec=action,
+            discrete=discrete,
+            action_dim=action.shape[-1],
+        )
 
     @property
     def action_half_range(self) -> torch.Tensor:

@@ -48,8 +48,9 @@ class RunningObsNorm(nn.Module):
         batch_mean, batch_var = x.mean(0), x.var(0, unbiased=False)
         total = self.count + n
         delta = batch_mean - self.mean
-        self.var.copy_((self.var * self.count + batch_var * n
-                        + delta.pow(2) * self.count * n / total) / total)
+        self.var.copy_(
+            (self.var * self.count + batch_var * n + delta.pow(2) * self.count * n / total) / total
+        )
         self.mean.add_(delta * n / total)
         self.count.copy_(total)
 

@@ -16,29 +16,49 @@ def concat_last(*tensors: torch.Tensor) -> torch.Tensor:
     return torch.cat(tensors, dim=-1)
 
 
-def make_stochastic_policy(spec: AgentGroupSpec, num_cells: list[int], share_params: bool,
-                           return_log_prob: bool = True,
-                           obs_norm: TensorDictModule | None = None) -> ProbabilisticActor:
+def make_stochastic_policy(
+    spec: AgentGroupSpec,
+    num_cells: list[int],
+    share_params: bool,
+    return_log_prob: bool = True,
+    obs_norm: TensorDictModule | None = None,
+) -> ProbabilisticActor:
     """Decentralised stochastic policy: ``("agents","observation")`` [*, I, obs] (through
     ``obs_norm`` when given) -> ``("agents","action")`` [*, I, act] (TanhNormal within the
     action bounds, or one-hot categorical [*, I, n]) and its log-probability
     ``("agents","action_log_prob")`` [*, I]."""
     obs_key = OBS if obs_norm is None else OBS_NORM
     n_out = spec.action_dim if spec.discrete else 2 * spec.action_dim
-    mlp = MultiAgentMLP(n_agent_inputs=spec.obs_dim, n_agent_outputs=n_out,
-                        n_agents=spec.n_agents, centralized=False, share_params=share_params,
-                        depth=len(num_cells), num_cells=num_cells, activation_class=nn.Tanh)
+    mlp = MultiAgentMLP(
+        n_agent_inputs=spec.obs_dim,
+        n_agent_outputs=n_out,
+        n_agents=spec.n_agents,
+        centralized=False,
+        share_params=share_params,
+        depth=len(num_cells),
+        num_cells=num_cells,
+        activation_class=nn.Tanh,
+    )
     if spec.discrete:
         module = TensorDictModule(mlp, in_keys=[obs_key], out_keys=[(GROUP, "logits")])
         dist_keys, dist_cls, dist_kwargs = [(GROUP, "logits")], OneHotCategorical, {}
     else:
-        module = TensorDictModule(nn.Sequential(mlp, NormalParamExtractor()),
-                                  in_keys=[obs_key], out_keys=[(GROUP, "loc"), (GROUP, "scale")])
+        module = TensorDictModule(
+            nn.Sequential(mlp, NormalParamExtractor()),
+            in_keys=[obs_key],
+            out_keys=[(GROUP, "loc"), (GROUP, "scale")],
+        )
         dist_keys, dist_cls = [(GROUP, "loc"), (GROUP, "scale")], TanhNormal
         dist_kwargs = {"low": spec.action_spec.space.low, "high": spec.action_spec.space.high}
     if obs_norm is not None:
         module = TensorDictSequential(obs_norm, module)
-    return ProbabilisticActor(module, in_keys=dist_keys, out_keys=[ACTION],
-                              spec=spec.action_spec, distribution_class=dist_cls,
-                              distribution_kwargs=dist_kwargs, return_log_prob=return_log_prob,
-                              log_prob_key=LOG_PROB)
+    return ProbabilisticActor(
+        module,
+        in_keys=dist_keys,
+        out_keys=[ACTION],
+        spec=spec.action_spec,
+        distribution_class=dist_cls,
+        distribution_kwargs=dist_kwargs,
+        return_log_prob=return_log_prob,
+        log_prob_key=LOG_PROB,
+    )

@@ -8,6 +8,7 @@ from mapets_rl.planning.trajectory_sampling import PROPAGATIONS
 
 __all__ = ["PlannerConfig", "PAPER_PRESET", "CPU_PRESET", "PRESETS", "PROPAGATIONS"]
 
+
 @dataclass(frozen=True)
 class PlannerConfig:
     """Sizes of the MA-PETS planner (Table II) and of the ensemble it plans with.

@@ -122,8 +122,8 @@ def trajectory_sampling_returns(
                 mean, std = mean[:, inv], std[:, inv]
             # Common random numbers: one draw per particle, shared by all candidates.
             eps = torch.randn((particles, 1, obs_dim), generator=generator, device=device)
-            next_state = state + mean + std * eps.expand(particles, cands, obs_dim).reshape(
-                rows, obs_dim
+            next_state = (
+                state + mean + std * eps.expand(particles, cands, obs_dim).reshape(rows, obs_dim)
             )
         reward = reward_fn(state, action, next_state)
         if reward.shape != returns.shape:

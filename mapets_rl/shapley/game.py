@@ -62,8 +62,9 @@ def _check_finite(values: torch.Tensor, name: str) -> None:
     finite = torch.isfinite(values)
     if not bool(finite.all()):
         bad = int((~finite).sum())
-        raise ValueError(f"{name} must be finite, got {bad} NaN or infinite entries of "
-                         f"{values.numel()}")
+        raise ValueError(
+            f"{name} must be finite, got {bad} NaN or infinite entries of {values.numel()}"
+        )
 
 
 def coalition_masks(n: int, device: torch.device | str | None = None) -> torch.Tensor:
