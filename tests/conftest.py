@@ -1,11 +1,20 @@
-"""Fixtures shared by the test modules: entry points installed for one test only."""
+"""Fixtures shared by the test modules: entry points installed for one test only, and the
+toy scenario and recipe of ``examples/extending`` (that folder is put on ``sys.path`` so the
+tests import ``toy_scenario`` and ``toy_recipe`` as a researcher's package would)."""
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from importlib import metadata
+from pathlib import Path
 
 import pytest
+
+from mapets_rl.experiment import register_env, runner
+
+EXTENDING = Path(__file__).resolve().parents[1] / "examples" / "extending"
+sys.path.insert(0, str(EXTENDING))
 
 
 @pytest.fixture
@@ -31,9 +40,18 @@ def add_entry_point(monkeypatch) -> Callable[[str, str, str], None]:
 
 
 @pytest.fixture
-def toy_recipe(add_entry_point) -> None:
-    """The toy learner of ``test_experiment`` installed as recipe ``toy`` (its module also
-    registers the ``toy`` scenario)."""
-    import test_experiment  # noqa: F401
+def toy_scenario(monkeypatch) -> str:
+    """``ToyAgentsEnv`` of ``examples/extending/toy_scenario.py`` registered as scenario
+    ``toy`` for this test only (in a copy of the scenario registry)."""
+    from toy_scenario import ToyAgentsEnv
 
-    add_entry_point("mapets_rl.recipes", "toy", "test_experiment:ToyLearner")
+    monkeypatch.setattr(runner, "_ENV_REGISTRY", dict(runner._ENV_REGISTRY))
+    register_env("toy", ToyAgentsEnv)
+    return "toy"
+
+
+@pytest.fixture
+def toy_recipe(add_entry_point, toy_scenario) -> None:
+    """``ToyLearner`` of ``examples/extending/toy_recipe.py`` installed as recipe ``toy``, with
+    the ``toy`` scenario registered."""
+    add_entry_point("mapets_rl.recipes", "toy", "toy_recipe:ToyLearner")

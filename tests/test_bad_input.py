@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
-from test_experiment import ToyAgentsEnv, ToyConfig, ToyLearner
+from toy_recipe import ToyConfig, ToyLearner
+from toy_scenario import ToyAgentsEnv
 
 from mapets_rl.envs import FigureEightEnv, FreewayEnv, make_env
-from mapets_rl.experiment import register_env
+from mapets_rl.experiment import register_env, runner
 from mapets_rl.experiment.cli import main
-from mapets_rl.experiment.runner import _ENV_REGISTRY
 from mapets_rl.shapley import exact_shapley, sampled_shapley
 from recipes.maddpg import MADDPGConfig
 from recipes.mapets import MAPETSConfig
@@ -30,6 +30,8 @@ from recipes.shapley_ac import ShapleyACConfig
 
 INF, NAN = float("inf"), float("nan")
 NO_CUDA_DEVICE = "cuda" if not torch.cuda.is_available() else f"cuda:{torch.cuda.device_count()}"
+
+pytestmark = pytest.mark.usefixtures("toy_scenario")
 
 
 def _refused(call: Callable[[], Any], match: str) -> str:
@@ -417,13 +419,11 @@ def test_raw_env_refuses_a_step_after_the_episode_ended() -> None:
 # ------------------------------------------------------------------------------ registry
 def test_register_env_refuses_a_non_callable_factory() -> None:
     _refused(lambda: register_env("x", 42), "factory must be callable")
-    assert "x" not in _ENV_REGISTRY
+    assert "x" not in runner._ENV_REGISTRY
 
 
 def test_register_env_does_not_silently_replace_a_scenario(monkeypatch) -> None:
-    monkeypatch.setattr("mapets_rl.experiment.runner._ENV_REGISTRY", dict(_ENV_REGISTRY))
-    from mapets_rl.experiment import runner
-
+    monkeypatch.setattr(runner, "_ENV_REGISTRY", dict(runner._ENV_REGISTRY))
     _refused(lambda: register_env("freeway", ToyAgentsEnv), "'freeway' is a built-in scenario")
     _refused(lambda: register_env("toy", lambda: None), "'toy' is already registered")
     _refused(lambda: register_env("", ToyAgentsEnv), "name must be a non-empty scenario name")

@@ -6,7 +6,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-import test_experiment  # noqa: F401  (registers the "toy" scenario)
 import torch
 from torchrl.modules import MultiAgentMLP
 
@@ -14,6 +13,8 @@ from mapets_rl.experiment import ConfigError
 from recipes.maddpg import MADDPG, MADDPGConfig
 from recipes.mappo import MAPPO, MAPPOConfig
 from recipes.sac import SAC, SACConfig
+
+pytestmark = pytest.mark.usefixtures("toy_scenario")
 
 SCENARIOS = {
     "figure-eight": ({"n_cavs": 3, "n_hvs": 2, "horizon": 40}, 120, ("agility", "safety")),

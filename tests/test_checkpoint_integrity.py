@@ -1,5 +1,5 @@
 """Checkpoints verify themselves, resume falls back to the newest good one, and a failed
-command never damages a run directory (toy recipe of test_experiment, CLI and Python API)."""
+command never damages a run directory (toy recipe of examples/extending, CLI and Python API)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,8 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_experiment import ToyConfig, ToyLearner, _params
+from test_experiment import _params
+from toy_recipe import ToyConfig, ToyLearner
 
 from mapets_rl.experiment import (
     CheckpointError,
@@ -33,6 +34,8 @@ from mapets_rl.experiment import (
 from mapets_rl.experiment.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
+
+pytestmark = pytest.mark.usefixtures("toy_scenario")
 
 
 def _run(argv: list[str], capsys) -> tuple[int, str, str]:
@@ -398,11 +401,14 @@ def test_kill_9_during_a_checkpoint_write_resumes_bit_exactly(tmp_path: Path, mo
     script = "\n".join(
         [
             "import os, signal, sys",
-            f"sys.path.insert(0, {str(ROOT / 'tests')!r})",
+            f"sys.path.insert(0, {str(ROOT / 'examples' / 'extending')!r})",
             "import torch",
-            "import test_experiment",
+            "from mapets_rl.experiment import register_env",
+            "from toy_recipe import ToyConfig, ToyLearner",
+            "from toy_scenario import ToyAgentsEnv",
+            "register_env('toy', ToyAgentsEnv)",
             textwrap.dedent(KILLERS[moment]),
-            f"test_experiment.ToyLearner(test_experiment.ToyConfig(), {str(run)!r}).train()",
+            f"ToyLearner(ToyConfig(), {str(run)!r}).train()",
         ]
     )
     proc = subprocess.run(

@@ -1,29 +1,20 @@
-"""mapets_rl.experiment: config, checkpoints, the run loop (with a small real learner on a toy
-multi-agent env), exact resume, results and compare."""
+"""mapets_rl.experiment: config, checkpoints, the run loop (with the small real learner of
+``examples/extending/toy_recipe.py`` on its toy multi-agent env), exact resume, results and
+compare."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 from pathlib import Path
 
 import pytest
 import torch
-from tensordict import TensorDict
-from tensordict.nn import TensorDictModule, TensorDictSequential
-from torch import nn
-from torchrl.data import Bounded, Composite, LazyTensorStorage, TensorDictReplayBuffer, Unbounded
-from torchrl.data.tensor_specs import Categorical
-from torchrl.envs import EnvBase
-from torchrl.modules import AdditiveGaussianModule
+from toy_recipe import ToyConfig, ToyLearner
 
 from mapets_rl.experiment import (
     CheckpointError,
     ConfigError,
-    Experiment,
-    ExperimentConfig,
-    check,
     compare,
     digest_path,
     file_sha256,
@@ -32,151 +23,11 @@ from mapets_rl.experiment import (
     load_checkpoint,
     mean_ci95,
     read_results,
-    register_env,
     save_checkpoint,
     student_t_quantile,
 )
 
-
-class ToyAgentsEnv(EnvBase):
-    """I agents on a line; each should drive its position x to 0. obs (x, t/H) [I, 2],
-    action [I, 1] in [-1, 1], x' = x + 0.5 a + 0.05 noise, reward -x'^2, horizon H."""
-
-    def __init__(self, n_agents: int = 3, horizon: int = 10) -> None:
-        super().__init__(batch_size=torch.Size([]))
-        self.n_agents, self.horizon = n_agents, horizon
-        i = n_agents
-        self.observation_spec = Composite(
-            agents=Composite(observation=Unbounded((i, 2)), shape=(i,))
-        )
-        self.action_spec = Composite(
-            agents=Composite(action=Bounded(-1.0, 1.0, (i, 1)), shape=(i,))
-        )
-        self.reward_spec = Composite(agents=Composite(reward=Unbounded((i, 1)), shape=(i,)))
-        flag = Categorical(2, (i, 1), dtype=torch.bool)
-        self.done_spec = Composite(
-            agents=Composite(done=flag, terminated=flag.clone(), shape=(i,)),
-            done=Categorical(2, (1,), dtype=torch.bool),
-            terminated=Categorical(2, (1,), dtype=torch.bool),
-            truncated=Categorical(2, (1,), dtype=torch.bool),
-        )
-        self.rng = torch.Generator().manual_seed(0)
-
-    def _set_seed(self, seed: int | None) -> None:
-        self.rng.manual_seed(int(seed or 0))
-
-    def _obs(self) -> torch.Tensor:
-        t = torch.full((self.n_agents, 1), self.t / self.horizon)
-        return torch.cat([self.x, t], -1)
-
-    def _flags(self, value: bool) -> torch.Tensor:
-        return torch.full((self.n_agents, 1), value)
-
-    def _reset(self, td=None) -> TensorDict:
-        self.t = 0
-        self.x = torch.rand(self.n_agents, 1, generator=self.rng) * 4 - 2
-        false = torch.zeros(1, dtype=torch.bool)
-        agents = TensorDict(
-            {
-                "observation": self._obs(),
-                "done": self._flags(False),
-                "terminated": self._flags(False),
-            },
-            [self.n_agents],
-        )
-        return TensorDict(
-            {
-                "agents": agents,
-                "done": false,
-                "terminated": false.clone(),
-                "truncated": false.clone(),
-            }
-        )
-
-    def _step(self, td: TensorDict) -> TensorDict:
-        a = td["agents", "action"].clamp(-1, 1)
-        self.x = self.x + 0.5 * a + 0.05 * torch.randn(self.x.shape, generator=self.rng)
-        self.t += 1
-        trunc = torch.tensor([self.t >= self.horizon])
-        agents = TensorDict(
-            {
-                "observation": self._obs(),
-                "reward": -self.x.pow(2),
-                "done": self._flags(bool(trunc)),
-                "terminated": self._flags(False),
-            },
-            [self.n_agents],
-        )
-        return TensorDict(
-            {
-                "agents": agents,
-                "done": trunc,
-                "truncated": trunc.clone(),
-                "terminated": torch.zeros(1, dtype=torch.bool),
-            }
-        )
-
-
-register_env("toy", ToyAgentsEnv)
-
-
-@dataclasses.dataclass
-class ToyConfig(ExperimentConfig):
-    env: str = "toy"
-    lr: float = 0.05
-    batch_size: int = 16
-    sigma: float = 0.3
-    total_frames: int = 60
-    frames_per_batch: int = 10
-    eval_interval: int = 20
-    checkpoint_interval: int = 20
-    progress: bool = False
-    logger: str = "none"
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check(self.lr > 0, "lr", "> 0", self.lr)
-        check(self.batch_size >= 1, "batch_size", ">= 1", self.batch_size)
-
-
-class ToyLearner(Experiment):
-    """A real small learner: a linear policy regressed (from replayed observations) onto the
-    action that zeroes the position, with Gaussian exploration noise during collection."""
-
-    name = "toy"
-    Config = ToyConfig
-
-    def __init__(self, config: ToyConfig, run_dir=None) -> None:
-        super().__init__(config, run_dir)
-        self.actor = TensorDictModule(
-            nn.Linear(2, 1), [("agents", "observation")], [("agents", "action")]
-        )
-        noise = AdditiveGaussianModule(
-            self.env.full_action_spec_unbatched[("agents", "action")],
-            sigma_init=config.sigma,
-            sigma_end=config.sigma,
-            action_key=("agents", "action"),
-        )
-        self.collector = self.make_collector(TensorDictSequential(self.actor, noise))
-        self.eval_policy = self.actor
-        self.buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(200), batch_size=config.batch_size
-        )
-        self.optim = torch.optim.Adam(self.actor.parameters(), lr=config.lr)
-
-    def train_step(self, batch):
-        self.buffer.extend(batch.reshape(-1).select(("agents", "observation")))
-        sample = self.buffer.sample()
-        obs = sample["agents", "observation"]
-        target = (-obs[..., :1] / 0.5).clamp(-1, 1)
-        loss = (self.actor.module(obs) - target).pow(2).mean()
-        self.optim.zero_grad()
-        loss.backward()
-        self.optim.step()
-        return {"loss": loss.item()}
-
-    def stateful_components(self):
-        return {"actor": self.actor, "optim": self.optim, "buffer": self.buffer}
+pytestmark = pytest.mark.usefixtures("toy_scenario")
 
 
 # ------------------------------------------------------------------------------- config

@@ -105,16 +105,16 @@ def test_pyproject_declares_exactly_the_recipes_of_the_recipes_package() -> None
 
 
 def test_recipes_are_loaded_from_entry_points(add_entry_point) -> None:
-    add_entry_point(RECIPE_GROUP, "toy", "test_experiment:ToyLearner")
-    import test_experiment
+    add_entry_point(RECIPE_GROUP, "toy", "toy_recipe:ToyLearner")
+    import toy_recipe
 
     assert "toy" in available_recipes()
-    assert load_recipe("toy") is test_experiment.ToyLearner
+    assert load_recipe("toy") is toy_recipe.ToyLearner
 
 
 def test_unknown_recipe_names_the_installed_ones(add_entry_point, capsys) -> None:
-    add_entry_point(RECIPE_GROUP, "zz_first", "test_experiment:ToyLearner")
-    add_entry_point(RECIPE_GROUP, "zz_second", "test_experiment:ToyLearner")
+    add_entry_point(RECIPE_GROUP, "zz_first", "toy_recipe:ToyLearner")
+    add_entry_point(RECIPE_GROUP, "zz_second", "toy_recipe:ToyLearner")
     with pytest.raises(
         ValueError,
         match=r"unknown recipe 'nope' \(choose from: .*zz_first, "
@@ -142,15 +142,13 @@ def test_unimportable_recipe_is_one_line(add_entry_point, capsys) -> None:
 
 
 def test_a_recipe_seen_twice_counts_once_and_a_clash_is_refused(add_entry_point) -> None:
-    add_entry_point(RECIPE_GROUP, "toy", "test_experiment:ToyLearner")
-    add_entry_point(RECIPE_GROUP, "toy", "test_experiment:ToyLearner")
+    add_entry_point(RECIPE_GROUP, "toy", "toy_recipe:ToyLearner")
+    add_entry_point(RECIPE_GROUP, "toy", "toy_recipe:ToyLearner")
     assert available_recipes().count("toy") == 1
-    add_entry_point(RECIPE_GROUP, "toy", "test_experiment:ToyConfig")
+    add_entry_point(RECIPE_GROUP, "toy", "toy_recipe:ToyConfig")
     with pytest.raises(
         ValueError,
-        match="'toy' is declared twice, as "
-        "'test_experiment:ToyLearner' and "
-        "'test_experiment:ToyConfig'",
+        match="'toy' is declared twice, as 'toy_recipe:ToyLearner' and 'toy_recipe:ToyConfig'",
     ):
         entry_points(RECIPE_GROUP)
 
@@ -166,11 +164,11 @@ def test_train_recipe_help_lists_its_fields(toy_recipe, capsys) -> None:
 @pytest.fixture
 def plugin_scenario(add_entry_point) -> str:
     """``ToyAgentsEnv`` installed as scenario ``toy-plugin`` (not registered in-process)."""
-    add_entry_point(SCENARIO_GROUP, "toy-plugin", "test_experiment:ToyAgentsEnv")
+    add_entry_point(SCENARIO_GROUP, "toy-plugin", "toy_scenario:ToyAgentsEnv")
     return "toy-plugin"
 
 
-def test_installed_scenario_is_available_and_built(plugin_scenario: str) -> None:
+def test_installed_scenario_is_available_and_built(plugin_scenario: str, toy_scenario) -> None:
     assert plugin_scenario in available_envs()
     assert {"figure-eight", "freeway", "toy"} <= set(available_envs())
     env = build_env(plugin_scenario, {"n_agents": 2, "horizon": 4})

@@ -1,0 +1,64 @@
+"""The scripts of ``examples/extending`` run as a researcher runs them (``python script.py``,
+in a fresh process) and print what their docstrings promise."""
+
+from __future__ import annotations
+
+import ast
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+EXTENDING = Path(__file__).resolve().parents[1] / "examples" / "extending"
+ARGS = {
+    "toy_scenario.py": ["--steps", "5"],
+    "toy_recipe.py": ["--frames", "40"],
+    "exact_model_planning.py": ["--steps", "10"],
+}
+
+
+def _run(script: str) -> str:
+    proc = subprocess.run(
+        [sys.executable, str(EXTENDING / script), *ARGS[script]],
+        cwd=EXTENDING.parents[1],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout
+
+
+def _listed(out: str, label: str) -> list[float]:
+    return ast.literal_eval(re.search(rf"^{label}:? (\[.*?\])", out, re.M).group(1))
+
+
+def test_every_script_of_the_folder_is_run_here() -> None:
+    assert sorted(p.name for p in EXTENDING.glob("*.py")) == sorted(ARGS)
+
+
+def test_toy_scenario_rolls_out_with_a_communication_graph() -> None:
+    out = _run("toy_scenario.py")
+    links = _listed(out, "links within 1.0 per step")
+    assert len(links) == 5 and all(0 <= n <= 3 for n in links)  # 3 agents: at most 3 links
+    assert len(_listed(out, "return per agent")) == 3
+
+
+def test_toy_recipe_trains_and_improves() -> None:
+    out = _run("toy_recipe.py")
+    before = float(re.search(r"^before training: return (\S+)$", out, re.M).group(1))
+    evals = re.findall(r"^frames (\d+): return (\S+)$", out, re.M)
+    assert [int(frames) for frames, _ in evals] == [20, 40]
+    assert float(evals[-1][1]) > before  # it learns to drive x to 0
+
+
+def test_exact_model_planning_steers_the_point_masses_home() -> None:
+    out = _run("exact_model_planning.py")
+    actions = [
+        _listed(line, r"step \d+: position \[.*?\] action") for line in out.splitlines()[:-1]
+    ]
+    assert len(actions) == 10 and all(-2.0 <= a <= 2.0 for step in actions for a in step)
+    # agent 0 (at +2) is pushed left, agent 1 (at -1, moving away) is pushed back right
+    assert actions[0][0] < 0 < actions[0][1]
+    start, final = [2.0, -1.0], _listed(out, "final position")
+    assert all(abs(x) < 0.6 * abs(x0) for x, x0 in zip(final, start, strict=True))
