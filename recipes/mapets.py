@@ -2,7 +2,8 @@
 
 Reads top to bottom: config -> env (+ :class:`~mapets_rl.comm.CommunicationRange`) -> per-agent
 ensembles -> NLL loss + Adam -> batched CEM planner -> per-agent datasets ``D(i)+`` -> the episode
-loop of :meth:`MAPETS.train`:
+loop of :meth:`MAPETS.train` (the shared :meth:`Experiment.train` loop with one episode per
+iteration, :meth:`MAPETS.run_iteration`):
 
 1. episode ``k <= random_episodes`` drives every CAV with uniformly random actions (line 2);
    later episodes let the planner drive all CAVs, each re-planning every step with its own
@@ -37,17 +38,15 @@ import dataclasses
 import functools
 import time
 from collections.abc import Callable, Iterable, Mapping
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.envs import EnvBase
-from tqdm import tqdm
 
 from mapets_rl.comm import CommunicationRange, NeighbourDatasets
 from mapets_rl.envs import figure_eight_collision, figure_eight_reward
 from mapets_rl.envs.figure_eight import OBSERVATIONS
-from mapets_rl.experiment import Experiment, ExperimentConfig, check, log_scalars
+from mapets_rl.experiment import Experiment, RunConfig, check, log_scalars
 from mapets_rl.experiment.runner import build_env
 from mapets_rl.models import ProbabilisticEnsemble, train_ensemble
 from mapets_rl.modules import AgentGroupSpec, masked_mean
@@ -90,8 +89,9 @@ def _preset_value(preset: PlannerConfig, name: str) -> Any:
 
 
 @dataclasses.dataclass
-class MAPETSConfig(ExperimentConfig):
-    """MA-PETS hyper-parameters; defaults are the paper's Table II except where noted.
+class MAPETSConfig(RunConfig):
+    """MA-PETS hyper-parameters (plus the shared :class:`RunConfig` fields); defaults are the
+    paper's Table II except where noted.
 
     The planner/ensemble sizes left unset (``None``) come from ``preset``:
 
@@ -138,8 +138,10 @@ class MAPETSConfig(ExperimentConfig):
         num_threads: torch intra-op threads (0: leave torch's default). On a CPU shared with
             other jobs, 1 is often the fastest.
 
-    Inherited frame-budget fields (``total_frames``, ``frames_per_batch``, ``eval_interval``,
-    ``checkpoint_interval``) are not used: MA-PETS trains and checkpoints after every episode.
+    MA-PETS has no frame budget (``total_frames``, ``frames_per_batch``, ``num_envs``,
+    ``eval_interval``, ``checkpoint_interval`` are unknown keys; resuming a run whose
+    ``config.yaml`` still holds them drops them): it plans on one env, trains for ``episodes``
+    and checkpoints after every episode.
     """
 
     episodes: int = 15
@@ -167,6 +169,15 @@ class MAPETSConfig(ExperimentConfig):
     crossing_gap: float = 6.0
     collision_reward: float = -10.0
     num_threads: int = 0
+
+    # the frame-budget fields that MAPETSConfig inherited until it subclassed RunConfig
+    retired_fields: ClassVar[tuple[str, ...]] = (
+        "total_frames",
+        "frames_per_batch",
+        "num_envs",
+        "eval_interval",
+        "checkpoint_interval",
+    )
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -216,7 +227,6 @@ class MAPETSConfig(ExperimentConfig):
         check(self.crossing_gap >= 0, "crossing_gap", ">= 0 metres", self.crossing_gap)
         check(self.collision_reward <= 0, "collision_reward", "<= 0", self.collision_reward)
         check(self.num_threads >= 0, "num_threads", ">= 0", self.num_threads)
-        check(self.num_envs == 1, "num_envs", "1 (MA-PETS plans on one env)", self.num_envs)
 
     def with_overrides(self, overrides: Iterable[str]) -> MAPETSConfig:
         """``key=value`` overrides; ``preset=NAME`` re-fills the preset fields that still hold
@@ -302,9 +312,14 @@ class MAPETS(Experiment):
         reward_fn: RewardFn | None = None,
         termination_fn: TerminationFn | None = None,
     ) -> None:
-        if isinstance(config, MAPETSConfig) and config.num_threads > 0:
+        if not isinstance(config, MAPETSConfig):
+            raise ValueError(f"config must be a MAPETSConfig, got {type(config).__name__}")
+        if config.num_threads > 0:
             torch.set_num_threads(config.num_threads)
-        super().__init__(config, run_dir)
+        # the scenario with the communication-range transform appended
+        self.comm = CommunicationRange(config.comm_range, config.p_fail)
+        env = build_env(config.env, config.env_config).append_transform(self.comm)
+        super().__init__(config, run_dir, env)
         group = AgentGroupSpec.from_env(self.env)
         if group.discrete:
             raise ValueError(
@@ -370,13 +385,6 @@ class MAPETS(Experiment):
         # D(i)+ of every CAV over one shared storage
         self.datasets = NeighbourDatasets(n, config.buffer_size, device=device, seed=config.seed)
         self.counters = _Counters()
-
-    # ------------------------------------------------------------------ env
-    def make_env(self) -> EnvBase:
-        """The scenario with the communication-range transform appended."""
-        env = build_env(self.config.env, self.config.env_config)
-        self.comm = CommunicationRange(self.config.comm_range, self.config.p_fail)
-        return env.append_transform(self.comm)
 
     @property
     def episode(self) -> int:
@@ -491,40 +499,50 @@ class MAPETS(Experiment):
         Returns:
             the run's per-episode entries ``{"frames", "metrics"}`` (as in ``results.json``).
         """
+        return super().train(on_iteration_end=on_episode_end)
+
+    def progress(self) -> tuple[int, int]:
+        return self.episode, self.config.episodes
+
+    def progress_label(self) -> str:
         cfg = self.config
-        bar = tqdm(
-            total=cfg.episodes,
-            initial=self.episode,
-            disable=not cfg.progress,
-            desc=f"{self.name} {cfg.env} d={cfg.comm_range:g} seed {cfg.seed}",
-            unit="episode",
-        )
-        while self.episode < cfg.episodes:
-            episode = self.episode + 1
-            self._seed_episode(episode)
-            random_actions = episode <= cfg.random_episodes
-            start = time.perf_counter()
-            rollout = self.run_episode(random_actions)
-            act_time = time.perf_counter() - start
-            metrics = {"episode": float(episode), "random": float(random_actions)}
-            metrics.update(self.episode_metrics(rollout))
-            metrics["nonfinite_rewards"] = float(self.planner.nonfinite_rewards.sum())
-            metrics.update(self.store_and_share(rollout))
-            start = time.perf_counter()
-            metrics.update(self.train_models())
-            metrics["train_time"] = time.perf_counter() - start
-            metrics["step_time"] = act_time / rollout.shape[0]
-            self.frames += rollout.shape[0]
-            self.counters.episode = episode
-            self.results.add_train(self.frames, metrics)
-            log_scalars(self.logger, "train", metrics, self.frames)
-            self.latest_metrics = metrics
-            self.save_checkpoint()
-            bar.update(1)
-            bar.set_postfix({k: f"{metrics[k]:.3g}" for k in ("agility", "safety") if k in metrics})
-            if on_episode_end is not None:
-                on_episode_end(metrics)
-        bar.close()
+        return f"{self.name} {cfg.env} d={cfg.comm_range:g} seed {cfg.seed}"
+
+    def progress_postfix(self, metrics: Mapping[str, float], fps: float) -> dict[str, str]:
+        return {k: f"{metrics[k]:.3g}" for k in ("agility", "safety") if k in metrics}
+
+    def start_training(self) -> None:
+        """Nothing to prepare: every episode seeds its own random streams."""
+
+    def run_iteration(self) -> dict[str, float]:
+        """The next episode: seed it, drive it (random or planned actions), store and share its
+        transitions, refit the models; returns its metrics."""
+        episode = self.episode + 1
+        self._seed_episode(episode)
+        random_actions = episode <= self.config.random_episodes
+        start = time.perf_counter()
+        rollout = self.run_episode(random_actions)
+        act_time = time.perf_counter() - start
+        metrics = {"episode": float(episode), "random": float(random_actions)}
+        metrics.update(self.episode_metrics(rollout))
+        metrics["nonfinite_rewards"] = float(self.planner.nonfinite_rewards.sum())
+        metrics.update(self.store_and_share(rollout))
+        start = time.perf_counter()
+        metrics.update(self.train_models())
+        metrics["train_time"] = time.perf_counter() - start
+        metrics["step_time"] = act_time / rollout.shape[0]
+        self.frames += rollout.shape[0]
+        self.counters.episode = episode
+        return metrics
+
+    def end_iteration(self, metrics: Mapping[str, float], prev_frames: int, last: bool) -> None:
+        """Record the episode in ``results.json`` and checkpoint after every episode."""
+        self.results.add_train(self.frames, metrics)
+        self.latest_metrics = dict(metrics)
+        self.save_checkpoint()
+
+    def finish_training(self) -> list[dict[str, Any]]:
+        """Returns the training entries (one per episode)."""
         return self.results.train
 
     # ------------------------------------------------------------------ evaluation

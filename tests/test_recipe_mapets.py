@@ -7,6 +7,7 @@ import json
 
 import pytest
 import torch
+import yaml
 
 from mapets_rl.experiment import ConfigError, latest_checkpoint, load_checkpoint
 from mapets_rl.experiment.cli import main as cli_main
@@ -202,3 +203,27 @@ def test_transitions_whose_neighbours_changed_stay_out_of_the_datasets(tmp_path)
     assert sizes[1] == int(driving[:, 1].sum()) - int(driving[0, 1])
     assert sizes[2] == int(driving[:, 2].sum())
     assert stats["transitions_filtered"] == int(driving[:, 0].sum()) + int(driving[0, 1])
+
+
+@pytest.mark.parametrize("field", MAPETSConfig.retired_fields)
+def test_config_has_no_frame_budget(field):
+    with pytest.raises(ConfigError, match=f"unknown config key '{field}' for MAPETSConfig"):
+        MAPETSConfig(**{field: 1})
+
+
+def test_run_with_retired_frame_budget_keys_resumes_and_keeps_its_guard(tmp_path):
+    run_dir = tmp_path / "run"
+    exp = MAPETS(tiny(episodes=1), run_dir)
+    assert exp.env.transform is exp.comm  # the communication transform drives the env
+    exp.train()
+    # config.yaml as MA-PETS wrote it while it inherited the frame budget
+    path = run_dir / "config.yaml"
+    old = {**yaml.safe_load(path.read_text()), "total_frames": 3000, "num_envs": 1}
+    path.write_text(yaml.safe_dump(old, sort_keys=False))
+    resumed = MAPETS.from_run_dir(run_dir, overrides=["episodes=2"])
+    assert resumed.episode == 1
+    assert "total_frames" not in yaml.safe_load(path.read_text())
+    assert [m["episode"] for m in [e["metrics"] for e in resumed.train()]] == [1.0, 2.0]
+    # resuming did not lift the guard against a second run in the same directory
+    with pytest.raises(ValueError, match="already holds a run with checkpoints"):
+        MAPETS(tiny(episodes=1), run_dir)

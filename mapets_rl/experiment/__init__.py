@@ -4,7 +4,8 @@ loggers, comparison plots and the ``mapets-rl`` CLI.
 How a recipe plugs in
 ---------------------
 1. A config dataclass subclassing :class:`ExperimentConfig` (seed, env, env_config, frame
-   budget, evaluation / checkpoint intervals, logger, ... are inherited). Add fields with type
+   budget, evaluation / checkpoint intervals, logger, ... are inherited; a recipe without a
+   frame budget subclasses :class:`RunConfig`, the fields every recipe shares). Add fields with type
    hints and defaults; validate in ``__post_init__`` after ``super().__post_init__()`` with
    ``check(cond, "field", "allowed range", value)`` (raises :class:`ConfigError`, a ValueError
    naming the field). YAML loading and ``key=value`` overrides then work for free.
@@ -30,9 +31,13 @@ How a recipe plugs in
    counters + results entries + python/numpy/torch RNG states), ``from_run_dir(run_dir)``
    (resume / evaluate a saved run). Override ``episode_metrics`` / ``batch_metrics`` only to
    add metrics.
-   A recipe with its own loop (MA-PETS) records its training episodes with
-   ``self.results.add_train(frames, metrics)`` and deterministic evaluations with
-   ``self.results.add_evaluation(frames, metrics)``; ``compare`` never mixes the two.
+   A recipe whose unit of training is not a collected batch (MA-PETS: one episode) keeps the
+   loop of ``train()`` (progress bar, logging, checkpoints, results, stop condition, the
+   ``on_iteration_end`` callback) and overrides its steps: ``progress()`` (done, total),
+   ``run_iteration()`` (one unit; returns its metrics), ``end_iteration()`` (here
+   ``self.results.add_train(frames, metrics)`` and a checkpoint), ``start_training()`` /
+   ``finish_training()``. Training entries (``add_train``) and deterministic evaluations
+   (``add_evaluation``) are kept apart; ``compare`` never mixes the two.
 4. Register it for the CLI with an entry point in the ``pyproject.toml`` of the package that
    holds it (then reinstall it, ``pip install -e .``)::
 
@@ -95,6 +100,7 @@ if TYPE_CHECKING:
     from mapets_rl.experiment.config import (
         ConfigError,
         ExperimentConfig,
+        RunConfig,
         atomic_savefig,
         atomic_write,
         atomic_write_text,
@@ -125,6 +131,7 @@ _EXPORTS = {
     "Experiment": "runner",
     "ExperimentConfig": "config",
     "ResultsWriter": "results",
+    "RunConfig": "config",
     "atomic_torch_save": "checkpoint",
     "atomic_savefig": "config",
     "atomic_write": "config",
@@ -177,6 +184,7 @@ __all__ = [
     "Experiment",
     "ExperimentConfig",
     "ResultsWriter",
+    "RunConfig",
     "atomic_torch_save",
     "atomic_savefig",
     "atomic_write",

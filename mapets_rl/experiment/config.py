@@ -1,9 +1,11 @@
 """Validated configuration dataclasses: YAML in, ``key=value`` overrides, resolved YAML out.
 
-Every recipe's config subclasses :class:`ExperimentConfig`. A subclass adds its own fields (with
-type hints and defaults) and validates them in ``__post_init__`` (call ``super().__post_init__()``
-first), raising :class:`ConfigError` through :func:`check` so that the message names the field
-and the allowed range.
+Every recipe's config subclasses :class:`RunConfig` (the fields every recipe shares), through
+:class:`ExperimentConfig` (plus a frame budget) for the recipes trained batch by batch. A
+subclass adds its own fields (with type hints and defaults) and validates them in
+``__post_init__`` (call ``super().__post_init__()`` first), raising :class:`ConfigError` through
+:func:`check` so that the message names the field and the allowed range. A keyword that is not
+a field is a ConfigError too.
 
 Every float field must be finite (NaN and +-inf are refused) unless its dataclass field says
 ``metadata={"allow_inf": True}`` (then only NaN is refused), e.g.
@@ -28,7 +30,7 @@ import types
 import typing
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Any, Literal, Union, get_args, get_origin
+from typing import Any, ClassVar, Literal, Union, get_args, get_origin
 
 import yaml
 
@@ -111,11 +113,9 @@ def _coerce(value: Any, tp: Any, field: str) -> Any:
 
 
 @dataclasses.dataclass
-class ExperimentConfig:
-    """Fields shared by every recipe; subclasses add algorithm fields.
-
-    Frame counts are environment steps of the whole batch of environments (one frame = one
-    environment step, all agents of that step included).
+class RunConfig:
+    """Fields shared by every recipe; subclasses add algorithm fields (and, for the recipes
+    trained on a frame budget, :class:`ExperimentConfig` adds that budget).
 
     Attributes:
         env: a registered scenario name (``mapets_rl.envs.make_env`` or ``register_env``).
@@ -123,17 +123,7 @@ class ExperimentConfig:
         seed: seed of torch / numpy / python RNGs and of the environments.
         device: torch device of the learner (``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"mps"``),
             one this machine has.
-        total_frames: environment steps to train for (> 0).
-        frames_per_batch: environment steps per collected batch (> 0).
-        num_envs: environment processes; 1 uses ``Collector`` in this process, > 1 uses
-            ``MultiSyncCollector`` with one env per process.
-        eval_interval: evaluate every this many frames (0: only at the end).
         eval_episodes: episodes per evaluation (>= 1).
-        checkpoint_interval: write a checkpoint every this many frames (0: only at the end).
-            Environments are re-seeded and reset at every checkpoint boundary so that a resumed
-            run continues exactly like an uninterrupted one (an episode in flight is cut there;
-            bit-exact with ``num_envs=1``; worker processes of ``num_envs > 1`` re-seed their
-            environments but not their own torch RNG).
         keep_last: checkpoints to keep on disk (>= 1).
         logger: ``csv`` (default), ``tensorboard``, ``wandb`` or ``none``; tensorboard and
             wandb need their package installed.
@@ -145,16 +135,26 @@ class ExperimentConfig:
     env_config: dict[str, Any] = dataclasses.field(default_factory=dict)
     seed: int = 0
     device: str = "cpu"
-    total_frames: int = 3000
-    frames_per_batch: int = 200
-    num_envs: int = 1
-    eval_interval: int = 1000
     eval_episodes: int = 1
-    checkpoint_interval: int = 1000
     keep_last: int = 2
     logger: str = "csv"
     video: bool = False
     progress: bool = True
+
+    # keys that config.yaml files written by an older version hold and this class no longer
+    # has; resuming such a run ignores them
+    retired_fields: ClassVar[tuple[str, ...]] = ()
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> RunConfig:
+        # a keyword that is not a field is a ConfigError naming it, as in from_dict (the
+        # dataclass __init__ would raise a TypeError)
+        unknown = sorted(set(kwargs) - set(cls.field_names()))
+        if unknown:
+            raise ConfigError(
+                f"unknown config key {unknown[0]!r} for {cls.__name__} "
+                f"(known: {', '.join(cls.field_names())})"
+            )
+        return super().__new__(cls)
 
     def __post_init__(self) -> None:
         self._coerce_fields()
@@ -163,20 +163,7 @@ class ExperimentConfig:
         check_env_name(self.env)
         check_device(self.device)
         check(self.seed >= 0, "seed", ">= 0", self.seed)
-        check(self.total_frames > 0, "total_frames", "> 0", self.total_frames)
-        check(self.frames_per_batch > 0, "frames_per_batch", "> 0", self.frames_per_batch)
-        check(self.num_envs >= 1, "num_envs", ">= 1", self.num_envs)
-        check(
-            self.frames_per_batch % self.num_envs == 0,
-            "frames_per_batch",
-            f"a multiple of num_envs={self.num_envs}",
-            self.frames_per_batch,
-        )
-        check(self.eval_interval >= 0, "eval_interval", ">= 0", self.eval_interval)
         check(self.eval_episodes >= 1, "eval_episodes", ">= 1", self.eval_episodes)
-        check(
-            self.checkpoint_interval >= 0, "checkpoint_interval", ">= 0", self.checkpoint_interval
-        )
         check(self.keep_last >= 1, "keep_last", ">= 1", self.keep_last)
         check(self.logger in LOGGERS, "logger", f"one of {list(LOGGERS)}", self.logger)
         check_logger_package(self.logger)
@@ -201,7 +188,7 @@ class ExperimentConfig:
         return [f.name for f in dataclasses.fields(cls)]
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> ExperimentConfig:
+    def from_dict(cls, data: Mapping[str, Any]) -> RunConfig:
         """Build from a mapping; unknown keys raise ConfigError naming them."""
         unknown = sorted(set(data) - set(cls.field_names()))
         if unknown:
@@ -212,7 +199,7 @@ class ExperimentConfig:
         return cls(**dict(data))
 
     @classmethod
-    def from_yaml(cls, path: str | os.PathLike) -> ExperimentConfig:
+    def from_yaml(cls, path: str | os.PathLike) -> RunConfig:
         """Build from a YAML file of fields; every error is a one-line ConfigError naming it."""
         data = read_yaml_mapping(path)
         try:
@@ -227,7 +214,7 @@ class ExperimentConfig:
         """Write the resolved config atomically (temp file + rename)."""
         atomic_write_text(path, yaml.safe_dump(self.to_dict(), sort_keys=False))
 
-    def with_overrides(self, overrides: Iterable[str]) -> ExperimentConfig:
+    def with_overrides(self, overrides: Iterable[str]) -> RunConfig:
         """A new config with ``key=value`` strings applied (values parsed as YAML)."""
         data = self.to_dict()
         for item in overrides:
@@ -249,6 +236,50 @@ class ExperimentConfig:
             else:
                 data[head] = value
         return type(self).from_dict(data)
+
+
+@dataclasses.dataclass
+class ExperimentConfig(RunConfig):
+    """The shared fields of :class:`RunConfig` plus a frame budget, for the recipes that
+    :meth:`Experiment.train <mapets_rl.experiment.Experiment.train>` drives batch by batch.
+
+    Frame counts are environment steps of the whole batch of environments (one frame = one
+    environment step, all agents of that step included).
+
+    Attributes:
+        total_frames: environment steps to train for (> 0).
+        frames_per_batch: environment steps per collected batch (> 0).
+        num_envs: environment processes; 1 uses ``Collector`` in this process, > 1 uses
+            ``MultiSyncCollector`` with one env per process.
+        eval_interval: evaluate every this many frames (0: only at the end).
+        checkpoint_interval: write a checkpoint every this many frames (0: only at the end).
+            Environments are re-seeded and reset at every checkpoint boundary so that a resumed
+            run continues exactly like an uninterrupted one (an episode in flight is cut there;
+            bit-exact with ``num_envs=1``; worker processes of ``num_envs > 1`` re-seed their
+            environments but not their own torch RNG).
+    """
+
+    total_frames: int = 3000
+    frames_per_batch: int = 200
+    num_envs: int = 1
+    eval_interval: int = 1000
+    checkpoint_interval: int = 1000
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(self.total_frames > 0, "total_frames", "> 0", self.total_frames)
+        check(self.frames_per_batch > 0, "frames_per_batch", "> 0", self.frames_per_batch)
+        check(self.num_envs >= 1, "num_envs", ">= 1", self.num_envs)
+        check(
+            self.frames_per_batch % self.num_envs == 0,
+            "frames_per_batch",
+            f"a multiple of num_envs={self.num_envs}",
+            self.frames_per_batch,
+        )
+        check(self.eval_interval >= 0, "eval_interval", ">= 0", self.eval_interval)
+        check(
+            self.checkpoint_interval >= 0, "checkpoint_interval", ">= 0", self.checkpoint_interval
+        )
 
 
 def parse_override(item: str) -> tuple[str, Any]:

@@ -1,4 +1,5 @@
-"""The run loop every recipe shares: collect -> train_step -> log -> evaluate -> checkpoint.
+"""The run loop every recipe shares: iterate (collect -> train_step) -> log -> evaluate ->
+checkpoint.
 
 A recipe subclasses :class:`Experiment`; see the package docstring of
 :mod:`mapets_rl.experiment` for the contract.
@@ -36,6 +37,7 @@ from mapets_rl.experiment.checkpoint import (
 from mapets_rl.experiment.config import (
     ConfigError,
     ExperimentConfig,
+    RunConfig,
     atomic_write,
     atomic_write_text,
     check_device,
@@ -60,7 +62,6 @@ EVAL_SEED_OFFSET = 1_000_003
 BOUNDARY_SEED_STRIDE = 7_919
 
 _ENV_REGISTRY: dict[str, Callable[..., EnvBase]] = {}
-_RESTORING: list[Path] = []  # run dirs being rebuilt by Experiment.from_run_dir
 
 
 def register_env(name: str, factory: Callable[..., EnvBase], overwrite: bool = False) -> None:
@@ -150,12 +151,32 @@ class Experiment:
     :meth:`stateful_components`; they build their modules in ``__init__`` after
     ``super().__init__`` and set ``self.collector = self.make_collector(policy)`` and
     ``self.eval_policy``.
+
+    :meth:`train` is a loop over iterations that any recipe shares (progress bar, logging,
+    evaluation, checkpoints, results, stop condition); by default an iteration collects one
+    batch and passes it to :meth:`train_step`, on the frame budget of an
+    :class:`ExperimentConfig`. A recipe with another unit of work (MA-PETS: one episode per
+    iteration, on a :class:`RunConfig` without a frame budget) overrides the loop's steps
+    (:meth:`progress`, :meth:`run_iteration`, :meth:`end_iteration`, :meth:`start_training`,
+    :meth:`finish_training`, the progress bar's label and postfix) instead of the loop.
     """
 
     name: ClassVar[str] = "experiment"
-    Config: ClassVar[type[ExperimentConfig]] = ExperimentConfig
+    Config: ClassVar[type[RunConfig]] = ExperimentConfig
+    progress_unit: ClassVar[str] = "frame"
+    # set by from_run_dir on the instance before __init__ runs: the run directory's checkpoints
+    # are the ones being restored, and config.yaml is rewritten once they are
+    _resuming: bool = False
 
-    def __init__(self, config: ExperimentConfig, run_dir: str | os.PathLike | None = None) -> None:
+    def __init__(
+        self,
+        config: RunConfig,
+        run_dir: str | os.PathLike | None = None,
+        env: EnvBase | None = None,
+    ) -> None:
+        """``env`` is the environment to train on (default :meth:`make_env`); a recipe that
+        transforms the scenario (MA-PETS appends its communication transform) builds it in its
+        own ``__init__`` and passes it here."""
         if not isinstance(config, self.Config):
             raise ValueError(
                 f"config must be a {self.Config.__name__}, got {type(config).__name__}"
@@ -166,7 +187,7 @@ class Experiment:
             if run_dir is not None
             else default_run_dir(self.name, config.env, config.seed)
         )
-        restoring = self.run_dir in _RESTORING
+        restoring = self._resuming
         if latest_checkpoint(self.run_dir) is not None and not restoring:
             raise ValueError(
                 f"run_dir {str(self.run_dir)!r} already holds a run with "
@@ -180,7 +201,7 @@ class Experiment:
         self.batches = 0
         self.boundaries = 0
         # a bad env_config fails here, before the run directory is touched
-        self.env = self.make_env()
+        self.env = self.make_env() if env is None else env
         make_writable_dir(self.run_dir)
         remove_stale_files(self.run_dir)
         if not restoring:  # from_run_dir writes config.yaml once the checkpoint is restored
@@ -275,49 +296,91 @@ class Experiment:
         return out
 
     # --------------------------------------------------------------------------- the loop
-    def train(self) -> list[dict[str, Any]]:
-        """Run (or continue) training to ``config.total_frames``; returns the evaluations."""
+    def train(
+        self, on_iteration_end: Callable[[dict[str, float]], None] | None = None
+    ) -> list[dict[str, Any]]:
+        """Run (or continue) training until :meth:`progress` reaches its total (by default
+        ``config.total_frames``): each iteration is :meth:`run_iteration`, its metrics logged
+        under ``train`` (and the frames per second under ``timers``), then
+        :meth:`end_iteration` (evaluation, checkpoint, results) and
+        ``on_iteration_end(metrics)``. Returns :meth:`finish_training`'s entries (by default the
+        evaluations)."""
         cfg = self.config
+        self.start_training()
+        done, total = self.progress()
+        bar = tqdm(
+            total=total,
+            initial=done,
+            disable=not cfg.progress,
+            desc=self.progress_label(),
+            unit=self.progress_unit,
+        )
+        start, start_frames = time.perf_counter(), self.frames
+        while done < total:
+            prev_frames = self.frames
+            metrics = self.run_iteration()
+            fps = (self.frames - start_frames) / max(time.perf_counter() - start, 1e-9)
+            log_scalars(self.logger, "train", metrics, self.frames)
+            log_scalars(self.logger, "timers", {"fps": fps}, self.frames)
+            prev, (done, total) = done, self.progress()
+            self.end_iteration(metrics, prev_frames, last=done >= total)
+            if on_iteration_end is not None:
+                on_iteration_end(metrics)
+            bar.update(done - prev)
+            bar.set_postfix(self.progress_postfix(metrics, fps))
+        bar.close()
+        return self.finish_training()
+
+    def progress(self) -> tuple[int, int]:
+        """``(done, total)`` in :attr:`progress_unit`: the loop of :meth:`train` runs while
+        ``done < total``."""
+        return self.frames, self.config.total_frames
+
+    def progress_label(self) -> str:
+        """The progress bar's description."""
+        return f"{self.name} {self.config.env} seed {self.config.seed}"
+
+    def progress_postfix(self, metrics: Mapping[str, float], fps: float) -> dict[str, str]:
+        """What the progress bar shows after an iteration with training ``metrics``."""
+        return {"fps": f"{fps:.0f}", **{k: f"{v:.3g}" for k, v in self.latest_metrics.items()}}
+
+    def start_training(self) -> None:
+        """Before the first iteration: check the collector and reset its envs."""
         if self.collector is None or self.eval_policy is None:
             raise RuntimeError(
                 f"{type(self).__name__}.__init__ must set self.collector and self.eval_policy"
             )
         self._reset_collector()
-        bar = tqdm(
-            total=cfg.total_frames,
-            initial=self.frames,
-            disable=not cfg.progress,
-            desc=f"{self.name} {cfg.env} seed {cfg.seed}",
-            unit="frame",
-        )
-        start, start_frames = time.perf_counter(), self.frames
-        while self.frames < cfg.total_frames:
-            batch = self.collector.next()
-            prev = self.frames
-            self.frames += batch.numel()
-            self.batches += 1
-            losses = self.train_step(batch)
-            self.collector.update_policy_weights_()
-            fps = (self.frames - start_frames) / max(time.perf_counter() - start, 1e-9)
-            train_metrics = {**self.batch_metrics(batch), **losses}
-            log_scalars(self.logger, "train", train_metrics, self.frames)
-            log_scalars(self.logger, "timers", {"fps": fps}, self.frames)
-            last = self.frames >= cfg.total_frames
-            if last or _crossed(prev, self.frames, cfg.eval_interval):
-                metrics = self.evaluate()
-                self.results.add_evaluation(self.frames, metrics)
-                log_scalars(self.logger, "eval", metrics, self.frames)
-                self.latest_metrics = metrics
-            if last or _crossed(prev, self.frames, cfg.checkpoint_interval):
-                self.boundaries += 1
-                self.save_checkpoint()
-                if not last:
-                    self._reset_collector()
-            bar.update(self.frames - prev)
-            bar.set_postfix(
-                {"fps": f"{fps:.0f}", **{k: f"{v:.3g}" for k, v in self.latest_metrics.items()}}
-            )
-        bar.close()
+
+    def run_iteration(self) -> dict[str, float]:
+        """One unit of training that advances :meth:`progress` (by default: collect a batch,
+        :meth:`train_step` on it); returns its training metrics. It counts its environment
+        steps in ``self.frames``."""
+        batch = self.collector.next()
+        self.frames += batch.numel()
+        self.batches += 1
+        losses = self.train_step(batch)
+        self.collector.update_policy_weights_()
+        return {**self.batch_metrics(batch), **losses}
+
+    def end_iteration(self, metrics: Mapping[str, float], prev_frames: int, last: bool) -> None:
+        """After an iteration that advanced the frames from ``prev_frames`` (``last``: the
+        final one): evaluate every ``eval_interval`` frames and checkpoint every
+        ``checkpoint_interval`` frames, both at the end."""
+        cfg = self.config
+        if last or _crossed(prev_frames, self.frames, cfg.eval_interval):
+            evaluation = self.evaluate()
+            self.results.add_evaluation(self.frames, evaluation)
+            log_scalars(self.logger, "eval", evaluation, self.frames)
+            self.latest_metrics = evaluation
+        if last or _crossed(prev_frames, self.frames, cfg.checkpoint_interval):
+            self.boundaries += 1
+            self.save_checkpoint()
+            if not last:
+                self._reset_collector()
+
+    def finish_training(self) -> list[dict[str, Any]]:
+        """After the last iteration: stop the collector; returns the evaluations."""
         self.collector.shutdown()
         return self.results.evaluations
 
@@ -469,11 +532,9 @@ class Experiment:
         state = ckpt = None
         if load:
             ckpt, state = load_latest_checkpoint(run_dir, map_location=config.device)
-        _RESTORING.append(run_dir)
-        try:
-            exp = cls(config, run_dir)
-        finally:
-            _RESTORING.remove(run_dir)
+        exp = cls.__new__(cls)
+        exp._resuming = True
+        exp.__init__(config, run_dir)
         if state is not None:
             exp._restore(state, ckpt, _changed_keys(saved.to_dict(), config.to_dict()))
         if config.to_dict() != on_disk:
@@ -493,7 +554,9 @@ class Experiment:
         if not path.is_file():
             raise ConfigError(f"run_dir {str(run_dir)!r} has no {CONFIG_FILE}")
         on_disk = read_yaml_mapping(path)
-        data = dict(on_disk)
+        # keys an older version of the recipe wrote and no longer has are dropped (and
+        # config.yaml is rewritten without them)
+        data = {k: v for k, v in on_disk.items() if k not in cls.Config.retired_fields}
         fields = cls.Config.field_names()
         unknown = sorted(set(data) - set(fields))
         if unknown:
