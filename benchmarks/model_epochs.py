@@ -92,7 +92,7 @@ def main() -> None:
         parser.error(f"--epochs must be >= 1, got {args.epochs}")
     torch.manual_seed(args.seed)
     exp, data = load_data(args.run_dir)
-    cfg = exp.config
+    cfg = exp.config.model
     gen = torch.Generator().manual_seed(args.seed)
     holdout = torch.rand(data.batch_size, generator=gen) < 0.2
     train = data.clone()

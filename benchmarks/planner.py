@@ -31,17 +31,17 @@ from torch.nn import functional as F
 
 from mapets_rl.envs import figure_eight_reward
 from mapets_rl.models import ProbabilisticEnsemble
-from mapets_rl.planning import PRESETS, PlannerConfig, TrajectorySamplingCEM
+from mapets_rl.planning import PRESETS, Preset, TrajectorySamplingCEM
 
 OBS_DIM, ACT_DIM = 7, 1
 LOW, HIGH = 0.0, 13.89
 DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
 
 
-def make_model(cfg: PlannerConfig, n_agents: int, seed: int = 0) -> ProbabilisticEnsemble:
+def make_model(cfg: Preset, n_agents: int, seed: int = 0) -> ProbabilisticEnsemble:
     """Random-weight ensemble with figure-eight-like normalisation statistics."""
     torch.manual_seed(seed)
-    model = ProbabilisticEnsemble(OBS_DIM, ACT_DIM, n_agents, **cfg.model_kwargs())
+    model = ProbabilisticEnsemble(OBS_DIM, ACT_DIM, n_agents, **cfg.model.model_kwargs())
     with torch.no_grad():
         mean = torch.tensor([7.0, 0.0, 0.0, 7.0, 7.0, 30.0, 30.0, 7.0])
         std = torch.tensor([4.0, 60.0, 60.0, 4.0, 4.0, 20.0, 20.0, 4.0])
@@ -58,14 +58,14 @@ def make_obs(n_agents: int, seed: int = 1) -> torch.Tensor:
     return obs * scale - torch.tensor([0.0, 100.0, 100.0, 0.0, 0.0, 0.0, 0.0])
 
 
-def macs_per_row(cfg: PlannerConfig) -> int:
-    sizes = (OBS_DIM + ACT_DIM, *cfg.hidden, 2 * OBS_DIM)
+def macs_per_row(cfg: Preset) -> int:
+    sizes = (OBS_DIM + ACT_DIM, *cfg.model.hidden, 2 * OBS_DIM)
     return sum(a * b for a, b in zip(sizes[:-1], sizes[1:], strict=True))
 
 
-def flops(cfg: PlannerConfig, n_agents: int, iterations: int) -> float:
-    rows = n_agents * cfg.population * cfg.particles
-    return 2.0 * macs_per_row(cfg) * rows * cfg.horizon * iterations
+def flops(cfg: Preset, n_agents: int, iterations: int) -> float:
+    rows = n_agents * cfg.planner.population * cfg.planner.particles
+    return 2.0 * macs_per_row(cfg) * rows * cfg.planner.horizon * iterations
 
 
 class PeakMemory:
@@ -88,14 +88,14 @@ class PeakMemory:
         raise RuntimeError(f"{field} not in /proc/self/status")
 
 
-def gemm_chain(cfg: PlannerConfig, n_agents: int) -> Callable[[int], None]:
+def gemm_chain(cfg: Preset, n_agents: int) -> Callable[[int], None]:
     """Plain ``bmm`` chain with the planner's layer shapes; call it with a number of model steps.
 
     No bias, activation, sampling or reward: the ceiling the planner's matmuls could reach.
     """
-    groups = n_agents * cfg.ensemble_size
-    rows = cfg.population * cfg.particles // cfg.ensemble_size
-    sizes = (OBS_DIM + ACT_DIM, *cfg.hidden, 2 * OBS_DIM)
+    groups = n_agents * cfg.model.ensemble_size
+    rows = cfg.planner.population * cfg.planner.particles // cfg.model.ensemble_size
+    sizes = (OBS_DIM + ACT_DIM, *cfg.model.hidden, 2 * OBS_DIM)
     weights = [torch.randn(groups, a, b) * 0.05 for a, b in zip(sizes[:-1], sizes[1:], strict=True)]
     x = torch.randn(groups, rows, sizes[0])
 
@@ -116,20 +116,20 @@ def timed(fn: Callable[[], object]) -> float:
 
 @torch.no_grad()
 def naive_plan(
-    model: ProbabilisticEnsemble, cfg: PlannerConfig, obs: torch.Tensor, gen: torch.Generator
+    model: ProbabilisticEnsemble, cfg: Preset, obs: torch.Tensor, gen: torch.Generator
 ) -> torch.Tensor:
     """Reference: the same TS-inf CEM with Python loops over agents and members (fp32)."""
-    members, per = cfg.ensemble_size, cfg.particles // cfg.ensemble_size
-    shape = (cfg.population, cfg.horizon, ACT_DIM)
+    members, per = cfg.model.ensemble_size, cfg.planner.particles // cfg.model.ensemble_size
+    shape = (cfg.planner.population, cfg.planner.horizon, ACT_DIM)
     actions = []
     for i in range(model.n_agents):
-        mu = torch.full((cfg.horizon, ACT_DIM), (LOW + HIGH) / 2)
+        mu = torch.full((cfg.planner.horizon, ACT_DIM), (LOW + HIGH) / 2)
         std = torch.full_like(mu, (HIGH - LOW) / 4)
-        for _ in range(cfg.iterations):
+        for _ in range(cfg.planner.iterations):
             cand = (mu + std * torch.randn(shape, generator=gen)).clamp(LOW, HIGH)
-            returns = torch.zeros(members, per, cfg.population)
-            state = obs[i].expand(members, per, cfg.population, OBS_DIM).clone()
-            for t in range(cfg.horizon):
+            returns = torch.zeros(members, per, cfg.planner.population)
+            state = obs[i].expand(members, per, cfg.planner.population, OBS_DIM).clone()
+            for t in range(cfg.planner.horizon):
                 act = cand[:, t].expand(per, -1, -1)
                 nxt = torch.empty_like(state)
                 for b in range(members):
@@ -147,26 +147,32 @@ def naive_plan(
                     mean = mean * model.output_std[i, 0, 0] + model.output_mean[i, 0, 0]
                     std_out = torch.exp(0.5 * logvar) * model.output_std[i, 0, 0]
                     delta = mean + std_out * torch.randn(mean.shape, generator=gen)
-                    nxt[b] = state[b] + delta.reshape(per, cfg.population, OBS_DIM)
+                    nxt[b] = state[b] + delta.reshape(per, cfg.planner.population, OBS_DIM)
                 returns += figure_eight_reward(state, act.expand(members, -1, -1, -1), nxt)
                 state = nxt
             scores = returns.mean((0, 1)).nan_to_num(float("-inf"))
-            elites = cand[scores.topk(cfg.elites).indices]
-            mu = cfg.alpha * mu + (1 - cfg.alpha) * elites.mean(0)
-            std = cfg.alpha * std + (1 - cfg.alpha) * elites.std(0, unbiased=False)
-            if std.max() < cfg.epsilon:
+            elites = cand[scores.topk(cfg.planner.elites).indices]
+            mu = cfg.planner.alpha * mu + (1 - cfg.planner.alpha) * elites.mean(0)
+            std = cfg.planner.alpha * std + (1 - cfg.planner.alpha) * elites.std(0, unbiased=False)
+            if std.max() < cfg.planner.epsilon:
                 break
         actions.append(mu[0].clamp(LOW, HIGH))
     return torch.stack(actions)
 
 
-def bench(name: str, cfg: PlannerConfig, n_agents: int, args: argparse.Namespace) -> None:
+def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> None:
     """Time every variant once per repeat, interleaved, and keep each variant's fastest run."""
     obs = make_obs(n_agents)
     model = make_model(cfg, n_agents)
     planners = {
         key: TrajectorySamplingCEM(
-            model, figure_eight_reward, LOW, HIGH, dtype=DTYPES[key], seed=0, **cfg.planner_kwargs()
+            model,
+            figure_eight_reward,
+            LOW,
+            HIGH,
+            dtype=DTYPES[key],
+            seed=0,
+            **cfg.planner.planner_kwargs(),
         )
         for key in args.dtypes
     }
@@ -187,7 +193,7 @@ def bench(name: str, cfg: PlannerConfig, n_agents: int, args: argparse.Namespace
                 LOW,
                 HIGH,
                 seed=0,
-                **cfg.planner_kwargs(),
+                **cfg.planner.planner_kwargs(),
             )
             for i in range(n_agents)
         ]
@@ -202,7 +208,7 @@ def bench(name: str, cfg: PlannerConfig, n_agents: int, args: argparse.Namespace
     chain(1)
     times: dict[str, list[float]] = {key: [] for key in [*variants, "gemm"]}
     peak = dict.fromkeys(planners, 0.0)
-    iters = cfg.iterations
+    iters = cfg.planner.iterations
     for _ in range(args.repeats):
         for key, fn in variants.items():
             if key in planners:
@@ -212,7 +218,7 @@ def bench(name: str, cfg: PlannerConfig, n_agents: int, args: argparse.Namespace
                 iters = planners[key].last_iterations
             else:
                 times[key].append(timed(fn))
-        steps = cfg.horizon * iters
+        steps = cfg.planner.horizon * iters
         times["gemm"].append(timed(lambda steps=steps: chain(steps)))
     best = {key: min(v) for key, v in times.items()}
     total = flops(cfg, n_agents, iters)
@@ -234,7 +240,7 @@ def bench(name: str, cfg: PlannerConfig, n_agents: int, args: argparse.Namespace
     if "bf16" in planners:
         action32, action16 = first["fp32"], first["bf16"]
         other = TrajectorySamplingCEM(
-            model, figure_eight_reward, LOW, HIGH, seed=123, **cfg.planner_kwargs()
+            model, figure_eight_reward, LOW, HIGH, seed=123, **cfg.planner.planner_kwargs()
         )
         spread = (other.plan(obs) - action32).abs().max().item() / (HIGH - LOW)
         diff = (action16 - action32).abs().max().item() / (HIGH - LOW)
@@ -294,7 +300,7 @@ def main() -> None:
     for name in args.configs:
         cfg = PRESETS[name]
         if args.iterations is not None:
-            cfg = replace(cfg, iterations=args.iterations)
+            cfg = replace(cfg, planner=replace(cfg.planner, iterations=args.iterations))
         print(f"\n[{name}] {cfg}  ({macs_per_row(cfg)} MACs per model row)")
         for n_agents in args.agents:
             bench(name, cfg, n_agents, args)

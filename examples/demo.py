@@ -88,18 +88,19 @@ def main() -> None:
         env_config=env_config,
         seed=args.seed,
         episodes=args.episodes,
-        comm_range=args.comm_range,
+        comm={"comm_range": args.comm_range},
         preset="cpu",
         num_threads=args.threads,
         progress=False,
     )
     run_dir = default_run_dir("mapets", config.env, config.seed, root=args.out)
+    plan = config.planner
     print(
         f"MA-PETS on the figure-eight: {args.cavs} CAVs, d = {args.comm_range:g} m, "
         f"{args.episodes} episodes of {args.steps} steps, "
-        f"cpu preset (w={config.horizon}, Q={config.population}, X={config.elites}, "
-        f"Y={config.iterations}, P={config.particles}, B={config.ensemble_size}, "
-        f"hidden={config.hidden}); run dir {run_dir}",
+        f"cpu preset (w={plan.horizon}, Q={plan.population}, X={plan.elites}, "
+        f"Y={plan.iterations}, P={plan.particles}, B={config.model.ensemble_size}, "
+        f"hidden={config.model.hidden}); run dir {run_dir}",
         flush=True,
     )
     start = time.perf_counter()

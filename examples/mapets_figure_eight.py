@@ -20,7 +20,7 @@ one per range); ``--report-only`` then aggregates what has finished.
     python examples/mapets_figure_eight.py               # 3 seeds x d in {100, 0} x 2 options
     python examples/mapets_figure_eight.py --ranges 100 --seeds 0 --observations crossing
     python examples/mapets_figure_eight.py --report-only             # table + plot only
-    python examples/mapets_figure_eight.py --set epochs=5 --out DIR  # one change at a time
+    python examples/mapets_figure_eight.py --set model.epochs=5 --out DIR  # one change
 
 Default sizes are the ``cpu`` preset of :class:`recipes.mapets.MAPETSConfig` (the paper's
 planner needs a GPU); ``--preset paper`` uses Table II.
@@ -41,7 +41,7 @@ from mapets_rl.experiment import (
 from recipes.mapets import MAPETS, MAPETSConfig
 
 METRICS = ("agility", "safety")
-GROUP_BY = ["env_config.observation", "comm_range"]
+GROUP_BY = ["env_config.observation", "comm.comm_range"]
 """Config fields of the groups: observation option and communication range d."""
 
 
@@ -64,7 +64,7 @@ def train_one(args: argparse.Namespace, observation: str, comm_range: float, see
             env_config={"n_cavs": args.cavs, "horizon": args.horizon, "observation": observation},
             seed=seed,
             episodes=args.episodes,
-            comm_range=comm_range,
+            comm={"comm_range": comm_range},
             preset=args.preset,
             num_threads=args.threads,
             progress=False,
@@ -103,9 +103,9 @@ def collect(out: Path) -> tuple[list[Path], dict[str, dict[int, dict[int, dict[s
         if not results["train"]:
             continue
         paths.append(path)
-        group = group_name(
-            results["config"]["env_config"]["observation"], float(results["config"]["comm_range"])
-        )
+        config = results["config"]
+        comm_range = config["comm"]["comm_range"] if "comm" in config else config["comm_range"]
+        group = group_name(config["env_config"]["observation"], float(comm_range))
         runs.setdefault(group, {})[int(results["seed"])] = {
             int(e["metrics"]["episode"]): e["metrics"] for e in results["train"]
         }
@@ -158,7 +158,7 @@ def table(curves: dict) -> str:
     """Markdown table: one row per episode, agility and safety per group (mean +- std over
     seeds, n seeds), from ``compare``'s ``curves.json``."""
     groups = {
-        group_name(g["group"]["env_config.observation"], g["group"]["comm_range"]): g
+        group_name(g["group"]["env_config.observation"], g["group"]["comm.comm_range"]): g
         for g in curves["groups"].values()
     }
     header = "| episode | " + " | ".join(f"agility {d} | safety {d}" for d in groups) + " |"
@@ -205,7 +205,8 @@ def main() -> None:
         nargs="*",
         default=[],
         metavar="key=value",
-        help="further MAPETSConfig overrides of new runs, e.g. epochs=5 horizon=10",
+        help="further MAPETSConfig overrides of new runs, dotted for the planner / model / comm "
+        "sections, e.g. model.epochs=5 planner.horizon=10",
     )
     parser.add_argument("--out", type=Path, default=Path("outputs/mapets_figure_eight"))
     parser.add_argument(

@@ -14,7 +14,7 @@ iteration, :meth:`MAPETS.run_iteration`):
    dynamics) and sends them to the CAVs within range ``d`` of its last driving position
    (lines 16-17, :meth:`CommunicationRange.episode_graph` + :class:`NeighbourDatasets`; a CAV
    that crashed shares from its crash site);
-3. every CAV's ensemble is refit on its ``D(i)+`` (line 4: normaliser refit, ``epochs`` passes
+3. every CAV's ensemble is refit on its ``D(i)+`` (line 4: normaliser refit, ``model.epochs`` passes
    of 128-row minibatches, Adam): one vectorised optimisation over all ``I`` agents and ``B``
    members per minibatch; the per-epoch NLL curve is logged under ``model/nll``;
 4. the episode's metrics (agility, safety, reward, transitions shared, model NLL) go to the
@@ -29,13 +29,14 @@ Usage::
     from recipes.mapets import MAPETS, MAPETSConfig
     MAPETS(MAPETSConfig(preset="cpu", episodes=5, seed=1)).train()
 
-or ``mapets-rl train mapets --env figure-eight preset=cpu episodes=5``.
+or ``mapets-rl train mapets --env figure-eight preset=cpu episodes=5 planner.horizon=15``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import logging
 import time
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any, ClassVar
@@ -43,17 +44,16 @@ from typing import Any, ClassVar
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from mapets_rl.comm import CommunicationRange, NeighbourDatasets
+from mapets_rl.comm import CommConfig, CommunicationRange, NeighbourDatasets
 from mapets_rl.envs import figure_eight_collision, figure_eight_reward
 from mapets_rl.envs.figure_eight import OBSERVATIONS
 from mapets_rl.experiment import Experiment, RunConfig, check, log_scalars
 from mapets_rl.experiment.runner import build_env
-from mapets_rl.models import ProbabilisticEnsemble, train_ensemble
+from mapets_rl.models import EnsembleConfig, ProbabilisticEnsemble, train_ensemble
 from mapets_rl.modules import AgentGroupSpec, masked_mean
 from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss
 from mapets_rl.planning import (
     PRESETS,
-    PROPAGATIONS,
     PlannerConfig,
     RewardFn,
     TerminationFn,
@@ -70,30 +70,50 @@ NEXT_NEIGHBOUR_CHANGED = ("next", "agents", "info", "neighbour_changed")
 MAX_STEPS = 100_000
 """Safety cap on the steps of one episode (the env truncates at its own horizon first)."""
 
-# Planner / ensemble fields that a preset fills when left unset (None).
-_PRESET_FIELDS = (
-    "horizon",
-    "population",
-    "elites",
-    "iterations",
-    "particles",
-    "ensemble_size",
-    "hidden",
-    "epochs",
-)
+#: Flat field names of ``config.yaml`` files written before the planner, ensemble and
+#: communication settings became nested sections -> their nested names. Reading such a file
+#: (resuming an old run, ``MAPETSConfig.from_yaml``) maps them with one warning line; the
+#: resumed run's ``config.yaml`` is rewritten nested.
+FLAT_FIELDS: dict[str, str] = {
+    "horizon": "planner.horizon",
+    "population": "planner.population",
+    "elites": "planner.elites",
+    "iterations": "planner.iterations",
+    "particles": "planner.particles",
+    "propagation": "planner.propagation",
+    "epsilon": "planner.epsilon",
+    "cem_momentum": "planner.alpha",
+    "ensemble_size": "model.ensemble_size",
+    "hidden": "model.hidden",
+    "epochs": "model.epochs",
+    "batch_size": "model.batch_size",
+    "lr": "model.lr",
+    "buffer_size": "model.buffer_size",
+    "logvar_bound_coef": "model.logvar_bound_coef",
+    "share_model": "model.share_model",
+    "comm_range": "comm.comm_range",
+    "p_fail": "comm.p_fail",
+}
 
-
-def _preset_value(preset: PlannerConfig, name: str) -> Any:
-    value = getattr(preset, name)
-    return list(value) if name == "hidden" else value
+# the sections whose fields a preset fills when they are not given
+_PRESET_SECTIONS = ("planner", "model")
+log = logging.getLogger("mapets_rl.recipes.mapets")
 
 
 @dataclasses.dataclass
 class MAPETSConfig(RunConfig):
     """MA-PETS hyper-parameters (plus the shared :class:`RunConfig` fields); defaults are the
-    paper's Table II except where noted.
+    paper's Table II except where noted. One section per concern:
 
-    The planner/ensemble sizes left unset (``None``) come from ``preset``:
+    - ``planner``: :class:`~mapets_rl.planning.PlannerConfig`, the CEM sizes ``w, Q, X, Y, P``
+      and propagation (``planner.horizon=25``);
+    - ``model``: :class:`~mapets_rl.models.EnsembleConfig`, the ensembles' sizes and training
+      (``model.hidden=[64,64]``, ``model.epochs=30``);
+    - ``comm``: :class:`~mapets_rl.comm.CommConfig`, range-limited sharing
+      (``comm.comm_range=inf``).
+
+    ``preset`` picks the sizes: the ``planner`` and ``model`` fields not given (a section passed
+    as a mapping, e.g. ``planner={"horizon": 15}``, or a dotted override) come from it:
 
     - ``"paper"`` (Table II): ``w=25, Q=400, X=40, Y=5, P=20, B=5``, 3x300 hidden units, 5
       training epochs. About 0.37 TFLOP per agent and decision: a GPU workload.
@@ -101,32 +121,23 @@ class MAPETSConfig(RunConfig):
       (:data:`mapets_rl.planning.CPU_PRESET`): the paper's horizon (a CAV must see 2.3 s ahead
       to brake from top speed), a narrower CEM, 30 training epochs.
 
-    A field set explicitly wins over the preset (``preset=cpu horizon=15``); the resolved values
-    are what ``config.yaml`` records.
+    A field set explicitly wins over the preset (``preset=cpu planner.horizon=15``); a section
+    passed as a :class:`PlannerConfig` / :class:`EnsembleConfig` instance is taken whole. The
+    resolved values are what ``config.yaml`` records. A ``config.yaml`` with the flat names of
+    earlier versions (``horizon``, ``hidden``, ``comm_range``, ...) is read through
+    :data:`FLAT_FIELDS`.
 
     Attributes:
         episodes: ``K``, episodes to train for (paper: 15). ``train()`` continues a resumed
             run up to this number.
         random_episodes: leading episodes driven by uniformly random actions (paper: 1).
-        comm_range: communication range ``d`` in metres (``0``: independent learners,
-            ``inf``: everybody shares); paper: 100.
-        p_fail: probability that a communication link fails, in ``[0, 1]``.
         preset: ``"paper"`` or ``"cpu"``, see above.
-        horizon, population, elites, iterations, particles: CEM planner ``w, Q, X, Y, P``.
-        ensemble_size: ensemble members ``B`` per CAV.
-        hidden: hidden layer widths of each member MLP.
-        propagation: ``"ts_inf"`` (paper), ``"ts1"`` or ``"expectation"``.
-        epsilon: CEM stops once every sampling std is below it (Table II: 1e-3).
-        cem_momentum: momentum of the CEM mean/std update, in ``[0, 1)``.
-        buffer_size: capacity of each CAV's dataset ``D(i)+`` in transitions (paper: 2048).
-        batch_size: model-training minibatch rows (paper: 128).
-        epochs: model-training passes over ``D(i)+`` after each episode (paper preset: 5, the
-            paper's; cpu preset: 30, where 5 passes are 40-80 gradient steps that leave the
-            model underestimating fast closing and the training NLL flattens by ~30).
-        lr: Adam learning rate (paper: 1e-3).
-        logvar_bound_coef: weight of the PETS log-variance bound penalty.
-        share_model: one set of ``B`` MLPs for all CAVs (a centralised model; each CAV still
-            normalises with its own statistics) instead of one ensemble per CAV.
+        planner: the CEM planner section (propagation ``"ts_inf"`` needs ``planner.particles``
+            to be a multiple of ``model.ensemble_size``).
+        model: the ensemble section (``epochs``: paper preset 5, the paper's; cpu preset 30,
+            where 5 passes are 40-80 gradient steps that leave the model underestimating fast
+            closing and the training NLL flattens by ~30).
+        comm: the communication section (``comm_range`` ``d``, paper: 100; ``p_fail``).
         collision_gap: the planner predicts a collision when a predicted gap ahead falls below
             this many metres (:func:`~mapets_rl.envs.figure_eight_collision`).
         crossing_gap: with the crossing observation, the planner predicts a collision when the
@@ -146,25 +157,10 @@ class MAPETSConfig(RunConfig):
 
     episodes: int = 15
     random_episodes: int = 1
-    comm_range: float = dataclasses.field(default=100.0, metadata={"allow_inf": True})
-    p_fail: float = 0.0
     preset: str = "paper"
-    horizon: int | None = None
-    population: int | None = None
-    elites: int | None = None
-    iterations: int | None = None
-    particles: int | None = None
-    ensemble_size: int | None = None
-    hidden: list[int] | None = None
-    propagation: str = "ts_inf"
-    epsilon: float = 1e-3
-    cem_momentum: float = 0.1
-    buffer_size: int = 2048
-    batch_size: int = 128
-    epochs: int | None = None
-    lr: float = 1e-3
-    logvar_bound_coef: float = 0.01
-    share_model: bool = False
+    planner: PlannerConfig | None = None
+    model: EnsembleConfig | None = None
+    comm: CommConfig = dataclasses.field(default_factory=CommConfig)
     collision_gap: float = 2.0
     crossing_gap: float = 6.0
     collision_reward: float = -10.0
@@ -180,86 +176,72 @@ class MAPETSConfig(RunConfig):
     )
 
     def __post_init__(self) -> None:
-        super().__post_init__()
-        check(self.preset in PRESETS, "preset", f"one of {sorted(PRESETS)}", self.preset)
+        check(
+            isinstance(self.preset, str) and self.preset in PRESETS,
+            "preset",
+            f"one of {sorted(PRESETS)}",
+            self.preset,
+        )
         preset = PRESETS[self.preset]
-        for name in _PRESET_FIELDS:
-            if getattr(self, name) is None:
-                setattr(self, name, _preset_value(preset, name))
+        # the preset fills the section fields not given (a section instance is taken whole)
+        for name in _PRESET_SECTIONS:
+            given = getattr(self, name)
+            if given is None:
+                setattr(self, name, getattr(preset, name))
+            elif isinstance(given, Mapping):
+                setattr(self, name, {**getattr(preset, name).to_dict(), **given})
+        super().__post_init__()
         check(self.episodes >= 1, "episodes", ">= 1", self.episodes)
         check(self.random_episodes >= 0, "random_episodes", ">= 0", self.random_episodes)
-        check(self.comm_range >= 0, "comm_range", ">= 0 metres (inf allowed)", self.comm_range)
-        check(0.0 <= self.p_fail <= 1.0, "p_fail", "in [0, 1]", self.p_fail)
-        for name in ("horizon", "population", "iterations", "particles", "ensemble_size"):
-            check(getattr(self, name) >= 1, name, ">= 1", getattr(self, name))
         check(
-            1 <= self.elites <= self.population,
-            "elites",
-            f"in [1, population={self.population}]",
-            self.elites,
+            self.planner.propagation != "ts_inf"
+            or self.planner.particles % self.model.ensemble_size == 0,
+            "planner.particles",
+            f"a multiple of model.ensemble_size={self.model.ensemble_size} for "
+            "propagation='ts_inf'",
+            self.planner.particles,
         )
-        check(
-            len(self.hidden) > 0 and all(h >= 1 for h in self.hidden),
-            "hidden",
-            "a non-empty list of ints >= 1",
-            self.hidden,
-        )
-        check(
-            self.propagation in PROPAGATIONS,
-            "propagation",
-            f"one of {list(PROPAGATIONS)}",
-            self.propagation,
-        )
-        check(
-            self.propagation != "ts_inf" or self.particles % self.ensemble_size == 0,
-            "particles",
-            f"a multiple of ensemble_size={self.ensemble_size} for propagation='ts_inf'",
-            self.particles,
-        )
-        check(self.epsilon > 0, "epsilon", "> 0", self.epsilon)
-        check(0.0 <= self.cem_momentum < 1.0, "cem_momentum", "in [0, 1)", self.cem_momentum)
-        check(self.batch_size >= 1, "batch_size", ">= 1", self.batch_size)
-        check(self.buffer_size >= 1, "buffer_size", ">= 1", self.buffer_size)
-        check(self.epochs >= 1, "epochs", ">= 1", self.epochs)
-        check(self.lr > 0, "lr", "> 0", self.lr)
-        check(self.logvar_bound_coef >= 0, "logvar_bound_coef", ">= 0", self.logvar_bound_coef)
         check(self.collision_gap >= 0, "collision_gap", ">= 0 metres", self.collision_gap)
         check(self.crossing_gap >= 0, "crossing_gap", ">= 0 metres", self.crossing_gap)
         check(self.collision_reward <= 0, "collision_reward", "<= 0", self.collision_reward)
         check(self.num_threads >= 0, "num_threads", ">= 0", self.num_threads)
 
+    @classmethod
+    def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
+        """Drop the retired frame-budget keys and map the flat names of :data:`FLAT_FIELDS` to
+        their sections (one warning line); a nested value given too wins."""
+        data = super().upgrade_dict(data)
+        flat = [k for k in data if k in FLAT_FIELDS]
+        if not flat:
+            return data
+        log.warning(
+            "config written with the flat MA-PETS field names %s; read as %s",
+            ", ".join(flat),
+            ", ".join(FLAT_FIELDS[k] for k in flat),
+        )
+        out = {k: v for k, v in data.items() if k not in FLAT_FIELDS}
+        for key in flat:
+            section, leaf = FLAT_FIELDS[key].split(".")
+            nested = out.get(section)
+            nested = dict(nested) if isinstance(nested, Mapping) else {}
+            nested.setdefault(leaf, data[key])
+            out[section] = nested
+        return out
+
     def with_overrides(self, overrides: Iterable[str]) -> MAPETSConfig:
-        """``key=value`` overrides; ``preset=NAME`` re-fills the preset fields that still hold
-        the current preset's values (fields set explicitly, here or earlier, are kept)."""
+        """``key=value`` overrides (dotted for the sections, ``planner.horizon=15``);
+        ``preset=NAME`` re-fills the ``planner`` / ``model`` fields that still hold the current
+        preset's values (fields set explicitly, here or earlier, are kept)."""
         overrides = list(overrides)
         presets = [v for k, _, v in (o.partition("=") for o in overrides) if k.strip() == "preset"]
         new = presets[-1].strip() if presets else self.preset
+        data = self.to_dict()
         if new != self.preset and new in PRESETS:
             old = PRESETS[self.preset]
-            unset = [
-                f"{name}=null"
-                for name in _PRESET_FIELDS
-                if getattr(self, name) == _preset_value(old, name)
-            ]
-            overrides = unset + overrides
-        return super().with_overrides(overrides)
-
-    @property
-    def planner(self) -> PlannerConfig:
-        """The resolved planner / ensemble sizes."""
-        return PlannerConfig(
-            horizon=self.horizon,
-            population=self.population,
-            elites=self.elites,
-            iterations=self.iterations,
-            particles=self.particles,
-            ensemble_size=self.ensemble_size,
-            hidden=tuple(self.hidden),
-            propagation=self.propagation,
-            epsilon=self.epsilon,
-            alpha=self.cem_momentum,
-            epochs=self.epochs,
-        )
+            for name in _PRESET_SECTIONS:
+                defaults = getattr(old, name).to_dict()
+                data[name] = {k: v for k, v in data[name].items() if v != defaults[k]}
+        return type(self).from_dict(self._apply_overrides(data, overrides))
 
 
 class _Counters:
@@ -293,7 +275,7 @@ class MAPETS(Experiment):
 
     Attributes:
         env: the env with the :class:`CommunicationRange` transform appended.
-        comm: that transform (range ``config.comm_range``).
+        comm: that transform (range ``config.comm.comm_range``).
         model: the CAVs' :class:`ProbabilisticEnsemble` ``(I agents x B members)``.
         loss: :class:`EnsembleNLLLoss` on the dataset keys ``observation``, ``action``,
             ``next_observation``, ``mask``.
@@ -317,7 +299,7 @@ class MAPETS(Experiment):
         if config.num_threads > 0:
             torch.set_num_threads(config.num_threads)
         # the scenario with the communication-range transform appended
-        self.comm = CommunicationRange(config.comm_range, config.p_fail)
+        self.comm = CommunicationRange(config.comm.comm_range, config.comm.p_fail)
         env = build_env(config.env, config.env_config).append_transform(self.comm)
         super().__init__(config, run_dir, env)
         group = AgentGroupSpec.from_env(self.env)
@@ -342,7 +324,6 @@ class MAPETS(Experiment):
         self.reward_fn = reward_fn
         self.termination_fn = termination_fn
         self.n_agents = n = group.n_agents
-        plan = config.planner
         device = self.device
 
         # per-CAV probabilistic ensembles + Gaussian NLL (eq. 9) + Adam
@@ -350,13 +331,12 @@ class MAPETS(Experiment):
             group.obs_dim,
             group.action_dim,
             n,
-            share_across_agents=config.share_model,
-            **plan.model_kwargs(),
+            **config.model.model_kwargs(),
         ).to(device)
         self.bootstrap_generator = torch.Generator(device=device)
         self.loss = EnsembleNLLLoss(
             self.model,
-            logvar_bound_coef=config.logvar_bound_coef,
+            logvar_bound_coef=config.model.logvar_bound_coef,
             generator=self.bootstrap_generator,
         )
         self.loss.set_keys(
@@ -365,7 +345,7 @@ class MAPETS(Experiment):
             next_observation="next_observation",
             mask="mask",
         )
-        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=config.lr)
+        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=config.model.lr)
         self.shuffle_generator = torch.Generator(device=device)
 
         # batched CEM planner with trajectory sampling over every CAV's ensemble
@@ -378,12 +358,14 @@ class MAPETS(Experiment):
             bounds.high.to(device),
             generator=self.plan_generator,
             termination_fn=self.termination_fn,
-            **plan.planner_kwargs(),
+            **config.planner.planner_kwargs(),
         )
         self.eval_policy = self.planner
 
         # D(i)+ of every CAV over one shared storage
-        self.datasets = NeighbourDatasets(n, config.buffer_size, device=device, seed=config.seed)
+        self.datasets = NeighbourDatasets(
+            n, config.model.buffer_size, device=device, seed=config.seed
+        )
         self.counters = _Counters()
 
     @property
@@ -472,12 +454,12 @@ class MAPETS(Experiment):
             self.loss,
             self.optimizer,
             data,
-            epochs=self.config.epochs,
-            batch_size=self.config.batch_size,
+            epochs=self.config.model.epochs,
+            batch_size=self.config.model.batch_size,
             generator=self.shuffle_generator,
         )  # [epochs, I, B]
         curve = history.mean(dim=(1, 2))  # [epochs]
-        first = self.episode * self.config.epochs
+        first = self.episode * self.config.model.epochs
         for epoch, nll in enumerate(curve.tolist()):
             log_scalars(self.logger, "model", {"nll": nll}, first + epoch + 1)
         return {"model_nll_first_epoch": curve[0].item(), "model_nll": curve[-1].item()}
@@ -506,7 +488,7 @@ class MAPETS(Experiment):
 
     def progress_label(self) -> str:
         cfg = self.config
-        return f"{self.name} {cfg.env} d={cfg.comm_range:g} seed {cfg.seed}"
+        return f"{self.name} {cfg.env} d={cfg.comm.comm_range:g} seed {cfg.seed}"
 
     def progress_postfix(self, metrics: Mapping[str, float], fps: float) -> dict[str, str]:
         return {k: f"{metrics[k]:.3g}" for k in ("agility", "safety") if k in metrics}

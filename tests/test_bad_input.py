@@ -57,8 +57,12 @@ CONFIG_CASES = [
         lambda: ToyConfig().with_overrides(["lr=.inf"]),
         "lr must be a finite number",
     ),
-    ("mapets lr=inf", lambda: MAPETSConfig(lr=INF), "lr must be a finite number"),
-    ("mapets epsilon=inf", lambda: MAPETSConfig(epsilon=INF), "epsilon must be a finite"),
+    ("mapets lr=inf", lambda: MAPETSConfig(model={"lr": INF}), "model.lr must be a finite number"),
+    (
+        "mapets epsilon=inf",
+        lambda: MAPETSConfig(planner={"epsilon": INF}),
+        "planner.epsilon must be a finite",
+    ),
     (
         "mapets collision_gap=inf",
         lambda: MAPETSConfig(collision_gap=INF),
@@ -71,8 +75,8 @@ CONFIG_CASES = [
     ),
     (
         "mapets comm_range=nan",
-        lambda: MAPETSConfig(comm_range=NAN),
-        r"comm_range must be a number \(inf allowed\), not NaN",
+        lambda: MAPETSConfig(comm={"comm_range": NAN}),
+        r"comm.comm_range must be a number \(inf allowed\), not NaN",
     ),
     ("mappo lr=inf", lambda: MAPPOConfig(lr=INF), "lr must be a finite number"),
     (
@@ -107,7 +111,7 @@ def test_config_refuses(call: Callable[[], Any], match: str) -> None:
 
 
 def test_inf_comm_range_stays_allowed() -> None:
-    assert MAPETSConfig(comm_range=INF).comm_range == INF
+    assert MAPETSConfig(comm={"comm_range": INF}).comm.comm_range == INF
 
 
 @pytest.mark.skipif(importlib.util.find_spec("wandb") is not None, reason="wandb installed")

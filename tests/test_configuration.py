@@ -14,12 +14,8 @@ from recipes.mapets import MAPETS, MAPETSConfig
 
 TINY_PLANNER = dict(
     preset="cpu",
-    horizon=2,
-    population=4,
-    elites=1,
-    iterations=1,
-    particles=5,
-    hidden=[8],
+    planner={"horizon": 2, "population": 4, "elites": 1, "iterations": 1, "particles": 5},
+    model={"hidden": [8]},
     num_threads=1,
     progress=False,
 )

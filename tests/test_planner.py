@@ -10,7 +10,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase, InitTracker, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
-from mapets_rl.models import ProbabilisticEnsemble
+from mapets_rl.models import EnsembleConfig, ProbabilisticEnsemble
 from mapets_rl.planning import (
     CPU_PRESET,
     PAPER_PRESET,
@@ -197,19 +197,24 @@ def test_bad_input():
         planner.plan(torch.zeros(1, 3))
     with pytest.raises(ValueError, match="observation"):
         planner.plan(torch.zeros(2))
+    # the sections validate their own fields; particles vs ensemble_size spans two sections
+    # and is checked by MAPETSConfig and by the TrajectorySamplingCEM constructor (above)
+    with pytest.raises(ValueError, match="particles"):
+        PlannerConfig(particles=0)
     with pytest.raises(ValueError, match="ensemble_size"):
-        PlannerConfig(particles=7)
+        EnsembleConfig(ensemble_size=0)
     with pytest.raises(ValueError, match="elites"):
         PlannerConfig(elites=500)
 
 
 def test_presets_build_planner_and_model():
     for preset in (PAPER_PRESET, CPU_PRESET):
-        model = ProbabilisticEnsemble(7, 1, 2, **preset.model_kwargs())
+        model = ProbabilisticEnsemble(7, 1, 2, **preset.model.model_kwargs())
         planner = TrajectorySamplingCEM(
-            model, quadratic_reward, 0.0, 13.89, **preset.planner_kwargs()
+            model, quadratic_reward, 0.0, 13.89, **preset.planner.planner_kwargs()
         )
-        assert planner.horizon == preset.horizon and model.hidden == preset.hidden
+        assert planner.horizon == preset.planner.horizon
+        assert model.hidden == tuple(preset.model.hidden)
 
 
 def test_nan_observation_of_one_agent_leaves_others_untouched():

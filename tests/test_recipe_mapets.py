@@ -16,15 +16,8 @@ from recipes.mapets import MAPETS, MAPETSConfig
 TINY = dict(
     env_config={"n_cavs": 3, "n_hvs": 2, "horizon": 20},
     preset="cpu",
-    horizon=3,
-    population=8,
-    elites=2,
-    iterations=2,
-    particles=5,
-    hidden=[16],
-    buffer_size=64,
-    batch_size=16,
-    epochs=2,
+    planner={"horizon": 3, "population": 8, "elites": 2, "iterations": 2, "particles": 5},
+    model={"hidden": [16], "buffer_size": 64, "batch_size": 16, "epochs": 2},
     num_threads=1,
     progress=False,
 )
@@ -96,12 +89,12 @@ def test_resume_continues_at_episode_3_like_an_uninterrupted_run(two_episodes, t
 
 
 def test_d0_shares_nothing_and_d_inf_shares(tmp_path):
-    exp = MAPETS(tiny(episodes=1, comm_range=0.0), tmp_path / "d0")
+    exp = MAPETS(tiny(episodes=1, comm={"comm_range": 0.0}), tmp_path / "d0")
     (metrics,) = [e["metrics"] for e in exp.train()]
     assert metrics["transitions_shared"] == 0
     sizes = exp.datasets.sizes
     assert int(sizes.sum()) == metrics["transitions_stored"]
-    exp = MAPETS(tiny(episodes=1, comm_range=float("inf")), tmp_path / "dinf")
+    exp = MAPETS(tiny(episodes=1, comm={"comm_range": float("inf")}), tmp_path / "dinf")
     (metrics,) = [e["metrics"] for e in exp.train()]
     # CAVs still driving at the end send their episode to the other two
     assert metrics["transitions_shared"] > 0
@@ -119,11 +112,11 @@ def test_cli_train_mapets(tmp_path, capsys):
         "episodes=1",
         "random_episodes=1",
         "preset=cpu",
-        "hidden=[8]",
-        "horizon=2",
-        "population=4",
-        "elites=1",
-        "iterations=1",
+        "model.hidden=[8]",
+        "planner.horizon=2",
+        "planner.population=4",
+        "planner.elites=1",
+        "planner.iterations=1",
         "env_config.n_cavs=2",
         "env_config.n_hvs=1",
         "env_config.horizon=5",
@@ -134,50 +127,58 @@ def test_cli_train_mapets(tmp_path, capsys):
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["metrics"]["episode"] == 1.0 and 0 <= out["metrics"]["safety"] <= 1
     config = MAPETSConfig.from_yaml(run_dir / "config.yaml")
-    assert config.hidden == [8] and config.population == 4 and config.particles == 5
+    assert config.model.hidden == [8] and config.planner.population == 4
+    assert config.planner.particles == 5
 
 
 def test_presets_resolve_and_explicit_fields_win():
     paper = MAPETSConfig()
+    plan, model = paper.planner, paper.model
     assert (
-        paper.horizon,
-        paper.population,
-        paper.elites,
-        paper.iterations,
-        paper.particles,
-        paper.ensemble_size,
-        paper.hidden,
+        plan.horizon,
+        plan.population,
+        plan.elites,
+        plan.iterations,
+        plan.particles,
+        model.ensemble_size,
+        model.hidden,
     ) == (25, 400, 40, 5, 20, 5, [300, 300, 300])
-    assert (paper.buffer_size, paper.batch_size, paper.epochs, paper.lr) == (2048, 128, 5, 1e-3)
-    assert paper.episodes == 15 and paper.comm_range == 100.0 and paper.random_episodes == 1
-    cpu = MAPETSConfig(preset="cpu", horizon=15)
-    assert (cpu.horizon, cpu.population, cpu.hidden, cpu.epochs) == (15, 32, [64, 64, 64], 30)
-    assert cpu.with_overrides(["lr=3e-4"]).horizon == 15
+    assert (model.buffer_size, model.batch_size, model.epochs, model.lr) == (2048, 128, 5, 1e-3)
+    assert paper.episodes == 15 and paper.comm.comm_range == 100.0 and paper.random_episodes == 1
+    cpu = MAPETSConfig(preset="cpu", planner={"horizon": 15})
+    assert (cpu.planner.horizon, cpu.planner.population, cpu.model.hidden, cpu.model.epochs) == (
+        15,
+        32,
+        [64, 64, 64],
+        30,
+    )
+    assert cpu.with_overrides(["model.lr=3e-4"]).planner.horizon == 15
 
 
 @pytest.mark.parametrize(
     ("field", "value"),
     [
         ("episodes", 0),
-        ("comm_range", -1.0),
-        ("p_fail", 1.5),
+        ("comm.comm_range", -1.0),
+        ("comm.p_fail", 1.5),
         ("preset", "gpu"),
-        ("elites", 500),
-        ("particles", 7),
-        ("hidden", []),
-        ("propagation", "ts2"),
-        ("lr", 0.0),
-        ("batch_size", 0),
-        ("epochs", 0),
-        ("cem_momentum", 1.0),
+        ("planner.elites", 500),
+        ("planner.particles", 7),
+        ("model.hidden", []),
+        ("planner.propagation", "ts2"),
+        ("model.lr", 0.0),
+        ("model.batch_size", 0),
+        ("model.epochs", 0),
+        ("planner.alpha", 1.0),
         ("num_envs", 2),
         ("collision_reward", 5.0),
         ("collision_gap", -1.0),
     ],
 )
 def test_bad_config_raises_naming_the_field(field, value):
+    section, _, leaf = field.rpartition(".")
     with pytest.raises(ValueError, match=field) as err:
-        MAPETSConfig(**{field: value})
+        MAPETSConfig(**({section: {leaf: value}} if section else {field: value}))
     assert isinstance(err.value, ConfigError)
 
 
@@ -190,7 +191,7 @@ def test_discrete_env_is_rejected(tmp_path):
 
 
 def test_transitions_whose_neighbours_changed_stay_out_of_the_datasets(tmp_path):
-    exp = MAPETS(tiny(episodes=1, comm_range=0.0, seed=5), tmp_path / "run")
+    exp = MAPETS(tiny(episodes=1, comm={"comm_range": 0.0}, seed=5), tmp_path / "run")
     rollout = exp.run_episode(random_actions=True)
     changed = torch.zeros_like(rollout["next", "agents", "info", "neighbour_changed"])
     changed[:, 0] = True  # agent 0: every step had a new neighbour
@@ -227,3 +228,84 @@ def test_run_with_retired_frame_budget_keys_resumes_and_keeps_its_guard(tmp_path
     # resuming did not lift the guard against a second run in the same directory
     with pytest.raises(ValueError, match="already holds a run with checkpoints"):
         MAPETS(tiny(episodes=1), run_dir)
+
+
+def test_dotted_overrides_reach_the_nested_sections():
+    config = tiny().with_overrides(
+        ["planner.horizon=25", "model.hidden=[32,32]", "comm.comm_range=inf", "planner.alpha=0.2"]
+    )
+    assert config.planner.horizon == 25 and config.planner.alpha == 0.2
+    assert config.model.hidden == [32, 32] and config.comm.comm_range == float("inf")
+    assert config.planner.population == 8  # the other fields are kept
+    # preset=paper re-fills the fields that still hold the cpu preset's values only
+    paper = MAPETSConfig(preset="cpu", planner={"horizon": 15}).with_overrides(["preset=paper"])
+    assert (paper.planner.horizon, paper.planner.population, paper.model.hidden) == (
+        15,
+        400,
+        [300, 300, 300],
+    )
+
+
+def test_yaml_round_trip_keeps_the_nested_sections(tmp_path):
+    config = tiny(comm={"comm_range": float("inf"), "p_fail": 0.25})
+    path = tmp_path / "config.yaml"
+    config.to_yaml(path)
+    on_disk = yaml.safe_load(path.read_text())
+    assert on_disk["planner"]["horizon"] == 3 and on_disk["model"]["hidden"] == [16]
+    assert on_disk["comm"] == {"comm_range": float("inf"), "p_fail": 0.25}
+    assert "horizon" not in on_disk and "comm_range" not in on_disk
+    assert MAPETSConfig.from_yaml(path) == config
+
+
+@pytest.mark.parametrize(
+    "override", ["planner.bogus=1", "model.widths=[8]", "comm.range=5", "planner.horizon.x=1"]
+)
+def test_an_unknown_nested_key_is_a_one_line_error_naming_it(override):
+    key = override.partition("=")[0]
+    with pytest.raises(ConfigError) as err:
+        tiny().with_overrides([override])
+    assert "\n" not in str(err.value)
+    assert key.rsplit(".", 1)[0] in str(err.value)
+    if key.count(".") == 1:
+        assert f"unknown config key '{key}'" in str(err.value)
+    with pytest.raises(ConfigError, match="unknown config key 'planner.bogus'"):
+        MAPETSConfig(planner={"bogus": 1})
+
+
+@pytest.mark.parametrize(
+    ("section", "field", "value", "allowed"),
+    [
+        ("planner", "epsilon", float("nan"), "a finite number"),
+        ("model", "lr", float("nan"), "a finite number"),
+        ("model", "logvar_bound_coef", float("inf"), "a finite number"),
+        ("comm", "comm_range", float("nan"), r"a number \(inf allowed\), not NaN"),
+        ("comm", "p_fail", float("nan"), "a finite number"),
+    ],
+)
+def test_nan_in_a_nested_field_is_rejected(section, field, value, allowed):
+    with pytest.raises(ConfigError, match=rf"^{section}\.{field} must be {allowed}"):
+        MAPETSConfig(**{section: {field: value}})
+    with pytest.raises(ConfigError, match=rf"{section}\.{field} must be {allowed}"):
+        tiny().with_overrides([f"{section}.{field}={value}"])
+
+
+def test_run_with_flat_field_names_resumes_with_nested_sections(tmp_path, caplog):
+    run_dir = tmp_path / "run"
+    MAPETS(tiny(episodes=1, comm={"comm_range": 50.0}), run_dir).train()
+    path = run_dir / "config.yaml"
+    nested = yaml.safe_load(path.read_text())
+    # config.yaml as MA-PETS wrote it before the sections: flat planner/model/comm names
+    flat = {k: v for k, v in nested.items() if k not in ("planner", "model", "comm")}
+    flat.update(nested["planner"], **nested["model"], **nested["comm"])
+    flat["cem_momentum"] = flat.pop("alpha")
+    path.write_text(yaml.safe_dump(flat, sort_keys=False))
+    with caplog.at_level("WARNING", logger="mapets_rl"):
+        resumed = MAPETS.from_run_dir(run_dir, overrides=["episodes=2"])
+    warnings = [r.getMessage() for r in caplog.records if "flat MA-PETS field names" in r.message]
+    assert len(warnings) == 1 and "\n" not in warnings[0]
+    assert "cem_momentum" in warnings[0] and "planner.alpha" in warnings[0]
+    assert resumed.episode == 1
+    assert resumed.config.planner.horizon == 3 and resumed.config.model.hidden == [16]
+    assert resumed.config.comm.comm_range == 50.0
+    assert yaml.safe_load(path.read_text())["planner"] == nested["planner"]  # rewritten nested
+    assert [m["episode"] for m in [e["metrics"] for e in resumed.train()]] == [1.0, 2.0]

@@ -13,11 +13,13 @@ from mapets_rl.comm.clique import (
     clique_cover,
     clique_cover_number,
 )
+from mapets_rl.comm.config import CommConfig
 from mapets_rl.comm.datasets import ExchangeStats, NeighbourDatasets
 from mapets_rl.comm.regret import group_regret_bound
 from mapets_rl.comm.transform import CommunicationRange, communication_graph
 
 __all__ = [
+    "CommConfig",
     "EXACT_MAX_NODES",
     "CliqueCover",
     "CommunicationRange",

@@ -99,6 +99,7 @@ if TYPE_CHECKING:
     from mapets_rl.experiment.comparison import compare, mean_ci95, student_t_quantile
     from mapets_rl.experiment.config import (
         ConfigError,
+        ConfigSection,
         ExperimentConfig,
         RunConfig,
         atomic_savefig,
@@ -128,6 +129,7 @@ if TYPE_CHECKING:
 _EXPORTS = {
     "CheckpointError": "checkpoint",
     "ConfigError": "config",
+    "ConfigSection": "config",
     "Experiment": "runner",
     "ExperimentConfig": "config",
     "ResultsWriter": "results",
@@ -181,6 +183,7 @@ def __dir__() -> list[str]:
 __all__ = [
     "CheckpointError",
     "ConfigError",
+    "ConfigSection",
     "Experiment",
     "ExperimentConfig",
     "ResultsWriter",

@@ -199,7 +199,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--group-by",
         default=None,
         metavar="FIELD[,FIELD...]",
-        help="config fields (dotted for nested ones, e.g. comm_range or "
+        help="config fields (dotted for nested ones, e.g. comm.comm_range or "
         "env_config.observation) whose values split each recipe's runs into "
         "groups, e.g. one curve per communication range",
     )

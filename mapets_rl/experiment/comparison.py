@@ -11,7 +11,7 @@ A comparison says what it compares and refuses what would mislead:
   refused unless ``allow_mixed_env`` (then each group is labelled with its scenario and a
   warning is logged), except the keys that ``group_by`` names;
 - *grouped how*: by recipe, plus the values of the config fields in ``group_by`` (e.g. a sweep
-  over ``comm_range``), each group a mean and 95% band over its runs (seeds).
+  over ``comm.comm_range``), each group a mean and 95% band over its runs (seeds).
 """
 
 from __future__ import annotations
@@ -175,7 +175,7 @@ def compare(
             records training episodes) falls back to its training entries, with a logged note,
             and its group is marked ``(train)``. ``"train"``: training entries, every run must
             have some.
-        group_by: config fields (dotted for nested ones, e.g. ``"comm_range"``,
+        group_by: config fields (dotted for nested ones, e.g. ``"comm.comm_range"``,
             ``"env_config.observation"``) whose values split each recipe's runs into groups.
         x: the x axis: ``"frames"`` (environment frames) or a metric of every entry that
             numbers the entries, e.g. ``"episode"`` (runs whose episodes differ in length

@@ -16,7 +16,15 @@ run directory is created.
 
 Overrides are strings ``key=value``: the value is parsed as YAML (``lr=3e-4``, ``hidden=[64,64]``,
 ``video=true``) and coerced to the field's annotated type; dotted keys reach into dict fields
-(``env_config.n_cavs=4``). An unknown key or a value of the wrong type raises ConfigError.
+(``env_config.n_cavs=4``) and into nested config sections (``planner.horizon=25``,
+``comm.comm_range=inf``). An unknown key or a value of the wrong type raises ConfigError.
+
+A field may itself be a config section: a frozen dataclass deriving from
+:class:`ConfigSection`, which validates its own fields in ``__post_init__``. Such a field is
+written to YAML as a nested mapping, read back from one (an unknown key inside it is a
+ConfigError naming the dotted key, ``planner.bogus``) and its errors name the dotted field
+(``planner.horizon must be >= 1, got 0``). NaN / inf checks reach into it with its own fields'
+``allow_inf`` metadata.
 """
 
 from __future__ import annotations
@@ -55,6 +63,8 @@ def _coerce(value: Any, tp: Any, field: str) -> Any:
     origin = get_origin(tp)
     if tp is Any:
         return value
+    if isinstance(tp, type) and issubclass(tp, ConfigSection):
+        return _coerce_section(value, tp, field)
     if origin in (Union, types.UnionType):
         args = get_args(tp)
         if value is None and type(None) in args:
@@ -110,6 +120,88 @@ def _coerce(value: Any, tp: Any, field: str) -> Any:
         check(isinstance(value, str), field, "a string", value)
         return value
     return value
+
+
+def _coerce_section(value: Any, tp: type[ConfigSection], field: str) -> ConfigSection:
+    """A :class:`ConfigSection` from an instance of it or a mapping of its fields; errors name
+    the dotted key (``planner.horizon``)."""
+    if isinstance(value, tp):
+        return value
+    check(isinstance(value, Mapping), field, f"a mapping of {tp.__name__} fields", value)
+    known = tp.field_names()
+    unknown = sorted(set(value) - set(known))
+    if unknown:
+        raise ConfigError(
+            f"unknown config key '{field}.{unknown[0]}' ({field} knows: {', '.join(known)})"
+        )
+    try:
+        return tp(**dict(value))
+    except ConfigError as err:
+        raise ConfigError(f"{field}.{err}") from None
+
+
+def _coerce_fields(config: Any) -> None:
+    """Coerce every field of the dataclass instance ``config`` to its annotated type."""
+    hints = typing.get_type_hints(type(config))
+    for f in dataclasses.fields(config):
+        value = _coerce(getattr(config, f.name), hints[f.name], f.name)
+        object.__setattr__(config, f.name, value)
+
+
+def _check_finite(config: Any, prefix: str = "") -> None:
+    """Refuse NaN and infinite floats in the fields of ``config`` (infinite ones where the field
+    says ``metadata={"allow_inf": True}``), recursing into nested config sections."""
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if isinstance(value, ConfigSection):
+            _check_finite(value, f"{prefix}{f.name}.")
+            continue
+        allow_inf = f.metadata.get("allow_inf", False)
+        bad = [x for x in _floats(value) if math.isnan(x) or (math.isinf(x) and not allow_inf)]
+        allowed = "a number (inf allowed), not NaN" if allow_inf else "a finite number"
+        check(not bad, f"{prefix}{f.name}", allowed, value)
+
+
+def _unknown_key_error(cls: type, key: str) -> ConfigError:
+    names = [f.name for f in dataclasses.fields(cls)]
+    return ConfigError(f"unknown config key {key!r} for {cls.__name__} (known: {', '.join(names)})")
+
+
+@dataclasses.dataclass(frozen=True)
+class ConfigSection:
+    """Base of a nested config section: a frozen dataclass whose fields are coerced to their
+    annotated types, checked for NaN / inf (see ``allow_inf``) and validated by the subclass's
+    ``__post_init__`` (call ``super().__post_init__()`` first, raise through :func:`check`).
+    A keyword that is not a field is a ConfigError naming it."""
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> ConfigSection:
+        unknown = sorted(set(kwargs) - set(cls.field_names()))
+        if unknown:
+            raise _unknown_key_error(cls, unknown[0])
+        return super().__new__(cls)
+
+    def __post_init__(self) -> None:
+        _coerce_fields(self)
+        _check_finite(self)
+
+    @classmethod
+    def field_names(cls) -> list[str]:
+        return [f.name for f in dataclasses.fields(cls)]
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> ConfigSection:
+        """Build from a mapping of fields; unknown keys raise ConfigError naming them."""
+        unknown = sorted(set(data) - set(cls.field_names()))
+        if unknown:
+            raise _unknown_key_error(cls, unknown[0])
+        return cls(**dict(data))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {f.name: _plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+    def replace(self, **changes: Any) -> ConfigSection:
+        """A copy with ``changes`` applied (validated again)."""
+        return dataclasses.replace(self, **changes)
 
 
 @dataclasses.dataclass
@@ -169,18 +261,12 @@ class RunConfig:
         check_logger_package(self.logger)
 
     def _coerce_fields(self) -> None:
-        hints = typing.get_type_hints(type(self))
-        for f in dataclasses.fields(self):
-            object.__setattr__(self, f.name, _coerce(getattr(self, f.name), hints[f.name], f.name))
+        _coerce_fields(self)
 
     def _check_finite(self) -> None:
-        """Refuse NaN and infinite floats (infinite ones where the field allows them)."""
-        for f in dataclasses.fields(self):
-            allow_inf = f.metadata.get("allow_inf", False)
-            value = getattr(self, f.name)
-            bad = [x for x in _floats(value) if math.isnan(x) or (math.isinf(x) and not allow_inf)]
-            allowed = "a number (inf allowed), not NaN" if allow_inf else "a finite number"
-            check(not bad, f.name, allowed, value)
+        """Refuse NaN and infinite floats (infinite ones where the field allows them), nested
+        config sections included."""
+        _check_finite(self)
 
     # ----------------------------------------------------------------------------- conversions
     @classmethod
@@ -199,9 +285,16 @@ class RunConfig:
         return cls(**dict(data))
 
     @classmethod
+    def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
+        """The mapping of a ``config.yaml`` written by an older version, in today's layout:
+        :attr:`retired_fields` dropped; a subclass may also map renamed keys."""
+        return {k: v for k, v in data.items() if k not in cls.retired_fields}
+
+    @classmethod
     def from_yaml(cls, path: str | os.PathLike) -> RunConfig:
-        """Build from a YAML file of fields; every error is a one-line ConfigError naming it."""
-        data = read_yaml_mapping(path)
+        """Build from a YAML file of fields (older layouts upgraded by :meth:`upgrade_dict`);
+        every error is a one-line ConfigError naming it."""
+        data = cls.upgrade_dict(read_yaml_mapping(path))
         try:
             return cls.from_dict(data)
         except ConfigError as err:
@@ -215,27 +308,34 @@ class RunConfig:
         atomic_write_text(path, yaml.safe_dump(self.to_dict(), sort_keys=False))
 
     def with_overrides(self, overrides: Iterable[str]) -> RunConfig:
-        """A new config with ``key=value`` strings applied (values parsed as YAML)."""
-        data = self.to_dict()
+        """A new config with ``key=value`` strings applied (values parsed as YAML); dotted keys
+        reach into dict fields and nested config sections (``planner.horizon=25``)."""
+        return type(self).from_dict(self._apply_overrides(self.to_dict(), overrides))
+
+    @classmethod
+    def _apply_overrides(cls, data: dict[str, Any], overrides: Iterable[str]) -> dict[str, Any]:
+        """``data`` (a :meth:`to_dict` mapping) with ``key=value`` strings applied."""
         for item in overrides:
             key, value = parse_override(item)
             head, _, rest = key.partition(".")
             if head not in data:
-                raise ConfigError(
-                    f"unknown config key {head!r} for {type(self).__name__} "
-                    f"(known: {', '.join(self.field_names())})"
-                )
+                raise _unknown_key_error(cls, head)
             if rest:
                 if not isinstance(data[head], dict):
                     raise ConfigError(f"config key {head!r} is not a mapping; cannot set {key!r}")
                 target = data[head]
                 *parents, leaf = rest.split(".")
-                for p in parents:
+                for i, p in enumerate(parents):
                     target = target.setdefault(p, {})
+                    if not isinstance(target, dict):
+                        inner = ".".join([head, *parents[: i + 1]])
+                        raise ConfigError(
+                            f"config key {inner!r} is not a mapping; cannot set {key!r}"
+                        )
                 target[leaf] = value
             else:
                 data[head] = value
-        return type(self).from_dict(data)
+        return data
 
 
 @dataclasses.dataclass
@@ -323,12 +423,15 @@ def read_yaml_mapping(path: str | os.PathLike) -> dict[str, Any]:
 
 
 def _floats(value: Any) -> Iterable[float]:
-    """The floats of a field value (itself, or the items of a list / tuple)."""
+    """The floats of a field value (itself, or the items of a list / tuple / mapping)."""
     if isinstance(value, float):
         yield value
     elif isinstance(value, (list, tuple)):
         for item in value:
             yield from _floats(item)
+    elif isinstance(value, ConfigSection):
+        for f in dataclasses.fields(value):
+            yield from _floats(getattr(value, f.name))
 
 
 def check_env_name(env: str) -> None:
@@ -379,7 +482,9 @@ def check_logger_package(kind: str) -> None:
 
 
 def _plain(value: Any) -> Any:
-    """YAML/JSON-safe copy: tuples become lists, nested mappings become dicts."""
+    """YAML/JSON-safe copy: tuples become lists, nested mappings and config sections dicts."""
+    if isinstance(value, ConfigSection):
+        return value.to_dict()
     if isinstance(value, Mapping):
         return {str(k): _plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

@@ -554,9 +554,9 @@ class Experiment:
         if not path.is_file():
             raise ConfigError(f"run_dir {str(run_dir)!r} has no {CONFIG_FILE}")
         on_disk = read_yaml_mapping(path)
-        # keys an older version of the recipe wrote and no longer has are dropped (and
-        # config.yaml is rewritten without them)
-        data = {k: v for k, v in on_disk.items() if k not in cls.Config.retired_fields}
+        # keys an older version of the recipe wrote and no longer has are dropped or mapped to
+        # their new names (and config.yaml is rewritten in today's layout)
+        data = cls.Config.upgrade_dict(on_disk)
         fields = cls.Config.field_names()
         unknown = sorted(set(data) - set(fields))
         if unknown:

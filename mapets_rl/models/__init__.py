@@ -1,6 +1,7 @@
 """Dynamics models: per-agent probabilistic ensembles (MA-PETS sec. IV-A)."""
 
+from mapets_rl.models.config import EnsembleConfig
 from mapets_rl.models.ensemble import ProbabilisticEnsemble
 from mapets_rl.models.training import train_ensemble
 
-__all__ = ["ProbabilisticEnsemble", "train_ensemble"]
+__all__ = ["EnsembleConfig", "ProbabilisticEnsemble", "train_ensemble"]

@@ -7,7 +7,7 @@ and keeps the warm start).
 """
 
 from mapets_rl.planning.cem import CEMOptimizer, ScoreFn
-from mapets_rl.planning.config import CPU_PRESET, PAPER_PRESET, PRESETS, PlannerConfig
+from mapets_rl.planning.config import CPU_PRESET, PAPER_PRESET, PRESETS, PlannerConfig, Preset
 from mapets_rl.planning.mpc import TrajectorySamplingCEM
 from mapets_rl.planning.trajectory_sampling import (
     PROPAGATIONS,
@@ -26,6 +26,7 @@ __all__ = [
     "TerminationFn",
     "trajectory_sampling_returns",
     "PlannerConfig",
+    "Preset",
     "PAPER_PRESET",
     "CPU_PRESET",
     "PRESETS",

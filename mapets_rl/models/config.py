@@ -1,0 +1,61 @@
+"""Size and training hyper-parameters of the MA-PETS probabilistic ensembles."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from mapets_rl.experiment.config import ConfigSection, check
+
+__all__ = ["EnsembleConfig"]
+
+
+@dataclasses.dataclass(frozen=True)
+class EnsembleConfig(ConfigSection):
+    """The CAVs' probabilistic ensembles and how they are trained (defaults: the paper's
+    Table II).
+
+    Attributes:
+        ensemble_size: members ``B`` per CAV (>= 1).
+        hidden: hidden layer widths of each member MLP (non-empty, each >= 1).
+        epochs: training passes over ``D(i)+`` after each episode (>= 1; paper: 5).
+        batch_size: training minibatch rows (>= 1; paper: 128).
+        lr: Adam learning rate (> 0; paper: 1e-3).
+        buffer_size: capacity of each CAV's dataset ``D(i)+`` in transitions (>= 1; paper:
+            2048).
+        logvar_bound_coef: weight of the PETS log-variance bound penalty (>= 0).
+        share_model: one set of ``B`` MLPs for all CAVs (a centralised model; each CAV still
+            normalises with its own statistics) instead of one ensemble per CAV.
+    """
+
+    ensemble_size: int = 5
+    hidden: list[int] = dataclasses.field(default_factory=lambda: [300, 300, 300])
+    epochs: int = 5
+    batch_size: int = 128
+    lr: float = 1e-3
+    buffer_size: int = 2048
+    logvar_bound_coef: float = 0.01
+    share_model: bool = False
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(self.ensemble_size >= 1, "ensemble_size", ">= 1", self.ensemble_size)
+        check(
+            len(self.hidden) > 0 and all(h >= 1 for h in self.hidden),
+            "hidden",
+            "a non-empty list of ints >= 1",
+            self.hidden,
+        )
+        check(self.epochs >= 1, "epochs", ">= 1", self.epochs)
+        check(self.batch_size >= 1, "batch_size", ">= 1", self.batch_size)
+        check(self.lr > 0, "lr", "> 0", self.lr)
+        check(self.buffer_size >= 1, "buffer_size", ">= 1", self.buffer_size)
+        check(self.logvar_bound_coef >= 0, "logvar_bound_coef", ">= 0", self.logvar_bound_coef)
+
+    def model_kwargs(self) -> dict:
+        """Keyword arguments for :class:`~mapets_rl.models.ProbabilisticEnsemble` (sizes and
+        ``share_across_agents``)."""
+        return {
+            "ensemble_size": self.ensemble_size,
+            "hidden": tuple(self.hidden),
+            "share_across_agents": self.share_model,
+        }
