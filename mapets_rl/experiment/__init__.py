@@ -122,6 +122,7 @@ if TYPE_CHECKING:
         register_env,
         run_recipe_name,
     )
+    from mapets_rl.experiment.training import ModelFreeConfig, OffPolicyConfig, OnPolicyConfig
 
 # Exports are imported on first use, so that `mapets-rl --help` and its error messages do not
 # pay for importing torch and torchrl.
@@ -130,6 +131,9 @@ _EXPORTS = {
     "ConfigError": "config",
     "Experiment": "runner",
     "ExperimentConfig": "config",
+    "ModelFreeConfig": "training",
+    "OffPolicyConfig": "training",
+    "OnPolicyConfig": "training",
     "ResultsWriter": "results",
     "RunConfig": "config",
     "atomic_torch_save": "checkpoint",
@@ -183,6 +187,9 @@ __all__ = [
     "ConfigError",
     "Experiment",
     "ExperimentConfig",
+    "ModelFreeConfig",
+    "OffPolicyConfig",
+    "OnPolicyConfig",
     "ResultsWriter",
     "RunConfig",
     "atomic_torch_save",

@@ -1,10 +1,13 @@
 """Validated configuration dataclasses: YAML in, ``key=value`` overrides, resolved YAML out.
 
 Every recipe's config subclasses :class:`RunConfig` (the fields every recipe shares), through
-:class:`ExperimentConfig` (plus a frame budget) for the recipes trained batch by batch. A
-subclass adds its own fields (with type hints and defaults) and validates them in
-``__post_init__`` (call ``super().__post_init__()`` first), raising :class:`ConfigError` through
-:func:`check` so that the message names the field and the allowed range. A keyword that is not
+:class:`ExperimentConfig` (plus a frame budget) for the recipes trained batch by batch; the
+model-free recipes' configs subclass the shared training blocks of
+:mod:`mapets_rl.experiment.training` (``OffPolicyConfig``, ``OnPolicyConfig``), which declare
+and validate the fields those recipes share under one set of names. A subclass adds its own
+fields (with type hints and defaults) and validates them in ``__post_init__`` (call
+``super().__post_init__()`` first), raising :class:`ConfigError` through :func:`check` so that
+the message names the field and the allowed range. A keyword that is not
 a field is a ConfigError too.
 
 Every float field must be finite (NaN and +-inf are refused) unless its dataclass field says
@@ -17,6 +20,12 @@ run directory is created.
 Overrides are strings ``key=value``: the value is parsed as YAML (``lr=3e-4``, ``hidden=[64,64]``,
 ``video=true``) and coerced to the field's annotated type; dotted keys reach into dict fields
 (``env_config.n_cavs=4``). An unknown key or a value of the wrong type raises ConfigError.
+
+Renamed fields: a config class maps the old names of renamed fields to the new ones in
+``renamed_fields`` (e.g. ``ShapleyACConfig.renamed_fields["actor_lr"] == ("lr_actor",)``);
+a ``config.yaml`` read by ``from_yaml`` or by resuming a run has its old keys renamed, with a
+one-line ``UserWarning`` naming each old key, so run directories written before the rename
+resume (and are rewritten with the new names).
 """
 
 from __future__ import annotations
@@ -28,6 +37,7 @@ import os
 import tempfile
 import types
 import typing
+import warnings
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any, ClassVar, Literal, Union, get_args, get_origin
@@ -144,6 +154,11 @@ class RunConfig:
     # keys that config.yaml files written by an older version hold and this class no longer
     # has; resuming such a run ignores them
     retired_fields: ClassVar[tuple[str, ...]] = ()
+    # keys that config.yaml files written by an older version hold under an old name: old name
+    # -> the new field name(s) that take its value (several when one field was split, e.g.
+    # SAC's ``lr`` -> ``lr_actor``, ``lr_critic``, ``lr_alpha``); reading such a file
+    # (``from_yaml``, resuming a run) renames them with a one-line warning naming the old key
+    renamed_fields: ClassVar[Mapping[str, tuple[str, ...]]] = {}
 
     def __new__(cls, *args: Any, **kwargs: Any) -> RunConfig:
         # a keyword that is not a field is a ConfigError naming it, as in from_dict (the
@@ -199,9 +214,30 @@ class RunConfig:
         return cls(**dict(data))
 
     @classmethod
+    def rename_old_keys(cls, data: Mapping[str, Any], source: str) -> dict[str, Any]:
+        """``data`` with the old keys of :attr:`renamed_fields` renamed to their new names (a
+        ``UserWarning`` naming the old key and ``source`` for each); a new key already present
+        in ``data`` wins over the old one."""
+        out = dict(data)
+        for old, new in cls.renamed_fields.items():
+            if old not in out or old in cls.field_names():
+                continue
+            value = out.pop(old)
+            warnings.warn(
+                f"{source}: config key {old!r} is now {' / '.join(map(repr, new))}; "
+                "read under the new name",
+                UserWarning,
+                stacklevel=2,
+            )
+            for name in new:
+                out.setdefault(name, value)
+        return out
+
+    @classmethod
     def from_yaml(cls, path: str | os.PathLike) -> RunConfig:
-        """Build from a YAML file of fields; every error is a one-line ConfigError naming it."""
-        data = read_yaml_mapping(path)
+        """Build from a YAML file of fields; every error is a one-line ConfigError naming it.
+        Keys of :attr:`renamed_fields` are read under their new names."""
+        data = cls.rename_old_keys(read_yaml_mapping(path), f"config file {str(path)!r}")
         try:
             return cls.from_dict(data)
         except ConfigError as err:

@@ -557,6 +557,9 @@ class Experiment:
         # keys an older version of the recipe wrote and no longer has are dropped (and
         # config.yaml is rewritten without them)
         data = {k: v for k, v in on_disk.items() if k not in cls.Config.retired_fields}
+        # keys it wrote under an old name are read under the new one (config.yaml is
+        # rewritten with the new names)
+        data = cls.Config.rename_old_keys(data, repr(str(path)))
         fields = cls.Config.field_names()
         unknown = sorted(set(data) - set(fields))
         if unknown:
