@@ -41,7 +41,9 @@ RECIPE_OVERRIDES: dict[str, list[str]] = {
         "updates_per_batch=50",
         "batch_size=256",
         "init_random_frames=200",
-        "lr=1e-3",
+        "lr_actor=1e-3",
+        "lr_critic=1e-3",
+        "lr_alpha=1e-3",
     ],
 }
 

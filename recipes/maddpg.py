@@ -26,7 +26,8 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.modules import AdditiveGaussianModule, MultiAgentMLP, TanhModule
 from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
-from mapets_rl.experiment import Experiment, ExperimentConfig, check
+from mapets_rl.experiment import Experiment, check
+from mapets_rl.experiment.training import OffPolicyConfig
 from mapets_rl.modules import (
     ACTION,
     GROUP,
@@ -44,58 +45,29 @@ from mapets_rl.modules import (
 
 
 @dataclasses.dataclass
-class MADDPGConfig(ExperimentConfig):
-    """MADDPG hyper-parameters (plus the shared :class:`ExperimentConfig` fields).
+class MADDPGConfig(OffPolicyConfig):
+    """MADDPG hyper-parameters; the shared off-policy fields (``gamma``, ``tau``, ``lr_actor``,
+    ``lr_critic``, ``num_cells`` (actor and critic), ``share_params`` (the actor),
+    ``buffer_size``, ``batch_size``, ``updates_per_batch``, ``init_random_frames``,
+    ``max_grad_norm``) are those of :class:`~mapets_rl.experiment.training.OffPolicyConfig`.
 
     Attributes:
-        lr_actor, lr_critic: Adam learning rates (> 0).
-        gamma: discount in [0, 1].
-        tau: soft target update rate in (0, 1].
-        buffer_size: replay capacity in transitions (>= batch_size).
-        batch_size: transitions per gradient step (>= 1).
-        updates_per_batch: gradient steps per collected batch (>= 1).
         init_random_frames: first frames of the run with uniformly random actions (>= 0).
         sigma_init, sigma_end: Gaussian exploration std as a fraction of the half action
             range, annealed linearly over ``sigma_anneal_frames`` (continuous actions).
         gumbel_tau: Gumbel-softmax temperature (> 0; discrete actions).
-        num_cells: hidden layer sizes of actor and critic MLPs.
-        share_params: one actor network shared by all agents (else one per agent).
         normalize_obs: standardise observations with running statistics of collected data.
-        max_grad_norm: gradient-norm clip (> 0).
     """
 
-    lr_actor: float = 1e-3
-    lr_critic: float = 1e-3
-    gamma: float = 0.95
-    tau: float = 0.01
-    buffer_size: int = 100_000
-    batch_size: int = 256
-    updates_per_batch: int = 20
-    init_random_frames: int = 200
     sigma_init: float = 0.3
     sigma_end: float = 0.05
     sigma_anneal_frames: int = 3000
     gumbel_tau: float = 1.0
-    num_cells: list[int] = dataclasses.field(default_factory=lambda: [64, 64])
-    share_params: bool = True
     normalize_obs: bool = True
-    max_grad_norm: float = 1.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name in ("lr_actor", "lr_critic", "gumbel_tau", "max_grad_norm"):
-            check(getattr(self, name) > 0, name, "> 0", getattr(self, name))
-        check(0 <= self.gamma <= 1, "gamma", "in [0, 1]", self.gamma)
-        check(0 < self.tau <= 1, "tau", "in (0, 1]", self.tau)
-        check(self.batch_size >= 1, "batch_size", ">= 1", self.batch_size)
-        check(
-            self.buffer_size >= self.batch_size,
-            "buffer_size",
-            f">= batch_size={self.batch_size}",
-            self.buffer_size,
-        )
-        check(self.updates_per_batch >= 1, "updates_per_batch", ">= 1", self.updates_per_batch)
-        check(self.init_random_frames >= 0, "init_random_frames", ">= 0", self.init_random_frames)
+        check(self.gumbel_tau > 0, "gumbel_tau", "> 0", self.gumbel_tau)
         check(
             0 <= self.sigma_end <= self.sigma_init,
             "sigma_end",
@@ -104,12 +76,6 @@ class MADDPGConfig(ExperimentConfig):
         )
         check(
             self.sigma_anneal_frames >= 1, "sigma_anneal_frames", ">= 1", self.sigma_anneal_frames
-        )
-        check(
-            len(self.num_cells) >= 1 and min(self.num_cells) >= 1,
-            "num_cells",
-            "a non-empty list of positive layer sizes",
-            self.num_cells,
         )
 
 

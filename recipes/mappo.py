@@ -22,7 +22,8 @@ from torchrl.modules import MultiAgentMLP
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.multiagent import IPPOLoss, MAPPOLoss
 
-from mapets_rl.experiment import Experiment, ExperimentConfig, check
+from mapets_rl.experiment import Experiment, check
+from mapets_rl.experiment.training import OnPolicyConfig
 from mapets_rl.modules import (
     ACTION,
     LOG_PROB,
@@ -38,61 +39,31 @@ from mapets_rl.modules import (
 
 
 @dataclasses.dataclass
-class MAPPOConfig(ExperimentConfig):
-    """MAPPO / IPPO hyper-parameters (plus the shared :class:`ExperimentConfig` fields).
+class MAPPOConfig(OnPolicyConfig):
+    """MAPPO / IPPO hyper-parameters; the shared on-policy fields (``lr``, ``gamma``,
+    ``lmbda``, ``epochs``, ``minibatch_size``, ``max_grad_norm``, ``num_cells`` (policy and
+    value), ``share_params`` (the policy)) are those of
+    :class:`~mapets_rl.experiment.training.OnPolicyConfig`.
 
     Attributes:
-        lr: Adam learning rate of policy and value (> 0).
-        gamma: discount in [0, 1].
-        lmbda: GAE lambda in [0, 1].
         clip_epsilon: PPO ratio clip (> 0).
         entropy_coeff: entropy bonus weight (>= 0).
         critic_coeff: value-loss weight (> 0).
-        epochs: passes over each collected batch (>= 1).
-        minibatch_size: transitions per gradient step (1 .. frames_per_batch).
-        max_grad_norm: gradient-norm clip (> 0).
-        num_cells: hidden layer sizes of the policy and value MLPs.
-        share_params: one policy network shared by all agents (else one per agent).
         normalize_obs: standardise observations with running statistics of collected data.
         ippo: decentralised per-agent values (IPPO) instead of the centralised value (MAPPO).
     """
 
-    lr: float = 3e-4
-    gamma: float = 0.99
-    lmbda: float = 0.95
     clip_epsilon: float = 0.2
     entropy_coeff: float = 0.01
     critic_coeff: float = 1.0
-    epochs: int = 4
-    minibatch_size: int = 100
-    max_grad_norm: float = 1.0
-    num_cells: list[int] = dataclasses.field(default_factory=lambda: [64, 64])
-    share_params: bool = True
     normalize_obs: bool = True
     ippo: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check(self.lr > 0, "lr", "> 0", self.lr)
-        check(0 <= self.gamma <= 1, "gamma", "in [0, 1]", self.gamma)
-        check(0 <= self.lmbda <= 1, "lmbda", "in [0, 1]", self.lmbda)
         check(self.clip_epsilon > 0, "clip_epsilon", "> 0", self.clip_epsilon)
         check(self.entropy_coeff >= 0, "entropy_coeff", ">= 0", self.entropy_coeff)
         check(self.critic_coeff > 0, "critic_coeff", "> 0", self.critic_coeff)
-        check(self.epochs >= 1, "epochs", ">= 1", self.epochs)
-        check(
-            1 <= self.minibatch_size <= self.frames_per_batch,
-            "minibatch_size",
-            f"in [1, frames_per_batch={self.frames_per_batch}]",
-            self.minibatch_size,
-        )
-        check(self.max_grad_norm > 0, "max_grad_norm", "> 0", self.max_grad_norm)
-        check(
-            len(self.num_cells) >= 1 and min(self.num_cells) >= 1,
-            "num_cells",
-            "a non-empty list of positive layer sizes",
-            self.num_cells,
-        )
 
 
 class MAPPO(Experiment):

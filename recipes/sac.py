@@ -12,6 +12,8 @@ agents still act on their own observation) and separate parameters per agent.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
+from typing import ClassVar
 
 import torch
 from tensordict import TensorDictBase
@@ -21,7 +23,8 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.modules import MultiAgentMLP
 from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate, ValueEstimators
 
-from mapets_rl.experiment import Experiment, ExperimentConfig, check
+from mapets_rl.experiment import Experiment, check
+from mapets_rl.experiment.training import OffPolicyConfig
 from mapets_rl.modules import (
     ACTION,
     ACTION_VALUE,
@@ -39,58 +42,37 @@ from mapets_rl.modules import (
 
 
 @dataclasses.dataclass
-class SACConfig(ExperimentConfig):
-    """SAC hyper-parameters (plus the shared :class:`ExperimentConfig` fields).
+class SACConfig(OffPolicyConfig):
+    """SAC hyper-parameters; the shared off-policy fields (``gamma``, ``tau``, ``lr_actor``,
+    ``lr_critic``, ``num_cells`` (actor and critics), ``share_params`` (actor and critics),
+    ``buffer_size``, ``batch_size``, ``updates_per_batch``, ``init_random_frames``,
+    ``max_grad_norm``) are those of :class:`~mapets_rl.experiment.training.OffPolicyConfig`.
 
     Attributes:
-        lr: Adam learning rate of actor, critics and temperature (> 0).
-        gamma: discount in [0, 1].
-        tau: soft target update rate in (0, 1].
-        alpha_init: initial entropy temperature (> 0).
-        buffer_size: replay capacity in transitions (>= batch_size).
-        batch_size: transitions per gradient step (>= 1).
-        updates_per_batch: gradient steps per collected batch (>= 1).
+        lr_actor, lr_critic, lr_alpha: Adam learning rates of the actor, the twin critics and
+            the entropy temperature (> 0; one optimiser with a parameter group each).
         init_random_frames: first frames of the run with uniformly random actions (>= 0).
-        num_cells: hidden layer sizes of actor and critic MLPs.
-        share_params: one actor and one critic shared by all agents (else per agent).
+        alpha_init: initial entropy temperature (> 0).
         normalize_obs: standardise observations with running statistics of collected data.
-        max_grad_norm: gradient-norm clip (> 0).
     """
 
-    lr: float = 3e-4
+    # run directories written when one ``lr`` drove actor, critics and temperature
+    renamed_fields: ClassVar[Mapping[str, tuple[str, ...]]] = {
+        "lr": ("lr_actor", "lr_critic", "lr_alpha"),
+    }
+
     gamma: float = 0.99
     tau: float = 0.005
+    lr_actor: float = 3e-4
+    lr_critic: float = 3e-4
+    lr_alpha: float = 3e-4
     alpha_init: float = 1.0
-    buffer_size: int = 100_000
-    batch_size: int = 256
-    updates_per_batch: int = 20
-    init_random_frames: int = 200
-    num_cells: list[int] = dataclasses.field(default_factory=lambda: [64, 64])
-    share_params: bool = True
     normalize_obs: bool = True
-    max_grad_norm: float = 1.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name in ("lr", "alpha_init", "max_grad_norm"):
+        for name in ("lr_alpha", "alpha_init"):
             check(getattr(self, name) > 0, name, "> 0", getattr(self, name))
-        check(0 <= self.gamma <= 1, "gamma", "in [0, 1]", self.gamma)
-        check(0 < self.tau <= 1, "tau", "in (0, 1]", self.tau)
-        check(self.batch_size >= 1, "batch_size", ">= 1", self.batch_size)
-        check(
-            self.buffer_size >= self.batch_size,
-            "buffer_size",
-            f">= batch_size={self.batch_size}",
-            self.buffer_size,
-        )
-        check(self.updates_per_batch >= 1, "updates_per_batch", ">= 1", self.updates_per_batch)
-        check(self.init_random_frames >= 0, "init_random_frames", ">= 0", self.init_random_frames)
-        check(
-            len(self.num_cells) >= 1 and min(self.num_cells) >= 1,
-            "num_cells",
-            "a non-empty list of positive layer sizes",
-            self.num_cells,
-        )
 
 
 class SAC(Experiment):
@@ -185,7 +167,15 @@ class SAC(Experiment):
             self.loss.set_keys(**LOSS_KEYS, action=ACTION, state_action_value=Q_VALUE)
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=config.gamma)
         self.target_updater = SoftUpdate(self.loss, tau=config.tau)
-        self.optim = torch.optim.Adam(self.loss.parameters(), lr=config.lr)
+        # one optimiser, one parameter group per learning rate (actor, critics, temperature)
+        lrs = {"actor": config.lr_actor, "qvalue": config.lr_critic, "alpha": config.lr_alpha}
+        groups: dict[str, list[nn.Parameter]] = {key: [] for key in lrs}
+        for name, param in self.loss.named_parameters():
+            key = name.split("_network_params")[0] if "_network_params" in name else "alpha"
+            groups[key].append(param)
+        self.optim = torch.optim.Adam(
+            [{"params": groups[key], "lr": lr} for key, lr in lrs.items() if groups[key]]
+        )
 
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
         """Store the batch; ``updates_per_batch`` SAC steps; soft target update."""
@@ -211,3 +201,29 @@ class SAC(Experiment):
 
     def stateful_components(self) -> dict:
         return {"loss": self.loss, "optim": self.optim, "buffer": self.buffer}
+
+    def load_state_dict(self, state) -> None:
+        """Also loads checkpoints written when the optimiser had one parameter group (one
+        ``lr``): its state is split into the actor / critic / temperature groups."""
+        optim = state.get("components", {}).get("optim")
+        if optim is not None and len(optim["param_groups"]) == 1 < len(self.optim.param_groups):
+            old = {id(p): i for i, p in enumerate(self.loss.parameters())}
+            # the groups (and their lrs) of this config; the moments of the saved single group
+            groups = [dict(group) for group in self.optim.state_dict()["param_groups"]]
+            new_state, index = {}, 0
+            for group, live in zip(groups, self.optim.param_groups, strict=True):
+                group["params"] = []
+                for param in live["params"]:
+                    saved = optim["param_groups"][0]["params"][old[id(param)]]
+                    if saved in optim["state"]:
+                        new_state[index] = optim["state"][saved]
+                    group["params"].append(index)
+                    index += 1
+            state = {
+                **state,
+                "components": {
+                    **state["components"],
+                    "optim": {"state": new_state, "param_groups": groups},
+                },
+            }
+        super().load_state_dict(state)

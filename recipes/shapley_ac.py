@@ -21,7 +21,8 @@ or ``mapets-rl train shapley_ac env_config.cav_ratio=0.5``.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from collections.abc import Mapping
+from typing import Any, ClassVar
 
 import torch
 from tensordict import TensorDictBase
@@ -29,7 +30,8 @@ from tensordict.nn import TensorDictSequential
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SoftUpdate
 
-from mapets_rl.experiment import Experiment, ExperimentConfig, check
+from mapets_rl.experiment import Experiment, check
+from mapets_rl.experiment.training import OffPolicyConfig
 from mapets_rl.modules import AgentGroupSpec, GumbelSoftmaxHead
 from mapets_rl.objectives import ShapleyActorCriticLoss
 from mapets_rl.shapley import CoalitionCritic, RandomCoalition, make_coalition_actor
@@ -54,29 +56,37 @@ def _default_env_config() -> dict[str, Any]:
 
 
 @dataclasses.dataclass
-class ShapleyACConfig(ExperimentConfig):
-    """Shapley actor-critic hyper-parameters (inherits env / seed / frame budget / logging).
+class ShapleyACConfig(OffPolicyConfig):
+    """Shapley actor-critic hyper-parameters; the shared off-policy fields (``gamma``, ``tau``,
+    ``lr_actor``, ``lr_critic``, ``num_cells``, ``share_params``, ``buffer_size``,
+    ``batch_size``, ``updates_per_batch``, ``init_random_frames``, ``max_grad_norm``) are
+    those of :class:`~mapets_rl.experiment.training.OffPolicyConfig`.
 
     Attributes:
-        gamma: discount.
-        tau: soft target update rate (Algorithm 1 line 15).
-        actor_lr, critic_lr: Adam learning rates.
-        actor_cells, critic_cells: hidden sizes of the per-agent actors / the coalition critic.
-        share_actor_params: one actor for all CAVs instead of one per CAV.
-        buffer_size: replay capacity in transitions.
-        batch_size: minibatch size (transitions).
-        updates_per_batch: gradient steps per collected batch.
-        warmup_frames: transitions in the buffer before the first update.
+        num_cells: hidden sizes of the per-agent actors (``critic_cells``: of the critic).
+        share_params: one actor for all CAVs instead of one per CAV (default False here).
+        init_random_frames: transitions in the buffer before the first update; they are
+            collected with the policy (its coalitions are random), not with random actions.
+        critic_cells: hidden sizes of the coalition critic.
         join_prob: probability that a CAV joins the random coalition of a timestep.
         eval_coalition: coalition used in evaluation: ``grand``, ``empty`` or ``random``.
-        gumbel_temperature: Gumbel-softmax temperature (exploration and actor gradient).
+        gumbel_tau: Gumbel-softmax temperature (exploration and actor gradient; > 0).
         logits_reg: weight of the squared-logits penalty in the actor loss (keeps the discrete
             policies from saturating early; 0.1 suits the freeway, whose values are in the
             hundreds: at 1e-3 some CAVs locked onto CL/CR within 400 frames).
         exact_max_agents: Shapley exact up to this many CAVs, permutation sampling beyond.
         num_permutations: orderings per update on the sampled path.
-        max_grad_norm: gradient clipping.
     """
+
+    # run directories written before the shared off-policy names read under the new ones
+    renamed_fields: ClassVar[Mapping[str, tuple[str, ...]]] = {
+        "actor_lr": ("lr_actor",),
+        "critic_lr": ("lr_critic",),
+        "actor_cells": ("num_cells",),
+        "share_actor_params": ("share_params",),
+        "warmup_frames": ("init_random_frames",),
+        "gumbel_temperature": ("gumbel_tau",),
+    }
 
     env: str = "freeway"
     env_config: dict[str, Any] = dataclasses.field(default_factory=_default_env_config)
@@ -85,43 +95,25 @@ class ShapleyACConfig(ExperimentConfig):
     eval_interval: int = 400
     eval_episodes: int = 2
     checkpoint_interval: int = 1000
-    gamma: float = 0.95
-    tau: float = 0.01
-    actor_lr: float = 1e-3
-    critic_lr: float = 1e-3
-    actor_cells: list[int] = dataclasses.field(default_factory=lambda: [64, 64])
-    critic_cells: list[int] = dataclasses.field(default_factory=lambda: [128, 128])
-    share_actor_params: bool = False
-    buffer_size: int = 100_000
+    share_params: bool = False
     batch_size: int = 128
     updates_per_batch: int = 10
-    warmup_frames: int = 200
+    critic_cells: list[int] = dataclasses.field(default_factory=lambda: [128, 128])
     join_prob: float = 0.5
     eval_coalition: str = "grand"
-    gumbel_temperature: float = 1.0
+    gumbel_tau: float = 1.0
     exact_max_agents: int = 10
     num_permutations: int = 32
     logits_reg: float = 0.1
-    max_grad_norm: float = 1.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check(0.0 <= self.gamma <= 1.0, "gamma", "in [0, 1]", self.gamma)
-        check(0.0 < self.tau <= 1.0, "tau", "in (0, 1]", self.tau)
-        check(self.actor_lr > 0, "actor_lr", "> 0", self.actor_lr)
-        check(self.critic_lr > 0, "critic_lr", "> 0", self.critic_lr)
-        for name in ("actor_cells", "critic_cells"):
-            cells = getattr(self, name)
-            check(
-                len(cells) > 0 and all(c >= 1 for c in cells),
-                name,
-                "a non-empty list of ints >= 1",
-                cells,
-            )
-        check(self.buffer_size >= self.batch_size, "buffer_size", ">= batch_size", self.buffer_size)
-        check(self.batch_size >= 1, "batch_size", ">= 1", self.batch_size)
-        check(self.updates_per_batch >= 1, "updates_per_batch", ">= 1", self.updates_per_batch)
-        check(self.warmup_frames >= 0, "warmup_frames", ">= 0", self.warmup_frames)
+        check(
+            len(self.critic_cells) > 0 and all(c >= 1 for c in self.critic_cells),
+            "critic_cells",
+            "a non-empty list of ints >= 1",
+            self.critic_cells,
+        )
         check(0.0 <= self.join_prob <= 1.0, "join_prob", "in [0, 1]", self.join_prob)
         check(
             self.eval_coalition in ("grand", "empty", "random"),
@@ -129,7 +121,7 @@ class ShapleyACConfig(ExperimentConfig):
             "one of grand, empty, random",
             self.eval_coalition,
         )
-        check(self.gumbel_temperature > 0, "gumbel_temperature", "> 0", self.gumbel_temperature)
+        check(self.gumbel_tau > 0, "gumbel_tau", "> 0", self.gumbel_tau)
         check(
             1 <= self.exact_max_agents <= 20,
             "exact_max_agents",
@@ -143,7 +135,6 @@ class ShapleyACConfig(ExperimentConfig):
             self.num_permutations,
         )
         check(self.logits_reg >= 0, "logits_reg", ">= 0", self.logits_reg)
-        check(self.max_grad_norm > 0, "max_grad_norm", "> 0", self.max_grad_norm)
 
 
 class ShapleyAC(Experiment):
@@ -171,9 +162,9 @@ class ShapleyAC(Experiment):
             group.obs_dim,
             group.action_dim,
             discrete=True,
-            num_cells=config.actor_cells,
-            share_params=config.share_actor_params,
-            action_head=GumbelSoftmaxHead(config.gumbel_temperature),
+            num_cells=config.num_cells,
+            share_params=config.share_params,
+            action_head=GumbelSoftmaxHead(config.gumbel_tau),
             device=device,
         )
         self.critic = CoalitionCritic(
@@ -198,21 +189,21 @@ class ShapleyAC(Experiment):
             gamma=config.gamma,
             exact_max_agents=config.exact_max_agents,
             num_permutations=config.num_permutations,
-            gumbel_temperature=config.gumbel_temperature,
+            gumbel_temperature=config.gumbel_tau,
             logits_reg=config.logits_reg,
         )
         self.updater = SoftUpdate(self.loss, tau=config.tau)
         self.actor_optim = torch.optim.Adam(
-            self.loss.actor_network_params.values(True, True), lr=config.actor_lr
+            self.loss.actor_network_params.values(True, True), lr=config.lr_actor
         )
         self.critic_optim = torch.optim.Adam(
-            self.loss.critic_network_params.values(True, True), lr=config.critic_lr
+            self.loss.critic_network_params.values(True, True), lr=config.lr_critic
         )
 
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
         cfg = self.config
         self.buffer.extend(batch.reshape(-1).select(*REPLAY_KEYS).to(self.device))
-        if len(self.buffer) < max(cfg.warmup_frames, cfg.batch_size):
+        if len(self.buffer) < max(cfg.init_random_frames, cfg.batch_size):
             return {}
         logs: dict[str, float] = {}
         for _ in range(cfg.updates_per_batch):

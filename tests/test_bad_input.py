@@ -87,9 +87,9 @@ CONFIG_CASES = [
     ("maddpg tau=nan", lambda: MADDPGConfig(tau=NAN), "tau must be a finite number"),
     ("sac alpha_init=inf", lambda: SACConfig(alpha_init=INF), "alpha_init must be a finite"),
     (
-        "shapley critic_lr=inf",
-        lambda: ShapleyACConfig(critic_lr=INF),
-        "critic_lr must be a finite number",
+        "shapley lr_critic=inf",
+        lambda: ShapleyACConfig(lr_critic=INF),
+        "lr_critic must be a finite number",
     ),
     ("device=tpu", lambda: ToyConfig(device="tpu"), r"device must be one of \['cpu'"),
     ("device=bogus", lambda: ToyConfig(device="bogus"), "device must be one of"),

@@ -123,6 +123,7 @@ if TYPE_CHECKING:
         register_env,
         run_recipe_name,
     )
+    from mapets_rl.experiment.training import ModelFreeConfig, OffPolicyConfig, OnPolicyConfig
 
 # Exports are imported on first use, so that `mapets-rl --help` and its error messages do not
 # pay for importing torch and torchrl.
@@ -132,6 +133,9 @@ _EXPORTS = {
     "ConfigSection": "config",
     "Experiment": "runner",
     "ExperimentConfig": "config",
+    "ModelFreeConfig": "training",
+    "OffPolicyConfig": "training",
+    "OnPolicyConfig": "training",
     "ResultsWriter": "results",
     "RunConfig": "config",
     "atomic_torch_save": "checkpoint",
@@ -186,6 +190,9 @@ __all__ = [
     "ConfigSection",
     "Experiment",
     "ExperimentConfig",
+    "ModelFreeConfig",
+    "OffPolicyConfig",
+    "OnPolicyConfig",
     "ResultsWriter",
     "RunConfig",
     "atomic_torch_save",

@@ -1,10 +1,13 @@
 """Validated configuration dataclasses: YAML in, ``key=value`` overrides, resolved YAML out.
 
 Every recipe's config subclasses :class:`RunConfig` (the fields every recipe shares), through
-:class:`ExperimentConfig` (plus a frame budget) for the recipes trained batch by batch. A
-subclass adds its own fields (with type hints and defaults) and validates them in
-``__post_init__`` (call ``super().__post_init__()`` first), raising :class:`ConfigError` through
-:func:`check` so that the message names the field and the allowed range. A keyword that is not
+:class:`ExperimentConfig` (plus a frame budget) for the recipes trained batch by batch; the
+model-free recipes' configs subclass the shared training blocks of
+:mod:`mapets_rl.experiment.training` (``OffPolicyConfig``, ``OnPolicyConfig``), which declare
+and validate the fields those recipes share under one set of names. A subclass adds its own
+fields (with type hints and defaults) and validates them in ``__post_init__`` (call
+``super().__post_init__()`` first), raising :class:`ConfigError` through :func:`check` so that
+the message names the field and the allowed range. A keyword that is not
 a field is a ConfigError too.
 
 Every float field must be finite (NaN and +-inf are refused) unless its dataclass field says
@@ -25,6 +28,12 @@ written to YAML as a nested mapping, read back from one (an unknown key inside i
 ConfigError naming the dotted key, ``planner.bogus``) and its errors name the dotted field
 (``planner.horizon must be >= 1, got 0``). NaN / inf checks reach into it with its own fields'
 ``allow_inf`` metadata.
+
+Renamed fields: a config class maps the old names of renamed fields to the new ones in
+``renamed_fields`` (e.g. ``ShapleyACConfig.renamed_fields["actor_lr"] == ("lr_actor",)``);
+a ``config.yaml`` read by ``from_yaml`` or by resuming a run has its old keys renamed, with a
+one-line ``UserWarning`` naming each old key, so run directories written before the rename
+resume (and are rewritten with the new names).
 """
 
 from __future__ import annotations
@@ -36,6 +45,7 @@ import os
 import tempfile
 import types
 import typing
+import warnings
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any, ClassVar, Literal, Union, get_args, get_origin
@@ -236,6 +246,11 @@ class RunConfig:
     # keys that config.yaml files written by an older version hold and this class no longer
     # has; resuming such a run ignores them
     retired_fields: ClassVar[tuple[str, ...]] = ()
+    # keys that config.yaml files written by an older version hold under an old name: old name
+    # -> the new field name(s) that take its value (several when one field was split, e.g.
+    # SAC's ``lr`` -> ``lr_actor``, ``lr_critic``, ``lr_alpha``); reading such a file
+    # (``from_yaml``, resuming a run) renames them with a one-line warning naming the old key
+    renamed_fields: ClassVar[Mapping[str, tuple[str, ...]]] = {}
 
     def __new__(cls, *args: Any, **kwargs: Any) -> RunConfig:
         # a keyword that is not a field is a ConfigError naming it, as in from_dict (the
@@ -285,16 +300,39 @@ class RunConfig:
         return cls(**dict(data))
 
     @classmethod
+    def rename_old_keys(cls, data: Mapping[str, Any], source: str) -> dict[str, Any]:
+        """``data`` with the old keys of :attr:`renamed_fields` renamed to their new names (a
+        ``UserWarning`` naming the old key and ``source`` for each); a new key already present
+        in ``data`` wins over the old one."""
+        out = dict(data)
+        for old, new in cls.renamed_fields.items():
+            if old not in out or old in cls.field_names():
+                continue
+            value = out.pop(old)
+            warnings.warn(
+                f"{source}: config key {old!r} is now {' / '.join(map(repr, new))}; "
+                "read under the new name",
+                UserWarning,
+                stacklevel=2,
+            )
+            for name in new:
+                out.setdefault(name, value)
+        return out
+
+    @classmethod
     def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
         """The mapping of a ``config.yaml`` written by an older version, in today's layout:
-        :attr:`retired_fields` dropped; a subclass may also map renamed keys."""
+        :attr:`retired_fields` dropped; a subclass may also map an older layout (MA-PETS: flat
+        planner/model/comm keys to its nested sections)."""
         return {k: v for k, v in data.items() if k not in cls.retired_fields}
 
     @classmethod
     def from_yaml(cls, path: str | os.PathLike) -> RunConfig:
-        """Build from a YAML file of fields (older layouts upgraded by :meth:`upgrade_dict`);
-        every error is a one-line ConfigError naming it."""
-        data = cls.upgrade_dict(read_yaml_mapping(path))
+        """Build from a YAML file of fields (old keys renamed by :meth:`rename_old_keys`, older
+        layouts upgraded by :meth:`upgrade_dict`); every error is a one-line ConfigError."""
+        data = cls.upgrade_dict(
+            cls.rename_old_keys(read_yaml_mapping(path), f"config file {str(path)!r}")
+        )
         try:
             return cls.from_dict(data)
         except ConfigError as err:

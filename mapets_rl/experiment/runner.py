@@ -554,9 +554,10 @@ class Experiment:
         if not path.is_file():
             raise ConfigError(f"run_dir {str(run_dir)!r} has no {CONFIG_FILE}")
         on_disk = read_yaml_mapping(path)
-        # keys an older version of the recipe wrote and no longer has are dropped or mapped to
-        # their new names (and config.yaml is rewritten in today's layout)
-        data = cls.Config.upgrade_dict(on_disk)
+        # keys an older version of the recipe wrote under an old name are read under the new
+        # one; keys it no longer has are dropped or mapped to today's layout (config.yaml is
+        # rewritten in today's layout)
+        data = cls.Config.upgrade_dict(cls.Config.rename_old_keys(on_disk, repr(str(path))))
         fields = cls.Config.field_names()
         unknown = sorted(set(data) - set(fields))
         if unknown:

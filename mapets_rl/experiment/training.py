@@ -1,0 +1,113 @@
+"""The training blocks the model-free recipes share, with one set of names.
+
+:class:`ModelFreeConfig` holds what every model-free recipe has (discount, gradient clip,
+network sizes, parameter sharing); :class:`OffPolicyConfig` adds replay and target-network
+fields for the replay-buffer recipes (``maddpg``, ``sac``, ``shapley_ac``) and
+:class:`OnPolicyConfig` the PPO fields of ``mappo``. Every shared field is validated once, here;
+a recipe's config subclasses a block, adds only its own fields and changes a shared default by
+re-declaring the field (e.g. ``gamma: float = 0.99`` in ``SACConfig``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from mapets_rl.experiment.config import ExperimentConfig, check
+
+
+@dataclasses.dataclass
+class ModelFreeConfig(ExperimentConfig):
+    """Fields every model-free recipe shares (plus :class:`ExperimentConfig`).
+
+    Attributes:
+        gamma: discount in [0, 1].
+        max_grad_norm: gradient-norm clip (> 0).
+        num_cells: hidden layer sizes of the actor / policy MLPs (and of the critics where the
+            recipe has no field of its own for them), a non-empty list of ints >= 1.
+        share_params: one actor / policy network shared by all agents (else one per agent).
+    """
+
+    gamma: float = 0.95
+    max_grad_norm: float = 1.0
+    num_cells: list[int] = dataclasses.field(default_factory=lambda: [64, 64])
+    share_params: bool = True
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(0 <= self.gamma <= 1, "gamma", "in [0, 1]", self.gamma)
+        check(self.max_grad_norm > 0, "max_grad_norm", "> 0", self.max_grad_norm)
+        check(
+            len(self.num_cells) >= 1 and min(self.num_cells) >= 1,
+            "num_cells",
+            "a non-empty list of positive layer sizes",
+            self.num_cells,
+        )
+
+
+@dataclasses.dataclass
+class OffPolicyConfig(ModelFreeConfig):
+    """Replay-buffer actor-critic training (plus :class:`ModelFreeConfig`).
+
+    Attributes:
+        tau: soft target update rate in (0, 1].
+        buffer_size: replay capacity in transitions (>= batch_size).
+        batch_size: transitions per gradient step (>= 1).
+        updates_per_batch: gradient steps per collected batch (>= 1).
+        init_random_frames: frames collected before the first update (>= 0); ``maddpg`` and
+            ``sac`` act uniformly at random during them, ``shapley_ac`` acts with its policy
+            (see the recipe).
+        lr_actor, lr_critic: Adam learning rates of the actor(s) and the critic(s) (> 0).
+    """
+
+    tau: float = 0.01
+    buffer_size: int = 100_000
+    batch_size: int = 256
+    updates_per_batch: int = 20
+    init_random_frames: int = 200
+    lr_actor: float = 1e-3
+    lr_critic: float = 1e-3
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(0 < self.tau <= 1, "tau", "in (0, 1]", self.tau)
+        check(self.batch_size >= 1, "batch_size", ">= 1", self.batch_size)
+        check(
+            self.buffer_size >= self.batch_size,
+            "buffer_size",
+            f">= batch_size={self.batch_size}",
+            self.buffer_size,
+        )
+        check(self.updates_per_batch >= 1, "updates_per_batch", ">= 1", self.updates_per_batch)
+        check(self.init_random_frames >= 0, "init_random_frames", ">= 0", self.init_random_frames)
+        check(self.lr_actor > 0, "lr_actor", "> 0", self.lr_actor)
+        check(self.lr_critic > 0, "lr_critic", "> 0", self.lr_critic)
+
+
+@dataclasses.dataclass
+class OnPolicyConfig(ModelFreeConfig):
+    """PPO-style on-policy training on the last collected batch (plus :class:`ModelFreeConfig`).
+
+    Attributes:
+        lr: Adam learning rate of policy and value, one optimiser (> 0).
+        lmbda: GAE lambda in [0, 1].
+        epochs: passes over each collected batch (>= 1).
+        minibatch_size: transitions per gradient step (1 .. frames_per_batch).
+    """
+
+    gamma: float = 0.99
+    lr: float = 3e-4
+    lmbda: float = 0.95
+    epochs: int = 4
+    minibatch_size: int = 100
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(self.lr > 0, "lr", "> 0", self.lr)
+        check(0 <= self.lmbda <= 1, "lmbda", "in [0, 1]", self.lmbda)
+        check(self.epochs >= 1, "epochs", ">= 1", self.epochs)
+        check(
+            1 <= self.minibatch_size <= self.frames_per_batch,
+            "minibatch_size",
+            f"in [1, frames_per_batch={self.frames_per_batch}]",
+            self.minibatch_size,
+        )
