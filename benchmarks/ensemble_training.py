@@ -25,8 +25,8 @@ from tensordict import TensorDict
 from torch import nn
 from torch.nn import functional as F
 
-from mapets_rl.models import ProbabilisticEnsemble, train_ensemble
-from mapets_rl.objectives import EnsembleNLLLoss
+from mapets_rl.models import ProbabilisticEnsemble
+from mapets_rl.objectives import EnsembleNLLLoss, train_ensemble
 
 OBS_DIM, ACT_DIM = 7, 1
 

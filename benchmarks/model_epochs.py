@@ -29,8 +29,8 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
-from mapets_rl.models import ProbabilisticEnsemble, train_ensemble
-from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss
+from mapets_rl.models import ProbabilisticEnsemble
+from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, train_ensemble
 from recipes.mapets import MAPETS
 
 GAP_AHEAD = 5

@@ -49,9 +49,9 @@ from mapets_rl.envs import figure_eight_collision, figure_eight_reward
 from mapets_rl.envs.figure_eight import OBSERVATIONS
 from mapets_rl.experiment import Experiment, RunConfig, check, log_scalars
 from mapets_rl.experiment.runner import build_env
-from mapets_rl.models import EnsembleConfig, ProbabilisticEnsemble, train_ensemble
+from mapets_rl.models import EnsembleConfig, ProbabilisticEnsemble
 from mapets_rl.modules import AgentGroupSpec, masked_mean
-from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss
+from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, train_ensemble
 from mapets_rl.planning import (
     PRESETS,
     PlannerConfig,

@@ -6,8 +6,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from mapets_rl.models import ProbabilisticEnsemble, train_ensemble
-from mapets_rl.objectives import EnsembleNLLLoss
+from mapets_rl.models import ProbabilisticEnsemble
+from mapets_rl.objectives import EnsembleNLLLoss, train_ensemble
 
 OBS = ("agents", "observation")
 ACT = ("agents", "action")

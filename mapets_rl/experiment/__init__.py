@@ -102,11 +102,9 @@ if TYPE_CHECKING:
         ConfigSection,
         ExperimentConfig,
         RunConfig,
-        atomic_savefig,
-        atomic_write,
-        atomic_write_text,
         check,
     )
+    from mapets_rl.experiment.files import atomic_savefig, atomic_write, atomic_write_text
     from mapets_rl.experiment.plugins import available_recipes, load_recipe
     from mapets_rl.experiment.results import (
         ResultsWriter,
@@ -139,9 +137,9 @@ _EXPORTS = {
     "ResultsWriter": "results",
     "RunConfig": "config",
     "atomic_torch_save": "checkpoint",
-    "atomic_savefig": "config",
-    "atomic_write": "config",
-    "atomic_write_text": "config",
+    "atomic_savefig": "files",
+    "atomic_write": "files",
+    "atomic_write_text": "files",
     "available_envs": "runner",
     "available_recipes": "plugins",
     "build_env": "runner",

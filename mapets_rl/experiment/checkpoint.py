@@ -31,14 +31,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from mapets_rl.experiment.config import atomic_write, atomic_write_text
+from mapets_rl.experiment.files import atomic_write, atomic_write_text
 
 CHECKPOINT_DIR = "checkpoints"
 DIGEST_SUFFIX = ".sha256"
 _NAME = re.compile(r"^ckpt_(\d+)\.pt$")
 _DIGEST_LINE = re.compile(r"^([0-9a-f]{64})  (\S+)\n?$")
 _TEMP_NAME = re.compile(r"^\..+\.[a-z0-9_]{8}\.tmp(\.[^.]+)?$")
-"""Temp files of :func:`~mapets_rl.experiment.config.atomic_write` (``.<name>.<random>.tmp<ext>``)
+"""Temp files of :func:`~mapets_rl.experiment.files.atomic_write` (``.<name>.<random>.tmp<ext>``)
 and of older checkpoint writes (``.ckpt_<frames>.pt.<random>.tmp``)."""
 
 logger = logging.getLogger(__name__)
@@ -128,7 +128,7 @@ def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:
 
     Order: temp file (``torch.save``, fsync) -> ``<path>.sha256`` (atomic) -> rename of the temp
     file to ``path`` -> fsync of the directory. Files get the permissions of any other file
-    the run writes (see :func:`~mapets_rl.experiment.config.atomic_write`).
+    the run writes (see :func:`~mapets_rl.experiment.files.atomic_write`).
     """
     path = Path(path)
 

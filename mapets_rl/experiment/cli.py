@@ -246,7 +246,8 @@ def _check_env(name: str) -> None:
 def _cmd_train(args: argparse.Namespace) -> int:
     cls = _recipe_class(args.recipe)  # an unknown name fails before torch is imported
     _check_env(args.env)
-    from mapets_rl.experiment.config import ConfigError, check_writable_dir
+    from mapets_rl.experiment.config import ConfigError
+    from mapets_rl.experiment.files import check_writable_dir
     from mapets_rl.experiment.runner import default_run_dir
 
     overrides = [f"env={args.env}"]

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from mapets_rl.experiment.config import (
+from mapets_rl.experiment.files import (
     atomic_savefig,
     atomic_write_text,
     check_writable_dir,

@@ -11,7 +11,8 @@ from typing import Any
 
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLogger
 
-from mapets_rl.experiment.config import LOGGERS, atomic_write_text, check_logger_package
+from mapets_rl.experiment.config import LOGGERS, check_logger_package
+from mapets_rl.experiment.files import atomic_write_text
 
 RESULTS_FILE = "results.json"
 

@@ -38,13 +38,15 @@ from mapets_rl.experiment.config import (
     ConfigError,
     ExperimentConfig,
     RunConfig,
-    atomic_write,
-    atomic_write_text,
     check_device,
-    check_writable_dir,
-    make_writable_dir,
     parse_override,
     read_yaml_mapping,
+)
+from mapets_rl.experiment.files import (
+    atomic_write,
+    atomic_write_text,
+    check_writable_dir,
+    make_writable_dir,
 )
 from mapets_rl.experiment.plugins import SCENARIO_GROUP, entry_points, load_entry_point
 from mapets_rl.experiment.results import (

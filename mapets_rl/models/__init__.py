@@ -2,6 +2,5 @@
 
 from mapets_rl.models.config import EnsembleConfig
 from mapets_rl.models.ensemble import ProbabilisticEnsemble
-from mapets_rl.models.training import train_ensemble
 
-__all__ = ["EnsembleConfig", "ProbabilisticEnsemble", "train_ensemble"]
+__all__ = ["EnsembleConfig", "ProbabilisticEnsemble"]

@@ -153,7 +153,7 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
             mask: optional ``[N, I]`` bool, ``False`` for rows that are padding / invalid for
                 that agent (agents may hold datasets of different sizes).
         """
-        self._check_batch(obs, action, next_obs, mask)
+        self.check_batch(obs, action, next_obs, mask)
         if mask is not None:  # masked rows may hold anything (NaN padding): zero them out
             keep = mask.unsqueeze(-1)
             obs, action, next_obs = (
@@ -178,7 +178,7 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
             mean_buf.copy_(mean.unsqueeze(1))
             std_buf.copy_(std.unsqueeze(1))
 
-    def _check_batch(
+    def check_batch(
         self,
         obs: torch.Tensor,
         action: torch.Tensor,

@@ -11,7 +11,7 @@ from torchrl.objectives import LossModule
 
 from mapets_rl.models.ensemble import ProbabilisticEnsemble
 
-__all__ = ["EnsembleNLLLoss"]
+__all__ = ["EnsembleNLLLoss", "train_ensemble"]
 
 
 class EnsembleNLLLoss(LossModule):
@@ -89,7 +89,7 @@ class EnsembleNLLLoss(LossModule):
         keys = self.tensor_keys
         return [keys.observation, keys.action, keys.next_observation, keys.mask]
 
-    def _read(
+    def read_batch(
         self, tensordict: TensorDictBase
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """Read and flatten the batch to ``[N, I, *]`` tensors, validating shape and values."""
@@ -107,7 +107,7 @@ class EnsembleNLLLoss(LossModule):
         next_obs = next_obs.reshape(-1, *next_obs.shape[-2:]) if next_obs.ndim >= 2 else next_obs
         if mask is not None:
             mask = mask.reshape(*batch, model.n_agents).reshape(-1, model.n_agents).bool()
-        model._check_batch(obs, action, next_obs, mask)
+        model.check_batch(obs, action, next_obs, mask)
         if mask is not None:
             # Masked rows may hold anything (e.g. NaN of removed agents): zero them out.
             keep = mask.unsqueeze(-1)
@@ -118,10 +118,10 @@ class EnsembleNLLLoss(LossModule):
 
     def fit_normalizer(self, tensordict: TensorDictBase) -> None:
         """Fit the model's per-agent normalisation on the loss's keys of ``tensordict``."""
-        self.model.fit_normalizer(*self._read(tensordict))
+        self.model.fit_normalizer(*self.read_batch(tensordict))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        obs, action, next_obs, mask = self._read(tensordict)
+        obs, action, next_obs, mask = self.read_batch(tensordict)
         model = self.model
         rows = obs.shape[0]
         n_agents, members = model.n_agents, model.ensemble_size
@@ -165,3 +165,61 @@ class EnsembleNLLLoss(LossModule):
             },
             batch_size=[],
         )
+
+
+def train_ensemble(
+    loss_module: EnsembleNLLLoss,
+    optimizer: torch.optim.Optimizer,
+    data: TensorDictBase,
+    *,
+    epochs: int = 5,
+    batch_size: int = 128,
+    fit_normalizer: bool = True,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
+    """Train every agent's ensemble for ``epochs`` passes over ``data`` (paper: 5 x 128, Adam).
+
+    All ``I * B`` members take each optimisation step together (one batched forward/backward);
+    each member sees its own bootstrap resample of every minibatch (see
+    :class:`~mapets_rl.objectives.EnsembleNLLLoss`).
+
+    Args:
+        loss_module: an ``EnsembleNLLLoss`` wrapping the ensemble.
+        optimizer: optimiser over ``loss_module.parameters()`` (paper: Adam, lr 1e-3).
+        data: transitions with batch shape ``[N]`` and the loss's keys shaped ``[N, I, *]``
+            (agents with fewer transitions pad with ``mask=False`` rows).
+        epochs: passes over the data (> 0).
+        batch_size: rows per optimisation step (> 0).
+        fit_normalizer: refit the per-agent input/output normalisation on ``data`` first.
+        generator: optional generator for the shuffling.
+
+    Returns:
+        ``[epochs, I, B]`` mean per-member NLL of each epoch.
+    """
+    if not isinstance(epochs, int) or epochs <= 0:
+        raise ValueError(f"epochs must be a positive integer, got {epochs!r}.")
+    if not isinstance(batch_size, int) or batch_size <= 0:
+        raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}.")
+    if data.batch_dims != 1 or data.batch_size[0] == 0:
+        raise ValueError(
+            f"data must have a non-empty batch shape [N], got {tuple(data.batch_size)}."
+        )
+    # Validates shapes and finiteness of the whole dataset before any update.
+    if fit_normalizer:
+        loss_module.fit_normalizer(data)
+    else:
+        loss_module.read_batch(data)
+    rows = data.batch_size[0]
+    history = []
+    for _ in range(epochs):
+        order = torch.randperm(rows, generator=generator, device=data.device)
+        per_member = []
+        for start in range(0, rows, batch_size):
+            losses = loss_module(data[order[start : start + batch_size]])
+            total = sum(v for k, v in losses.items() if k.startswith("loss_"))
+            optimizer.zero_grad(set_to_none=True)
+            total.backward()
+            optimizer.step()
+            per_member.append(losses["nll_per_member"])
+        history.append(torch.stack(per_member).mean(0))
+    return torch.stack(history)
