@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from cli_run import run_cli
 from test_experiment import _params
 from toy_recipe import ToyConfig, ToyLearner
 
@@ -31,20 +32,10 @@ from mapets_rl.experiment import (
     remove_stale_files,
     save_checkpoint,
 )
-from mapets_rl.experiment.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.usefixtures("toy_scenario")
-
-
-def _run(argv: list[str], capsys) -> tuple[int, str, str]:
-    try:
-        code = main(argv)
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def _trained(tmp_path: Path, frames: int = 40) -> Path:
@@ -172,10 +163,10 @@ def test_cli_evaluate_skips_a_tampered_checkpoint_with_one_warning_line(
     tmp_path: Path, toy_recipe, capsys
 ) -> None:
     run = _trained(tmp_path)
-    code, _, err = _run(["evaluate", str(run)], capsys)
+    code, _, err = run_cli(["evaluate", str(run)], capsys)
     assert code == 0 and err == ""
     _flip_byte(list_checkpoints(run)[-1])
-    code, out, err = _run(["evaluate", str(run)], capsys)
+    code, out, err = run_cli(["evaluate", str(run)], capsys)
     assert code == 0 and '"frames": 20' in out
     assert err.count("\n") == 1 and err.startswith("mapets-rl: warning: checkpoint")
     assert "ckpt_000000000040.pt' does not match its SHA-256 digest" in err
@@ -190,7 +181,7 @@ def test_no_checkpoint_verifies_fails_with_one_line(tmp_path: Path, toy_recipe, 
         load_latest_checkpoint(run)
     capsys.readouterr()
     for command in ("resume", "evaluate"):
-        code, _, err = _run([command, str(run)], capsys)
+        code, _, err = run_cli([command, str(run)], capsys)
         lines = err.splitlines()
         assert code == 2 and lines[-1].startswith("mapets-rl: error: none of the 2 checkpoints")
         assert len(lines) == 3 and all(
@@ -254,7 +245,7 @@ def test_failed_resume_leaves_the_run_directory_usable(
         for p in run.rglob("*")
         if p.is_file() and "logs" not in p.parts
     }
-    code, _, err = _run(["resume", str(run), override, "total_frames=60"], capsys)
+    code, _, err = run_cli(["resume", str(run), override, "total_frames=60"], capsys)
     assert code == 2 and err.count("\n") == 1 and needle in err, err
     after = {
         p.relative_to(run): p.read_bytes()
@@ -262,9 +253,9 @@ def test_failed_resume_leaves_the_run_directory_usable(
         if p.is_file() and "logs" not in p.parts
     }
     assert after == before  # nothing was rewritten
-    code, out, _ = _run(["resume", str(run), "total_frames=60"], capsys)
+    code, out, _ = run_cli(["resume", str(run), "total_frames=60"], capsys)
     assert code == 0 and '"frames": 60' in out
-    code, out, _ = _run(["evaluate", str(run)], capsys)
+    code, out, _ = run_cli(["evaluate", str(run)], capsys)
     assert code == 0
     assert [e["frames"] for e in read_results(run)["evaluations"]] == [20, 40, 60]
 
@@ -290,7 +281,7 @@ def test_malformed_config_yaml_gives_one_line_naming_it(
 ) -> None:
     run = _trained(tmp_path)
     (run / "config.yaml").write_text(content)
-    code, _, err = _run(["resume", str(run)], capsys)
+    code, _, err = run_cli(["resume", str(run)], capsys)
     assert code == 2 and err.count("\n") == 1 and needle in err and "config.yaml" in err
     with pytest.raises(ConfigError, match=needle):
         ToyLearner.from_run_dir(run)
@@ -311,14 +302,16 @@ def test_malformed_run_json_gives_one_line_naming_it(
     run = _trained(tmp_path)
     (run / "run.json").write_text(content)
     for command in ("resume", "evaluate"):
-        code, _, err = _run([command, str(run)], capsys)
+        code, _, err = run_cli([command, str(run)], capsys)
         assert code == 2 and err.count("\n") == 1 and needle in err and "run.json" in err
 
 
 def test_failed_train_leaves_no_half_made_run_dir(tmp_path: Path, toy_recipe, capsys) -> None:
     run = tmp_path / "new"
     for env, override in (("toy", "logger=wandb"), ("figure-eight", "env_config.max_speed=-5")):
-        code, _, err = _run(["train", "toy", "--env", env, "--run-dir", str(run), override], capsys)
+        code, _, err = run_cli(
+            ["train", "toy", "--env", env, "--run-dir", str(run), override], capsys
+        )
         assert code == 2 and err.count("\n") == 1
         assert not run.exists()
 
@@ -336,17 +329,19 @@ def test_resume_of_a_real_scenario_refuses_another_agent_count(tmp_path: Path, c
         "progress=false",
         "logger=none",
     ]
-    code, _, _ = _run(["train", "mappo", "--env", "figure-eight", "--run-dir", run, *tiny], capsys)
+    code, _, _ = run_cli(
+        ["train", "mappo", "--env", "figure-eight", "--run-dir", run, *tiny], capsys
+    )
     assert code == 0
     config = (tmp_path / "mappo" / "config.yaml").read_bytes()
     for override, needle in (
         ("env_config.n_cavs=4", "env_config.n_cavs changed"),
         ("num_cells=[32]", "num_cells changed"),
     ):
-        code, _, err = _run(["resume", run, override, "total_frames=30"], capsys)
+        code, _, err = run_cli(["resume", run, override, "total_frames=30"], capsys)
         assert code == 2 and err.count("\n") == 1 and needle in err, err
         assert (tmp_path / "mappo" / "config.yaml").read_bytes() == config
-    code, out, _ = _run(["resume", run, "total_frames=30"], capsys)
+    code, out, _ = run_cli(["resume", run, "total_frames=30"], capsys)
     assert code == 0 and '"frames": 30' in out
 
 

@@ -10,27 +10,18 @@ import sys
 from pathlib import Path
 
 import pytest
+from cli_run import run_cli
 
 from mapets_rl.experiment import read_results
-from mapets_rl.experiment.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _run(argv, capsys) -> tuple[int, str, str]:
-    try:
-        code = main(argv)
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def test_train_resume_evaluate_compare(tmp_path: Path, toy_recipe, capsys) -> None:
     runs = []
     for seed in (0, 1):
         run = tmp_path / f"toy{seed}"
-        code, out, _ = _run(
+        code, out, _ = run_cli(
             [
                 "train",
                 "toy",
@@ -46,15 +37,15 @@ def test_train_resume_evaluate_compare(tmp_path: Path, toy_recipe, capsys) -> No
         )
         assert code == 0 and json.loads(out.splitlines()[-1])["frames"] == 40
         runs.append(run)
-    code, out, _ = _run(["resume", str(runs[0]), "total_frames=60"], capsys)
+    code, out, _ = run_cli(["resume", str(runs[0]), "total_frames=60"], capsys)
     assert code == 0 and json.loads(out.splitlines()[-1])["frames"] == 60
     assert [e["frames"] for e in read_results(runs[0])["evaluations"]] == [20, 40, 60]
 
-    code, out, _ = _run(["evaluate", str(runs[0]), "--episodes", "2"], capsys)
+    code, out, _ = run_cli(["evaluate", str(runs[0]), "--episodes", "2"], capsys)
     assert code == 0 and "return" in json.loads(out.splitlines()[-1])["metrics"]
     assert (runs[0] / "evaluation.json").is_file()
 
-    code, out, _ = _run(["compare", *map(str, runs), "--out", str(tmp_path / "cmp")], capsys)
+    code, out, _ = run_cli(["compare", *map(str, runs), "--out", str(tmp_path / "cmp")], capsys)
     assert code == 0 and "| toy |" in out
     assert (tmp_path / "cmp" / "learning_curves.png").is_file()
     assert (tmp_path / "cmp" / "final_metrics.md").is_file()
@@ -77,7 +68,7 @@ def test_train_resume_evaluate_compare(tmp_path: Path, toy_recipe, capsys) -> No
     ],
 )
 def test_error_paths_exit_2_with_one_line(argv, needle, toy_recipe, capsys) -> None:
-    code, _, err = _run(argv, capsys)
+    code, _, err = run_cli(argv, capsys)
     assert code == 2
     assert err.count("\n") == 1 and err.startswith("mapets-rl: error:") and needle in err
 
@@ -108,9 +99,9 @@ def test_module_entry_point_errors_without_traceback() -> None:
 
 def test_help_explains_every_subcommand(capsys) -> None:
     for sub in ("train", "resume", "evaluate", "compare"):
-        code, out, _ = _run([sub, "--help"], capsys)
+        code, out, _ = run_cli([sub, "--help"], capsys)
         assert code == 0 and "usage: mapets-rl " + sub in out
-    code, out, _ = _run(["train", "--help"], capsys)
+    code, out, _ = run_cli(["train", "--help"], capsys)
     for option in ("--env", "--seed", "--config", "--run-dir", "key=value"):
         assert option in out
 

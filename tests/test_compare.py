@@ -9,19 +9,10 @@ import logging
 from pathlib import Path
 
 import pytest
+from cli_run import run_cli
 from test_results import ENV_CONFIG, eval_entries, fake_run, train_entries
 
 from mapets_rl.experiment import compare, mean_ci95
-from mapets_rl.experiment.cli import main
-
-
-def _run(argv, capsys) -> tuple[int, str, str]:
-    try:
-        code = main(argv)
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 # ------------------------------------------------------------------------------- sources
@@ -208,7 +199,7 @@ def test_cli_compare_options(tmp_path: Path, capsys) -> None:
         for d in (0, 100)
         for s in (0, 1)
     ]
-    code, out, err = _run(
+    code, out, err = run_cli(
         [
             "compare",
             *runs,
@@ -236,17 +227,17 @@ def test_cli_compare_options(tmp_path: Path, capsys) -> None:
             train=train_entries(0.5),
         )
     )
-    code, _, err = _run(["compare", runs[0], other, "--out", str(tmp_path / "cmp2")], capsys)
+    code, _, err = run_cli(["compare", runs[0], other, "--out", str(tmp_path / "cmp2")], capsys)
     assert code == 2 and err.count("\n") == 1 and "env_config.n_cavs" in err
     assert err.startswith("mapets-rl: error: the runs are on different scenarios")
-    code, out, err = _run(
+    code, out, err = run_cli(
         ["compare", runs[0], other, "--out", str(tmp_path / "cmp3"), "--allow-mixed-env"], capsys
     )
     assert code == 0
     assert "mapets-rl: warning: comparing runs on different scenarios" in err
     assert "no evaluations; comparing their training entries instead\n" in err
     assert "| mapets [n_cavs=4] | training entries |" in out
-    code, _, err = _run(
+    code, _, err = run_cli(
         ["compare", runs[0], "--out", str(tmp_path / "cmp4"), "--group-by", ","], capsys
     )
     assert code == 2 and "--group-by must name at least one config field" in err

@@ -14,6 +14,7 @@ from importlib import metadata
 from pathlib import Path
 
 import pytest
+from cli_run import run_cli
 
 from mapets_rl.experiment import (
     Experiment,
@@ -24,19 +25,9 @@ from mapets_rl.experiment import (
     read_results,
     register_env,
 )
-from mapets_rl.experiment.cli import main
 from mapets_rl.experiment.plugins import RECIPE_GROUP, SCENARIO_GROUP, entry_points
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _run(argv, capsys) -> tuple[int, str, str]:
-    try:
-        code = main(argv)
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def _imports(path: Path) -> list[str]:
@@ -121,7 +112,7 @@ def test_unknown_recipe_names_the_installed_ones(add_entry_point, capsys) -> Non
         r"zz_second\)",
     ):
         load_recipe("nope")
-    code, _, err = _run(["train", "nope", "--env", "figure-eight"], capsys)
+    code, _, err = run_cli(["train", "nope", "--env", "figure-eight"], capsys)
     assert code == 2 and err.count("\n") == 1
     assert err.startswith("mapets-rl: error: unknown recipe 'nope' (choose from: ")
     assert "zz_first, zz_second" in err
@@ -129,14 +120,14 @@ def test_unknown_recipe_names_the_installed_ones(add_entry_point, capsys) -> Non
 
 def test_no_installed_recipe_says_to_reinstall(monkeypatch, capsys) -> None:
     monkeypatch.setattr(metadata, "entry_points", lambda **params: metadata.EntryPoints([]))
-    code, _, err = _run(["train", "mappo", "--env", "figure-eight"], capsys)
+    code, _, err = run_cli(["train", "mappo", "--env", "figure-eight"], capsys)
     assert code == 2 and err.count("\n") == 1
     assert "no recipes are registered" in err and "pip install -e ." in err
 
 
 def test_unimportable_recipe_is_one_line(add_entry_point, capsys) -> None:
     add_entry_point(RECIPE_GROUP, "ghost", "no_such_module_here:Ghost")
-    code, _, err = _run(["train", "ghost", "--env", "figure-eight"], capsys)
+    code, _, err = run_cli(["train", "ghost", "--env", "figure-eight"], capsys)
     assert code == 2 and err.count("\n") == 1
     assert "recipe 'ghost' (no_such_module_here:Ghost) cannot be imported" in err
 
@@ -154,7 +145,7 @@ def test_a_recipe_seen_twice_counts_once_and_a_clash_is_refused(add_entry_point)
 
 
 def test_train_recipe_help_lists_its_fields(toy_recipe, capsys) -> None:
-    code, out, _ = _run(["train", "toy", "--help"], capsys)
+    code, out, _ = run_cli(["train", "toy", "--help"], capsys)
     assert code == 0 and out.startswith("usage: mapets-rl train toy --env SCENARIO")
     assert "  lr: float = 0.05\n" in out and "  env_config: dict[str, Any] = {}\n" in out
     assert "  total_frames: int = 60\n" in out
@@ -181,7 +172,7 @@ def test_installed_scenario_trains_and_resumes_from_the_cli(
     plugin_scenario: str, toy_recipe, tmp_path: Path, capsys
 ) -> None:
     run = tmp_path / "run"
-    code, out, err = _run(
+    code, out, err = run_cli(
         [
             "train",
             "toy",
@@ -195,7 +186,7 @@ def test_installed_scenario_trains_and_resumes_from_the_cli(
         capsys,
     )
     assert code == 0, err
-    code, out, err = _run(["resume", str(run), "total_frames=40"], capsys)
+    code, out, err = run_cli(["resume", str(run), "total_frames=40"], capsys)
     assert code == 0, err
     assert json.loads(out.splitlines()[-1])["frames"] == 40
     results = read_results(run)
