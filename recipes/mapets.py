@@ -360,6 +360,7 @@ class MAPETS(Experiment):
             termination_fn=self.termination_fn,
             **config.planner.planner_kwargs(),
         )
+        log.info("planner compute dtype: %s", self.planner.dtype_reason)
         self.eval_policy = self.planner
 
         # D(i)+ of every CAV over one shared storage

@@ -9,6 +9,7 @@ and keeps the warm start).
 from mapets_rl.planning.cem import CEMOptimizer, ScoreFn
 from mapets_rl.planning.config import CPU_PRESET, PAPER_PRESET, PRESETS, PlannerConfig, Preset
 from mapets_rl.planning.mpc import TrajectorySamplingCEM
+from mapets_rl.planning.precision import DTYPE_CHOICES, resolve_dtype
 from mapets_rl.planning.trajectory_sampling import (
     PROPAGATIONS,
     DynamicsModel,
@@ -31,4 +32,6 @@ __all__ = [
     "CPU_PRESET",
     "PRESETS",
     "PROPAGATIONS",
+    "DTYPE_CHOICES",
+    "resolve_dtype",
 ]

@@ -6,6 +6,7 @@ import dataclasses
 
 from mapets_rl.experiment.config import ConfigSection, check
 from mapets_rl.models.config import EnsembleConfig
+from mapets_rl.planning.precision import DTYPE_CHOICES
 from mapets_rl.planning.trajectory_sampling import PROPAGATIONS
 
 __all__ = ["PlannerConfig", "Preset", "PAPER_PRESET", "CPU_PRESET", "PRESETS", "PROPAGATIONS"]
@@ -28,6 +29,9 @@ class PlannerConfig(ConfigSection):
         epsilon: CEM stops early once every sampling std is below it (> 0).
         alpha: momentum of the CEM update, ``new = alpha * old + (1 - alpha) * elites``
             (in [0, 1)).
+        dtype: compute dtype of the ensemble forward while planning: ``"auto"`` (bf16 on
+            CPUs with AVX512-BF16/AMX and on CUDA devices with bf16, fp32 elsewhere),
+            ``"fp32"`` or ``"bf16"``.
     """
 
     horizon: int = 25
@@ -38,6 +42,7 @@ class PlannerConfig(ConfigSection):
     propagation: str = "ts_inf"
     epsilon: float = 1e-3
     alpha: float = 0.1
+    dtype: str = "auto"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -57,6 +62,7 @@ class PlannerConfig(ConfigSection):
         )
         check(self.epsilon > 0, "epsilon", "> 0", self.epsilon)
         check(0.0 <= self.alpha < 1.0, "alpha", "in [0, 1)", self.alpha)
+        check(self.dtype in DTYPE_CHOICES, "dtype", f"one of {list(DTYPE_CHOICES)}", self.dtype)
 
     def planner_kwargs(self) -> dict:
         """Keyword arguments for :class:`~mapets_rl.planning.TrajectorySamplingCEM`."""

@@ -19,6 +19,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
 from mapets_rl.planning.cem import CEMOptimizer
+from mapets_rl.planning.precision import resolve_dtype
 from mapets_rl.planning.trajectory_sampling import (
     PROPAGATIONS,
     DynamicsModel,
@@ -84,8 +85,11 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             ``low < high`` elementwise.
         horizon, population, elites, iterations, particles, propagation, epsilon, alpha: see
             :class:`~mapets_rl.planning.PlannerConfig` (Table II names ``w, Q, X, Y, P``).
-        dtype: compute dtype of the ensemble forward (``torch.bfloat16`` or ``torch.float32``);
-            states, rewards and CEM statistics stay float32.
+        dtype: compute dtype of the ensemble forward: ``"auto"`` (bf16 where the hardware
+            runs it natively, fp32 elsewhere; see
+            :func:`~mapets_rl.planning.precision.resolve_dtype`), ``"fp32"``, ``"bf16"`` or a
+            torch dtype. States, rewards and CEM statistics stay float32. The choice and its
+            reason are kept in ``dtype`` / ``dtype_reason``.
         seed / generator: reproducible randomness (``generator`` wins if both are given).
         observation_key / action_key / is_init_key: TensorDict keys.
     """
@@ -104,7 +108,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         propagation: str = "ts_inf",
         epsilon: float = 1e-3,
         alpha: float = 0.1,
-        dtype: torch.dtype = torch.float32,
+        dtype: str | torch.dtype = "auto",
         *,
         seed: int | None = None,
         generator: torch.Generator | None = None,
@@ -151,9 +155,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             raise ValueError(f"epsilon must be > 0, got {epsilon}.")
         if not 0 <= alpha < 1:
             raise ValueError(f"alpha must be in [0, 1), got {alpha}.")
-        if dtype not in (torch.float32, torch.bfloat16):
-            raise ValueError(f"dtype must be torch.float32 or torch.bfloat16, got {dtype}.")
         device = _model_device(model, action_low)
+        resolved_dtype, dtype_reason = resolve_dtype(dtype, device)
         low = torch.as_tensor(action_low, dtype=torch.float32, device=device)
         high = torch.as_tensor(action_high, dtype=torch.float32, device=device)
         act = model.action_dim
@@ -173,7 +176,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         self.horizon = horizon
         self.particles = particles
         self.propagation = propagation
-        self.dtype = dtype
+        self.dtype = resolved_dtype
+        self.dtype_reason = dtype_reason
         if generator is None and seed is not None:
             generator = torch.Generator(device=device)
             generator.manual_seed(seed)
