@@ -26,7 +26,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from mapets_rl.models import ProbabilisticEnsemble
-from mapets_rl.objectives import EnsembleNLLLoss, train_ensemble
+from mapets_rl.objectives import EnsembleNLLLoss, ensemble_optimizer, train_ensemble
 
 OBS_DIM, ACT_DIM = 7, 1
 
@@ -49,7 +49,7 @@ def make_data(rows: int, n_agents: int) -> TensorDict:
 def vectorized(data: TensorDict, args: argparse.Namespace) -> float:
     model = ProbabilisticEnsemble(OBS_DIM, ACT_DIM, args.agents, args.members, tuple(args.hidden))
     loss = EnsembleNLLLoss(model)
-    optim = torch.optim.Adam(loss.parameters(), lr=1e-3)
+    optim = ensemble_optimizer(loss, lr=1e-3)
     start = time.perf_counter()
     train_ensemble(loss, optim, data, epochs=args.epochs, batch_size=args.batch_size)
     return time.perf_counter() - start
@@ -121,7 +121,8 @@ def main() -> None:
     data = make_data(args.transitions, args.agents)
     steps = args.epochs * -(-args.transitions // args.batch_size)
     print(
-        f"torch {torch.__version__}, {torch.get_num_threads()} threads; I={args.agents}, "
+        f"torch {torch.__version__}, {torch.get_num_threads()} threads, CPU capability "
+        f"{torch.backends.cpu.get_cpu_capability()}; I={args.agents}, "
         f"B={args.members}, hidden={args.hidden}, {args.transitions} transitions/agent, "
         f"{args.epochs} epochs x batch {args.batch_size} = {steps} steps"
     )

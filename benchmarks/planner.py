@@ -5,7 +5,10 @@ For each preset (``paper``: Table II, ``cpu``: the scaled-down preset) and each 
 reports, all measured in the same run:
 
 * achieved GFLOP/s (2 x MACs of the MLP layers actually evaluated) and its ratio to a plain
-  batched GEMM chain of the same layer shapes (``baddbmm`` only, no activations, no sampling);
+  batched GEMM chain of the same layer shapes (``bmm`` only, no bias, activations or sampling);
+* its ratio to the fastest whole-MLP kernel (bias and SiLU included) available here:
+  ``baddbmm`` + in-place SiLU, per-member oneDNN linear with fused SiLU, and with
+  ``--compile`` ``torch.compile`` (see :func:`mlp_kernels`);
 * a naive reference planner (same algorithm, Python loops over agents and members, fp32);
 * bf16 vs fp32: speed-up and the difference of the chosen actions (relative to the action
   range), next to the fp32 seed-to-seed spread as the noise floor;
@@ -108,6 +111,74 @@ def gemm_chain(cfg: Preset, n_agents: int) -> Callable[[int], None]:
     return chain
 
 
+def mlp_kernels(
+    cfg: Preset, n_agents: int, compile_reference: bool = False
+) -> dict[str, Callable[[int], None]]:
+    """Candidate kernels for the whole MLP (bias and SiLU included) at the planner's shapes.
+
+    Each is called with a number of model steps. The planner is reported as a fraction of
+    the fastest of them (the "fastest same-shape kernel available" on this machine):
+
+    * ``baddbmm+silu``: one ``baddbmm`` per layer over all ``I * B`` members, SiLU in place;
+    * ``onednn``: per member ``torch.ops.mkldnn._linear_pointwise`` (oneDNN GEMM with the
+      bias and the SiLU ("swish") fused), a Python loop over the ``I * B`` members;
+    * ``compile``: ``torch.compile`` (inductor, CPU) of the baddbmm chain (``--compile``).
+    """
+    groups = n_agents * cfg.model.ensemble_size
+    rows = cfg.planner.population * cfg.planner.particles // cfg.model.ensemble_size
+    sizes = (OBS_DIM + ACT_DIM, *cfg.model.hidden, 2 * OBS_DIM)
+    gen = torch.Generator().manual_seed(0)
+    weights = [
+        torch.randn(groups, a, b, generator=gen) * 0.1
+        for a, b in zip(sizes[:-1], sizes[1:], strict=True)
+    ]
+    biases = [torch.randn(groups, 1, b, generator=gen) * 0.1 for b in sizes[1:]]
+    x = torch.randn(groups, rows, sizes[0], generator=gen)
+    last = len(weights) - 1
+
+    def baddbmm_mlp() -> torch.Tensor:
+        h = x
+        for layer, (w, b) in enumerate(zip(weights, biases, strict=True)):
+            h = torch.baddbmm(b, h, w)
+            if layer < last:
+                F.silu(h, inplace=True)
+        return h
+
+    kernels: dict[str, Callable[[], torch.Tensor]] = {"baddbmm+silu": baddbmm_mlp}
+    if torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise"):
+        linear = torch.ops.mkldnn._linear_pointwise
+        members_w = [[w[g].t().contiguous() for w in weights] for g in range(groups)]
+        members_b = [[b[g, 0].contiguous() for b in biases] for g in range(groups)]
+
+        def onednn_mlp() -> torch.Tensor:
+            outs = []
+            for g in range(groups):
+                h = x[g]
+                for layer in range(last + 1):
+                    act = "swish" if layer < last else "none"
+                    h = linear(h, members_w[g][layer], members_b[g][layer], act, [], "")
+                outs.append(h)
+            return torch.stack(outs)
+
+        torch.testing.assert_close(onednn_mlp(), baddbmm_mlp(), rtol=1e-4, atol=1e-4)
+        kernels["onednn"] = onednn_mlp
+    if compile_reference:
+        compiled = torch.compile(baddbmm_mlp, dynamic=False)
+        start = time.perf_counter()
+        compiled()
+        print(f"      torch.compile of the MLP: {time.perf_counter() - start:.1f} s")
+        kernels["compile"] = compiled
+
+    def repeat(fn: Callable[[], torch.Tensor]) -> Callable[[int], None]:
+        def run(steps: int) -> None:
+            for _ in range(steps):
+                fn()
+
+        return run
+
+    return {name: repeat(fn) for name, fn in kernels.items()}
+
+
 def timed(fn: Callable[[], object]) -> float:
     start = time.perf_counter()
     fn()
@@ -170,9 +241,8 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
             figure_eight_reward,
             LOW,
             HIGH,
-            dtype=DTYPES[key],
             seed=0,
-            **cfg.planner.planner_kwargs(),
+            **{**cfg.planner.planner_kwargs(), "dtype": DTYPES[key]},
         )
         for key in args.dtypes
     }
@@ -193,7 +263,7 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
                 LOW,
                 HIGH,
                 seed=0,
-                **cfg.planner.planner_kwargs(),
+                **{**cfg.planner.planner_kwargs(), "dtype": "fp32"},
             )
             for i in range(n_agents)
         ]
@@ -206,7 +276,10 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
             fn()
     chain = gemm_chain(cfg, n_agents)
     chain(1)
-    times: dict[str, list[float]] = {key: [] for key in [*variants, "gemm"]}
+    kernels = mlp_kernels(cfg, n_agents, args.compile)
+    for kernel in kernels.values():
+        kernel(1)
+    times: dict[str, list[float]] = {key: [] for key in [*variants, "gemm", *kernels]}
     peak = dict.fromkeys(planners, 0.0)
     iters = cfg.planner.iterations
     for _ in range(args.repeats):
@@ -220,6 +293,8 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
                 times[key].append(timed(fn))
         steps = cfg.planner.horizon * iters
         times["gemm"].append(timed(lambda steps=steps: chain(steps)))
+        for kernel_name, kernel in kernels.items():
+            times[kernel_name].append(timed(lambda steps=steps, kernel=kernel: kernel(steps)))
     best = {key: min(v) for key, v in times.items()}
     total = flops(cfg, n_agents, iters)
     line = f"{name:>5} I={n_agents:<3d}"
@@ -237,10 +312,21 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
         f"      GEMM chain {gemm:8.3f} s ({total / gemm / 1e9:.1f} GFLOP/s):"
         f" fp32 planner reaches {gemm / sec:.2f} of GEMM ({iters} CEM iterations)"
     )
+    fastest = min(kernels, key=lambda k: best[k])
+    listing = ", ".join(f"{k} {best[k]:.3f} s" for k in kernels)
+    print(
+        f"      whole-MLP kernels (bias + SiLU): {listing}; fastest {fastest}: fp32 planner "
+        f"reaches {best[fastest] / sec:.2f} of it"
+    )
     if "bf16" in planners:
         action32, action16 = first["fp32"], first["bf16"]
         other = TrajectorySamplingCEM(
-            model, figure_eight_reward, LOW, HIGH, seed=123, **cfg.planner.planner_kwargs()
+            model,
+            figure_eight_reward,
+            LOW,
+            HIGH,
+            seed=123,
+            **{**cfg.planner.planner_kwargs(), "dtype": "fp32"},
         )
         spread = (other.plan(obs) - action32).abs().max().item() / (HIGH - LOW)
         diff = (action16 - action32).abs().max().item() / (HIGH - LOW)
@@ -284,6 +370,11 @@ def main() -> None:
         type=int,
         default=None,
         help="override the presets' CEM iterations (time per decision scales linearly)",
+    )
+    parser.add_argument(
+        "--compile",
+        action="store_true",
+        help="also time torch.compile (inductor) of the MLP as a reference kernel",
     )
     parser.add_argument("--quick", action="store_true", help="cpu preset, I in {1, 8}, 2 repeats")
     args = parser.parse_args()

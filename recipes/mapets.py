@@ -51,7 +51,7 @@ from mapets_rl.experiment import Experiment, RunConfig, check, log_scalars
 from mapets_rl.experiment.runner import build_env
 from mapets_rl.models import EnsembleConfig, ProbabilisticEnsemble
 from mapets_rl.modules import AgentGroupSpec, masked_mean
-from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, train_ensemble
+from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, ensemble_optimizer, train_ensemble
 from mapets_rl.planning import (
     PRESETS,
     PlannerConfig,
@@ -345,7 +345,7 @@ class MAPETS(Experiment):
             next_observation="next_observation",
             mask="mask",
         )
-        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=config.model.lr)
+        self.optimizer = ensemble_optimizer(self.loss, lr=config.model.lr)
         self.shuffle_generator = torch.Generator(device=device)
 
         # batched CEM planner with trajectory sampling over every CAV's ensemble

@@ -276,15 +276,16 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
                     h = F.silu(h)
         else:
             # Inference: hidden activations ping-pong between two reused buffers (large fresh
-            # allocations page-fault on every planning step), bias and SiLU in place.
+            # allocations page-fault on every planning step); bias fused into the GEMM
+            # (baddbmm), SiLU in place.
             buffers = self._workspace(h.shape[0] * h.shape[1], dtype, h.device)
             for layer, (weight, bias) in enumerate(flat):
                 if layer < last:
                     shape = (h.shape[0], h.shape[1], weight.shape[-1])
                     out = buffers[layer % 2][: math.prod(shape)].view(shape)
-                    h = F.silu(torch.bmm(h, weight, out=out).add_(bias), inplace=True)
+                    h = F.silu(torch.baddbmm(bias, h, weight, out=out), inplace=True)
                 else:
-                    h = torch.bmm(h, weight).add_(bias)
+                    h = torch.baddbmm(bias, h, weight)
         out = h.to(param_dtype)
         if self.share_across_agents:
             out = out.reshape(members, n_agents, rows, -1).transpose(0, 1)
@@ -323,7 +324,7 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
         if x.shape[1] != self.ensemble_size:
             x = x.expand(-1, self.ensemble_size, -1, -1)
         mean, logvar = self.normalized_forward(x, dtype)
-        delta_mean = mean * self.output_std + self.output_mean
+        delta_mean = torch.addcmul(self.output_mean, mean, self.output_std)
         delta_logvar = logvar + 2.0 * torch.log(self.output_std)
         return delta_mean, delta_logvar
 

@@ -11,7 +11,7 @@ from torchrl.objectives import LossModule
 
 from mapets_rl.models.ensemble import ProbabilisticEnsemble
 
-__all__ = ["EnsembleNLLLoss", "train_ensemble"]
+__all__ = ["EnsembleNLLLoss", "ensemble_optimizer", "train_ensemble"]
 
 
 class EnsembleNLLLoss(LossModule):
@@ -120,43 +120,79 @@ class EnsembleNLLLoss(LossModule):
         """Fit the model's per-agent normalisation on the loss's keys of ``tensordict``."""
         self.model.fit_normalizer(*self.read_batch(tensordict))
 
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        obs, action, next_obs, mask = self.read_batch(tensordict)
+    def normalized_data(
+        self,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        next_obs: torch.Tensor,
+        mask: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Agent-major normalised inputs ``[I, N, obs + act]``, targets ``[I, N, obs]`` and
+        row weights ``[I, N]`` (``0`` for masked rows) of ``[N, I, *]`` tensors as returned by
+        :meth:`read_batch`."""
         model = self.model
-        rows = obs.shape[0]
-        n_agents, members = model.n_agents, model.ensemble_size
-        # [N, I, d] -> [I, N, d], normalised inputs and targets.
         x = model.normalize_inputs(obs.transpose(0, 1), action.transpose(0, 1))
         y = ((next_obs - obs).transpose(0, 1) - model.output_mean[:, 0]) / model.output_std[:, 0]
-        weight = (
-            torch.ones(n_agents, rows, dtype=x.dtype, device=x.device)
-            if mask is None
-            else mask.transpose(0, 1).to(x.dtype)
-        )
+        if mask is None:
+            weight = torch.ones(x.shape[:2], dtype=x.dtype, device=x.device)
+        else:
+            weight = mask.transpose(0, 1).to(x.dtype)
+        return x, y, weight
+
+    def member_losses(
+        self,
+        x: torch.Tensor,
+        y: torch.Tensor,
+        weight: torch.Tensor,
+        rows: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Loss of a minibatch of :meth:`normalized_data` rows, without building TensorDicts.
+
+        Args:
+            x / y / weight: ``[I, N, in]``, ``[I, N, obs]``, ``[I, N]`` (see
+                :meth:`normalized_data`).
+            rows: optional ``[n]`` long, the minibatch's rows (default: all ``N``). Each
+                member resamples them with replacement when ``bootstrap`` is on (one
+                ``[I, B, n]`` draw from ``generator``), composed into a single gather.
+
+        Returns:
+            ``(nll, bounds)``: the per-member NLL ``[I, B]`` and the scalar log-variance bound
+            penalty (both with grad); the loss to minimise is ``nll.sum() + bounds``.
+        """
+        model = self.model
+        n_agents, members = model.n_agents, model.ensemble_size
+        count = x.shape[1] if rows is None else rows.shape[0]
         if self.bootstrap:
             index = torch.randint(
-                rows, (n_agents, members, rows), generator=self.generator, device=x.device
+                count, (n_agents, members, count), generator=self.generator, device=x.device
             )
-            x_b = torch.gather(
-                x.unsqueeze(1).expand(-1, members, -1, -1),
-                2,
-                index.unsqueeze(-1).expand(-1, -1, -1, x.shape[-1]),
-            )
-            y_b = torch.gather(
-                y.unsqueeze(1).expand(-1, members, -1, -1),
-                2,
-                index.unsqueeze(-1).expand(-1, -1, -1, y.shape[-1]),
-            )
-            w_b = torch.gather(weight.unsqueeze(1).expand(-1, members, -1), 2, index)
+            if rows is not None:
+                index = rows[index]
+        elif rows is None:
+            index = torch.arange(count, device=x.device).expand(n_agents, members, -1)
         else:
-            x_b = x.unsqueeze(1).expand(-1, members, -1, -1)
-            y_b = y.unsqueeze(1)
-            w_b = weight.unsqueeze(1).expand(-1, members, -1)
+            index = rows.expand(n_agents, members, -1)
+        x_b = torch.gather(
+            x.unsqueeze(1).expand(-1, members, -1, -1),
+            2,
+            index.unsqueeze(-1).expand(-1, -1, -1, x.shape[-1]),
+        )
+        y_b = torch.gather(
+            y.unsqueeze(1).expand(-1, members, -1, -1),
+            2,
+            index.unsqueeze(-1).expand(-1, -1, -1, y.shape[-1]),
+        )
+        w_b = torch.gather(weight.unsqueeze(1).expand(-1, members, -1), 2, index)
         mean, logvar = model.normalized_forward(x_b)
         # Eq. 9 with diagonal covariance: Mahalanobis term + log-determinant, per row.
-        nll_rows = ((mean - y_b).pow(2) * torch.exp(-logvar) + logvar).sum(-1)  # [I, B, N]
+        nll_rows = ((mean - y_b).pow(2) * torch.exp(-logvar) + logvar).sum(-1)  # [I, B, n]
         nll = (nll_rows * w_b).sum(-1) / w_b.sum(-1).clamp_min(1.0)  # [I, B]
         bounds = self.logvar_bound_coef * (model.max_logvar.sum() - model.min_logvar.sum())
+        return nll, bounds
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        x, y, weight = self.normalized_data(*self.read_batch(tensordict))
+        nll, bounds = self.member_losses(x, y, weight)
         return TensorDict(
             {
                 "loss_nll": nll.sum(),
@@ -165,6 +201,16 @@ class EnsembleNLLLoss(LossModule):
             },
             batch_size=[],
         )
+
+
+def ensemble_optimizer(loss_module: EnsembleNLLLoss, lr: float = 1e-3) -> torch.optim.Optimizer:
+    """Adam over the loss module's parameters, fused (one kernel for all parameters) where
+    torch supports it on their device, else the multi-tensor ``foreach`` implementation."""
+    params = list(loss_module.parameters())
+    try:
+        return torch.optim.Adam(params, lr=lr, fused=True)
+    except RuntimeError:
+        return torch.optim.Adam(params, lr=lr, foreach=True)
 
 
 def train_ensemble(
@@ -204,22 +250,23 @@ def train_ensemble(
         raise ValueError(
             f"data must have a non-empty batch shape [N], got {tuple(data.batch_size)}."
         )
-    # Validates shapes and finiteness of the whole dataset before any update.
+    # Validates shapes and finiteness of the whole dataset once, before any update; the
+    # normalisation is fixed during training, so the dataset is normalised once too and the
+    # steps only index it (no TensorDict, validation or host sync per step).
+    batch = loss_module.read_batch(data)
     if fit_normalizer:
-        loss_module.fit_normalizer(data)
-    else:
-        loss_module.read_batch(data)
+        loss_module.model.fit_normalizer(*batch)
+    x, y, weight = loss_module.normalized_data(*batch)
     rows = data.batch_size[0]
     history = []
     for _ in range(epochs):
         order = torch.randperm(rows, generator=generator, device=data.device)
         per_member = []
         for start in range(0, rows, batch_size):
-            losses = loss_module(data[order[start : start + batch_size]])
-            total = sum(v for k, v in losses.items() if k.startswith("loss_"))
+            nll, bounds = loss_module.member_losses(x, y, weight, order[start : start + batch_size])
             optimizer.zero_grad(set_to_none=True)
-            total.backward()
+            (nll.sum() + bounds).backward()
             optimizer.step()
-            per_member.append(losses["nll_per_member"])
+            per_member.append(nll.detach())
         history.append(torch.stack(per_member).mean(0))
     return torch.stack(history)

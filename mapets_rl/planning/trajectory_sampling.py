@@ -98,11 +98,13 @@ def trajectory_sampling_returns(
     obs_dim = obs.shape[-1]
     state = obs.repeat_interleave(pop, dim=1).unsqueeze(1).expand(-1, particles, -1, -1)
     state = state.reshape(n_agents, rows, obs_dim)
+    # Every step's model-input actions [H, I, rows, act], built once (not once per step).
+    step_actions = actions.expand(-1, -1, particles, -1, -1).reshape(horizon, n_agents, rows, -1)
     returns = torch.zeros(n_agents, rows, device=device)
     alive = torch.ones(n_agents, rows, dtype=torch.bool, device=device)
-    nonfinite = torch.zeros(n_agents, dtype=torch.long, device=device)
+    finite_steps = torch.zeros(n_agents, rows, dtype=torch.long, device=device)
     for t in range(horizon):
-        action = actions[t].expand(-1, particles, -1, -1).reshape(n_agents, rows, -1)
+        action = step_actions[t]
         if propagation == "expectation":
             mean, _ = model.predict(state.unsqueeze(1), action.unsqueeze(1), dtype=dtype)
             next_state = state + mean.mean(1)  # [I, B, rows, obs] -> members' mean
@@ -113,28 +115,31 @@ def trajectory_sampling_returns(
                 s_in, a_in = state[:, perm], action[:, perm]
             else:
                 s_in, a_in = state, action
-            s_in = s_in.reshape(n_agents, members, rows // members, -1)
-            a_in = a_in.reshape(n_agents, members, rows // members, -1)
+            s_in = s_in.view(n_agents, members, rows // members, -1)
+            a_in = a_in.view(n_agents, members, rows // members, -1)
             mean, logvar = model.predict(s_in, a_in, dtype=dtype)
-            mean = mean.reshape(n_agents, rows, -1)
-            std = torch.exp(0.5 * logvar).reshape(n_agents, rows, -1)
+            mean = mean.reshape(n_agents, particles, cands, obs_dim)
+            std = torch.exp(logvar.mul(0.5)).reshape(n_agents, particles, cands, obs_dim)
             if propagation == "ts1":
-                mean, std = mean[:, inv], std[:, inv]
-            # Common random numbers: one draw per particle, shared by all candidates.
+                mean = mean.view(n_agents, rows, obs_dim)[:, inv].view_as(std)
+                std = std.view(n_agents, rows, obs_dim)[:, inv].view_as(mean)
+            # Common random numbers: one draw per particle [P, 1, obs], shared by all
+            # candidates (broadcast over the M*Q candidates of the particle-major layout).
             eps = torch.randn((particles, 1, obs_dim), generator=generator, device=device)
-            next_state = (
-                state + mean + std * eps.expand(particles, cands, obs_dim).reshape(rows, obs_dim)
-            )
+            next_state = torch.addcmul(state.view_as(mean) + mean, std, eps)
+            next_state = next_state.reshape(n_agents, rows, obs_dim)
         reward = reward_fn(state, action, next_state)
         if reward.shape != returns.shape:
             raise ValueError(
                 f"reward_fn must return shape {tuple(returns.shape)} for inputs shaped "
                 f"{tuple(state.shape)}, got {tuple(reward.shape)}."
             )
-        nonfinite = nonfinite + (~torch.isfinite(reward) & alive).sum(-1)
-        returns = returns + torch.where(alive, reward, 0.0)
+        counted = torch.where(alive, reward, 0.0)  # finite wherever the particle has ended
+        returns.add_(counted)
+        finite_steps.add_(torch.isfinite(counted))
         if termination_fn is not None:
-            alive = alive & ~termination_fn(state, action, next_state)
+            alive &= ~termination_fn(state, action, next_state)
         state = next_state
+    nonfinite = (horizon - finite_steps).sum(-1)
     scores = returns.reshape(n_agents, particles, envs, pop).mean(1)
     return torch.where(torch.isnan(scores), float("-inf"), scores), nonfinite
