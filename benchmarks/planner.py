@@ -20,6 +20,7 @@ Examples::
     python benchmarks/planner.py --quick
     python benchmarks/planner.py --configs paper --agents 1 8 22 --dtypes fp32 --repeats 1
     python benchmarks/planner.py --configs cpu --agents 1 8 22 --dtypes fp32 bf16 --repeats 5
+    python benchmarks/planner.py --device cuda --configs paper --agents 1 8 22 --dtypes fp32 bf16
 """
 
 from __future__ import annotations
@@ -39,6 +40,8 @@ from mapets_rl.planning import PRESETS, Preset, TrajectorySamplingCEM
 OBS_DIM, ACT_DIM = 7, 1
 LOW, HIGH = 0.0, 13.89
 DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
+#: Where models, planners and reference kernels run (``--device``).
+DEVICE = torch.device("cpu")
 
 
 def make_model(cfg: Preset, n_agents: int, seed: int = 0) -> ProbabilisticEnsemble:
@@ -75,11 +78,17 @@ class PeakMemory:
     """Peak resident set size (MiB) of this process inside a ``with`` block."""
 
     def __enter__(self) -> PeakMemory:
+        if DEVICE.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(DEVICE)
+            return self
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")
         return self
 
     def __exit__(self, *exc) -> None:
+        if DEVICE.type == "cuda":
+            self.peak = torch.cuda.max_memory_allocated(DEVICE) / 2**20
+            return
         self.peak = self._read("VmHWM")
 
     @staticmethod
@@ -99,8 +108,11 @@ def gemm_chain(cfg: Preset, n_agents: int) -> Callable[[int], None]:
     groups = n_agents * cfg.model.ensemble_size
     rows = cfg.planner.population * cfg.planner.particles // cfg.model.ensemble_size
     sizes = (OBS_DIM + ACT_DIM, *cfg.model.hidden, 2 * OBS_DIM)
-    weights = [torch.randn(groups, a, b) * 0.05 for a, b in zip(sizes[:-1], sizes[1:], strict=True)]
-    x = torch.randn(groups, rows, sizes[0])
+    weights = [
+        torch.randn(groups, a, b, device=DEVICE) * 0.05
+        for a, b in zip(sizes[:-1], sizes[1:], strict=True)
+    ]
+    x = torch.randn(groups, rows, sizes[0], device=DEVICE)
 
     def chain(steps: int) -> None:
         for _ in range(steps):
@@ -134,6 +146,11 @@ def mlp_kernels(
     ]
     biases = [torch.randn(groups, 1, b, generator=gen) * 0.1 for b in sizes[1:]]
     x = torch.randn(groups, rows, sizes[0], generator=gen)
+    weights, biases, x = (
+        [w.to(DEVICE) for w in weights],
+        [b.to(DEVICE) for b in biases],
+        x.to(DEVICE),
+    )
     last = len(weights) - 1
 
     def baddbmm_mlp() -> torch.Tensor:
@@ -145,7 +162,8 @@ def mlp_kernels(
         return h
 
     kernels: dict[str, Callable[[], torch.Tensor]] = {"baddbmm+silu": baddbmm_mlp}
-    if torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise"):
+    onednn = torch.backends.mkldnn.is_available() and DEVICE.type == "cpu"
+    if onednn and hasattr(torch.ops.mkldnn, "_linear_pointwise"):
         linear = torch.ops.mkldnn._linear_pointwise
         members_w = [[w[g].t().contiguous() for w in weights] for g in range(groups)]
         members_b = [[b[g, 0].contiguous() for b in biases] for g in range(groups)]
@@ -180,8 +198,12 @@ def mlp_kernels(
 
 
 def timed(fn: Callable[[], object]) -> float:
+    if DEVICE.type == "cuda":
+        torch.cuda.synchronize(DEVICE)
     start = time.perf_counter()
     fn()
+    if DEVICE.type == "cuda":
+        torch.cuda.synchronize(DEVICE)
     return time.perf_counter() - start
 
 
@@ -233,8 +255,8 @@ def naive_plan(
 
 def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> None:
     """Time every variant once per repeat, interleaved, and keep each variant's fastest run."""
-    obs = make_obs(n_agents)
-    model = make_model(cfg, n_agents)
+    obs = make_obs(n_agents).to(DEVICE)
+    model = make_model(cfg, n_agents).to(DEVICE)
     planners = {
         key: TrajectorySamplingCEM(
             model,
@@ -255,7 +277,7 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
     variants: dict[str, Callable[[], object]] = {
         key: (lambda key=key: decide(key)) for key in planners
     }
-    if n_agents > 1 and args.separate:
+    if n_agents > 1 and args.separate and DEVICE.type == "cpu":
         single = [
             TrajectorySamplingCEM(
                 make_model(cfg, 1, seed=i),
@@ -268,7 +290,7 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
             for i in range(n_agents)
         ]
         variants["separate"] = lambda: [p.plan(o[None]) for p, o in zip(single, obs, strict=True)]
-    if n_agents <= args.naive_max_agents:
+    if n_agents <= args.naive_max_agents and DEVICE.type == "cpu":
         gen = torch.Generator().manual_seed(0)
         variants["naive"] = lambda: naive_plan(model, cfg, obs, gen)
     for _ in range(args.warmup):
@@ -364,6 +386,12 @@ def main() -> None:
         help="skip timing I separate single-agent calls",
     )
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
+    parser.add_argument(
+        "--device",
+        default="cpu",
+        help="cpu or cuda[:i]: models, planners and reference kernels (naive and separate "
+        "references run on the CPU only); peak memory is then the device's allocator peak",
+    )
     parser.add_argument("--warmup", type=int, default=1, help="untimed decisions first")
     parser.add_argument(
         "--iterations",
@@ -384,6 +412,12 @@ def main() -> None:
         parser.error("--repeats and --agents must be positive, --warmup non-negative")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
+    global DEVICE
+    DEVICE = torch.device(args.device)
+    if DEVICE.type == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda: torch.cuda.is_available() is False on this machine")
+    if DEVICE.type == "cuda":
+        print(f"device {torch.cuda.get_device_name(DEVICE)}")
     print(
         f"torch {torch.__version__}, {torch.get_num_threads()} threads, "
         f"CPU capability {torch.backends.cpu.get_cpu_capability()}"

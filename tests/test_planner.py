@@ -156,6 +156,22 @@ def test_early_stop_when_std_collapses():
     assert full.last_iterations == 5
 
 
+@pytest.mark.parametrize(("elites", "stops_after"), [(1, 1), (3, 3), (5, 4)])
+def test_sync_free_early_stop_freezes_the_same_plan(elites, stops_after):
+    """Without host syncs (the accelerator path) every iteration runs but the plan freezes
+    once sigma collapses: same actions and iteration count as the early break."""
+    model = linear_ensemble([point_mass_matrix(), point_mass_matrix(2.0)])
+    obs = torch.tensor([[1.0, 0.0], [-1.0, 0.5]])
+    plans = {}
+    for sync in (True, False):
+        planner = make_planner(model, elites=elites, alpha=0.0, iterations=8, epsilon=0.5)
+        planner.optimizer.host_sync = sync
+        plans[sync] = (planner.plan(obs), planner.last_solution, planner.last_iterations)
+    torch.testing.assert_close(plans[True][0], plans[False][0])
+    torch.testing.assert_close(plans[True][1], plans[False][1])
+    assert plans[True][2] == plans[False][2] == stops_after
+
+
 def test_actions_clipped_and_nan_safe():
     model = linear_ensemble([point_mass_matrix()])
     planner = TrajectorySamplingCEM(model, push_up, -1.0, 1.0, seed=0, **PLAN)
