@@ -10,7 +10,13 @@ from mapets_rl.experiment.config import ConfigError
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.planning import CPU_PRESET, PlannerConfig, TrajectorySamplingCEM, precision
 from mapets_rl.planning.precision import resolve_dtype
-from tests.test_planner import PLAN, linear_ensemble, point_mass_matrix, quadratic_reward
+from tests.test_planner import (
+    PLAN,
+    linear_ensemble,
+    lq_optimal_first_action,
+    point_mass_matrix,
+    quadratic_reward,
+)
 
 
 @pytest.fixture
@@ -156,3 +162,24 @@ def test_bf16_and_fp32_choose_the_same_figure_eight_actions():
     seed_diff = torch.cat([(fp32[seed] - fp32[0]).abs() for seed in (1, 2)])
     assert (bf16_diff <= 1e-3).float().mean() >= 0.6
     assert bf16_diff.mean() <= 0.25 * seed_diff.mean()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("dtype", ["fp32", "auto"])
+def test_cuda_planner_finds_the_lq_optimum(dtype):
+    """On the GPU (model, planner, generator and bounds on the device) the point-mass plans
+    match the LQ optimum as on the CPU; ``auto`` picks bf16 where the device has it."""
+    gains = [1.0, 2.0]
+    model = linear_ensemble([point_mass_matrix(g) for g in gains]).cuda()
+    obs = torch.tensor([[1.0, 0.5], [-2.0, 1.0]])
+    planner = TrajectorySamplingCEM(
+        model, quadratic_reward, -20.0, 20.0, seed=0, dtype=dtype, **PLAN
+    )
+    if dtype == "auto":
+        native = torch.cuda.is_bf16_supported(including_emulation=False)
+        assert planner.dtype == (torch.bfloat16 if native else torch.float32)
+    action = planner.plan(obs.cuda())
+    assert action.device.type == "cuda" and planner.action_low.device.type == "cuda"
+    for i, gain in enumerate(gains):
+        best = lq_optimal_first_action(obs[i], gain, PLAN["horizon"])
+        assert action[i, 0].item() == pytest.approx(best, abs=0.06 * abs(best) + 0.05)
