@@ -198,3 +198,61 @@ def test_builtin_scenarios_win_over_an_installed_one_of_the_same_name(add_entry_
     add_entry_point(SCENARIO_GROUP, "figure-eight", "no_such_module_here:make")
     env = build_env("figure-eight", {"n_cavs": 2, "n_hvs": 1, "horizon": 5})
     assert env.full_observation_spec["agents", "observation"].shape[0] == 2
+
+
+# --------------------------------------------------- the README's traffic-scenario recipe
+def test_readme_traffic_scenario_has_positions_where_mapets_reads_them() -> None:
+    """A MultiAgentTrafficEnv subclass wrapped with ``wrap_parallel_env`` writes the CAVs'
+    positions under ``("agents", "position")`` (the stock PettingZooWrapper does not: MA-PETS'
+    CommunicationRange failed with KeyError 'position')."""
+    from torchrl.envs.utils import check_env_specs
+    from traffic_scenario import StopAndGoParallelEnv, make_stop_and_go
+
+    from mapets_rl.envs import wrap_parallel_env
+
+    env = make_stop_and_go(n_cavs=2, n_hvs=2, horizon=5)
+    check_env_specs(env)
+    td = env.rollout(3)
+    position = td["next", "agents", "position"]
+    assert position.shape == (3, 2, 2) and bool((position[1:, :, 0] > position[:-1, :, 0]).all())
+    with pytest.raises(ValueError, match="parallel_env must be a mapets_rl.envs.TrafficParallel"):
+        wrap_parallel_env(StopAndGoParallelEnv(horizon=5).env)
+
+
+TINY_MAPETS = [
+    "episodes=2",
+    "env_config.horizon=15",
+    "env_config.n_cavs=2",
+    "env_config.n_hvs=2",
+    "planner.horizon=4",
+    "planner.population=8",
+    "planner.elites=2",
+    "planner.iterations=1",
+    "model.epochs=2",
+    "model.hidden=[16,16]",
+    "progress=false",
+]
+
+
+def test_plugin_traffic_scenario_and_mapets_recipe_from_the_cli(
+    add_entry_point, tmp_path: Path, capsys
+) -> None:
+    """The example's scenario and MA-PETS recipe, installed as entry points, train, resume
+    and evaluate through ``mapets-rl`` (nothing registered in-process)."""
+    add_entry_point(SCENARIO_GROUP, "stop-and-go", "traffic_scenario:make_stop_and_go")
+    add_entry_point(RECIPE_GROUP, "mapets-stop-and-go", "traffic_scenario:StopAndGoMAPETS")
+    run = tmp_path / "run"
+    argv = ["train", "mapets-stop-and-go", "--env", "stop-and-go", "--run-dir", str(run)]
+    code, out, err = run_cli([*argv, *TINY_MAPETS], capsys)
+    assert code == 0, err
+    assert json.loads(out.splitlines()[-1])["frames"] == 30
+    code, out, err = run_cli(["resume", str(run), "episodes=3"], capsys)
+    assert code == 0, err
+    assert json.loads(out.splitlines()[-1])["frames"] == 45
+    code, out, err = run_cli(["evaluate", str(run), "--episodes", "1"], capsys)
+    assert code == 0, err
+    metrics = json.loads(out.splitlines()[-1])["metrics"]
+    assert 0.0 <= metrics["safety"] <= 1.0 and metrics["length"] == 15
+    results = read_results(run)
+    assert results["env"] == "stop-and-go" and results["recipe"] == "mapets-stop-and-go"
+    assert [e["metrics"]["episode"] for e in results["train"]] == [1.0, 2.0, 3.0]
