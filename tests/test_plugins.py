@@ -147,8 +147,31 @@ def test_a_recipe_seen_twice_counts_once_and_a_clash_is_refused(add_entry_point)
 def test_train_recipe_help_lists_its_fields(toy_recipe, capsys) -> None:
     code, out, _ = run_cli(["train", "toy", "--help"], capsys)
     assert code == 0 and out.startswith("usage: mapets-rl train toy --env SCENARIO")
-    assert "  lr: float = 0.05\n" in out and "  env_config: dict[str, Any] = {}\n" in out
-    assert "  total_frames: int = 60\n" in out
+    assert "  lr: float = 0.05\n      step size of the policy regression (> 0).\n" in out
+    assert "  env_config: dict[str, Any] = {}\n" in out
+    # a unit declared by the field's metadata, and one inherited from ExperimentConfig
+    assert "  batch_size: int = 16 [observations]\n" in out
+    assert "  total_frames: int = 60 [frames]\n      environment steps to train for" in out
+    # the scenarios with the recipe's actions (the toy env's are continuous)
+    scenarios = out.split("scenarios (continuous or discrete actions; --env SCENARIO):\n")[1]
+    assert "  toy (3 agents, obs 2, continuous actions)" in scenarios.split("\n\n")[0].splitlines()
+
+
+def test_train_mapets_help_lists_sections_units_and_scenarios(capsys) -> None:
+    code, out, _ = run_cli(["train", "mapets", "--help"], capsys)
+    assert code == 0
+    lines = out.splitlines()
+    assert "  planner.horizon: int = 25 [steps]" in lines
+    assert lines[lines.index("  planner.horizon: int = 25 [steps]") + 1].startswith(
+        "      MPC horizon ``w``"
+    )
+    assert "  comm.comm_range: float = 100.0 [m]" in lines
+    assert "  model.hidden: list[int] = [300, 300, 300]" in lines  # the paper preset's
+    assert "  collision_gap: float = 2.0 [m]" in lines
+    assert "  episodes: int = 15 [episodes]" in lines
+    supported, unsupported = out.split("not supported:\n")
+    assert "figure-eight (8 agents, obs 10, continuous actions)" in supported
+    assert "freeway (30 agents, obs 22, discrete actions)" in unsupported.split("\n\n")[0]
 
 
 # ---------------------------------------------------------------------------- scenarios
@@ -251,8 +274,10 @@ def test_plugin_traffic_scenario_and_mapets_recipe_from_the_cli(
     assert json.loads(out.splitlines()[-1])["frames"] == 45
     code, out, err = run_cli(["evaluate", str(run), "--episodes", "1"], capsys)
     assert code == 0, err
-    metrics = json.loads(out.splitlines()[-1])["metrics"]
+    printed = json.loads(out.splitlines()[-1])
+    metrics = printed["metrics"]
     assert 0.0 <= metrics["safety"] <= 1.0 and metrics["length"] == 15
+    assert printed["units"]["agility"] == "m/step" and printed["units"]["length"] == "steps"
     results = read_results(run)
     assert results["env"] == "stop-and-go" and results["recipe"] == "mapets-stop-and-go"
     assert [e["metrics"]["episode"] for e in results["train"]] == [1.0, 2.0, 3.0]

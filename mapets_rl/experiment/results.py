@@ -13,6 +13,7 @@ from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLo
 
 from mapets_rl.experiment.config import LOGGERS, check_logger_package
 from mapets_rl.experiment.files import atomic_write_text
+from mapets_rl.metrics import metric_unit
 
 RESULTS_FILE = "results.json"
 
@@ -53,6 +54,12 @@ def log_scalars(logger: Logger | None, prefix: str, values: Mapping[str, float],
             logger.log_scalar(f"{prefix}/{name}", float(value), step=step)
 
 
+def metric_units(names: Iterable[str]) -> dict[str, str]:
+    """Name -> unit of the metrics among ``names`` that have one (see
+    :data:`mapets_rl.metrics.METRIC_UNITS`), sorted by name."""
+    return {name: metric_unit(name) for name in sorted(set(names)) if metric_unit(name)}
+
+
 def mean_metrics(items: Iterable[Mapping[str, float]]) -> dict[str, float]:
     """Per-key mean over a sequence of metric dicts (keys missing from some items are averaged
     over the items that have them)."""
@@ -79,8 +86,12 @@ class ResultsWriter:
     Layout::
 
         {"recipe": str, "env": str, "seed": int, "config": {...},
+         "units": {name: unit},
          "train": [{"frames": int, "metrics": {name: float}}, ...],
          "evaluations": [{"frames": int, "metrics": {name: float}}, ...]}
+
+    ``units`` names the unit of every recorded metric that has one (``agility: m/step``,
+    ``average_velocity: m/s``, ``frames: env steps``; :data:`mapets_rl.metrics.METRIC_UNITS`).
 
     ``evaluations`` holds deterministic evaluations (the runner's periodic ones);
     ``train`` holds metrics of training itself (e.g. each MA-PETS episode, whose actions come
@@ -151,10 +162,13 @@ class ResultsWriter:
             self.evaluations, self.train, self._unsorted = [], [], entries
 
     def write(self) -> None:
+        entries = (self._unsorted or []) + self.train + self.evaluations
+        units = metric_units(["frames", *(k for e in entries for k in e["metrics"])])
+        header = {**self.header, "units": units}
         if self._unsorted is not None:
-            data = {**self.header, "evaluations": self._unsorted}
+            data = {**header, "evaluations": self._unsorted}
         else:
-            data = {**self.header, "train": self.train, "evaluations": self.evaluations}
+            data = {**header, "train": self.train, "evaluations": self.evaluations}
         atomic_write_text(self.path, json.dumps(data, indent=1))
 
 

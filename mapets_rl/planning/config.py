@@ -30,7 +30,7 @@ class PlannerConfig(ConfigSection):
             (in [0, 1)).
     """
 
-    horizon: int = 25
+    horizon: int = dataclasses.field(default=25, metadata={"unit": "steps"})
     population: int = 400
     elites: int = 40
     iterations: int = 5
