@@ -140,6 +140,11 @@ def time_decisions(
     return times
 
 
+def _ms(value: float) -> str:
+    """Milliseconds for the table: 3 significant digits, thousands in full (``73,012``)."""
+    return f"{value:,.0f}" if value >= 1000 else f"{value:.3g}"
+
+
 def _quantile(values: list[float], q: float) -> float:
     ordered = sorted(values)
     pos = q * (len(ordered) - 1)
@@ -202,9 +207,10 @@ def main() -> None:
             f"{paper_ms:.2f} ± {PAPER_TABLE_IV_SPREAD_MS[paper_key]:.2f}" if paper_ms else "—"
         )
         row = (
-            f"| {name} | {exp.config.env} | {len(ms)} | {median:.3g} "
-            f"[{_quantile(ms, 0.1):.3g}-{_quantile(ms, 0.9):.3g}] | "
-            f"{statistics.fmean(ms):.3g} ± {std:.2g} | {median / args.agents:.3g} | {paper_cell} |"
+            f"| {name} | {exp.config.env} | {len(ms)} | {_ms(median)} "
+            f"[{_ms(_quantile(ms, 0.1))}-{_ms(_quantile(ms, 0.9))}] | "
+            f"{_ms(statistics.fmean(ms))} ± {std:.2g} | {_ms(median / args.agents)} | "
+            f"{paper_cell} |"
         )
         rows.append(row)
         print(row, flush=True)
