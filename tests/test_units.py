@@ -65,3 +65,14 @@ def test_compare_table_and_plot_labels_carry_units(tmp_path: Path, monkeypatch) 
 def test_config_fields_declare_their_units() -> None:
     units = {f.name: f.metadata.get("unit") for f in dataclasses.fields(CommConfig)}
     assert units == {"comm_range": "m", "p_fail": None}
+
+
+def test_logs_name_the_units_of_the_logged_scalars(tmp_path: Path) -> None:
+    from mapets_rl.experiment.results import make_logger
+
+    logger = make_logger("csv", tmp_path, "run")
+    logger.log_scalar("eval/agility", 1.0, step=1)
+    units = json.loads((tmp_path / "logs" / "units.json").read_text())
+    assert units["agility"] == "m/step" and units["average_velocity"] == "m/s"
+    assert make_logger("none", tmp_path / "quiet", "run") is None
+    assert not (tmp_path / "quiet").exists()

@@ -13,9 +13,11 @@ from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLo
 
 from mapets_rl.experiment.config import LOGGERS, check_logger_package
 from mapets_rl.experiment.files import atomic_write_text
-from mapets_rl.metrics import metric_unit
+from mapets_rl.metrics import METRIC_UNITS, metric_unit
 
 RESULTS_FILE = "results.json"
+UNITS_FILE = "units.json"
+"""Written beside the logger's files (``RUN_DIR/logs/units.json``): metric name -> unit."""
 
 
 def make_logger(kind: str, run_dir: str | os.PathLike, exp_name: str) -> Logger | None:
@@ -24,7 +26,8 @@ def make_logger(kind: str, run_dir: str | os.PathLike, exp_name: str) -> Logger 
     Args:
         kind: ``"csv"`` (always available), ``"tensorboard"`` (needs the tensorboard package),
             ``"wandb"`` (needs wandb; runs offline unless WANDB_MODE says otherwise) or
-            ``"none"`` (returns None).
+            ``"none"`` (returns None). ``run_dir/logs/units.json`` names the unit of every
+            metric (:data:`mapets_rl.metrics.METRIC_UNITS`).
         run_dir: the run directory.
         exp_name: experiment name (a sub-directory of ``logs``).
     """
@@ -34,6 +37,8 @@ def make_logger(kind: str, run_dir: str | os.PathLike, exp_name: str) -> Logger 
     log_dir = str(Path(run_dir) / "logs")
     if kind == "none":
         return None
+    # the logged scalars are named prefix/metric (train/agility); their units, once per run
+    atomic_write_text(Path(log_dir) / UNITS_FILE, json.dumps(METRIC_UNITS, indent=1))
     if kind == "csv":
         return CSVLogger(exp_name=exp_name, log_dir=log_dir)
     if kind == "tensorboard":
