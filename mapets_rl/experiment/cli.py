@@ -103,7 +103,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--env",
         required=True,
         metavar="SCENARIO",
-        help="scenario name, e.g. figure-eight, figure-eight-multilane, freeway",
+        help="scenario name, e.g. figure-eight, figure-eight-multilane, freeway, or one an "
+        "installed package declares (entry-point group mapets_rl.scenarios); "
+        "`mapets-rl train RECIPE --help` lists those RECIPE supports",
     )
     train.add_argument(
         "--seed",
