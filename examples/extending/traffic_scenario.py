@@ -36,9 +36,10 @@ package's ``pyproject.toml``::
 
 then ``mapets-rl train mapets-stop-and-go --env stop-and-go episodes=3``.
 
-Run it to train MA-PETS on the scenario (the first episode drives randomly):
+Run it to train MA-PETS on the scenario (the first episode drives randomly; cpu preset planner
+with mean propagation, 30 model epochs per episode; about 20 s on two cores):
 
-    python examples/extending/traffic_scenario.py [--episodes 3] [--horizon 60]
+    python examples/extending/traffic_scenario.py [--episodes 4] [--horizon 60] [--comm-range 100]
 """
 
 from __future__ import annotations
@@ -300,17 +301,17 @@ def main() -> None:
     from mapets_rl.experiment import register_env
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--episodes", type=int, default=3, help="episodes (1 random)")
+    parser.add_argument("--episodes", type=int, default=4, help="episodes (1 random)")
     parser.add_argument("--horizon", type=int, default=60, help="steps per episode")
+    parser.add_argument("--comm-range", type=float, default=100.0, help="d in metres")
     args = parser.parse_args()
     register_env("stop-and-go", make_stop_and_go)
     config = StopAndGoMAPETSConfig(
         episodes=args.episodes,
         env_config={"horizon": args.horizon},
-        planner={"propagation": "expectation", "population": 16},
-        model={"epochs": 10},
-        comm={"comm_range": 30.0},
+        comm={"comm_range": args.comm_range},
         logger="none",
+        progress=False,
         seed=0,
     )
     with tempfile.TemporaryDirectory() as run_dir:
