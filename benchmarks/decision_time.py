@@ -14,14 +14,17 @@ the timed decisions) and per agent-step (the joint decision / I), next to the pa
 (single-lane loop, 8 CAVs; the paper's unit is 1e-2 s and its hardware is not stated).
 
 Methods: MA-PETS with the ``cpu`` and ``paper`` presets (figure-eight), MADDPG, MAPPO, SAC
-(figure-eight, continuous target speed), Shapley AC (freeway with ``I`` CAVs among ``2 I``
-vehicles: it needs discrete actions). ``--device cuda`` runs the policies on a GPU (the env
+(figure-eight, continuous target speed; ``--loop figure-eight-multilane`` for the paper's
+multi-lane row), Shapley AC (freeway with ``I`` CAVs among ``2 I`` vehicles: it needs discrete
+actions). ``--device cuda`` runs the policies on a GPU (the env
 stays on the CPU; observations are moved, and the clock waits for the GPU).
 
 Examples::
 
     python benchmarks/decision_time.py                       # everything, 8 CAVs, 1 thread
     python benchmarks/decision_time.py --methods mapets-cpu maddpg --decisions 50
+    python benchmarks/decision_time.py --loop figure-eight-multilane --agents 22 \\
+        --methods mapets-cpu maddpg mappo sac
     python benchmarks/decision_time.py --device cuda --paper-decisions 10
 """
 
@@ -38,10 +41,13 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-PAPER_TABLE_IV_MS = {"mapets": 88.51, "mappo": 80.07}
-"""The paper's Table IV, single-lane loop (8 CAVs), ms per step: MA-PETS 8.851e-2 s, MAPPO
-8.007e-2 s (FIRL 7.604e-2 s and SVMIX 10.28e-2 s have no counterpart here)."""
-PAPER_TABLE_IV_SPREAD_MS = {"mapets": 3.105, "mappo": 5.486}
+PAPER_TABLE_IV_MS = {
+    "figure-eight": {"mapets": (88.51, 3.105), "mappo": (80.07, 5.486)},
+    "figure-eight-multilane": {"mapets": (97.26, 2.615), "mappo": (87.79, 4.607)},
+}
+"""The paper's Table IV, ms per step (mean, std): single-lane loop MA-PETS 8.851e-2 s, MAPPO
+8.007e-2 s; multi-lane loop MA-PETS 9.726e-2 s, MAPPO 8.779e-2 s (FIRL and SVMIX have no
+counterpart here)."""
 
 
 def _mapets(preset: str) -> Callable[[argparse.Namespace], Any]:
@@ -49,7 +55,10 @@ def _mapets(preset: str) -> Callable[[argparse.Namespace], Any]:
         from recipes.mapets import MAPETS, MAPETSConfig
 
         config = MAPETSConfig(
-            preset=preset, env="figure-eight", env_config={"n_cavs": args.agents}, **_common(args)
+            preset=preset,
+            env=args.loop,
+            env_config={"n_cavs": args.agents},
+            **_common(args),
         )
         return MAPETS(config, _run_dir())
 
@@ -61,12 +70,11 @@ def _model_free(module: str, cls: str, env: str) -> Callable[[argparse.Namespace
         import importlib
 
         recipe = getattr(importlib.import_module(f"recipes.{module}"), cls)
-        env_config = (
-            {"n_cavs": args.agents}
-            if env == "figure-eight"
-            else {"n_vehicles": 2 * args.agents, "cav_ratio": 0.5}
-        )
-        config = recipe.Config(env=env, env_config=env_config, **_common(args))
+        if env == "loop":
+            scenario, env_config = args.loop, {"n_cavs": args.agents}
+        else:
+            scenario, env_config = env, {"n_vehicles": 2 * args.agents, "cav_ratio": 0.5}
+        config = recipe.Config(env=scenario, env_config=env_config, **_common(args))
         return recipe(config, _run_dir())
 
     return build
@@ -75,9 +83,9 @@ def _model_free(module: str, cls: str, env: str) -> Callable[[argparse.Namespace
 METHODS: dict[str, tuple[str, Callable[[argparse.Namespace], Any]]] = {
     "mapets-cpu": ("mapets", _mapets("cpu")),
     "mapets-paper": ("mapets", _mapets("paper")),
-    "maddpg": ("maddpg", _model_free("maddpg", "MADDPG", "figure-eight")),
-    "mappo": ("mappo", _model_free("mappo", "MAPPO", "figure-eight")),
-    "sac": ("sac", _model_free("sac", "SAC", "figure-eight")),
+    "maddpg": ("maddpg", _model_free("maddpg", "MADDPG", "loop")),
+    "mappo": ("mappo", _model_free("mappo", "MAPPO", "loop")),
+    "sac": ("sac", _model_free("sac", "SAC", "loop")),
     "shapley_ac": ("shapley_ac", _model_free("shapley_ac", "ShapleyAC", "freeway")),
 }
 """Method name -> (paper key, builder of the recipe's Experiment)."""
@@ -156,7 +164,13 @@ def _quantile(values: list[float], q: float) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
-    parser.add_argument("--agents", type=int, default=8, help="CAVs I (paper: 8)")
+    parser.add_argument(
+        "--loop",
+        default="figure-eight",
+        choices=["figure-eight", "figure-eight-multilane"],
+        help="scenario of MA-PETS, MADDPG, MAPPO, SAC (the paper's single- or multi-lane loop)",
+    )
+    parser.add_argument("--agents", type=int, default=8, help="CAVs I (paper: 8; multi-lane 22)")
     parser.add_argument("--decisions", type=int, default=30, help="timed decisions per method")
     parser.add_argument("--warmup", type=int, default=3, help="untimed decisions first")
     parser.add_argument(
@@ -202,10 +216,8 @@ def main() -> None:
         ms = [1e3 * t for t in times]
         median = statistics.median(ms)
         std = statistics.stdev(ms) if len(ms) > 1 else 0.0
-        paper_ms = PAPER_TABLE_IV_MS.get(paper_key)
-        paper_cell = (
-            f"{paper_ms:.2f} ± {PAPER_TABLE_IV_SPREAD_MS[paper_key]:.2f}" if paper_ms else "—"
-        )
+        paper_ms = PAPER_TABLE_IV_MS.get(exp.config.env, {}).get(paper_key)
+        paper_cell = f"{paper_ms[0]:.2f} ± {paper_ms[1]:.2f}" if paper_ms else "—"
         row = (
             f"| {name} | {exp.config.env} | {len(ms)} | {_ms(median)} "
             f"[{_ms(_quantile(ms, 0.1))}-{_ms(_quantile(ms, 0.9))}] | "
