@@ -12,12 +12,74 @@ step.
   travelled per driven step [m/step].
 - Safety ``= mean_i t_c(i) / H``.
 
-Freeway (Shapley paper, Table I): average velocity and average comfort of all vehicles.
+Freeway (Shapley paper, Table I): average velocity [m/s] and average comfort of all vehicles.
+Comfort (eq. 9) is a score per vehicle and step, no physical unit: 3 keeping the lane with
+``|acc| < Theta``, 2 keeping it with ``|acc| >= Theta``, 1 changing lanes, 0 emergency stop.
+
+Units: :data:`METRIC_UNITS` names the unit of every metric the recipes record;
+:func:`metric_label` writes ``name [unit]`` for tables, plot labels and logs, and speeds in m/s
+also in mph (:data:`MPH_PER_MPS`).
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+MPH_PER_MPS = 3600.0 / 1609.344
+"""Miles per hour in one metre per second (2.237)."""
+
+METRIC_UNITS: dict[str, str] = {
+    "agility": "m/step",
+    "safety": "fraction of H",
+    "mean_speed": "m/s",
+    "average_velocity": "m/s",
+    "velocity": "m/s",
+    "traffic_velocity": "m/s",
+    "average_comfort": "score 0-3",
+    "comfort": "score 0-3",
+    "traffic_comfort": "score 0-3",
+    "collisions": "CAVs",
+    "length": "steps",
+    "episode": "episodes",
+    "reward": "per CAV-step",
+    "return": "per CAV",
+    "step_time": "s/step",
+    "train_time": "s",
+    "transitions_stored": "transitions",
+    "transitions_filtered": "transitions",
+    "transitions_shared": "transitions",
+    "bytes_shared": "bytes",
+    "dataset_size": "transitions",
+    "frames": "env steps",
+}
+"""Metric name -> unit (see the module docstring for the definitions). Metrics not listed
+(losses, NLLs, counters of recipe internals) carry none."""
+
+
+def metric_unit(name: str) -> str:
+    """The unit of metric ``name`` (``""`` when it has none); ``"train/agility"`` and
+    ``"agility"`` alike."""
+    return METRIC_UNITS.get(name.rsplit("/", 1)[-1], "")
+
+
+def metric_label(name: str) -> str:
+    """``name [unit]`` (``name`` alone without a unit); speeds in m/s name mph too:
+    ``"average_velocity [m/s; x 2.237 = mph]"``."""
+    unit = metric_unit(name)
+    if not unit:
+        return name
+    if unit == "m/s":
+        return f"{name} [m/s; x {MPH_PER_MPS:.3f} = mph]"
+    return f"{name} [{unit}]"
+
+
+def format_metric(name: str, value: float, precision: int = 4) -> str:
+    """``value`` with its unit: ``"0.97 m/step"``, speeds as ``"27.1 m/s (60.6 mph)"``."""
+    unit = metric_unit(name)
+    text = f"{value:.{precision}g}"
+    if unit == "m/s":
+        return f"{text} m/s ({value * MPH_PER_MPS:.{precision}g} mph)"
+    return f"{text} {unit}" if unit else text
 
 
 def _as_array(x: object, name: str) -> np.ndarray:

@@ -155,14 +155,14 @@ class MAPETSConfig(RunConfig):
     and checkpoints after every episode.
     """
 
-    episodes: int = 15
-    random_episodes: int = 1
+    episodes: int = dataclasses.field(default=15, metadata={"unit": "episodes"})
+    random_episodes: int = dataclasses.field(default=1, metadata={"unit": "episodes"})
     preset: str = "paper"
     planner: PlannerConfig | None = None
     model: EnsembleConfig | None = None
     comm: CommConfig = dataclasses.field(default_factory=CommConfig)
-    collision_gap: float = 2.0
-    crossing_gap: float = 6.0
+    collision_gap: float = dataclasses.field(default=2.0, metadata={"unit": "m"})
+    crossing_gap: float = dataclasses.field(default=6.0, metadata={"unit": "m"})
     collision_reward: float = -10.0
     num_threads: int = 0
 
@@ -286,6 +286,7 @@ class MAPETS(Experiment):
 
     name = "mapets"
     Config = MAPETSConfig
+    action_kinds = ("continuous",)
 
     def __init__(
         self,

@@ -142,6 +142,7 @@ class ShapleyAC(Experiment):
 
     name = "shapley_ac"
     Config = ShapleyACConfig
+    action_kinds = ("discrete",)
 
     def __init__(self, config: ShapleyACConfig, run_dir: Any = None) -> None:
         super().__init__(config, run_dir)

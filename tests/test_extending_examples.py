@@ -14,6 +14,7 @@ ARGS = {
     "toy_scenario.py": ["--steps", "5"],
     "toy_recipe.py": ["--frames", "40"],
     "exact_model_planning.py": ["--steps", "10"],
+    "traffic_scenario.py": ["--episodes", "2", "--horizon", "20"],
 }
 
 
@@ -62,3 +63,17 @@ def test_exact_model_planning_steers_the_point_masses_home() -> None:
     assert actions[0][0] < 0 < actions[0][1]
     start, final = [2.0, -1.0], _listed(out, "final position")
     assert all(abs(x) < 0.6 * abs(x0) for x, x0 in zip(final, start, strict=True))
+
+
+def test_traffic_scenario_trains_mapets_with_its_reward_and_loss() -> None:
+    out = _run("traffic_scenario.py")
+    rows = re.findall(
+        r"^episode (\d+): safety (\S+) agility (\S+) m/step transitions_shared (\d+) "
+        r"model_mse (\S+)$",
+        out,
+        re.M,
+    )
+    assert [int(r[0]) for r in rows] == [1, 2]
+    for _, safety, agility, shared, mse in rows:
+        assert 0.0 <= float(safety) <= 1.0 and 0.0 < float(agility) < 1.39  # 13.89 m/s x 0.1 s
+        assert int(shared) >= 0 and 0.0 < float(mse) < 10.0  # the MSE loss trained the models

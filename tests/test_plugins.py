@@ -147,8 +147,31 @@ def test_a_recipe_seen_twice_counts_once_and_a_clash_is_refused(add_entry_point)
 def test_train_recipe_help_lists_its_fields(toy_recipe, capsys) -> None:
     code, out, _ = run_cli(["train", "toy", "--help"], capsys)
     assert code == 0 and out.startswith("usage: mapets-rl train toy --env SCENARIO")
-    assert "  lr: float = 0.05\n" in out and "  env_config: dict[str, Any] = {}\n" in out
-    assert "  total_frames: int = 60\n" in out
+    assert "  lr: float = 0.05\n      step size of the policy regression (> 0).\n" in out
+    assert "  env_config: dict[str, Any] = {}\n" in out
+    # a unit declared by the field's metadata, and one inherited from ExperimentConfig
+    assert "  batch_size: int = 16 [observations]\n" in out
+    assert "  total_frames: int = 60 [frames]\n      environment steps to train for" in out
+    # the scenarios with the recipe's actions (the toy env's are continuous)
+    scenarios = out.split("scenarios (continuous or discrete actions; --env SCENARIO):\n")[1]
+    assert "  toy (3 agents, obs 2, continuous actions)" in scenarios.split("\n\n")[0].splitlines()
+
+
+def test_train_mapets_help_lists_sections_units_and_scenarios(capsys) -> None:
+    code, out, _ = run_cli(["train", "mapets", "--help"], capsys)
+    assert code == 0
+    lines = out.splitlines()
+    assert "  planner.horizon: int = 25 [steps]" in lines
+    assert lines[lines.index("  planner.horizon: int = 25 [steps]") + 1].startswith(
+        "      MPC horizon ``w``"
+    )
+    assert "  comm.comm_range: float = 100.0 [m]" in lines
+    assert "  model.hidden: list[int] = [300, 300, 300]" in lines  # the paper preset's
+    assert "  collision_gap: float = 2.0 [m]" in lines
+    assert "  episodes: int = 15 [episodes]" in lines
+    supported, unsupported = out.split("not supported:\n")
+    assert "figure-eight (8 agents, obs 10, continuous actions)" in supported
+    assert "freeway (30 agents, obs 22, discrete actions)" in unsupported.split("\n\n")[0]
 
 
 # ---------------------------------------------------------------------------- scenarios
@@ -198,3 +221,63 @@ def test_builtin_scenarios_win_over_an_installed_one_of_the_same_name(add_entry_
     add_entry_point(SCENARIO_GROUP, "figure-eight", "no_such_module_here:make")
     env = build_env("figure-eight", {"n_cavs": 2, "n_hvs": 1, "horizon": 5})
     assert env.full_observation_spec["agents", "observation"].shape[0] == 2
+
+
+# --------------------------------------------------- the README's traffic-scenario recipe
+def test_readme_traffic_scenario_has_positions_where_mapets_reads_them() -> None:
+    """A MultiAgentTrafficEnv subclass wrapped with ``wrap_parallel_env`` writes the CAVs'
+    positions under ``("agents", "position")`` (the stock PettingZooWrapper does not: MA-PETS'
+    CommunicationRange failed with KeyError 'position')."""
+    from torchrl.envs.utils import check_env_specs
+    from traffic_scenario import StopAndGoParallelEnv, make_stop_and_go
+
+    from mapets_rl.envs import wrap_parallel_env
+
+    env = make_stop_and_go(n_cavs=2, n_hvs=2, horizon=5)
+    check_env_specs(env)
+    td = env.rollout(3)
+    position = td["next", "agents", "position"]
+    assert position.shape == (3, 2, 2) and bool((position[1:, :, 0] > position[:-1, :, 0]).all())
+    with pytest.raises(ValueError, match="parallel_env must be a mapets_rl.envs.TrafficParallel"):
+        wrap_parallel_env(StopAndGoParallelEnv(horizon=5).env)
+
+
+TINY_MAPETS = [
+    "episodes=2",
+    "env_config.horizon=15",
+    "env_config.n_cavs=2",
+    "env_config.n_hvs=2",
+    "planner.horizon=4",
+    "planner.population=8",
+    "planner.elites=2",
+    "planner.iterations=1",
+    "model.epochs=2",
+    "model.hidden=[16,16]",
+    "progress=false",
+]
+
+
+def test_plugin_traffic_scenario_and_mapets_recipe_from_the_cli(
+    add_entry_point, tmp_path: Path, capsys
+) -> None:
+    """The example's scenario and MA-PETS recipe, installed as entry points, train, resume
+    and evaluate through ``mapets-rl`` (nothing registered in-process)."""
+    add_entry_point(SCENARIO_GROUP, "stop-and-go", "traffic_scenario:make_stop_and_go")
+    add_entry_point(RECIPE_GROUP, "mapets-stop-and-go", "traffic_scenario:StopAndGoMAPETS")
+    run = tmp_path / "run"
+    argv = ["train", "mapets-stop-and-go", "--env", "stop-and-go", "--run-dir", str(run)]
+    code, out, err = run_cli([*argv, *TINY_MAPETS], capsys)
+    assert code == 0, err
+    assert json.loads(out.splitlines()[-1])["frames"] == 30
+    code, out, err = run_cli(["resume", str(run), "episodes=3"], capsys)
+    assert code == 0, err
+    assert json.loads(out.splitlines()[-1])["frames"] == 45
+    code, out, err = run_cli(["evaluate", str(run), "--episodes", "1"], capsys)
+    assert code == 0, err
+    printed = json.loads(out.splitlines()[-1])
+    metrics = printed["metrics"]
+    assert 0.0 <= metrics["safety"] <= 1.0 and metrics["length"] == 15
+    assert printed["units"]["agility"] == "m/step" and printed["units"]["length"] == "steps"
+    results = read_results(run)
+    assert results["env"] == "stop-and-go" and results["recipe"] == "mapets-stop-and-go"
+    assert [e["metrics"]["episode"] for e in results["train"]] == [1.0, 2.0, 3.0]

@@ -34,11 +34,20 @@ from mapets_rl.experiment import Experiment, ExperimentConfig, check
 @dataclasses.dataclass
 class ToyConfig(ExperimentConfig):
     """The shared fields of :class:`ExperimentConfig` with small defaults, plus the learner's
-    own (``lr``, ``batch_size``, ``sigma``), checked in ``__post_init__``."""
+    own (``lr``, ``batch_size``, ``sigma``), checked in ``__post_init__``.
+
+    ``mapets-rl train toy --help`` lists every field with the first sentence of its entry
+    below (or of a base class's) and the ``unit`` of its ``dataclasses.field`` metadata.
+
+    Attributes:
+        lr: step size of the policy regression (> 0).
+        batch_size: replayed observations per regression step (>= 1).
+        sigma: standard deviation of the exploration noise added to the action.
+    """
 
     env: str = "toy"
     lr: float = 0.05
-    batch_size: int = 16
+    batch_size: int = dataclasses.field(default=16, metadata={"unit": "observations"})
     sigma: float = 0.3
     total_frames: int = 60
     frames_per_batch: int = 10

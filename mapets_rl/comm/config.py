@@ -19,7 +19,7 @@ class CommConfig(ConfigSection):
         p_fail: probability that a communication link fails, in ``[0, 1]``.
     """
 
-    comm_range: float = dataclasses.field(default=100.0, metadata={"allow_inf": True})
+    comm_range: float = dataclasses.field(default=100.0, metadata={"allow_inf": True, "unit": "m"})
     p_fail: float = 0.0
 
     def __post_init__(self) -> None:

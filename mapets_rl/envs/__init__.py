@@ -2,7 +2,13 @@
 
 from gymnasium.envs.registration import register, registry
 
-from mapets_rl.envs.factory import SCENARIOS, make_env, make_parallel_env
+from mapets_rl.envs.factory import (
+    SCENARIOS,
+    TrafficPettingZooWrapper,
+    make_env,
+    make_parallel_env,
+    wrap_parallel_env,
+)
 from mapets_rl.envs.figure_eight import (
     FigureEightEnv,
     figure_eight_collision,
@@ -11,6 +17,7 @@ from mapets_rl.envs.figure_eight import (
 from mapets_rl.envs.freeway import ACTION_NAMES, FreewayEnv
 from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, TrafficParallelEnv
 from mapets_rl.envs.scripted import ScriptedCAVPolicy, traffic_env
+from mapets_rl.envs.traffic import MultiAgentTrafficEnv
 
 __all__ = [
     "ACTION_NAMES",
@@ -21,12 +28,15 @@ __all__ = [
     "FigureEightParallelEnv",
     "FreewayEnv",
     "FreewayParallelEnv",
+    "MultiAgentTrafficEnv",
     "TrafficParallelEnv",
+    "TrafficPettingZooWrapper",
     "figure_eight_collision",
     "figure_eight_reward",
     "make_env",
     "make_parallel_env",
     "traffic_env",
+    "wrap_parallel_env",
 ]
 
 GYM_IDS = {

@@ -159,7 +159,40 @@ def make_env(
         categorical_actions: discrete actions as indices instead of one-hot (freeway).
         **config: scenario config (``FigureEightParallelEnv`` / ``FreewayParallelEnv`` args).
     """
-    parallel_env = make_parallel_env(name, **config)
+    return wrap_parallel_env(
+        make_parallel_env(name, **config),
+        seed=seed,
+        device=device,
+        categorical_actions=categorical_actions,
+    )
+
+
+def wrap_parallel_env(
+    parallel_env: TrafficParallelEnv,
+    seed: int | None = None,
+    device: str = "cpu",
+    categorical_actions: bool = False,
+) -> EnvBase:
+    """The TorchRL env of a traffic ``ParallelEnv``: what :func:`make_env` returns for the
+    built-in scenarios, and what a custom scenario's factory returns (``register_env`` or an
+    entry point of ``mapets_rl.scenarios``).
+
+    One group ``"agents"``, crashed CAVs masked (``("agents", "mask")``), positions under
+    ``("agents", "position")`` ``[*, I, 2]`` where :class:`~mapets_rl.comm.CommunicationRange`
+    reads them (torchrl's stock ``PettingZooWrapper`` leaves them in
+    ``("agents", "info", "position")``, so MA-PETS' communication cannot find them).
+
+    Args:
+        parallel_env: a :class:`~mapets_rl.envs.TrafficParallelEnv` (any subclass).
+        seed: seed of the first reset.
+        device: torch device of the output tensors.
+        categorical_actions: discrete actions as indices instead of one-hot.
+    """
+    if not isinstance(parallel_env, TrafficParallelEnv):
+        raise ValueError(
+            "parallel_env must be a mapets_rl.envs.TrafficParallelEnv (wrap your "
+            f"MultiAgentTrafficEnv in one first), got {type(parallel_env).__name__}"
+        )
     return TrafficPettingZooWrapper(
         env=parallel_env,
         group_map={"agents": list(parallel_env.possible_agents)},

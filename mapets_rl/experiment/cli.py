@@ -1,7 +1,8 @@
 """``mapets-rl``: train, resume, evaluate and compare recipes from the command line.
 
     mapets-rl train RECIPE --env SCENARIO [--seed N] [--config FILE] [--run-dir DIR] [key=value ...]
-    mapets-rl train RECIPE --help          (RECIPE's config fields, their types and defaults)
+    mapets-rl train RECIPE --help          (RECIPE's scenarios, and its config fields with
+                                            type, default, unit and a one-line description)
     mapets-rl resume RUN_DIR [key=value ...]
     mapets-rl evaluate RUN_DIR [--episodes N] [--video]
     mapets-rl compare RUN_DIR... --out DIR [--metrics a,b,...] [--source eval|train]
@@ -93,7 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
         "recipes that record them), checkpoints/ and logs/.",
         epilog="Any config field can be set as key=value (value parsed as YAML), e.g. "
         "total_frames=30000 lr=3e-4 env_config.n_cavs=8 logger=tensorboard video=true. "
-        "`mapets-rl train RECIPE --help` lists RECIPE's fields with their defaults. "
+        "`mapets-rl train RECIPE --help` lists the scenarios RECIPE supports and its fields "
+        "(nested sections too) with defaults, units and descriptions. "
         "Recipes are the installed packages' entry points of the group mapets_rl.recipes.",
     )
     train.add_argument("recipe", metavar="RECIPE", help=f"algorithm: {_recipe_names()}")
@@ -101,7 +103,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--env",
         required=True,
         metavar="SCENARIO",
-        help="scenario name, e.g. figure-eight, figure-eight-multilane, freeway",
+        help="scenario name, e.g. figure-eight, figure-eight-multilane, freeway, or one an "
+        "installed package declares (entry-point group mapets_rl.scenarios); "
+        "`mapets-rl train RECIPE --help` lists those RECIPE supports",
     )
     train.add_argument(
         "--seed",
@@ -273,10 +277,22 @@ def _cmd_train(args: argparse.Namespace) -> int:
     exp.train()
     print(
         json.dumps(
-            {"run_dir": str(exp.run_dir), "frames": exp.frames, "metrics": exp.latest_metrics}
+            {
+                "run_dir": str(exp.run_dir),
+                "frames": exp.frames,
+                "metrics": exp.latest_metrics,
+                "units": _metric_units(["frames", *exp.latest_metrics]),
+            }
         )
     )
     return 0
+
+
+def _metric_units(names: Sequence[str]) -> dict[str, str]:
+    """Name -> unit of the metrics among ``names`` that have one (printed with them)."""
+    from mapets_rl.experiment.results import metric_units as units
+
+    return units(names)
 
 
 def _load_run(run_dir: str, overrides: Sequence[str] = ()):
@@ -294,7 +310,12 @@ def _cmd_resume(args: argparse.Namespace) -> int:
     exp.train()
     print(
         json.dumps(
-            {"run_dir": str(exp.run_dir), "frames": exp.frames, "metrics": exp.latest_metrics}
+            {
+                "run_dir": str(exp.run_dir),
+                "frames": exp.frames,
+                "metrics": exp.latest_metrics,
+                "units": _metric_units(["frames", *exp.latest_metrics]),
+            }
         )
     )
     return 0
@@ -317,6 +338,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                 "frames": exp.frames,
                 "episodes": episodes,
                 "metrics": metrics,
+                "units": _metric_units(["frames", *metrics]),
             }
         )
     )
@@ -354,33 +376,164 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     return 0
 
 
-def _recipe_help(name: str) -> str:
-    """Help of ``mapets-rl train RECIPE --help``: RECIPE's config documentation and every
-    field with its type and default (imports the recipe)."""
-    import dataclasses
+def _attribute_docs(cls: type) -> dict[str, str]:
+    """Field name -> first sentence of its entry in the ``Attributes:`` sections of the
+    docstrings of ``cls`` and its bases (the nearest class wins); ``a, b: text`` documents
+    both ``a`` and ``b``."""
     import inspect
+    import re
+
+    docs: dict[str, str] = {}
+    for klass in cls.__mro__:
+        doc = inspect.getdoc(klass) if klass.__doc__ else None
+        if not doc or "Attributes:" not in doc:
+            continue
+        entries: list[tuple[list[str], list[str]]] = []
+        for line in doc.split("Attributes:", 1)[1].splitlines():
+            if not line.strip():
+                if entries:
+                    break
+                continue
+            head = re.match(r"^    ([A-Za-z_][\w, ]*):(.*)$", line)
+            if head and not line.startswith("     "):
+                names = [n.strip() for n in head.group(1).split(",")]
+                entries.append((names, [head.group(2).strip()]))
+            elif entries and line.startswith("     "):
+                entries[-1][1].append(line.strip())
+            else:
+                break
+        for names, text in entries:
+            sentence = _first_sentence(" ".join(t for t in text if t))
+            for n in names:
+                docs.setdefault(n, sentence)
+    return docs
+
+
+def _first_sentence(text: str, limit: int = 110) -> str:
+    """``text`` up to its first ``". "`` or ``"; "`` outside parentheses (not after ``e.g``,
+    ``i.e``, ``eq``), shortened to ``limit`` characters at a word boundary."""
+    depth, end = 0, len(text)
+    for i, char in enumerate(text):
+        depth += {"(": 1, ")": -1}.get(char, 0)
+        if depth == 0 and char in ".;" and text[i + 1 : i + 2] in (" ", ""):
+            word = text[:i].rsplit(" ", 1)[-1].lower()
+            if word not in ("e.g", "i.e", "eq", "eqs", "sec", "cf"):
+                end = i + (char == ".")
+                break
+    sentence = text[:end]
+    if len(sentence) > limit:
+        sentence = sentence[: limit - 3].rsplit(" ", 1)[0] + " ..."
+    return sentence
+
+
+def _field_unit(cls: type, name: str) -> str:
+    """The ``unit`` metadata of field ``name`` of ``cls``, or of the nearest base declaring
+    it with one (a subclass that only changes a default keeps the unit)."""
+    import dataclasses
+
+    for klass in cls.__mro__:
+        if not dataclasses.is_dataclass(klass):
+            continue
+        for f in dataclasses.fields(klass):
+            if f.name == name and f.metadata.get("unit"):
+                return f.metadata["unit"]
+    return ""
+
+
+def _field_lines(config_cls: type, values: object, prefix: str = "") -> list[str]:
+    """Help lines of every field of ``config_cls`` (nested sections as ``section.field``):
+    ``name: type = default [unit]`` and its one-line description."""
+    import dataclasses
     import typing
 
-    config_cls = _recipe_class(name).Config
+    from mapets_rl.experiment.config import ConfigSection
+
     hints = typing.get_type_hints(config_cls)
+    docs = _attribute_docs(config_cls)
+    lines = []
+    for f in dataclasses.fields(config_cls):
+        if values is not None:
+            value = getattr(values, f.name)
+        elif f.default is not dataclasses.MISSING:
+            value = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            value = f.default_factory()
+        else:
+            value = dataclasses.MISSING
+        if isinstance(value, ConfigSection):
+            header = f"  {prefix}{f.name}: section {type(value).__name__}"
+            lines.append(header + (f"  -- {docs[f.name]}" if f.name in docs else ""))
+            lines += _field_lines(type(value), value, f"{prefix}{f.name}.")
+            continue
+        tp = hints[f.name]
+        type_name = tp.__name__ if isinstance(tp, type) else str(tp).replace("typing.", "")
+        default = "(required)" if value is dataclasses.MISSING else repr(value)
+        unit = _field_unit(config_cls, f.name)
+        lines.append(
+            f"  {prefix}{f.name}: {type_name} = {default}" + (f" [{unit}]" if unit else "")
+        )
+        if f.name in docs:
+            lines.append(f"      {docs[f.name]}")
+    return lines
+
+
+def _supported_scenarios(cls: type, config: object) -> list[str]:
+    """One line per available scenario: whether RECIPE ``cls`` handles its actions (built with
+    its default config; a scenario that cannot be built says why)."""
+    from mapets_rl.experiment.runner import available_envs, build_env
+    from mapets_rl.modules import AgentGroupSpec
+
+    kinds = tuple(getattr(cls, "action_kinds", ("continuous", "discrete")))
+    supported, other = [], []
+    for env_name in available_envs():
+        env_config = getattr(config, "env_config", {}) if env_name == config.env else {}
+        try:
+            env = build_env(env_name, env_config)
+            group = AgentGroupSpec.from_env(env)
+            env.close()
+        except Exception as err:  # noqa: BLE001 - a broken plug-in must not break --help
+            other.append(f"{env_name} (cannot be built: {str(err).splitlines()[0][:80]})")
+            continue
+        kind = "discrete" if group.discrete else "continuous"
+        detail = f"{env_name} ({group.n_agents} agents, obs {group.obs_dim}, {kind} actions)"
+        (supported if kind in kinds else other).append(detail)
+    lines = [f"scenarios ({' or '.join(kinds)} actions; --env SCENARIO):"]
+    lines += [f"  {line}" for line in supported] or ["  (none installed)"]
+    if other:
+        lines.append("not supported:")
+        lines += [f"  {line}" for line in other]
+    return lines
+
+
+def _recipe_help(name: str) -> str:
+    """Help of ``mapets-rl train RECIPE --help``: RECIPE's config documentation (first
+    paragraph), the scenarios it supports and every config field, nested sections included,
+    with its type, default, unit and a one-line description (imports the recipe)."""
+    import inspect
+
+    from mapets_rl.experiment.config import ConfigError
+
+    cls = _recipe_class(name)
+    config_cls = cls.Config
+    try:
+        config = config_cls()
+    except (ConfigError, ValueError, TypeError):
+        config = None
+    summary = (inspect.getdoc(config_cls) or "").split("\n\n", 1)[0]
     lines = [
         f"usage: {PROG} train {name} --env SCENARIO [--seed N] [--config FILE] "
         "[--run-dir DIR] [key=value ...]",
         "",
-        inspect.getdoc(config_cls) or "",
+        summary,
         "",
-        f"fields of {config_cls.__name__} (set as key=value; values parsed as YAML):",
     ]
-    for f in dataclasses.fields(config_cls):
-        if f.default is not dataclasses.MISSING:
-            default = repr(f.default)
-        elif f.default_factory is not dataclasses.MISSING:
-            default = repr(f.default_factory())
-        else:
-            default = "(required)"
-        tp = hints[f.name]
-        type_name = tp.__name__ if isinstance(tp, type) else str(tp).replace("typing.", "")
-        lines.append(f"  {f.name}: {type_name} = {default}")
+    if config is not None:
+        lines += _supported_scenarios(cls, config) + [""]
+    lines.append(
+        f"fields of {config_cls.__name__} (set as key=value, a section's fields as "
+        "section.field=value; values parsed as YAML; [unit]):"
+    )
+    lines += _field_lines(config_cls, config)
     return "\n".join(lines) + "\n"
 
 

@@ -34,6 +34,7 @@ from mapets_rl.experiment.files import (
     make_writable_dir,
 )
 from mapets_rl.experiment.results import ENTRY_LISTS, SOURCES, read_results
+from mapets_rl.metrics import MPH_PER_MPS, metric_label, metric_unit
 
 log = logging.getLogger(__name__)
 
@@ -350,11 +351,11 @@ def compare(
     lines = [
         f"Last entry of each run: {described}; mean ± 95% CI half-width (n = runs).",
         "",
-        "| group | source | frames | " + " | ".join(metrics) + " |",
+        "| group | source | frames | " + " | ".join(map(metric_label, metrics)) + " |",
         "|" + "---|" * (len(metrics) + 3),
     ]
     for label, row in summary.items():
-        cells = [f"{row[m]['mean']:.4g} ± {row[m]['ci95']:.2g} (n={row[m]['n']})" for m in metrics]
+        cells = [_cell(m, row[m]) for m in metrics]
         first = row[metrics[0]]
         lines.append(
             f"| {label} | {SOURCE_NAMES[first['source']]} | {first['frames']} | "
@@ -367,6 +368,15 @@ def compare(
     curves_path = out_dir / "curves.json"
     atomic_write_text(curves_path, json.dumps(curves, indent=1))
     return {"plot": plot, "table": table, "summary": summary_path, "curves": curves_path}
+
+
+def _cell(metric: str, stats: Mapping[str, Any]) -> str:
+    """A table cell: mean ± 95% CI half-width (n), speeds in m/s also in mph."""
+    text = f"{stats['mean']:.4g} ± {stats['ci95']:.2g}"
+    if metric_unit(metric) == "m/s":
+        mph = MPH_PER_MPS * stats["mean"], MPH_PER_MPS * stats["ci95"]
+        text += f" ({mph[0]:.4g} ± {mph[1]:.2g} mph)"
+    return f"{text} (n={stats['n']})"
 
 
 def _x_value(entry: Mapping[str, Any], x: str) -> float:
@@ -410,8 +420,8 @@ def _plot(
             half = np.array([group["metrics"][m]["ci95"][i] for i in full])
             (line,) = ax.plot(xs, mean, marker="o", ms=3, label=f"{label} (n={len(group['runs'])})")
             ax.fill_between(xs, mean - half, mean + half, alpha=0.2, color=line.get_color())
-        ax.set_title(m)
-        ax.set_xlabel("environment frames" if x == "frames" else x)
+        ax.set_title(metric_label(m), fontsize=9)
+        ax.set_xlabel("environment frames [env steps]" if x == "frames" else metric_label(x))
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[n:]:
         ax.set_visible(False)

@@ -377,6 +377,9 @@ class RunConfig:
         return data
 
 
+_FRAMES = {"unit": "frames"}
+
+
 @dataclasses.dataclass
 class ExperimentConfig(RunConfig):
     """The shared fields of :class:`RunConfig` plus a frame budget, for the recipes that
@@ -398,11 +401,11 @@ class ExperimentConfig(RunConfig):
             environments but not their own torch RNG).
     """
 
-    total_frames: int = 3000
-    frames_per_batch: int = 200
+    total_frames: int = dataclasses.field(default=3000, metadata=_FRAMES)
+    frames_per_batch: int = dataclasses.field(default=200, metadata=_FRAMES)
     num_envs: int = 1
-    eval_interval: int = 1000
-    checkpoint_interval: int = 1000
+    eval_interval: int = dataclasses.field(default=1000, metadata=_FRAMES)
+    checkpoint_interval: int = dataclasses.field(default=1000, metadata=_FRAMES)
 
     def __post_init__(self) -> None:
         super().__post_init__()

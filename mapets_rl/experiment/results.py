@@ -13,8 +13,11 @@ from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLo
 
 from mapets_rl.experiment.config import LOGGERS, check_logger_package
 from mapets_rl.experiment.files import atomic_write_text
+from mapets_rl.metrics import METRIC_UNITS, metric_unit
 
 RESULTS_FILE = "results.json"
+UNITS_FILE = "units.json"
+"""Written beside the logger's files (``RUN_DIR/logs/units.json``): metric name -> unit."""
 
 
 def make_logger(kind: str, run_dir: str | os.PathLike, exp_name: str) -> Logger | None:
@@ -23,7 +26,8 @@ def make_logger(kind: str, run_dir: str | os.PathLike, exp_name: str) -> Logger 
     Args:
         kind: ``"csv"`` (always available), ``"tensorboard"`` (needs the tensorboard package),
             ``"wandb"`` (needs wandb; runs offline unless WANDB_MODE says otherwise) or
-            ``"none"`` (returns None).
+            ``"none"`` (returns None). ``run_dir/logs/units.json`` names the unit of every
+            metric (:data:`mapets_rl.metrics.METRIC_UNITS`).
         run_dir: the run directory.
         exp_name: experiment name (a sub-directory of ``logs``).
     """
@@ -33,6 +37,8 @@ def make_logger(kind: str, run_dir: str | os.PathLike, exp_name: str) -> Logger 
     log_dir = str(Path(run_dir) / "logs")
     if kind == "none":
         return None
+    # the logged scalars are named prefix/metric (train/agility); their units, once per run
+    atomic_write_text(Path(log_dir) / UNITS_FILE, json.dumps(METRIC_UNITS, indent=1))
     if kind == "csv":
         return CSVLogger(exp_name=exp_name, log_dir=log_dir)
     if kind == "tensorboard":
@@ -51,6 +57,12 @@ def log_scalars(logger: Logger | None, prefix: str, values: Mapping[str, float],
     for name, value in values.items():
         if isinstance(value, (int, float)) and math.isfinite(value):
             logger.log_scalar(f"{prefix}/{name}", float(value), step=step)
+
+
+def metric_units(names: Iterable[str]) -> dict[str, str]:
+    """Name -> unit of the metrics among ``names`` that have one (see
+    :data:`mapets_rl.metrics.METRIC_UNITS`), sorted by name."""
+    return {name: metric_unit(name) for name in sorted(set(names)) if metric_unit(name)}
 
 
 def mean_metrics(items: Iterable[Mapping[str, float]]) -> dict[str, float]:
@@ -79,8 +91,12 @@ class ResultsWriter:
     Layout::
 
         {"recipe": str, "env": str, "seed": int, "config": {...},
+         "units": {name: unit},
          "train": [{"frames": int, "metrics": {name: float}}, ...],
          "evaluations": [{"frames": int, "metrics": {name: float}}, ...]}
+
+    ``units`` names the unit of every recorded metric that has one (``agility: m/step``,
+    ``average_velocity: m/s``, ``frames: env steps``; :data:`mapets_rl.metrics.METRIC_UNITS`).
 
     ``evaluations`` holds deterministic evaluations (the runner's periodic ones);
     ``train`` holds metrics of training itself (e.g. each MA-PETS episode, whose actions come
@@ -151,10 +167,13 @@ class ResultsWriter:
             self.evaluations, self.train, self._unsorted = [], [], entries
 
     def write(self) -> None:
+        entries = (self._unsorted or []) + self.train + self.evaluations
+        units = metric_units(["frames", *(k for e in entries for k in e["metrics"])])
+        header = {**self.header, "units": units}
         if self._unsorted is not None:
-            data = {**self.header, "evaluations": self._unsorted}
+            data = {**header, "evaluations": self._unsorted}
         else:
-            data = {**self.header, "train": self.train, "evaluations": self.evaluations}
+            data = {**header, "train": self.train, "evaluations": self.evaluations}
         atomic_write_text(self.path, json.dumps(data, indent=1))
 
 

@@ -165,6 +165,10 @@ class Experiment:
 
     name: ClassVar[str] = "experiment"
     Config: ClassVar[type[RunConfig]] = ExperimentConfig
+    action_kinds: ClassVar[tuple[str, ...]] = ("continuous", "discrete")
+    """The kinds of per-agent actions the recipe handles: ``"continuous"`` (a Bounded spec)
+    and/or ``"discrete"`` (one-hot); ``mapets-rl train RECIPE --help`` lists the scenarios
+    whose actions are of one of these kinds."""
     progress_unit: ClassVar[str] = "frame"
     # set by from_run_dir on the instance before __init__ runs: the run directory's checkpoints
     # are the ones being restored, and config.yaml is rewritten once they are

@@ -60,10 +60,10 @@ class OffPolicyConfig(ModelFreeConfig):
     """
 
     tau: float = 0.01
-    buffer_size: int = 100_000
-    batch_size: int = 256
+    buffer_size: int = dataclasses.field(default=100_000, metadata={"unit": "transitions"})
+    batch_size: int = dataclasses.field(default=256, metadata={"unit": "transitions"})
     updates_per_batch: int = 20
-    init_random_frames: int = 200
+    init_random_frames: int = dataclasses.field(default=200, metadata={"unit": "frames"})
     lr_actor: float = 1e-3
     lr_critic: float = 1e-3
 

@@ -29,10 +29,10 @@ class EnsembleConfig(ConfigSection):
 
     ensemble_size: int = 5
     hidden: list[int] = dataclasses.field(default_factory=lambda: [300, 300, 300])
-    epochs: int = 5
-    batch_size: int = 128
+    epochs: int = dataclasses.field(default=5, metadata={"unit": "passes per episode"})
+    batch_size: int = dataclasses.field(default=128, metadata={"unit": "transitions"})
     lr: float = 1e-3
-    buffer_size: int = 2048
+    buffer_size: int = dataclasses.field(default=2048, metadata={"unit": "transitions per CAV"})
     logvar_bound_coef: float = 0.01
     share_model: bool = False
 

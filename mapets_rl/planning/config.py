@@ -34,7 +34,7 @@ class PlannerConfig(ConfigSection):
             ``"fp32"`` or ``"bf16"``.
     """
 
-    horizon: int = 25
+    horizon: int = dataclasses.field(default=25, metadata={"unit": "steps"})
     population: int = 400
     elites: int = 40
     iterations: int = 5

@@ -1,0 +1,97 @@
+"""Freeway video frames: CAVs and human drivers in their own colours, crashes marked where they
+happened, a camera on the CAVs' mean position, a legend (rendered off screen)."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from mapets_rl.envs import FreewayParallelEnv
+from mapets_rl.envs.rendering import CAV_COLOR, CRASH_COLOR, HV_COLOR, LEGEND_ORIGIN, SWATCH
+
+pygame = pytest.importorskip("pygame")
+
+
+@pytest.fixture
+def crashed_freeway(monkeypatch):
+    """A 6-vehicle freeway (3 CAVs) whose rearmost CAV is hit in the first step by a standing
+    human driver put 2 m ahead of it; returns the raw env and the frame after that step."""
+    monkeypatch.setenv("SDL_VIDEODRIVER", os.environ.get("SDL_VIDEODRIVER", "offscreen"))
+    parallel = FreewayParallelEnv(
+        n_vehicles=6, cav_ratio=0.5, render_mode="rgb_array", horizon=4, spawn_length=100.0
+    )
+    env = parallel.env
+    parallel.reset(seed=0)
+    cav = env.cavs[0]
+    hv = next(v for v in env.road.vehicles if all(v is not c for c in env.cavs))
+    hv.lane_index = hv.target_lane_index = cav.lane_index
+    hv.lane = cav.lane
+    hv.position = cav.position + np.array([2.0, 0.0])
+    hv.speed = 0.0
+    parallel.step_joint(env.scripted_action())
+    try:
+        frame = env.render()
+    except pygame.error as err:  # pragma: no cover - depends on the SDL build
+        pytest.skip(f"pygame cannot render off screen here: {err}")
+    return env, frame
+
+
+def _near(frame: np.ndarray, pixel: tuple[int, int], color: tuple[int, int, int], r: int = 3):
+    """Whether ``color`` occurs within ``r`` pixels of ``pixel`` (x, y)."""
+    x, y = pixel
+    patch = frame[max(y - r, 0) : y + r + 1, max(x - r, 0) : x + r + 1]
+    return bool((patch == np.array(color, dtype=np.uint8)).all(-1).any())
+
+
+def test_cavs_and_human_drivers_have_their_own_colours(crashed_freeway) -> None:
+    env, frame = crashed_freeway
+    assert frame.shape == (200, 900, 3) and frame.dtype == np.uint8
+    surface = env.viewer.sim_surface
+    cav_ids = {id(c) for c in env.cavs}
+    seen = {"cav": 0, "hv": 0}
+    for vehicle in env.road.vehicles:
+        x, y = surface.pos2pix(*vehicle.position)
+        if not (0 <= x < 900 and 0 <= y < 200):
+            continue
+        is_cav = id(vehicle) in cav_ids
+        assert tuple(frame[y, x]) == (CAV_COLOR if is_cav else HV_COLOR)
+        seen["cav" if is_cav else "hv"] += 1
+    assert seen["cav"] >= 1 and seen["hv"] >= 1
+
+
+def test_crashed_vehicles_stay_marked(crashed_freeway) -> None:
+    env, frame = crashed_freeway
+    assert not env.alive[0] and len(env.crash_sites) == 2  # the CAV and the human driver
+    assert sorted(env.crash_sites.is_cav) == [False, True]
+    surface = env.viewer.sim_surface
+    red = (frame == np.array(CRASH_COLOR, dtype=np.uint8)).all(-1)
+    red[: LEGEND_ORIGIN[1] + 3 * (SWATCH + 4) + 4, : LEGEND_ORIGIN[0] + 150] = False  # legend
+    for position in env.crash_sites.positions:
+        x, y = surface.pos2pix(*position)
+        assert 0 <= x < 900 and 0 <= y < 200
+        assert _near(frame, (x, y), CRASH_COLOR, r=12)
+        red[max(y - 12, 0) : y + 13, max(x - 12, 0) : x + 13] = False
+    assert red.sum() == 0  # nothing but the crash sites is drawn in the marker colour
+    assert all(not v.crashed for v in env.road.vehicles)  # they left the road, marks stay
+    # a new episode starts without marks
+    env.reset(seed=1)
+    assert len(env.crash_sites) == 0
+
+
+def test_camera_follows_the_cavs_and_legend_names_the_colours(crashed_freeway) -> None:
+    env, frame = crashed_freeway
+    surface = env.viewer.sim_surface
+    for _ in range(2):
+        centre = surface.pos2pix(*env.view_centre)
+        assert abs(centre[0] - 450) <= 1 and abs(centre[1] - 100) <= 1
+        alive = [c.position for i, c in enumerate(env.cavs) if env.alive[i]]
+        assert np.allclose(env.view_centre, np.mean(alive, axis=0))
+        env.step(env.scripted_action())
+        frame = env.render()
+    x0, y0 = LEGEND_ORIGIN
+    row = SWATCH + 4
+    for k, color in enumerate((CAV_COLOR, HV_COLOR, CRASH_COLOR)):
+        middle = (x0 + 4 + SWATCH // 2, y0 + 4 + k * row + SWATCH // 2)
+        assert tuple(frame[middle[1], middle[0]]) == color
