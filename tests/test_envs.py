@@ -6,6 +6,10 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from highway_env.road.lane import CircularLane, StraightLane
+from highway_env.vehicle.behavior import IDMVehicle
+from highway_env.vehicle.controller import ControlledVehicle
+from highway_env.vehicle.kinematics import Vehicle
 from pettingzoo.test import parallel_api_test
 from tensordict.nn import TensorDictModule
 from torchrl.envs import ParallelEnv, SerialEnv
@@ -27,6 +31,8 @@ from mapets_rl.envs import (
 from mapets_rl.envs.factory import TrafficPettingZooWrapper
 from mapets_rl.envs.figure_eight_road import SEGMENTS, FigureEightGeometry
 from mapets_rl.envs.freeway import CL, ES, KL
+from mapets_rl.envs.lanes import FastCircularLane, FastStraightLane
+from mapets_rl.envs.vehicles import FastIDMVehicle, RouteVehicleMixin
 
 MAX_SPEED = 13.89
 
@@ -452,3 +458,110 @@ def test_bad_actions_are_rejected() -> None:
     freeway.reset(seed=0)
     with pytest.raises(ValueError, match="integers in \\[0, 3\\]"):
         freeway.step(np.array([0, 4, 1]))
+
+
+# --- float-math overrides of highway-env's per-step control ------------------------------------
+STOCK_METHODS = [
+    (RouteVehicleMixin, "steering_control", ControlledVehicle.steering_control),
+    (RouteVehicleMixin, "integrate", Vehicle.step),
+    (FastIDMVehicle, "integrate", IDMVehicle.step),
+    (FastIDMVehicle, "act", IDMVehicle.act),
+    (FastIDMVehicle, "acceleration", IDMVehicle.acceleration),
+    (FastIDMVehicle, "desired_gap", IDMVehicle.desired_gap),
+    (FastStraightLane, "local_coordinates", StraightLane.local_coordinates),
+    (FastCircularLane, "local_coordinates", CircularLane.local_coordinates),
+    (FastCircularLane, "heading_at", CircularLane.heading_at),
+]
+"""Our float-math overrides and the highway-env methods they replace."""
+
+
+def _sampled_scene(seed: int) -> FigureEightEnv:
+    """A two-lane figure-eight 40 steps into a random-action episode (lane changes included)."""
+    env = FigureEightEnv({"lanes": 2, "n_cavs": 6, "n_hvs": 10, "horizon": 100})
+    env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    space = env.action_space
+    for _ in range(40):
+        env.step(rng.uniform(space.low, space.high).astype(np.float32))
+    return env
+
+
+def _same(ours: float | tuple, stock: float | tuple) -> bool:
+    """Equal up to a few ulp (NumPy may use SIMD libm variants on other CPUs; bitwise equal
+    on the AVX2 machine the overrides were checked on)."""
+    return np.allclose(ours, stock, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_float_math_control_equals_highway_env(seed: int) -> None:
+    env = _sampled_scene(seed)
+    rng = np.random.default_rng(seed)
+    vehicles = list(env.road.vehicles)
+    assert sum(isinstance(v, FastIDMVehicle) for v in vehicles) >= 5
+    for vehicle in vehicles:
+        # off the lane centre, heading and speed perturbed: the clips and the wrap are exercised
+        vehicle.heading += rng.normal(0.0, 0.5)
+        vehicle.speed = float(rng.uniform(0.0, 15.0))
+        vehicle.position = vehicle.position + rng.normal(0.0, 1.5, 2)
+    lanes = env.road.network.lanes_list()
+    for vehicle in vehicles:
+        for lane_index in {vehicle.lane_index, vehicle.target_lane_index}:
+            assert _same(
+                vehicle.steering_control(lane_index),
+                ControlledVehicle.steering_control(vehicle, lane_index),
+            )
+        for lane in lanes:
+            stock = StraightLane if isinstance(lane, FastStraightLane) else CircularLane
+            assert _same(
+                lane.local_coordinates(vehicle.position),
+                stock.local_coordinates(lane, vehicle.position),
+            )
+        if isinstance(vehicle, FastIDMVehicle):
+            assert _same(vehicle.acceleration(vehicle), IDMVehicle.acceleration(vehicle, vehicle))
+            for other in vehicles:
+                if other is not vehicle:
+                    assert _same(
+                        vehicle.desired_gap(vehicle, other),
+                        IDMVehicle.desired_gap(vehicle, vehicle, other),
+                    )
+                    assert _same(
+                        vehicle.acceleration(vehicle, other),
+                        IDMVehicle.acceleration(vehicle, vehicle, other),
+                    )
+    for lane in lanes:
+        if isinstance(lane, FastCircularLane):
+            for s in rng.uniform(-5.0, lane.length + 5.0, 20):
+                assert _same(lane.heading_at(s), CircularLane.heading_at(lane, s))
+
+
+@pytest.mark.parametrize(
+    "name,config",
+    [
+        ("figure-eight-multilane", {"n_cavs": 10, "n_hvs": 12}),
+        ("freeway", {"n_vehicles": 20, "cav_ratio": 0.5}),
+    ],
+)
+def test_float_math_control_gives_identical_trajectories(name, config, monkeypatch) -> None:
+    """A seeded random-action episode is the same with highway-env's stock methods."""
+
+    def trajectory() -> np.ndarray:
+        env = make_parallel_env(name, horizon=60, **config).env
+        env.reset(seed=5)
+        rng = np.random.default_rng(5)
+        space, rows = env.action_space, []
+        for _ in range(60):
+            if hasattr(space, "nvec"):
+                action = rng.integers(0, space.nvec)
+            else:
+                action = rng.uniform(space.low, space.high).astype(np.float32)
+            obs, reward, terminated, truncated, _ = env.step(action)
+            state = [(*v.position, v.heading, v.speed) for v in env.road.vehicles]
+            rows.append(np.concatenate([np.ravel(state), obs.ravel(), [reward]]))
+            if terminated or truncated:
+                break
+        return np.concatenate(rows)
+
+    ours = trajectory()
+    for cls, method, stock in STOCK_METHODS:
+        monkeypatch.setattr(cls, method, stock)
+    np.testing.assert_allclose(ours, trajectory(), rtol=0, atol=1e-9)

@@ -20,8 +20,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from highway_env.road.lane import AbstractLane, CircularLane, LineType, StraightLane
+from highway_env.road.lane import AbstractLane, LineType
 from highway_env.road.road import LaneIndex, RoadNetwork
+
+from mapets_rl.envs.lanes import FastCircularLane, FastStraightLane
 
 SEGMENTS: tuple[tuple[str, str], ...] = (
     ("a", "b"),
@@ -73,10 +75,10 @@ class FigureEightGeometry:
 
     def _straight(
         self, start: tuple[float, float], end: tuple[float, float], lane: int
-    ) -> StraightLane:
+    ) -> FastStraightLane:
         direction = np.subtract(end, start) / np.linalg.norm(np.subtract(end, start))
         left = np.array([-direction[1], direction[0]]) * self.lateral_offset(lane)
-        return StraightLane(
+        return FastStraightLane(
             np.add(start, left),
             np.add(end, left),
             line_types=self._line_types(lane),
@@ -85,10 +87,10 @@ class FigureEightGeometry:
 
     def _arc(
         self, center: tuple[float, float], start: float, end: float, lane: int
-    ) -> CircularLane:
+    ) -> FastCircularLane:
         clockwise = end > start  # highway-env calls increasing angle "clockwise"
         direction = 1.0 if clockwise else -1.0
-        return CircularLane(
+        return FastCircularLane(
             center,
             self.radius - self.lateral_offset(lane) * direction,
             math.radians(start),

@@ -30,14 +30,14 @@ from gymnasium import spaces
 from highway_env.envs.common.action import ActionType
 from highway_env.road.lane import LineType, StraightLane
 from highway_env.road.road import RoadNetwork
-from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
+from mapets_rl.envs.lanes import FastStraightLane
 from mapets_rl.envs.rendering import CrashSites, decorate_frame, paint_vehicles
 from mapets_rl.envs.road import SortedNeighbourRoad
 from mapets_rl.envs.traffic import AgentObservation, MultiAgentTrafficEnv, require
 from mapets_rl.envs.validation import is_integer, is_real, require_number, require_range
-from mapets_rl.envs.vehicles import ACC_MIN, HumanVehicle, RouteVehicleMixin
+from mapets_rl.envs.vehicles import ACC_MIN, FastIDMVehicle, HumanVehicle, clip
 from mapets_rl.metrics import average_comfort, average_velocity
 
 KL, CL, CR, ES = 0, 1, 2, 3
@@ -45,7 +45,7 @@ ACTION_NAMES = ("KL", "CL", "CR", "ES")
 OBS_DIM = 4 + 6 * 3
 
 
-class LaneDecisionVehicle(RouteVehicleMixin, IDMVehicle):
+class LaneDecisionVehicle(FastIDMVehicle):
     """A CAV on the freeway: IDM longitudinal control, lane decisions from its agent."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
@@ -62,12 +62,10 @@ class LaneDecisionVehicle(RouteVehicleMixin, IDMVehicle):
         Vehicle.act(
             self,
             {
-                "steering": float(
-                    np.clip(
-                        self.steering_control(self.target_lane_index),
-                        -self.MAX_STEERING_ANGLE,
-                        self.MAX_STEERING_ANGLE,
-                    )
+                "steering": clip(
+                    self.steering_control(self.target_lane_index),
+                    -self.MAX_STEERING_ANGLE,
+                    self.MAX_STEERING_ANGLE,
                 ),
                 "acceleration": ACC_MIN if self.speed > 0 else 0.0,
             },
@@ -271,7 +269,7 @@ class FreewayEnv(MultiAgentTrafficEnv):
             net.add_lane(
                 "0",
                 "1",
-                StraightLane(
+                FastStraightLane(
                     [0.0, lane * width],
                     [cfg["road_length"], lane * width],
                     line_types=lines,
