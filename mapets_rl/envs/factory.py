@@ -39,7 +39,15 @@ and the gymnasium ids (``mapets_rl.envs.GYM_IDS``) all read them from here."""
 
 
 class TrafficPettingZooWrapper(PettingZooWrapper):
-    """``PettingZooWrapper`` for ``TrafficParallelEnv`` with a vectorised data path."""
+    """``PettingZooWrapper`` for ``TrafficParallelEnv`` with a vectorised data path.
+
+    Every output entry is one NumPy array of the scenario turned into a tensor without a copy
+    (``torch.from_numpy``; on another device, one transfer), and the output TensorDicts are
+    built without re-validating entries whose shapes, dtypes and device this class guarantees.
+    Since ``_step`` always returns every reward and done key with its spec's shape and dtype,
+    torchrl's per-step completion of missing done keys is skipped (it still runs, with the
+    type checks, when ``run_type_checks`` is set).
+    """
 
     def _init_env(self) -> None:
         super()._init_env()
@@ -47,33 +55,62 @@ class TrafficPettingZooWrapper(PettingZooWrapper):
         position = group_spec["info", "position"]
         del group_spec["info"]["position"]
         group_spec["position"] = position
-        self._info_dtypes = {key: group_spec["info", key].dtype for key in group_spec["info"]}
+        self._info_dtypes = {
+            key: torch.empty((), dtype=group_spec["info", key].dtype).numpy().dtype
+            for key in group_spec["info"]
+        }
+        self._agents_action_spec = self.input_spec["full_action_spec", "agents", "action"]
+        self._group_size = torch.Size([len(self._env.possible_agents)])
 
     def _output(
-        self, obs: np.ndarray, info: dict, acting: np.ndarray, group: dict[str, torch.Tensor]
+        self,
+        obs: np.ndarray,
+        info: dict,
+        acting: np.ndarray,
+        terminated: np.ndarray,
+        truncated: np.ndarray,
+        reward: np.ndarray | None = None,
     ) -> TensorDict:
-        """Output TensorDict from the scenario's arrays; entries of non-acting agents zeroed."""
-        parallel_env: TrafficParallelEnv = self._env
-        device = self.device
-        alive = torch.as_tensor(acting, device=device)
-        still = set(parallel_env.agents)
-        group["observation"] = torch.as_tensor(obs, device=device) * alive[:, None]
-        group["mask"] = torch.tensor(
-            [a in still for a in parallel_env.possible_agents], device=device
-        )
+        """Output TensorDict from the scenario's arrays (all ``[I, ...]``, ``I`` CAVs; no reward
+        entry at a reset); entries of agents that did not act are zeroed, except the position."""
+        device, batch = self.device, self._group_size
+        if device is None or device.type == "cpu":
+            tensor = torch.from_numpy  # fresh arrays that nobody else writes to: no copy
+        else:
+
+            def tensor(array: np.ndarray) -> torch.Tensor:
+                return torch.from_numpy(array).to(device)
+
+        column = acting[:, None]
+        done = terminated | truncated
         info_out = {}
-        for key, value in parallel_env.info_arrays(info).items():
-            value = torch.as_tensor(value, device=device)
-            if key == "position":
-                group["position"] = value
+        for key, value in self._env.info_arrays(info).items():
+            if key != "position":
+                value = (value * acting.reshape(-1, *([1] * (value.ndim - 1)))).astype(
+                    self._info_dtypes[key], copy=False
+                )
+                info_out[key] = tensor(value)
             else:
-                value = value * alive.reshape(-1, *([1] * (value.ndim - 1)))
-                info_out[key] = value.to(self._info_dtypes[key])
-        group["info"] = TensorDict(info_out, batch_size=alive.shape, device=device)
-        done = {key: group[key].all().reshape(1) for key in ("done", "terminated", "truncated")}
-        return TensorDict(
-            {"agents": TensorDict(group, batch_size=alive.shape, device=device), **done},
-            batch_size=(),
+                position = tensor(np.array(value, dtype=np.float32))
+        group = {
+            "observation": tensor(obs * column),
+            "mask": tensor(~done),
+            "position": position,
+            "done": tensor(done[:, None]),
+            "terminated": tensor(terminated[:, None]),
+            "truncated": tensor(truncated[:, None]),
+            "info": TensorDict._new_unsafe(info_out, batch_size=batch, device=device),
+        }
+        if reward is not None:
+            group["reward"] = tensor(reward[:, None])
+        return TensorDict._new_unsafe(
+            {
+                "agents": TensorDict._new_unsafe(group, batch_size=batch, device=device),
+                "done": tensor(done.all(keepdims=True)),
+                "terminated": tensor(terminated.all(keepdims=True)),
+                "truncated": tensor(truncated.all(keepdims=True)),
+            },
+            batch_size=torch.Size(()),
             device=device,
         )
 
@@ -84,12 +121,11 @@ class TrafficPettingZooWrapper(PettingZooWrapper):
                 raise RuntimeError("TrafficPettingZooWrapper resets all agents at once.")
         obs, info = self._env.reset_joint(**kwargs)
         n = len(self._env.possible_agents)
-        false = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
-        group = {"done": false, "terminated": false.clone(), "truncated": false.clone()}
-        return self._output(obs, info, np.ones(n, dtype=bool), group)
+        false = np.zeros(n, dtype=bool)
+        return self._output(obs, info, np.ones(n, dtype=bool), false, false.copy())
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action_spec = self.input_spec["full_action_spec", "agents", "action"]
+        action_spec = self._agents_action_spec
         action = tensordict.get(("agents", "action"), None)
         if action is None:
             raise ValueError(
@@ -114,16 +150,12 @@ class TrafficPettingZooWrapper(PettingZooWrapper):
                 )
         joint = np.asarray(action_spec.to_numpy(action))
         obs, rewards, terminated, truncated, acting, info = self._env.step_joint(joint)
-        device = self.device
-        terminated_t = torch.as_tensor(terminated, device=device).unsqueeze(-1)
-        truncated_t = torch.as_tensor(truncated, device=device).unsqueeze(-1)
-        group = {
-            "reward": torch.as_tensor(rewards, device=device).unsqueeze(-1),
-            "terminated": terminated_t,
-            "truncated": truncated_t,
-            "done": terminated_t | truncated_t,
-        }
-        return self._output(obs, info, acting, group)
+        return self._output(obs, info, acting, terminated, truncated, rewards)
+
+    def _step_proc_data(self, next_tensordict_out: TensorDictBase) -> TensorDictBase:
+        if self.run_type_checks:
+            return super()._step_proc_data(next_tensordict_out)
+        return next_tensordict_out
 
 
 def make_parallel_env(name: str, **config: Any) -> TrafficParallelEnv:
