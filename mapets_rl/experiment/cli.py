@@ -28,6 +28,8 @@ import sys
 from collections.abc import Sequence
 from typing import NoReturn
 
+from mapets_rl.experiment.threads import prepare_process
+
 PROG = "mapets-rl"
 
 
@@ -539,6 +541,7 @@ def _recipe_help(name: str) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``mapets-rl`` console script."""
+    prepare_process()  # the OpenMP wait policy must be set before anything imports torch
     argv = list(sys.argv[1:] if argv is None else argv)
     if (
         len(argv) >= 3

@@ -56,6 +56,7 @@ from mapets_rl.experiment.results import (
     mean_metrics,
     read_json_object,
 )
+from mapets_rl.experiment.threads import config_threads, configure_threads
 from mapets_rl.modules import masked_mean
 
 CONFIG_FILE = "config.yaml"
@@ -202,6 +203,7 @@ class Experiment:
             )
         check_writable_dir(self.run_dir)
         seed_everything(config.seed)
+        self.threads = configure_threads(config_threads(config))
         self.device = torch.device(config.device)
         self.frames = 0
         self.batches = 0

@@ -1,0 +1,169 @@
+"""How many threads torch uses, and how its OpenMP threads wait: chosen by the machine's load.
+
+torch's default intra-op thread count is the number of cores, and its OpenMP runtime lets idle
+threads spin (busy-wait) between parallel regions. On a machine that other jobs already keep
+busy, the spinning threads steal the cores the working ones need: a 2-episode MA-PETS run on 2
+busy cores took 3.3x longer with 2 threads than with 1 (issue 14). The policy here:
+
+1. OpenMP wait policy ``PASSIVE`` (idle threads sleep) unless ``OMP_WAIT_POLICY`` is set. The
+   runtime reads it once, when torch is imported, so :func:`prepare_process` must run before
+   the first ``import torch`` (the ``mapets-rl`` entry point calls it first thing); later, the
+   choice is only reported.
+2. Thread count, first that applies:
+
+   - an explicit request: a config's ``threads`` field (MA-PETS: ``num_threads``), else the
+     ``MAPETS_RL_THREADS`` environment variable;
+   - ``OMP_NUM_THREADS`` set by the user: torch already follows it, left alone;
+   - otherwise the cores not already busy: ``round(cpus - load)`` clamped to
+     ``[1, torch's default]``, with ``load`` the 1-minute load average of other processes
+     (so one thread on a busy machine, all cores on a quiet one).
+
+Every choice is logged (level INFO) on the ``mapets_rl.threads`` logger with its reason, and
+kept on the experiment as ``Experiment.threads`` (a :class:`ThreadChoice`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import sys
+from collections.abc import MutableMapping
+
+THREADS_ENV = "MAPETS_RL_THREADS"
+"""Environment variable with an explicit torch intra-op thread count (an integer >= 1)."""
+
+log = logging.getLogger("mapets_rl.threads")
+
+
+@dataclasses.dataclass(frozen=True)
+class ThreadChoice:
+    """What :func:`choose_threads` decided.
+
+    Attributes:
+        threads: torch intra-op threads, ``None`` to leave torch's own choice (it follows
+            ``OMP_NUM_THREADS``).
+        reason: why, in words.
+    """
+
+    threads: int | None
+    reason: str
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on (its affinity mask where the OS has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def load_average() -> float | None:
+    """The 1-minute load average, ``None`` where the OS has none."""
+    try:
+        return os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return None
+
+
+def _parse_threads(value: object, source: str) -> int:
+    """``value`` as a thread count >= 1; ``ValueError`` naming ``source`` otherwise."""
+    try:
+        threads = int(str(value).strip())
+    except ValueError:
+        threads = 0
+    if threads < 1 or str(value).strip() != str(threads):
+        raise ValueError(f"{source} must be an integer >= 1 (torch threads), got {value!r}")
+    return threads
+
+
+def choose_threads(
+    requested: int | None = None,
+    *,
+    environ: MutableMapping[str, str] | None = None,
+    cpus: int | None = None,
+    load: float | None = None,
+    default: int | None = None,
+) -> ThreadChoice:
+    """The torch intra-op thread count for this process (see the module docstring).
+
+    Args:
+        requested: an explicit count (``None`` or 0: not requested).
+        environ: environment variables (default ``os.environ``).
+        cpus: CPUs available (default :func:`available_cpus`).
+        load: 1-minute load average of other processes (default :func:`load_average`).
+        default: torch's default count (default ``cpus``).
+
+    Raises:
+        ValueError: ``requested`` or ``MAPETS_RL_THREADS`` is not an integer >= 1.
+    """
+    environ = os.environ if environ is None else environ
+    if requested:
+        return ThreadChoice(_parse_threads(requested, "threads"), "requested")
+    if environ.get(THREADS_ENV, "").strip():
+        threads = _parse_threads(environ[THREADS_ENV], THREADS_ENV)
+        return ThreadChoice(threads, f"{THREADS_ENV}={threads}")
+    omp = environ.get("OMP_NUM_THREADS", "").strip()
+    if omp:
+        return ThreadChoice(None, f"OMP_NUM_THREADS={omp} (torch follows it)")
+    cpus = available_cpus() if cpus is None else cpus
+    load = load_average() if load is None else load
+    default = cpus if default is None else default
+    if load is None:
+        return ThreadChoice(default, f"{cpus} CPUs, load average unknown")
+    threads = max(1, min(default, round(cpus - load)))
+    busy = "busy" if threads < default else "quiet"
+    return ThreadChoice(threads, f"load average {load:.2f} on {cpus} CPUs: {busy}")
+
+
+def prepare_process(environ: MutableMapping[str, str] | None = None) -> str:
+    """Before torch is imported: OpenMP wait policy ``PASSIVE`` unless ``OMP_WAIT_POLICY`` is
+    set, and ``OMP_NUM_THREADS`` from a valid ``MAPETS_RL_THREADS`` where only the latter is set
+    (so that worker processes and every OpenMP library follow it too).
+
+    ``environ``: environment variables to read and update (default ``os.environ``).
+    Returns the wait policy in effect: ``"PASSIVE"``, the user's value, or
+    ``"runtime default"`` when torch was imported first and no policy was set.
+    """
+    environ = os.environ if environ is None else environ
+    explicit = environ.get(THREADS_ENV, "").strip()
+    if explicit.isdigit() and int(explicit) >= 1 and not environ.get("OMP_NUM_THREADS"):
+        environ["OMP_NUM_THREADS"] = explicit
+    policy = environ.get("OMP_WAIT_POLICY", "").strip()
+    if policy:
+        return policy
+    if "torch" in sys.modules:
+        return "runtime default"
+    environ["OMP_WAIT_POLICY"] = "PASSIVE"
+    return "PASSIVE"
+
+
+def config_threads(config: object) -> int | None:
+    """The thread count a config asks for: its ``threads`` field, else ``num_threads``
+    (MA-PETS), ``None`` when it has neither or leaves the choice open (0)."""
+    for field in ("threads", "num_threads"):
+        value = getattr(config, field, None)
+        if value:
+            return int(value)
+    return None
+
+
+def configure_threads(requested: int | None = None) -> ThreadChoice:
+    """Apply :func:`choose_threads` to torch (``torch.set_num_threads``) and log the choice.
+
+    ``requested``: an explicit count (a config field); ``None`` or 0 leaves the choice to the
+    environment and the load. The load average counts this process too once it runs, so call
+    this early (the runner does, when an experiment is built)."""
+    import torch
+
+    choice = choose_threads(requested, default=torch.get_num_threads())
+    if choice.threads is not None and choice.threads != torch.get_num_threads():
+        torch.set_num_threads(choice.threads)
+    policy = os.environ.get("OMP_WAIT_POLICY", "").strip() or "runtime default"
+    log.info(
+        "torch threads: %d (%s); OpenMP wait policy: %s",
+        torch.get_num_threads(),
+        choice.reason,
+        policy,
+    )
+    return choice
