@@ -1,0 +1,44 @@
+"""Start-up: the CLI imports only what a command needs (fresh interpreters)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+HEAVY = ("torch", "tensordict", "torchrl", "highway_env", "matplotlib", "pygame", "pandas")
+
+
+def _imported_after(code: str) -> list[str]:
+    report = f"import json, sys; print(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))"
+    proc = subprocess.run(
+        [sys.executable, "-c", f"{code}\n{report}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout.splitlines()[-1])
+
+
+@pytest.mark.parametrize(
+    "code",
+    [
+        "import mapets_rl.experiment.cli",
+        "from mapets_rl.experiment.cli import main\ntry:\n    main(['--help'])\n"
+        "except SystemExit:\n    pass",
+        "import mapets_rl.experiment.threads",
+    ],
+)
+def test_cli_and_help_import_no_heavy_module(code: str) -> None:
+    assert _imported_after(code) == []
+
+
+def test_the_check_sees_heavy_imports() -> None:
+    """The same check reports them when a module does import them (the test can fail)."""
+    assert _imported_after("import pandas") == ["pandas"]
