@@ -4,7 +4,7 @@ Each case runs in a new interpreter (``--repeats`` times, median and spread repo
 nothing is cached in-process; the OS file cache is warm after the first run. The breakdown
 lists which heavy third-party modules each case ends up importing.
 
-    python benchmarks/startup.py [--repeats 5]
+    PYTHONPATH=. python benchmarks/startup.py [--repeats 5]
 """
 
 from __future__ import annotations

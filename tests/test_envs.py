@@ -9,7 +9,6 @@ import torch
 from highway_env.road.lane import CircularLane, StraightLane
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.controller import ControlledVehicle
-from highway_env.vehicle.kinematics import Vehicle
 from pettingzoo.test import parallel_api_test
 from tensordict.nn import TensorDictModule
 from torchrl.envs import ParallelEnv, SerialEnv
@@ -32,7 +31,7 @@ from mapets_rl.envs.factory import TrafficPettingZooWrapper
 from mapets_rl.envs.figure_eight_road import SEGMENTS, FigureEightGeometry
 from mapets_rl.envs.freeway import CL, ES, KL
 from mapets_rl.envs.lanes import FastCircularLane, FastStraightLane
-from mapets_rl.envs.vehicles import FastIDMVehicle, RouteVehicleMixin
+from mapets_rl.envs.vehicles import FastIDMVehicle, stock_control
 
 MAX_SPEED = 13.89
 
@@ -461,20 +460,6 @@ def test_bad_actions_are_rejected() -> None:
 
 
 # --- float-math overrides of highway-env's per-step control ------------------------------------
-STOCK_METHODS = [
-    (RouteVehicleMixin, "steering_control", ControlledVehicle.steering_control),
-    (RouteVehicleMixin, "integrate", Vehicle.step),
-    (FastIDMVehicle, "integrate", IDMVehicle.step),
-    (FastIDMVehicle, "act", IDMVehicle.act),
-    (FastIDMVehicle, "acceleration", IDMVehicle.acceleration),
-    (FastIDMVehicle, "desired_gap", IDMVehicle.desired_gap),
-    (FastStraightLane, "local_coordinates", StraightLane.local_coordinates),
-    (FastCircularLane, "local_coordinates", CircularLane.local_coordinates),
-    (FastCircularLane, "heading_at", CircularLane.heading_at),
-]
-"""Our float-math overrides and the highway-env methods they replace."""
-
-
 def _sampled_scene(seed: int) -> FigureEightEnv:
     """A two-lane figure-eight 40 steps into a random-action episode (lane changes included)."""
     env = FigureEightEnv({"lanes": 2, "n_cavs": 6, "n_hvs": 10, "horizon": 100})
@@ -541,7 +526,7 @@ def test_float_math_control_equals_highway_env(seed: int) -> None:
         ("freeway", {"n_vehicles": 20, "cav_ratio": 0.5}),
     ],
 )
-def test_float_math_control_gives_identical_trajectories(name, config, monkeypatch) -> None:
+def test_float_math_control_gives_identical_trajectories(name, config) -> None:
     """A seeded random-action episode is the same with highway-env's stock methods."""
 
     def trajectory() -> np.ndarray:
@@ -562,6 +547,7 @@ def test_float_math_control_gives_identical_trajectories(name, config, monkeypat
         return np.concatenate(rows)
 
     ours = trajectory()
-    for cls, method, stock in STOCK_METHODS:
-        monkeypatch.setattr(cls, method, stock)
-    np.testing.assert_allclose(ours, trajectory(), rtol=0, atol=1e-9)
+    with stock_control():
+        stock = trajectory()
+    assert FastIDMVehicle.act is not IDMVehicle.act  # restored
+    np.testing.assert_allclose(ours, stock, rtol=0, atol=1e-9)

@@ -19,14 +19,19 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
 
 import numpy as np
 from highway_env import utils
+from highway_env.road.lane import CircularLane, StraightLane
 from highway_env.road.road import LaneIndex
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
+
+from mapets_rl.envs.lanes import FastCircularLane, FastStraightLane
 
 ACC_MIN = -6.0
 """Maximum braking of every vehicle [m/s^2] (highway-env's IDM ``ACC_MAX`` is 6)."""
@@ -264,3 +269,31 @@ class TargetSpeedVehicle(RouteVehicleMixin, ControlledVehicle):
         """Start a lane change to ``lane_index`` unless one is already under way."""
         if self.lane_index == self.target_lane_index:
             self.target_lane_index = lane_index
+
+
+STOCK_METHODS: tuple[tuple[type, str, object], ...] = (
+    (RouteVehicleMixin, "steering_control", ControlledVehicle.steering_control),
+    (RouteVehicleMixin, "integrate", Vehicle.step),
+    (FastIDMVehicle, "integrate", IDMVehicle.step),
+    (FastIDMVehicle, "act", IDMVehicle.act),
+    (FastIDMVehicle, "acceleration", IDMVehicle.acceleration),
+    (FastIDMVehicle, "desired_gap", IDMVehicle.desired_gap),
+    (FastStraightLane, "local_coordinates", StraightLane.local_coordinates),
+    (FastCircularLane, "local_coordinates", CircularLane.local_coordinates),
+    (FastCircularLane, "heading_at", CircularLane.heading_at),
+)
+"""(class, method name, the highway-env method our float-math override replaces)."""
+
+
+@contextlib.contextmanager
+def stock_control() -> Iterator[None]:
+    """Inside the block, highway-env's own methods replace the float-math overrides (the
+    reference of ``tests/test_envs.py`` and ``benchmarks/env_throughput.py``); not thread-safe."""
+    saved = [(cls, name, cls.__dict__[name]) for cls, name, _ in STOCK_METHODS]
+    try:
+        for cls, name, stock in STOCK_METHODS:
+            setattr(cls, name, stock)
+        yield
+    finally:
+        for cls, name, ours in saved:
+            setattr(cls, name, ours)
