@@ -17,7 +17,8 @@ and the ratios are medians of the per-round ratios. Targets: ours >= 2x the stoc
 reference at 8 CAVs + 8 HVs and >= 3x at 22 + 20 on two lanes; the TorchRL env at most 20%
 slower than the raw env at 8 + 8 (issue 14).
 
-    PYTHONPATH=. python benchmarks/env_throughput.py [--steps 300] [--repeats 5] [--cases 8+8 22+20 freeway]
+    PYTHONPATH=. python benchmarks/env_throughput.py [--steps 300] [--repeats 5]
+        [--cases 8+8 22+20 freeway]
 """
 
 from __future__ import annotations
