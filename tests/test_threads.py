@@ -45,6 +45,10 @@ def test_explicit_requests_win_in_order() -> None:
     omp = choose_threads(None, environ={"OMP_NUM_THREADS": "5"}, cpus=8, load=7.5)
     assert omp.threads is None and "OMP_NUM_THREADS=5" in omp.reason
     assert choose_threads(0, environ={}, cpus=4, load=0.0, default=4).threads == 4  # 0: unset
+    # outside the mapets-rl command nothing is chosen unless requested
+    library = choose_threads(None, environ={}, cpus=2, load=5.0, default=2, automatic=False)
+    assert library.threads is None and "torch's default" in library.reason
+    assert choose_threads(3, environ={}, automatic=False).threads == 3
 
 
 @pytest.mark.parametrize("value", ["0", "-1", "two", "1.5"])
@@ -68,8 +72,10 @@ def test_config_field_names() -> None:
 
 def test_prepare_process_sets_passive_wait_only_when_unset() -> None:
     env: dict[str, str] = {}
-    # torch is already imported in the test process: the policy can no longer change
+    # torch is already imported in the test process: the policy can no longer change, and
+    # the thread count stays torch's default
     assert prepare_process(env) == "runtime default" and "OMP_WAIT_POLICY" not in env
+    assert configure_threads().threads is None or os.environ.get(THREADS_ENV)
     env = {"OMP_WAIT_POLICY": "active", THREADS_ENV: "2"}
     assert prepare_process(env) == "active" and env["OMP_NUM_THREADS"] == "2"
 
@@ -93,12 +99,13 @@ def test_cli_entry_point_sets_passive_wait_before_torch() -> None:
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", THREADS_ENV)}
     code = (
         "import os, sys, json\n"
-        "from mapets_rl.experiment import cli\n"
+        "from mapets_rl.experiment import cli, threads\n"
         "try:\n    cli.main(['--help'])\nexcept SystemExit:\n    pass\n"
-        "print(json.dumps([os.environ.get('OMP_WAIT_POLICY'), 'torch' in sys.modules]))\n"
+        "print(json.dumps([os.environ.get('OMP_WAIT_POLICY'), 'torch' in sys.modules,"
+        " threads._automatic]))\n"
     )
     proc = subprocess.run(
         [sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=60
     )
     assert proc.returncode == 0, proc.stderr
-    assert json.loads(proc.stdout.splitlines()[-1]) == ["PASSIVE", False]
+    assert json.loads(proc.stdout.splitlines()[-1]) == ["PASSIVE", False, True]

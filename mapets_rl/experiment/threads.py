@@ -14,9 +14,16 @@ busy cores took 3.3x longer with 2 threads than with 1 (issue 14). The policy he
    - an explicit request: a config's ``threads`` field (MA-PETS: ``num_threads``), else the
      ``MAPETS_RL_THREADS`` environment variable;
    - ``OMP_NUM_THREADS`` set by the user: torch already follows it, left alone;
-   - otherwise the cores not already busy: ``round(cpus - load)`` clamped to
-     ``[1, torch's default]``, with ``load`` the 1-minute load average of other processes
-     (so one thread on a busy machine, all cores on a quiet one).
+   - in a process started by the ``mapets-rl`` command (:func:`prepare_process` ran before
+     torch was imported): the cores not already busy, ``round(cpus - load)`` clamped to
+     ``[1, torch's default]``, with ``load`` the 1-minute load average (one thread on a busy
+     machine, all cores on a quiet one);
+   - otherwise (the Python API, tests) torch's default: a library import does not change the
+     thread count behind its caller's back.
+
+The count changes the order of floating-point reductions, so a run resumed under another load
+can differ in the last bits from an uninterrupted one; set ``threads`` or ``MAPETS_RL_THREADS``
+where bitwise-identical resumes matter.
 
 Every choice is logged (level INFO) on the ``mapets_rl.threads`` logger with its reason, and
 kept on the experiment as ``Experiment.threads`` (a :class:`ThreadChoice`).
@@ -34,6 +41,9 @@ THREADS_ENV = "MAPETS_RL_THREADS"
 """Environment variable with an explicit torch intra-op thread count (an integer >= 1)."""
 
 log = logging.getLogger("mapets_rl.threads")
+
+_automatic = False
+"""Whether :func:`prepare_process` ran before torch was imported (a ``mapets-rl`` process)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,6 +94,7 @@ def choose_threads(
     cpus: int | None = None,
     load: float | None = None,
     default: int | None = None,
+    automatic: bool = True,
 ) -> ThreadChoice:
     """The torch intra-op thread count for this process (see the module docstring).
 
@@ -93,6 +104,8 @@ def choose_threads(
         cpus: CPUs available (default :func:`available_cpus`).
         load: 1-minute load average of other processes (default :func:`load_average`).
         default: torch's default count (default ``cpus``).
+        automatic: choose by the load when nothing is requested; otherwise keep torch's
+            default (``threads=None``).
 
     Raises:
         ValueError: ``requested`` or ``MAPETS_RL_THREADS`` is not an integer >= 1.
@@ -106,6 +119,8 @@ def choose_threads(
     omp = environ.get("OMP_NUM_THREADS", "").strip()
     if omp:
         return ThreadChoice(None, f"OMP_NUM_THREADS={omp} (torch follows it)")
+    if not automatic:
+        return ThreadChoice(None, "torch's default (chosen by the load only in mapets-rl)")
     cpus = available_cpus() if cpus is None else cpus
     load = load_average() if load is None else load
     default = cpus if default is None else default
@@ -125,7 +140,9 @@ def prepare_process(environ: MutableMapping[str, str] | None = None) -> str:
     Returns the wait policy in effect: ``"PASSIVE"``, the user's value, or
     ``"runtime default"`` when torch was imported first and no policy was set.
     """
+    global _automatic
     environ = os.environ if environ is None else environ
+    _automatic = _automatic or "torch" not in sys.modules
     explicit = environ.get(THREADS_ENV, "").strip()
     if explicit.isdigit() and int(explicit) >= 1 and not environ.get("OMP_NUM_THREADS"):
         environ["OMP_NUM_THREADS"] = explicit
@@ -156,7 +173,7 @@ def configure_threads(requested: int | None = None) -> ThreadChoice:
     this early (the runner does, when an experiment is built)."""
     import torch
 
-    choice = choose_threads(requested, default=torch.get_num_threads())
+    choice = choose_threads(requested, default=torch.get_num_threads(), automatic=_automatic)
     if choice.threads is not None and choice.threads != torch.get_num_threads():
         torch.set_num_threads(choice.threads)
     policy = os.environ.get("OMP_WAIT_POLICY", "").strip() or "runtime default"
