@@ -37,7 +37,7 @@ from mapets_rl.envs.figure_eight_road import FigureEightGeometry
 from mapets_rl.envs.road import SortedNeighbourRoad
 from mapets_rl.envs.traffic import AgentObservation, MultiAgentTrafficEnv, require
 from mapets_rl.envs.validation import is_integer, require_number, require_range
-from mapets_rl.envs.vehicles import HumanVehicle, TargetSpeedVehicle, idm_acceleration
+from mapets_rl.envs.vehicles import HumanVehicle, TargetSpeedVehicle, clip, idm_acceleration
 from mapets_rl.metrics import agility, safety
 
 MAX_SPEED = 13.89
@@ -362,7 +362,7 @@ class FigureEightEnv(MultiAgentTrafficEnv):
                 out.append((0.0, GAP_RANGE))
                 ids.append(-1)
             else:
-                out.append((float(other.speed), float(np.clip(gap, 0.0, GAP_RANGE))))
+                out.append((float(other.speed), float(clip(gap, 0.0, GAP_RANGE))))
                 ids.append(id(other))
         (v_ahead, gap_ahead), (v_behind, gap_behind) = out
         return (v_ahead, v_behind, gap_ahead, gap_behind), (ids[0], ids[1])
@@ -472,7 +472,7 @@ class FigureEightEnv(MultiAgentTrafficEnv):
             if stop is not None:
                 acc = min(acc, idm_acceleration(cav.speed, self.config["max_speed"], stop))
             target = cav.speed + acc / cav.KP_A
-            action[i, 0] = np.clip(target, 0.0, self.config["max_speed"])
+            action[i, 0] = clip(target, 0.0, self.config["max_speed"])
         return action
 
 

@@ -121,7 +121,7 @@ class SortedNeighbourRoad(Road):
         coords = self._lane_coords[lane_index[2]]
         lane_vehicles = self._lane_vehicles[lane_index[2]]
         n = len(lane_vehicles)
-        pos = int(np.searchsorted(coords, self.route_coordinate(vehicle), side="right"))
+        pos = int(coords.searchsorted(self.route_coordinate(vehicle), side="right"))
         ahead, behind = pos, pos - 1
         if 0 <= behind < n and lane_vehicles[behind] is vehicle:
             behind -= 1

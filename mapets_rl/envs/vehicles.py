@@ -62,14 +62,14 @@ def idm_acceleration(
     """
     v = max(speed, 0.0)
     acceleration = params.COMFORT_ACC_MAX * (
-        1.0 - np.power(v / abs(utils.not_zero(target_speed)), params.DELTA)
+        1.0 - (v / abs(utils.not_zero(target_speed))) ** params.DELTA
     )
     if distance is not None:
         ab = -params.COMFORT_ACC_MAX * params.COMFORT_ACC_MIN
         desired = (
             params.DISTANCE_WANTED
             + v * params.TIME_WANTED
-            + v * (v - front_speed) / (2 * np.sqrt(ab))
+            + v * (v - front_speed) / (2 * math.sqrt(ab))
         )
         acceleration -= (
             params.COMFORT_ACC_MAX * (desired / utils.not_zero(max(distance, 1e-3))) ** 2
