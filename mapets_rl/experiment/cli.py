@@ -4,6 +4,8 @@
     mapets-rl train RECIPE --help          (RECIPE's config fields, their types and defaults)
     mapets-rl resume RUN_DIR [key=value ...]
     mapets-rl evaluate RUN_DIR [--episodes N] [--video]
+    mapets-rl sweep RECIPE --env SCENARIO --out DIR [--seeds N ...] [--grid KEY=v1,v2 ...]
+                    [--backend local|ray] [key=value ...]     (see mapets_rl.experiment.sweep)
     mapets-rl compare RUN_DIR... --out DIR [--metrics a,b,...] [--source eval|train]
                       [--group-by FIELD[,FIELD...]] [--x frames|METRIC] [--allow-mixed-env]
                       [--legacy-as eval|train]
@@ -223,6 +225,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="what the entries of a results.json from before training and "
         "evaluation entries were kept apart are (old mapets runs: train)",
     )
+    from mapets_rl.experiment.sweep import add_sweep_parser
+
+    add_sweep_parser(sub)
     return parser
 
 
@@ -354,6 +359,12 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from mapets_rl.experiment.sweep import cmd_sweep
+
+    return cmd_sweep(args)
+
+
 def _recipe_help(name: str) -> str:
     """Help of ``mapets-rl train RECIPE --help``: RECIPE's config documentation and every
     field with its type and default (imports the recipe)."""
@@ -401,7 +412,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     stray = [
         x
         for x in extra
-        if x.startswith("-") or "=" not in x or args.command not in ("train", "resume")
+        if x.startswith("-") or "=" not in x or args.command not in ("train", "resume", "sweep")
     ]
     if stray:
         parser.error(f"unrecognized arguments: {' '.join(stray)}")
@@ -413,6 +424,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "resume": _cmd_resume,
         "evaluate": _cmd_evaluate,
         "compare": _cmd_compare,
+        "sweep": _cmd_sweep,
     }
     return commands[args.command](args)
 
