@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import sys
 
 import pytest
 from cli_run import run_cli
@@ -162,44 +160,37 @@ def test_ray_sweep_of_the_communication_range(tmp_path, capsys):
     """The d ablation end to end on a local Ray instance: MA-PETS, d in {0, 100} x 2 seeds,
     tiny episodes; every trial a MA-PETS run directory, the summary grouped by d."""
     ray = pytest.importorskip("ray", reason="ray is not installed (pip install 'mapets-rl[ray]')")
-    path = os.pathsep.join(p for p in sys.path if p and os.path.isdir(p))
-    ray.init(
-        num_cpus=2,
-        include_dashboard=False,
-        runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": "1"}},
+    assert not ray.is_initialized()
+    out = tmp_path / "d_sweep"
+    code, stdout, err = run_cli(
+        [
+            "sweep",
+            "mapets",
+            "--env",
+            "figure-eight",
+            "--seeds",
+            "0",
+            "1",
+            "--grid",
+            "comm.comm_range=0,100",
+            "--backend",
+            "ray",
+            "--out",
+            str(out),
+            "preset=cpu",
+            "episodes=2",
+            "env_config.n_cavs=3",
+            "env_config.horizon=8",
+            "planner.horizon=5",
+            "planner.population=8",
+            "planner.elites=2",
+            "planner.particles=5",
+            "model.epochs=2",
+            "logger=none",
+        ],
+        capsys,
     )
-    try:
-        out = tmp_path / "d_sweep"
-        code, stdout, err = run_cli(
-            [
-                "sweep",
-                "mapets",
-                "--env",
-                "figure-eight",
-                "--seeds",
-                "0",
-                "1",
-                "--grid",
-                "comm.comm_range=0,100",
-                "--backend",
-                "ray",
-                "--out",
-                str(out),
-                "preset=cpu",
-                "episodes=2",
-                "env_config.n_cavs=3",
-                "env_config.horizon=8",
-                "planner.horizon=5",
-                "planner.population=8",
-                "planner.elites=2",
-                "planner.particles=5",
-                "model.epochs=2",
-                "logger=none",
-            ],
-            capsys,
-        )
-    finally:
-        ray.shutdown()
+    assert not ray.is_initialized()  # the sweep shut down the instance it started
     assert code == 0, err
     manifest = json.loads((out / "sweep.json").read_text())
     assert manifest["backend"] == "ray"
