@@ -456,6 +456,21 @@ def import_ray() -> Any:
     return ray
 
 
+def ray_init_kwargs(address: str | None = None) -> dict[str, Any]:
+    """``ray.init`` keywords: join ``address`` (else ``RAY_ADDRESS``) when one is given, else
+    start a new local instance whose workers see this process's ``sys.path`` (so that they
+    import the same code, e.g. a source checkout or an example folder)."""
+    address = address or os.environ.get("RAY_ADDRESS") or None
+    if address is not None:
+        return {"address": address}
+    path = os.pathsep.join(p for p in sys.path if p and os.path.isdir(p))
+    return {
+        "address": "local",
+        "include_dashboard": False,
+        "runtime_env": {"env_vars": {"PYTHONPATH": path}},
+    }
+
+
 def run_ray(
     payloads: Sequence[Mapping[str, Any]],
     cpus_per_trial: float,
@@ -468,16 +483,7 @@ def run_ray(
     ray = import_ray()
     started = False
     if not ray.is_initialized():
-        address = address or os.environ.get("RAY_ADDRESS") or None
-        if address is None:
-            path = os.pathsep.join(p for p in sys.path if p and os.path.isdir(p))
-            ray.init(
-                address="local",
-                include_dashboard=False,
-                runtime_env={"env_vars": {"PYTHONPATH": path}},
-            )
-        else:
-            ray.init(address=address)
+        ray.init(**ray_init_kwargs(address))
         started = True
     try:
         task = ray.remote(run_trial).options(
