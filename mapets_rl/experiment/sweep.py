@@ -248,8 +248,9 @@ def parse_grid(items: Sequence[str]) -> dict[str, list[Any]]:
 
 
 def _value_text(value: Any) -> str:
-    """A grid value as an override value (JSON is YAML)."""
-    return value if isinstance(value, str) else json.dumps(value)
+    """A grid value as an override value: JSON, which YAML reads back as the same value (a
+    string stays a string, even ``"on"`` or ``"1"``)."""
+    return json.dumps(value)
 
 
 def _slug(value: Any) -> str:
@@ -320,12 +321,20 @@ def plan_trials(spec: SweepSpec) -> tuple[type, list[Trial]]:
         grid_items = [f"{k}={_value_text(v)}" for k, v in values.items()]
         for seed in spec.seeds:
             overrides = [*head, f"env={spec.env}", f"seed={seed}", *spec.overrides, *grid_items]
+            # a trial's GPU is on the node Ray places it on, not necessarily on this machine:
+            # its device is checked there
+            devices = [v for k, v in map(parse_override, overrides) if k == "device"]
+            checked = overrides[len(head) :]
+            if spec.gpus_per_trial > 0:
+                checked = [o for o in checked if parse_override(o)[0] != "device"]
             try:
-                config = base.with_overrides(overrides[len(head) :])
+                config = base.with_overrides(checked)
             except ConfigError as err:
                 where = f" (grid values {values})" if values else ""
                 raise ConfigError(f"{err}{where}") from None
             data = config.to_dict()
+            if spec.gpus_per_trial > 0 and devices:
+                data["device"] = devices[-1]
             envs.setdefault(json.dumps(data.get("env_config", {}), sort_keys=True), data)
             tid = trial_id(values, seed)
             trials.append(Trial(tid, spec.out / TRIALS_DIR / tid, seed, values, overrides, data))
