@@ -264,3 +264,17 @@ def test_model_free_recipe_collects_with_torchrl_collector(kind, tmp_path):
     assert torch.isfinite(torch.tensor(evaluations[-1]["metrics"]["safety"]))
     after = torch.cat([p.detach().flatten() for p in exp.loss.parameters()])
     assert not torch.equal(before, after)
+
+
+def test_overrides_after_seeds_are_overrides(toy_recipe, tmp_path):
+    from mapets_rl.experiment.cli import build_parser
+    from mapets_rl.experiment.sweep import spec_from_args
+
+    argv = ["sweep", "toy", "--env", "toy", "--seeds", "3", "1", "lr=0.1", "--out", str(tmp_path)]
+    args, extra = build_parser().parse_known_args(argv)
+    args.overrides += extra
+    spec = spec_from_args(args)
+    assert spec.seeds == [3, 1] and spec.overrides == ["lr=0.1"]
+    args.seeds = ["1", "x"]
+    with pytest.raises(ConfigError, match="seeds must be integers >= 0, got 'x'"):
+        spec_from_args(args)
