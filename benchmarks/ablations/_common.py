@@ -87,6 +87,13 @@ def episodes(run_dir: Path) -> dict[int, dict[str, float]]:
     return {int(e["metrics"]["episode"]): e["metrics"] for e in read_results(run_dir)["train"]}
 
 
+def _order(value: Any) -> tuple[int, float, str]:
+    """Sort key of grid values: numbers by value, then anything else by its JSON text."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return (0, float(value), "")
+    return (1, 0.0, json.dumps(value, sort_keys=True))
+
+
 def _per_seed(runs: list[dict], metric: str, eps: range) -> list[float]:
     """Per run, the mean of ``metric`` over episodes ``eps`` (none when ``eps`` is empty)."""
     return [sum(r[k][metric] for k in eps) / len(eps) for r in runs] if eps else []
@@ -130,7 +137,7 @@ def field_table(
         *extra_header,
     ]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    for row in sorted(rows.values(), key=lambda r: json.dumps(r["value"])):
+    for row in sorted(rows.values(), key=lambda r: _order(r["value"])):
         runs = row["runs"]
         last = min(max(r) for r in runs)
         tail = range(max(1, last - 2), last + 1)
