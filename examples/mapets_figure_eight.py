@@ -6,16 +6,18 @@ observation option of ``--observations`` (default ``crossing``, the library's de
 ``paper``, the paper's 7 features) and every seed of ``--seeds``; then prints a per-episode table
 of agility and safety (mean +- std over seeds), the paper's two claims checked on the runs
 (safety over episodes 13-15; d = 100 ahead of d = 0 over episodes 2-8, with the seeds' spread;
-crashes over episodes 2-15) and writes ``table.md`` (those two tables) to ``--out``. The
-per-episode statistics and the plot come from :func:`mapets_rl.experiment.compare` on the
-runs' training episodes, grouped by observation option and d (``learning_curves.png``,
-``curves.json``, ``summary.json``, ``final_metrics.md`` in ``--out``); it refuses runs of
-different scenarios (e.g. another ``--cavs``) in one ``--out``.
+crashes over episodes 2-15) and writes ``table.md`` (those two tables) to ``--out``.
 
-Each run lives in ``OUT/<observation>/d<range>_seed<seed>/`` (config.yaml, results.json,
-checkpoints, CSV logs); an interrupted sweep resumes every unfinished run from its latest
-checkpoint when the same command is run again. Several processes can share one ``--out`` (e.g.
-one per range); ``--report-only`` then aggregates what has finished.
+The runs are a sweep (:func:`mapets_rl.experiment.sweep.run_sweep`, what ``mapets-rl sweep``
+runs): the grid ``env_config.observation`` x ``comm.comm_range`` x seeds, each run a directory
+``OUT/trials/env_config.observation=<o>__comm.comm_range=<d>__seed=<s>/`` (config.yaml,
+results.json, checkpoints, CSV logs), ``OUT/sweep.json`` their states, run two at a time on this
+machine (``--backend ray`` for a Ray instance or cluster). An interrupted sweep resumes every
+unfinished run from its latest checkpoint when the same command is run again; ``--report-only``
+aggregates what has finished. The per-episode statistics and the plot come from
+:func:`mapets_rl.experiment.compare` on the runs' training episodes, grouped by observation
+option and d (``OUT/summary``: ``learning_curves.png``, ``curves.json``, ``summary.json``,
+``final_metrics.md``).
 
     python examples/mapets_figure_eight.py               # 3 seeds x d in {100, 0} x 2 options
     python examples/mapets_figure_eight.py --ranges 100 --seeds 0 --observations crossing
@@ -30,86 +32,37 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
-from mapets_rl.experiment import (
-    atomic_write_text,
-    compare,
-    latest_checkpoint,
-    read_results,
+from mapets_rl.experiment import atomic_write_text, read_results
+from mapets_rl.experiment.sweep import (
+    SweepSpec,
+    plan_trials,
+    read_trial_record,
+    run_sweep,
+    summarise,
 )
-from recipes.mapets import MAPETS, MAPETSConfig
 
 METRICS = ("agility", "safety")
-GROUP_BY = ["env_config.observation", "comm.comm_range"]
-"""Config fields of the groups: observation option and communication range d."""
-
-
-def run_dir(out: Path, observation: str, comm_range: float, seed: int) -> Path:
-    return out / observation / f"d{comm_range:g}_seed{seed}"
-
-
-def train_one(args: argparse.Namespace, observation: str, comm_range: float, seed: int) -> None:
-    """Train (or resume) one run up to ``args.episodes`` episodes."""
-    path = run_dir(args.out, observation, comm_range, seed)
-    overrides = [f"episodes={args.episodes}"]
-    if latest_checkpoint(path) is not None:
-        exp = MAPETS.from_run_dir(path, overrides=overrides)
-        if exp.episode >= args.episodes:
-            print(f"{path}: done ({exp.episode} episodes)")
-            return
-        print(f"{path}: resuming at episode {exp.episode + 1}")
-    else:
-        config = MAPETSConfig(
-            env_config={"n_cavs": args.cavs, "horizon": args.horizon, "observation": observation},
-            seed=seed,
-            episodes=args.episodes,
-            comm={"comm_range": comm_range},
-            preset=args.preset,
-            num_threads=args.threads,
-            progress=False,
-        ).with_overrides(args.set)
-        exp = MAPETS(config, path)
-
-    def report(m: dict[str, float]) -> None:
-        print(
-            f"{observation} d={comm_range:g} seed={seed} episode {int(m['episode']):2d}: "
-            f"agility {m['agility']:.3f} m/step, safety {m['safety']:.3f}, "
-            f"collisions {int(m['collisions'])}, shared {int(m['transitions_shared'])}, "
-            f"{m['step_time']:.2f} s/step",
-            flush=True,
-        )
-
-    exp.train(on_episode_end=report)
 
 
 def group_name(observation: str, comm_range: float) -> str:
     return f"{observation} d={comm_range:g}"
 
 
-def collect(out: Path) -> tuple[list[Path], dict[str, dict[int, dict[int, dict[str, float]]]]]:
-    """The run directories under ``out`` with finished episodes, and their episodes'
-    metrics, ``{"<observation> d=<range>": {seed: {episode: metrics}}}``.
-
-    Results files written before training and evaluation entries were kept apart hold the
-    episodes under ``evaluations``; they are read as the training entries they are.
-    """
-    paths: list[Path] = []
+def collect(paths: list[Path]) -> dict[str, dict[int, dict[int, dict[str, float]]]]:
+    """The episodes' metrics of finished runs, ``{"<observation> d=<range>": {seed: {episode:
+    metrics}}}``."""
     runs: dict[str, dict[int, dict[int, dict[str, float]]]] = {}
-    for path in sorted(out.glob("*/d*_seed*"), key=lambda p: (p.parent.name, p.name)):
-        if not (path / "results.json").is_file():
-            continue
-        results = read_results(path, legacy_as="train")
-        if not results["train"]:
-            continue
-        paths.append(path)
+    for path in paths:
+        results = read_results(path)
         config = results["config"]
-        comm_range = config["comm"]["comm_range"] if "comm" in config else config["comm_range"]
-        group = group_name(config["env_config"]["observation"], float(comm_range))
+        group = group_name(config["env_config"]["observation"], float(config["comm"]["comm_range"]))
         runs.setdefault(group, {})[int(results["seed"])] = {
             int(e["metrics"]["episode"]): e["metrics"] for e in results["train"]
         }
-    return paths, runs
+    return runs
 
 
 def _per_seed_means(seeds: dict, metric: str, first: int, last: int) -> list[float]:
@@ -199,13 +152,19 @@ def main() -> None:
     parser.add_argument("--cavs", type=int, default=8, help="CAVs I (paper: 8)")
     parser.add_argument("--horizon", type=int, default=200, help="steps per episode H")
     parser.add_argument("--preset", default="cpu", choices=["cpu", "paper"])
-    parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (CPUs) per run")
+    parser.add_argument(
+        "--backend",
+        choices=["local", "ray"],
+        default="local",
+        help="local: cpu_count // threads runs at a time on this machine; ray: Ray tasks",
+    )
     parser.add_argument(
         "--set",
         nargs="*",
         default=[],
         metavar="key=value",
-        help="further MAPETSConfig overrides of new runs, dotted for the planner / model / comm "
+        help="further MAPETSConfig overrides of the runs, dotted for the planner / model / comm "
         "sections, e.g. model.epochs=5 planner.horizon=10",
     )
     parser.add_argument("--out", type=Path, default=Path("outputs/mapets_figure_eight"))
@@ -218,35 +177,56 @@ def main() -> None:
             parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
     if any(d < 0 for d in args.ranges):
         parser.error(f"--ranges must be >= 0 metres, got {args.ranges}")
-    args.out.mkdir(parents=True, exist_ok=True)
-    if not args.report_only:
-        for observation in args.observations:
-            for seed in args.seeds:
-                for comm_range in args.ranges:
-                    train_one(args, observation, comm_range, seed)
-    paths, runs = collect(args.out)
-    if not paths:
-        raise SystemExit(f"no finished episodes under {args.out}")
+    spec = SweepSpec(
+        recipe="mapets",
+        env="figure-eight",
+        seeds=args.seeds,
+        out=args.out,
+        grid={"env_config.observation": args.observations, "comm.comm_range": args.ranges},
+        overrides=[
+            f"episodes={args.episodes}",
+            f"env_config.n_cavs={args.cavs}",
+            f"env_config.horizon={args.horizon}",
+            f"preset={args.preset}",
+            f"num_threads={args.threads}",
+            *args.set,
+        ],
+        backend=args.backend,
+        cpus_per_trial=args.threads,
+        metrics=list(METRICS),
+        source="train",
+        x="episode",
+    )
     try:
-        out = compare(
-            paths,
-            args.out,
-            list(METRICS),
-            source="train",
-            group_by=GROUP_BY,
-            x="episode",
-            legacy_as="train",
-            title="MA-PETS, figure-eight",
-        )
-    except ValueError as err:  # e.g. runs of another --cavs or --horizon in the same --out
-        raise SystemExit(f"cannot aggregate the runs under {args.out}: {err}") from None
-    text = table(json.loads(out["curves"].read_text())) + "\n" + claims(runs)
+        if args.report_only:
+            _, trials = plan_trials(spec)
+            paths = [
+                t.run_dir
+                for t in trials
+                if (read_trial_record(t.run_dir) or {}).get("state") == "done"
+            ]
+            if not paths:
+                raise SystemExit(f"no finished runs under {args.out}")
+            out = summarise(spec, paths)
+            failed = []
+        else:
+            result = run_sweep(spec)
+            paths = [t.run_dir for t in result.trials if result.records[t.id]["state"] == "done"]
+            if not result.summary:
+                raise SystemExit(f"no summary of the runs under {args.out}: {result.summary_error}")
+            out, failed = result.summary, result.failed
+    except ValueError as err:  # a bad --set, or --out holding another sweep
+        raise SystemExit(f"mapets_figure_eight: {err}") from None
+    text = table(json.loads(out["curves"].read_text())) + "\n" + claims(collect(paths))
     print(text, end="")
     atomic_write_text(args.out / "table.md", text)
     print(
         f"wrote {args.out / 'table.md'}, {out['plot']}, {out['curves']}, {out['summary']} "
         f"and {out['table']}"
     )
+    if failed:
+        print(f"failed runs: {failed} (see OUT/trials/<id>/error.txt)", file=sys.stderr)
+        raise SystemExit(1)
 
 
 if __name__ == "__main__":

@@ -44,7 +44,7 @@ from typing import Any, ClassVar
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from mapets_rl.comm import CommConfig, CommunicationRange, NeighbourDatasets
+from mapets_rl.comm import CommConfig, CommunicationRange, NeighbourDatasets, clique_cover_number
 from mapets_rl.envs import figure_eight_collision, figure_eight_reward
 from mapets_rl.envs.figure_eight import OBSERVATIONS
 from mapets_rl.experiment import Experiment, RunConfig, check, log_scalars
@@ -405,7 +405,9 @@ class MAPETS(Experiment):
 
     def store_and_share(self, rollout: TensorDictBase) -> dict[str, float]:
         """Add every CAV's transitions of ``rollout`` to its ``D(i)+`` and exchange them with
-        the CAVs within range at the episode's end (Algorithm 1 lines 16-17).
+        the CAVs within range at the episode's end (Algorithm 1 lines 16-17); the metrics
+        include the minimum clique cover number of that exchange graph (``chi_bar(G_{d,k})``,
+        paper Fig. 7; exact up to 32-node components, a greedy bound beyond).
 
         A CAV's transition of step ``t`` is kept when it was driving (``("agents", "mask")``),
         did not crash in that step (its next observation is then zeroed by the env) and its
@@ -427,8 +429,10 @@ class MAPETS(Experiment):
             batch_size=keep.shape,
         )
         self.datasets.add(transitions, mask=keep)
-        stats = self.datasets.exchange(self.comm.episode_graph(rollout))
+        graph = self.comm.episode_graph(rollout)
+        stats = self.datasets.exchange(graph)
         return {
+            "clique_cover_number": float(clique_cover_number(graph)),
             "transitions_stored": float(keep.sum()),
             "transitions_filtered": float(driving - int(keep.sum())),
             "transitions_shared": float(stats.transitions),

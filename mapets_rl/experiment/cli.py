@@ -5,6 +5,8 @@
                                             type, default, unit and a one-line description)
     mapets-rl resume RUN_DIR [key=value ...]
     mapets-rl evaluate RUN_DIR [--episodes N] [--video]
+    mapets-rl sweep RECIPE --env SCENARIO --out DIR [--seeds N ...] [--grid KEY=v1,v2 ...]
+                    [--backend local|ray] [key=value ...]     (see mapets_rl.experiment.sweep)
     mapets-rl compare RUN_DIR... --out DIR [--metrics a,b,...] [--source eval|train]
                       [--group-by FIELD[,FIELD...]] [--x frames|METRIC] [--allow-mixed-env]
                       [--legacy-as eval|train]
@@ -229,6 +231,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="what the entries of a results.json from before training and "
         "evaluation entries were kept apart are (old mapets runs: train)",
     )
+    from mapets_rl.experiment.sweep import add_sweep_parser
+
+    add_sweep_parser(sub)
     return parser
 
 
@@ -376,6 +381,12 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     print(out["table"].read_text(), end="")
     print(json.dumps({k: str(v) for k, v in out.items()}))
     return 0
+
+
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from mapets_rl.experiment.sweep import cmd_sweep
+
+    return cmd_sweep(args)
 
 
 def _attribute_docs(cls: type) -> dict[str, str]:
@@ -557,7 +568,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     stray = [
         x
         for x in extra
-        if x.startswith("-") or "=" not in x or args.command not in ("train", "resume")
+        if x.startswith("-") or "=" not in x or args.command not in ("train", "resume", "sweep")
     ]
     if stray:
         parser.error(f"unrecognized arguments: {' '.join(stray)}")
@@ -569,6 +580,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "resume": _cmd_resume,
         "evaluate": _cmd_evaluate,
         "compare": _cmd_compare,
+        "sweep": _cmd_sweep,
     }
     return commands[args.command](args)
 

@@ -57,6 +57,7 @@ LOGGERS = ("csv", "tensorboard", "wandb", "none")
 LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb"}
 """Logger kind -> the package it needs (checked when a config is built)."""
 DEVICE_TYPES = ("cpu", "cuda", "mps")
+COLLECTORS = ("auto", "single", "multi_sync", "ray")
 
 
 class ConfigError(ValueError):
@@ -391,8 +392,14 @@ class ExperimentConfig(RunConfig):
     Attributes:
         total_frames: environment steps to train for (> 0).
         frames_per_batch: environment steps per collected batch (> 0).
-        num_envs: environment processes; 1 uses ``Collector`` in this process, > 1 uses
-            ``MultiSyncCollector`` with one env per process.
+        num_envs: environment copies, one per collector process (``multi_sync``) or Ray
+            collector (``ray``); 1 with ``collector="single"``.
+        collector: the torchrl collector that gathers the batches: ``"single"``
+            (``Collector`` in this process), ``"multi_sync"`` (``MultiSyncCollector``,
+            ``num_envs`` worker processes), ``"ray"`` (torchrl's ``RayCollector``, ``num_envs``
+            remote collectors on a local Ray instance, or the cluster of ``RAY_ADDRESS``;
+            needs ``mapets-rl[ray]``) or ``"auto"`` (default: ``single`` when ``num_envs == 1``,
+            else ``multi_sync``).
         eval_interval: evaluate every this many frames (0: only at the end).
         checkpoint_interval: write a checkpoint every this many frames (0: only at the end).
             Environments are re-seeded and reset at every checkpoint boundary so that a resumed
@@ -404,6 +411,7 @@ class ExperimentConfig(RunConfig):
     total_frames: int = dataclasses.field(default=3000, metadata=_FRAMES)
     frames_per_batch: int = dataclasses.field(default=200, metadata=_FRAMES)
     num_envs: int = 1
+    collector: str = "auto"
     eval_interval: int = dataclasses.field(default=1000, metadata=_FRAMES)
     checkpoint_interval: int = dataclasses.field(default=1000, metadata=_FRAMES)
 
@@ -412,6 +420,20 @@ class ExperimentConfig(RunConfig):
         check(self.total_frames > 0, "total_frames", "> 0", self.total_frames)
         check(self.frames_per_batch > 0, "frames_per_batch", "> 0", self.frames_per_batch)
         check(self.num_envs >= 1, "num_envs", ">= 1", self.num_envs)
+        check(
+            self.collector in COLLECTORS, "collector", f"one of {list(COLLECTORS)}", self.collector
+        )
+        check(
+            self.collector != "single" or self.num_envs == 1,
+            "num_envs",
+            "1 with collector='single' (several envs: collector='multi_sync' or 'ray')",
+            self.num_envs,
+        )
+        if self.collector == "ray" and importlib.util.find_spec("ray") is None:
+            raise ConfigError(
+                "collector='ray' needs the ray package, which is not installed: "
+                "pip install 'mapets-rl[ray]' (or use collector='multi_sync')"
+            )
         check(
             self.frames_per_batch % self.num_envs == 0,
             "frames_per_batch",
@@ -422,6 +444,14 @@ class ExperimentConfig(RunConfig):
         check(
             self.checkpoint_interval >= 0, "checkpoint_interval", ">= 0", self.checkpoint_interval
         )
+
+    @classmethod
+    def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
+        """A config written before ``collector`` existed gets ``"auto"``: the collector that
+        ``num_envs`` chose then."""
+        data = super().upgrade_dict(data)
+        data.setdefault("collector", "auto")
+        return data
 
 
 def parse_override(item: str) -> tuple[str, Any]:

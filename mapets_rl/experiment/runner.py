@@ -19,7 +19,7 @@ from typing import Any, ClassVar
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.collectors import Collector, MultiSyncCollector
+from torchrl.collectors import BaseCollector, Collector, MultiSyncCollector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from tqdm import tqdm
@@ -222,7 +222,7 @@ class Experiment:
         self.results = ResultsWriter(
             self.run_dir, self.name, config.env, config.seed, config.to_dict()
         )
-        self.collector: Collector | MultiSyncCollector | None = None
+        self.collector: BaseCollector | None = None
         self._collector_args: tuple[TensorDictModuleBase, int, dict[str, Any]] | None = None
         self.eval_policy: TensorDictModuleBase | None = None
         self.latest_metrics: dict[str, float] = {}
@@ -235,20 +235,28 @@ class Experiment:
 
     def make_collector(
         self, policy: TensorDictModuleBase, init_random_frames: int = 0, **kwargs: Any
-    ) -> Collector | MultiSyncCollector:
-        """An endless torchrl collector for ``policy`` (``Collector`` in this process when
-        ``num_envs == 1``, else ``MultiSyncCollector`` with one env per process); the run loop
-        stops it at ``total_frames``. The first ``init_random_frames`` frames of the run use
-        uniformly random actions (counted over the whole run, resumes included). Extra
-        ``kwargs`` go to the collector."""
+    ) -> BaseCollector:
+        """An endless torchrl collector for ``policy``, of the kind ``config.collector`` names
+        (see :class:`ExperimentConfig`): ``Collector`` in this process, ``MultiSyncCollector``
+        with ``num_envs`` worker processes, or torchrl's ``RayCollector`` with ``num_envs``
+        remote collectors (one CPU each; synchronous, so each batch holds
+        ``frames_per_batch / num_envs`` steps of every env); the run loop stops it at
+        ``total_frames``. The first ``init_random_frames`` frames of the run use uniformly
+        random actions (counted over the whole run, resumes included). Extra ``kwargs`` go to
+        the collector (to each remote collector with ``"ray"``)."""
         if init_random_frames < 0:
             raise ValueError(f"init_random_frames must be >= 0, got {init_random_frames}")
         self._collector_args = (policy, init_random_frames, kwargs)
         cfg = self.config
         remaining = max(init_random_frames - self.frames, 0)
+        env_fn = functools.partial(build_env, cfg.env, cfg.env_config)
+        kind = cfg.collector
+        if kind == "auto":
+            kind = "single" if cfg.num_envs == 1 else "multi_sync"
+        if kind == "ray":
+            return _ray_collector(env_fn, policy, cfg, self.device, remaining, kwargs)
         if remaining:
             kwargs = {**kwargs, "init_random_frames": remaining}
-        env_fn = functools.partial(build_env, cfg.env, cfg.env_config)
         common = dict(
             frames_per_batch=cfg.frames_per_batch,
             total_frames=-1,
@@ -257,11 +265,9 @@ class Experiment:
             auto_register_policy_transforms=False,
         )
         common.update(kwargs)
-        if cfg.num_envs == 1:
-            collector = Collector(env_fn, policy, **common)
-        else:
-            collector = MultiSyncCollector([env_fn] * cfg.num_envs, policy, **common)
-        return collector
+        if kind == "single":
+            return Collector(env_fn, policy, **common)
+        return MultiSyncCollector([env_fn] * cfg.num_envs, policy, **common)
 
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
         """Consume one collected batch (extend buffers, optimise); return scalar losses."""
@@ -641,6 +647,49 @@ class Experiment:
             ),
         )
         return path
+
+
+RAY_COLLECTOR_FRAMES = 2**62
+"""``total_frames`` of a Ray collector: endless in practice (its iterator stops at its budget,
+and ``-1`` would stop it at once); the run loop stops at ``config.total_frames``."""
+
+
+def _ray_collector(
+    env_fn: Callable[[], EnvBase],
+    policy: TensorDictModuleBase,
+    cfg: ExperimentConfig,
+    device: torch.device,
+    init_random_frames: int,
+    kwargs: Mapping[str, Any],
+) -> BaseCollector:
+    """torchrl's ``RayCollector`` with ``cfg.num_envs`` remote ``Collector`` actors (1 CPU
+    each), synchronous, on the Ray instance of this process, else the cluster of
+    ``RAY_ADDRESS``, else a local instance started for it (and stopped at its ``shutdown``)."""
+    from torchrl.collectors.distributed import RayCollector
+
+    from mapets_rl.experiment.sweep import ray_init_kwargs
+
+    class _Collector(RayCollector):
+        def reset(self) -> None:
+            """Reset the envs of every remote collector (``RayCollector`` has no reset)."""
+            import ray
+
+            ray.get([c.reset.remote() for c in self.remote_collectors])
+
+    return _Collector(
+        [env_fn] * cfg.num_envs,
+        policy,
+        frames_per_batch=cfg.frames_per_batch,
+        total_frames=RAY_COLLECTOR_FRAMES,
+        device=device,
+        exploration_type=ExplorationType.RANDOM,
+        init_random_frames=init_random_frames,
+        collector_class=Collector,
+        collector_kwargs={"auto_register_policy_transforms": False, **kwargs},
+        sync=True,
+        ray_init_config=ray_init_kwargs(),
+        remote_configs={"num_cpus": 1},
+    )
 
 
 def run_recipe_name(run_dir: str | os.PathLike) -> str:
