@@ -250,23 +250,34 @@ def train_ensemble(
         raise ValueError(
             f"data must have a non-empty batch shape [N], got {tuple(data.batch_size)}."
         )
-    # Validates shapes and finiteness of the whole dataset once, before any update; the
-    # normalisation is fixed during training, so the dataset is normalised once too and the
-    # steps only index it (no TensorDict, validation or host sync per step).
+    # Validates shapes and finiteness of the whole dataset once, before any update.
     batch = loss_module.read_batch(data)
     if fit_normalizer:
         loss_module.model.fit_normalizer(*batch)
-    x, y, weight = loss_module.normalized_data(*batch)
     rows = data.batch_size[0]
+    # A subclass that redefines ``forward`` (another loss) is trained through it, on TensorDict
+    # minibatches, summing its ``loss_*`` outputs. Otherwise the normalisation is fixed during
+    # training, so the dataset is normalised once and the steps only index it (no TensorDict,
+    # validation or host sync per step).
+    custom = type(loss_module).forward is not EnsembleNLLLoss.forward
+    if not custom:
+        x, y, weight = loss_module.normalized_data(*batch)
     history = []
     for _ in range(epochs):
         order = torch.randperm(rows, generator=generator, device=data.device)
         per_member = []
         for start in range(0, rows, batch_size):
-            nll, bounds = loss_module.member_losses(x, y, weight, order[start : start + batch_size])
+            index = order[start : start + batch_size]
+            if custom:
+                losses = loss_module(data[index])
+                total = sum(v for k, v in losses.items() if k.startswith("loss_"))
+                member = losses["nll_per_member"]
+            else:
+                nll, bounds = loss_module.member_losses(x, y, weight, index)
+                total, member = nll.sum() + bounds, nll.detach()
             optimizer.zero_grad(set_to_none=True)
-            (nll.sum() + bounds).backward()
+            total.backward()
             optimizer.step()
-            per_member.append(nll.detach())
+            per_member.append(member)
         history.append(torch.stack(per_member).mean(0))
     return torch.stack(history)
