@@ -44,6 +44,7 @@ from mapets_rl.modules import (
     sync_target_statistics,
 )
 from mapets_rl.objectives.ddpg import PreactivationRegularisedDDPGLoss
+from mapets_rl.objectives.n_step import STEPS_TO_NEXT_OBS, n_step_transitions
 
 PREACTIVATION = (GROUP, "param")
 """The actor's pre-activation [*, I, act]: the tanh input (continuous) or the logits (one-hot)."""
@@ -70,6 +71,7 @@ class MADDPGConfig(OffPolicyConfig):
     gumbel_tau: float = 1.0
     normalize_obs: bool = True
     actor_preactivation_coef: float = 1e-3
+    n_steps: int = 1
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -80,6 +82,7 @@ class MADDPGConfig(OffPolicyConfig):
             ">= 0",
             self.actor_preactivation_coef,
         )
+        check(self.n_steps >= 1, "n_steps", ">= 1", self.n_steps)
         check(
             0 <= self.sigma_end <= self.sigma_init,
             "sigma_end",
@@ -188,6 +191,7 @@ class MADDPG(Experiment):
         )
         self.loss.set_keys(**LOSS_KEYS, state_action_value=Q_VALUE)
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=config.gamma)
+        self.loss.value_estimator.set_keys(steps_to_next_obs=STEPS_TO_NEXT_OBS)
         self.target_updater = SoftUpdate(self.loss, tau=config.tau)
         self.optim_actor = torch.optim.Adam(
             self.loss.actor_network_params.values(True, True), lr=config.lr_actor
@@ -198,6 +202,8 @@ class MADDPG(Experiment):
 
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
         """Store the batch; ``updates_per_batch`` critic + actor steps; soft target update."""
+        if self.config.n_steps > 1:
+            batch = n_step_transitions(batch, self.config.gamma, self.config.n_steps)
         self.buffer.extend(batch.reshape(-1))
         if self.obs_norm is not None:
             self.obs_norm.update(batch.get(OBS), batch.get(MASK, None))

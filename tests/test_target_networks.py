@@ -15,6 +15,7 @@ from torchrl.objectives import DDPGLoss, SoftUpdate
 
 from mapets_rl.modules import RunningObsNorm, sync_target_statistics
 from mapets_rl.objectives.ddpg import PreactivationRegularisedDDPGLoss
+from mapets_rl.objectives.n_step import STEPS_TO_NEXT_OBS, n_step_transitions
 
 
 def _networks(obs_dim: int = 3, norm: RunningObsNorm | None = None):
@@ -149,3 +150,87 @@ def test_maddpg_writes_the_preactivation(tmp_path: Path) -> None:
     logits, action = td.get(("agents", "param")), td.get(("agents", "action"))
     assert logits.shape == action.shape
     torch.testing.assert_close(action.argmax(-1), logits.argmax(-1))
+
+
+def _episode_batch() -> TensorDict:
+    """6 steps of 2 agents, reward ``2t + i``; agent 1 crashes at step 2; an episode ends
+    after step 3."""
+    steps, agents = 6, 2
+    reward = torch.arange(steps * agents, dtype=torch.float).reshape(steps, agents, 1)
+    crashed = torch.zeros(steps, agents, 1, dtype=torch.bool)
+    crashed[2:, 1] = True
+    episode_end = torch.zeros(steps, 1, dtype=torch.bool)
+    episode_end[3] = True
+    obs = torch.arange(steps * agents, dtype=torch.float).reshape(steps, agents, 1)
+    return TensorDict(
+        {
+            "agents": {"observation": obs},
+            "next": {
+                "agents": {
+                    "observation": obs + 100,
+                    "reward": reward,
+                    "done": crashed.clone(),
+                    "terminated": crashed.clone(),
+                },
+                "done": episode_end,
+            },
+        },
+        batch_size=[steps],
+    )
+
+
+def test_n_step_returns_stop_at_crashes_episode_ends_and_the_batch_end() -> None:
+    out = n_step_transitions(_episode_batch(), gamma=0.5, n_steps=3)
+    expected = torch.tensor(
+        [
+            [0 + 0.5 * 2 + 0.25 * 4, 1 + 0.5 * 3 + 0.25 * 5],  # agent 1 stops at its crash
+            [2 + 0.5 * 4 + 0.25 * 6, 3 + 0.5 * 5],
+            [4 + 0.5 * 6, 5],  # the episode ends after step 3
+            [6, 7],
+            [8 + 0.5 * 10, 9],  # the batch ends after step 5
+            [10, 11],
+        ]
+    )
+    torch.testing.assert_close(out["next", "agents", "reward"].squeeze(-1), expected)
+    steps = out[STEPS_TO_NEXT_OBS].squeeze(-1)
+    torch.testing.assert_close(steps[:, 0], torch.tensor([3.0, 3, 2, 1, 2, 1]))
+    torch.testing.assert_close(steps[:3, 1], torch.tensor([3.0, 2, 1]))
+    # the joint next observation is that of the last included step (common to the agents)
+    next_obs = out["next", "agents", "observation"][:, 0, 0]
+    torch.testing.assert_close(next_obs, torch.tensor([104.0, 106, 106, 106, 110, 110]))
+    assert out["next", "agents", "terminated"][:, 1].all()
+    assert not out["next", "agents", "terminated"][:, 0].any()
+    # observations and actions stay those of row t
+    torch.testing.assert_close(
+        out["agents", "observation"], _episode_batch()["agents", "observation"]
+    )
+
+
+def test_one_step_is_the_identity() -> None:
+    batch = _episode_batch()
+    out = n_step_transitions(batch, gamma=0.9, n_steps=1)
+    torch.testing.assert_close(out["next", "agents", "reward"], batch["next", "agents", "reward"])
+    assert (out[STEPS_TO_NEXT_OBS] == 1).all()
+
+
+def test_td0_bootstrap_is_discounted_by_the_steps_taken() -> None:
+    """torchrl's TD(0) estimator discounts by ``gamma ** steps_to_next_obs``."""
+    actor, critic = _networks(obs_dim=1)
+    loss = DDPGLoss(actor, critic, delay_actor=False, delay_value=False)
+    loss.make_value_estimator(gamma=0.5)
+    loss.value_estimator.set_keys(
+        reward=("agents", "reward"),
+        done=("agents", "done"),
+        terminated=("agents", "terminated"),
+        steps_to_next_obs=STEPS_TO_NEXT_OBS,
+    )
+    batch = n_step_transitions(_episode_batch(), gamma=0.5, n_steps=3)
+    batch = batch.rename_key_(("agents", "observation"), "obs")
+    batch["next"].rename_key_(("agents", "observation"), "obs")
+    with torch.no_grad():
+        q_next = critic(actor(batch["next"].clone()))["state_action_value"]
+        target = loss.value_estimator.value_estimate(batch.clone())
+    reward = batch["next", "agents", "reward"]
+    alive = ~batch["next", "agents", "terminated"]
+    expected = reward + alive * 0.5 ** batch[STEPS_TO_NEXT_OBS] * q_next
+    torch.testing.assert_close(target, expected)
