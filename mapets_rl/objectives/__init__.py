@@ -1,6 +1,15 @@
-"""Losses (torchrl LossModules)."""
+"""Losses (torchrl LossModules) and the replay-data transforms they rely on."""
 
+from mapets_rl.objectives.ddpg import PreactivationRegularisedDDPGLoss
 from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, train_ensemble
+from mapets_rl.objectives.n_step import STEPS_TO_NEXT_OBS, n_step_transitions
 from mapets_rl.objectives.shapley_actor_critic import ShapleyActorCriticLoss
 
-__all__ = ["EnsembleNLLLoss", "ShapleyActorCriticLoss", "train_ensemble"]
+__all__ = [
+    "STEPS_TO_NEXT_OBS",
+    "EnsembleNLLLoss",
+    "PreactivationRegularisedDDPGLoss",
+    "ShapleyActorCriticLoss",
+    "n_step_transitions",
+    "train_ensemble",
+]
