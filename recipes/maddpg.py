@@ -24,7 +24,7 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.modules import AdditiveGaussianModule, MultiAgentMLP, TanhModule
-from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
+from torchrl.objectives import SoftUpdate, ValueEstimators
 
 from mapets_rl.experiment import Experiment, check
 from mapets_rl.experiment.training import OffPolicyConfig
@@ -41,7 +41,13 @@ from mapets_rl.modules import (
     GumbelSoftmaxHead,
     concat_last,
     make_obs_norm,
+    sync_target_statistics,
 )
+from mapets_rl.objectives.ddpg import PreactivationRegularisedDDPGLoss
+from mapets_rl.objectives.n_step import STEPS_TO_NEXT_OBS, n_step_transitions
+
+PREACTIVATION = (GROUP, "param")
+"""The actor's pre-activation [*, I, act]: the tanh input (continuous) or the logits (one-hot)."""
 
 
 @dataclasses.dataclass
@@ -64,10 +70,19 @@ class MADDPGConfig(OffPolicyConfig):
     sigma_anneal_frames: int = 3000
     gumbel_tau: float = 1.0
     normalize_obs: bool = True
+    actor_preactivation_coef: float = 1e-3
+    n_steps: int = 1
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check(self.gumbel_tau > 0, "gumbel_tau", "> 0", self.gumbel_tau)
+        check(
+            self.actor_preactivation_coef >= 0,
+            "actor_preactivation_coef",
+            ">= 0",
+            self.actor_preactivation_coef,
+        )
+        check(self.n_steps >= 1, "n_steps", ">= 1", self.n_steps)
         check(
             0 <= self.sigma_end <= self.sigma_init,
             "sigma_end",
@@ -109,9 +124,11 @@ class MADDPG(Experiment):
             self.actor = TensorDictSequential(
                 *front,
                 TensorDictModule(
-                    nn.Sequential(actor_mlp, GumbelSoftmaxHead(config.gumbel_tau)),
+                    nn.Sequential(
+                        actor_mlp, GumbelSoftmaxHead(config.gumbel_tau, return_logits=True)
+                    ),
                     in_keys=[obs_key],
-                    out_keys=[ACTION],
+                    out_keys=[PREACTIVATION, ACTION],
                 ),
             )
             self.exploration = None
@@ -119,8 +136,8 @@ class MADDPG(Experiment):
         else:
             self.actor = TensorDictSequential(
                 *front,
-                TensorDictModule(actor_mlp, in_keys=[obs_key], out_keys=[(GROUP, "param")]),
-                TanhModule(in_keys=[(GROUP, "param")], out_keys=[ACTION], spec=spec.action_spec),
+                TensorDictModule(actor_mlp, in_keys=[obs_key], out_keys=[PREACTIVATION]),
+                TanhModule(in_keys=[PREACTIVATION], out_keys=[ACTION], spec=spec.action_spec),
             )
             self.exploration = AdditiveGaussianModule(
                 spec=self.env.full_action_spec_unbatched,
@@ -163,15 +180,18 @@ class MADDPG(Experiment):
         )
 
         # loss: DDPG with per-agent TD(0) targets through target actor and critic
-        self.loss = DDPGLoss(
+        self.loss = PreactivationRegularisedDDPGLoss(
             actor_network=self.actor,
             value_network=self.critic,
+            preactivation_key=PREACTIVATION,
+            preactivation_coef=config.actor_preactivation_coef,
             delay_actor=True,
             delay_value=True,
             loss_function="l2",
         )
         self.loss.set_keys(**LOSS_KEYS, state_action_value=Q_VALUE)
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=config.gamma)
+        self.loss.value_estimator.set_keys(steps_to_next_obs=STEPS_TO_NEXT_OBS)
         self.target_updater = SoftUpdate(self.loss, tau=config.tau)
         self.optim_actor = torch.optim.Adam(
             self.loss.actor_network_params.values(True, True), lr=config.lr_actor
@@ -182,21 +202,24 @@ class MADDPG(Experiment):
 
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
         """Store the batch; ``updates_per_batch`` critic + actor steps; soft target update."""
+        if self.config.n_steps > 1:
+            batch = n_step_transitions(batch, self.config.gamma, self.config.n_steps)
         self.buffer.extend(batch.reshape(-1))
         if self.obs_norm is not None:
             self.obs_norm.update(batch.get(OBS), batch.get(MASK, None))
+            sync_target_statistics(self.loss, self.obs_norm)
         if self.exploration is not None:
             self.exploration.step(batch.numel())
         if len(self.buffer) < self.config.batch_size:
             return {}
-        logs = {"loss_actor": 0.0, "loss_value": 0.0}
+        logs = {"loss_actor": 0.0, "loss_actor_reg": 0.0, "loss_value": 0.0}
         n = self.config.updates_per_batch
         for _ in range(n):
             out = self.loss(self.buffer.sample())
             # the actor loss sees detached critic params, so one backward serves both
             self.optim_actor.zero_grad()
             self.optim_critic.zero_grad()
-            (out["loss_actor"] + out["loss_value"]).backward()
+            self.loss.total(out).backward()
             for optim in (self.optim_actor, self.optim_critic):
                 params = [p for g in optim.param_groups for p in g["params"]]
                 nn.utils.clip_grad_norm_(params, self.config.max_grad_norm)

@@ -38,6 +38,7 @@ from mapets_rl.modules import (
     concat_last,
     make_obs_norm,
     make_stochastic_policy,
+    sync_target_statistics,
 )
 
 
@@ -182,6 +183,7 @@ class SAC(Experiment):
         self.buffer.extend(batch.reshape(-1))
         if self.obs_norm is not None:
             self.obs_norm.update(batch.get(OBS), batch.get(MASK, None))
+            sync_target_statistics(self.loss, self.obs_norm)
         if len(self.buffer) < self.config.batch_size:
             return {}
         keys = ("loss_actor", "loss_qvalue", "loss_alpha")

@@ -22,7 +22,7 @@ from mapets_rl.modules.keys import (
     TERMINATED,
     VALUE,
 )
-from mapets_rl.modules.normalization import RunningObsNorm, make_obs_norm
+from mapets_rl.modules.normalization import RunningObsNorm, make_obs_norm, sync_target_statistics
 from mapets_rl.modules.policies import concat_last, make_stochastic_policy
 
 __all__ = [
@@ -49,4 +49,5 @@ __all__ = [
     "make_stochastic_policy",
     "masked_mean",
     "one_hot_argmax",
+    "sync_target_statistics",
 ]

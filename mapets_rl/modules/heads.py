@@ -27,16 +27,22 @@ class GumbelSoftmaxHead(nn.Module):
     Under ``ExplorationType.RANDOM`` (collection) it draws a hard Gumbel-softmax sample at
     temperature ``tau`` (:func:`gumbel_one_hot`); otherwise (evaluation and the loss's actor
     update) the greedy one-hot ``argmax`` with the straight-through softmax gradient.
+
+    With ``return_logits=True`` it returns ``(logits, action)``, so that a ``TensorDictModule``
+    can also write the logits (MADDPG's actor penalty reads them).
     """
 
-    def __init__(self, tau: float = 1.0) -> None:
+    def __init__(self, tau: float = 1.0, return_logits: bool = False) -> None:
         super().__init__()
         if tau <= 0:
             raise ValueError(f"tau must be > 0, got {tau}")
         self.tau = tau
+        self.return_logits = return_logits
 
-    def forward(self, logits: torch.Tensor) -> torch.Tensor:
+    def forward(self, logits: torch.Tensor) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         if exploration_type() is ExplorationType.RANDOM:
-            return gumbel_one_hot(logits, self.tau)
-        soft = logits.softmax(-1)
-        return one_hot_argmax(soft) + soft - soft.detach()
+            action = gumbel_one_hot(logits, self.tau)
+        else:
+            soft = logits.softmax(-1)
+            action = one_hot_argmax(soft) + soft - soft.detach()
+        return (logits, action) if self.return_logits else action

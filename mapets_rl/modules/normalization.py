@@ -63,3 +63,38 @@ def make_obs_norm(spec: AgentGroupSpec) -> tuple[RunningObsNorm, TensorDictModul
     "observation_normalized")`` [*, I, obs] from ``("agents", "observation")``."""
     norm = RunningObsNorm(spec.obs_dim)
     return norm, TensorDictModule(norm, in_keys=[OBS], out_keys=[OBS_NORM])
+
+
+@torch.no_grad()
+def sync_target_statistics(loss: nn.Module, norm: RunningObsNorm) -> int:
+    """Copy ``norm``'s running statistics into every target-network copy that ``loss`` keeps.
+
+    A torchrl loss with target networks (``DDPGLoss``, ``SACLoss``, ...) clones the networks'
+    parameters *and buffers* into ``target_*_params`` and moves them by soft updates. The
+    normaliser's statistics are not learned parameters: a target copy that lags them feeds the
+    target network inputs standardised with stale statistics (at the start of training, the
+    initial mean 0 / variance 1, so raw gaps in metres hit the clip), and the TD targets it
+    produces are off-distribution. Call this after every :meth:`RunningObsNorm.update`; soft
+    updates then leave the (equal) copies unchanged.
+
+    Args:
+        loss: a torchrl ``LossModule``; every ``<name>_params`` with a ``target_<name>_params``
+            is searched for the normaliser's buffers (matched by storage, so any nesting works).
+        norm: the normaliser shared by the loss's networks.
+
+    Returns:
+        The number of target entries written (0 when the loss keeps no target copy of ``norm``).
+    """
+    buffers = {buf.data_ptr() for buf in norm.buffers()}
+    written = 0
+    for name in dir(loss):
+        if not name.startswith("target_") or not name.endswith("_params"):
+            continue
+        target, online = getattr(loss, name), getattr(loss, name[len("target_") :], None)
+        if online is None or target is None:
+            continue
+        for key, value in online.items(True, True):
+            if value.data_ptr() in buffers:
+                target.get(key).copy_(value)
+                written += 1
+    return written

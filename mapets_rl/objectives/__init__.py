@@ -1,6 +1,16 @@
-"""Losses (torchrl LossModules)."""
+"""Losses (torchrl LossModules) and the replay-data transforms they rely on."""
 
+from mapets_rl.objectives.ddpg import PreactivationRegularisedDDPGLoss
 from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, ensemble_optimizer, train_ensemble
+from mapets_rl.objectives.n_step import STEPS_TO_NEXT_OBS, n_step_transitions
 from mapets_rl.objectives.shapley_actor_critic import ShapleyActorCriticLoss
 
-__all__ = ["EnsembleNLLLoss", "ShapleyActorCriticLoss", "ensemble_optimizer", "train_ensemble"]
+__all__ = [
+    "STEPS_TO_NEXT_OBS",
+    "EnsembleNLLLoss",
+    "PreactivationRegularisedDDPGLoss",
+    "ShapleyActorCriticLoss",
+    "ensemble_optimizer",
+    "n_step_transitions",
+    "train_ensemble",
+]
