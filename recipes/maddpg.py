@@ -61,8 +61,16 @@ class MADDPGConfig(OffPolicyConfig):
         init_random_frames: first frames of the run with uniformly random actions (>= 0).
         sigma_init, sigma_end: Gaussian exploration std as a fraction of the half action
             range, annealed linearly over ``sigma_anneal_frames`` (continuous actions).
+        sigma_anneal_frames: frames (>= 1) over which the exploration std goes from
+            ``sigma_init`` to ``sigma_end``.
         gumbel_tau: Gumbel-softmax temperature (> 0; discrete actions).
-        normalize_obs: standardise observations with running statistics of collected data.
+        normalize_obs: standardise observations with running statistics of collected data
+            (the target networks always use the current statistics).
+        actor_preactivation_coef: weight (>= 0) of the actor pre-activation penalty
+            ``mean(p^2)`` of the MADDPG reference code, which keeps the actor out of tanh
+            saturation (see :mod:`mapets_rl.objectives.ddpg`).
+        n_steps: look-ahead (>= 1) of the per-agent n-step returns of the critic's targets
+            (:func:`~mapets_rl.objectives.n_step_transitions`; 1 = TD(0)).
     """
 
     sigma_init: float = 0.3
