@@ -75,7 +75,13 @@ class ShapleyACConfig(OffPolicyConfig):
             policies from saturating early; 0.1 suits the freeway, whose values are in the
             hundreds: at 1e-3 some CAVs locked onto CL/CR within 400 frames).
         exact_max_agents: Shapley exact up to this many CAVs, permutation sampling beyond.
-        num_permutations: orderings per update on the sampled path.
+        num_permutations: orderings per update on the sampled path (even, >= 4: antithetic
+            pairs, shared by the whole minibatch; the standard error is logged as
+            ``shapley_stderr``).
+        shapley_chunk_states: states per pass of the Shapley computation (None: all at once;
+            8 measured fastest on a 2-core AVX2 CPU at n = 30, see benchmarks/RESULTS.md).
+        shapley_bf16: evaluate the Shapley critic passes under bf16 autocast (pays on CPUs with
+            AVX512-BF16/AMX and on GPUs; about 9x slower on AVX2-only CPUs).
     """
 
     # run directories written before the shared off-policy names read under the new ones
@@ -105,6 +111,8 @@ class ShapleyACConfig(OffPolicyConfig):
     exact_max_agents: int = 10
     num_permutations: int = 32
     logits_reg: float = 0.1
+    shapley_chunk_states: int | None = 8
+    shapley_bf16: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -129,12 +137,18 @@ class ShapleyACConfig(OffPolicyConfig):
             self.exact_max_agents,
         )
         check(
-            self.num_permutations >= 2 and self.num_permutations % 2 == 0,
+            self.num_permutations >= 4 and self.num_permutations % 2 == 0,
             "num_permutations",
-            "an even int >= 2",
+            "an even int >= 4",
             self.num_permutations,
         )
         check(self.logits_reg >= 0, "logits_reg", ">= 0", self.logits_reg)
+        check(
+            self.shapley_chunk_states is None or self.shapley_chunk_states >= 1,
+            "shapley_chunk_states",
+            "None or an int >= 1",
+            self.shapley_chunk_states,
+        )
 
 
 class ShapleyAC(Experiment):
@@ -191,6 +205,8 @@ class ShapleyAC(Experiment):
             num_permutations=config.num_permutations,
             gumbel_temperature=config.gumbel_tau,
             logits_reg=config.logits_reg,
+            chunk_states=config.shapley_chunk_states,
+            autocast_bf16=config.shapley_bf16,
         )
         self.updater = SoftUpdate(self.loss, tau=config.tau)
         self.actor_optim = torch.optim.Adam(
