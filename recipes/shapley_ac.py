@@ -78,6 +78,9 @@ class ShapleyACConfig(OffPolicyConfig):
         num_permutations: orderings per update on the sampled path (even, >= 4: antithetic
             pairs, shared by the whole minibatch; the standard error is logged as
             ``shapley_stderr``).
+        reward_scale: multiplies the coalition reward ``R(C)`` in the critic target (> 0).
+        ego_first: every actor's coalition view lists its own observation first (needed for
+            ``share_params``: one actor for all CAVs must know which slot is its own).
         shapley_chunk_states: states per pass of the Shapley computation (None: all at once;
             8 measured fastest on a 2-core AVX2 CPU at n = 30, see benchmarks/RESULTS.md).
         shapley_bf16: evaluate the Shapley critic passes under bf16 autocast (pays on CPUs with
@@ -111,6 +114,8 @@ class ShapleyACConfig(OffPolicyConfig):
     exact_max_agents: int = 10
     num_permutations: int = 32
     logits_reg: float = 0.1
+    reward_scale: float = 1.0
+    ego_first: bool = False
     shapley_chunk_states: int | None = 8
     shapley_bf16: bool = False
 
@@ -143,6 +148,7 @@ class ShapleyACConfig(OffPolicyConfig):
             self.num_permutations,
         )
         check(self.logits_reg >= 0, "logits_reg", ">= 0", self.logits_reg)
+        check(self.reward_scale > 0, "reward_scale", "> 0", self.reward_scale)
         check(
             self.shapley_chunk_states is None or self.shapley_chunk_states >= 1,
             "shapley_chunk_states",
@@ -178,6 +184,7 @@ class ShapleyAC(Experiment):
             discrete=True,
             num_cells=config.num_cells,
             share_params=config.share_params,
+            ego_first=config.ego_first,
             action_head=GumbelSoftmaxHead(config.gumbel_tau),
             device=device,
         )
@@ -207,6 +214,7 @@ class ShapleyAC(Experiment):
             logits_reg=config.logits_reg,
             chunk_states=config.shapley_chunk_states,
             autocast_bf16=config.shapley_bf16,
+            reward_scale=config.reward_scale,
         )
         self.updater = SoftUpdate(self.loss, tau=config.tau)
         self.actor_optim = torch.optim.Adam(

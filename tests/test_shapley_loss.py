@@ -84,6 +84,12 @@ def test_coalition_observation_views():
     assert view[0, 0].tolist() == [[1, 2, 1], [0, 0, 0], [5, 6, 1]]
     assert view[0, 1].tolist() == [[0, 0, 0], [3, 4, 1], [0, 0, 0]]
     assert view[0, 2].tolist() == [[1, 2, 1], [0, 0, 0], [5, 6, 1]]
+    # ego-first: row i lists agents i, i+1, ..., i-1
+    ego = CoalitionObservation(3, ego_first=True)
+    view = ego.view(obs, torch.tensor([[True, False, True]])).view(1, 3, 3, 3)
+    assert view[0, 0].tolist() == [[1, 2, 1], [0, 0, 0], [5, 6, 1]]
+    assert view[0, 1].tolist() == [[3, 4, 1], [0, 0, 0], [0, 0, 0]]
+    assert view[0, 2].tolist() == [[5, 6, 1], [1, 2, 1], [0, 0, 0]]
 
 
 def test_is_loss_module_with_keys():
@@ -231,6 +237,16 @@ def test_random_coalition_modes_and_mask():
     assert c[:, :2].all() and not c[:, 2].any()  # grand coalition of the alive agents
     with pytest.raises(ValueError, match="eval_mode"):
         RandomCoalition(3, eval_mode="half")
+
+
+def test_reward_scale_scales_the_target():
+    td = _batch()
+    plain, scaled = _loss(gamma=0.0), _loss(gamma=0.0, reward_scale=0.1)
+    _, meta = plain.loss_value(td)
+    _, meta_scaled = scaled.loss_value(td)
+    torch.testing.assert_close(meta_scaled["target_value"], 0.1 * meta["target_value"])
+    with pytest.raises(ValueError, match="reward_scale"):
+        _loss(reward_scale=0.0)
 
 
 def test_logits_penalty():

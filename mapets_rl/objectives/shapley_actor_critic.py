@@ -68,6 +68,8 @@ class ShapleyActorCriticLoss(LossModule):
         delay_actor, delay_value: keep target copies of the actor / critic parameters.
         chunk_states: states per pass of the Shapley computation (``None``: all at once); the
             result does not depend on it, the memory traffic does.
+        reward_scale: multiplies ``R(C)`` in the critic target (``> 0``): the characteristic
+            function, and so ``phi``, is learnt in units of ``reward_scale`` rewards.
         autocast_bf16: evaluate the critic's hidden layers for the Shapley value under bf16
             autocast (fast where the CPU has AVX512-BF16/AMX or on a GPU; slower on AVX2-only
             CPUs). Error: see ``benchmarks/shapley.py``.
@@ -138,6 +140,7 @@ class ShapleyActorCriticLoss(LossModule):
         delay_value: bool = True,
         chunk_states: int | None = None,
         autocast_bf16: bool = False,
+        reward_scale: float = 1.0,
     ) -> None:
         if not isinstance(critic_network, CoalitionCritic):
             raise ValueError(
@@ -159,6 +162,8 @@ class ShapleyActorCriticLoss(LossModule):
             raise ValueError(f"chunk_states must be None or an int >= 1, got {chunk_states!r}")
         if not gumbel_temperature > 0:
             raise ValueError(f"gumbel_temperature must be > 0, got {gumbel_temperature}")
+        if not reward_scale > 0:
+            raise ValueError(f"reward_scale must be > 0, got {reward_scale}")
         if not logits_reg >= 0:
             raise ValueError(f"logits_reg must be >= 0, got {logits_reg}")
         if loss_function not in ("l2", "l1", "smooth_l1"):
@@ -178,6 +183,7 @@ class ShapleyActorCriticLoss(LossModule):
         self.delay_value = delay_value
         self.chunk_states = chunk_states
         self.autocast_bf16 = bool(autocast_bf16)
+        self.reward_scale = reward_scale
         self.convert_to_functional(actor_network, "actor_network", create_target_params=delay_actor)
         self.convert_to_functional(
             critic_network, "critic_network", create_target_params=delay_value
@@ -271,6 +277,7 @@ class ShapleyActorCriticLoss(LossModule):
             terminated = terminated.reshape(*terminated.shape[: coalition.ndim - 1], -1)
             next_coalition = coalition & ~terminated.expand_as(coalition)
             coalition_reward = (reward * coalition.to(reward.dtype)).sum(-1)  # R(C), eq. 10
+            coalition_reward = coalition_reward * self.reward_scale
             next_action, _ = self._policy_action(
                 self.target_actor_network_params, next_obs, coalition, greedy=True
             )
