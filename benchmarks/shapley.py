@@ -120,7 +120,12 @@ def update_benchmark(
     )
     losses = {
         c: ShapleyActorCriticLoss(
-            actor, critic, num_permutations=perms, chunk_states=c, delay_actor=False
+            actor,
+            critic,
+            num_permutations=perms,
+            exact_max_agents=1,
+            chunk_states=c,
+            delay_actor=False,
         )
         for c in (None, chunk)
     }
