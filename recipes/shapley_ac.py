@@ -64,7 +64,11 @@ class ShapleyACConfig(OffPolicyConfig):
 
     Attributes:
         num_cells: hidden sizes of the per-agent actors (``critic_cells``: of the critic).
-        share_params: one actor for all CAVs instead of one per CAV (default False here).
+        share_params: one actor for all CAVs instead of one per CAV (default True, with
+            ``ego_first``: at 30 CAVs one actor per CAV, each fed the 690-wide view of all CAVs
+            with 1/30 of the data, still crashed 4-8 times per episode after 1,200-2,000
+            frames, while the shared ego-first actor drove collision-free from 400-800 frames
+            on, 3 of 3 seeds, on the freeway at ratio 1).
         init_random_frames: transitions in the buffer before the first update; they are
             collected with the policy (its coalitions are random), not with random actions.
         critic_cells: hidden sizes of the coalition critic.
@@ -104,7 +108,7 @@ class ShapleyACConfig(OffPolicyConfig):
     eval_interval: int = 400
     eval_episodes: int = 2
     checkpoint_interval: int = 1000
-    share_params: bool = False
+    share_params: bool = True
     batch_size: int = 128
     updates_per_batch: int = 10
     critic_cells: list[int] = dataclasses.field(default_factory=lambda: [128, 128])
@@ -115,7 +119,7 @@ class ShapleyACConfig(OffPolicyConfig):
     num_permutations: int = 32
     logits_reg: float = 0.1
     reward_scale: float = 1.0
-    ego_first: bool = False
+    ego_first: bool = True
     shapley_chunk_states: int | None = 8
     shapley_bf16: bool = False
 
