@@ -49,3 +49,5 @@ def test_bad_arguments() -> None:
         mixed.parse_args(["--frames", "10"])
     args = mixed.parse_args(["--scale", "paper"])
     assert (args.n_vehicles, args.frames) == (30, 400_000)
+    cpu = mixed.parse_args(["--scale", "cpu", "--shapley-override", "batch_size=32"])
+    assert cpu.override["shapley_ac"][-2:] == ["exact_max_agents=5", "batch_size=32"]
