@@ -123,6 +123,14 @@ class ShapleyACConfig(OffPolicyConfig):
     shapley_chunk_states: int | None = 8
     shapley_bf16: bool = False
 
+    @classmethod
+    def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
+        """A ``config.yaml`` written before ego-first views existed trained actors that see the
+        agents in index order: it resumes with ``ego_first=False``, not today's default."""
+        data = super().upgrade_dict(data)
+        data.setdefault("ego_first", False)
+        return data
+
     def __post_init__(self) -> None:
         super().__post_init__()
         check(
