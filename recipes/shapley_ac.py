@@ -65,10 +65,10 @@ class ShapleyACConfig(OffPolicyConfig):
     Attributes:
         num_cells: hidden sizes of the per-agent actors (``critic_cells``: of the critic).
         share_params: one actor for all CAVs instead of one per CAV (default True, with
-            ``ego_first``: at 30 CAVs one actor per CAV, each fed the 690-wide view of all CAVs
-            with 1/30 of the data, still crashed 4-8 times per episode after 1,200-2,000
-            frames, while the shared ego-first actor drove collision-free from 400-800 frames
-            on, 3 of 3 seeds, on the freeway at ratio 1).
+            ``ego_first``: at 30 CAVs (freeway, ratio 1) one actor per CAV, each fed the
+            690-wide view of all CAVs and 1/30 of the data, still crashed 2-8 times per
+            evaluation episode at 800-1,600 frames (3 seeds), while the shared ego-first actor
+            was collision-free from 400-800 frames on, 3 of 3 seeds).
         init_random_frames: transitions in the buffer before the first update; they are
             collected with the policy (its coalitions are random), not with random actions.
         critic_cells: hidden sizes of the coalition critic.
