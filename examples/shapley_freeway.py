@@ -1,4 +1,4 @@
-"""Shapley actor-critic vs MADDPG and MAPPO on the freeway (Shapley paper, Fig. 2).
+"""Shapley actor-critic vs MADDPG, COMA and MAPPO on the freeway (Shapley paper, Fig. 2).
 
 Every algorithm trains on the same freeway configuration for the same number of environment
 frames with ``--seeds`` seeds; each evaluation runs ``--eval-episodes`` deterministic episodes
@@ -7,9 +7,10 @@ system reward*: the reward summed over all CAVs and the 40 steps of an episode, 
 recipes' per-CAV ``return`` times the number of CAVs.
 
 Paper scale: 30 CAVs, 100k episodes x 5 seeds on a 4-GPU server. Default scale here (CPU, about
-an hour for the 9 runs on a 2-core machine): 8 vehicles of which 4 CAVs, 1600 frames (40
-episodes) per run, 3 seeds. Runs are resumable: an interrupted invocation continues from the
-runs' last checkpoints.
+an hour for the 12 runs on a 2-core machine): 8 vehicles of which 4 CAVs, 1600 frames (40
+episodes) per run, 3 seeds. The paper's setting is ``--n-vehicles 30 --cav-ratio 1``. COMA
+(on-policy) updates once per collected batch of ``--frames-per-batch`` frames. Runs are
+resumable: an interrupted invocation continues from the runs' last checkpoints.
 
 Run:  python examples/shapley_freeway.py [--frames 1600] [--seeds 0 1 2] [--out outputs/...]
 Writes ``<out>/system_reward.png`` (mean and 95% band over seeds), ``<out>/system_reward.md``
@@ -37,8 +38,8 @@ from mapets_rl.experiment import (  # noqa: E402
     read_results,
 )
 
-ALGORITHMS = ("shapley_ac", "maddpg", "mappo")
-LABELS = {"shapley_ac": "Shapley AC", "maddpg": "MADDPG", "mappo": "MAPPO"}
+ALGORITHMS = ("shapley_ac", "maddpg", "coma", "mappo")
+LABELS = {"shapley_ac": "Shapley AC", "maddpg": "MADDPG", "coma": "COMA", "mappo": "MAPPO"}
 # On-policy MAPPO collects 5 episodes per PPO update (its minibatch is 100 transitions).
 ON_POLICY_FRAMES_PER_BATCH = 200
 

@@ -64,7 +64,11 @@ class ShapleyACConfig(OffPolicyConfig):
 
     Attributes:
         num_cells: hidden sizes of the per-agent actors (``critic_cells``: of the critic).
-        share_params: one actor for all CAVs instead of one per CAV (default False here).
+        share_params: one actor for all CAVs instead of one per CAV (default True, with
+            ``ego_first``: at 30 CAVs (freeway, ratio 1) one actor per CAV, each fed the
+            690-wide view of all CAVs and 1/30 of the data, still crashed 2-8 times per
+            evaluation episode at 800-1,600 frames (3 seeds), while the shared ego-first actor
+            was collision-free from 400-800 frames on, 3 of 3 seeds).
         init_random_frames: transitions in the buffer before the first update; they are
             collected with the policy (its coalitions are random), not with random actions.
         critic_cells: hidden sizes of the coalition critic.
@@ -75,7 +79,16 @@ class ShapleyACConfig(OffPolicyConfig):
             policies from saturating early; 0.1 suits the freeway, whose values are in the
             hundreds: at 1e-3 some CAVs locked onto CL/CR within 400 frames).
         exact_max_agents: Shapley exact up to this many CAVs, permutation sampling beyond.
-        num_permutations: orderings per update on the sampled path.
+        num_permutations: orderings per update on the sampled path (even, >= 4: antithetic
+            pairs, shared by the whole minibatch; the standard error is logged as
+            ``shapley_stderr``).
+        reward_scale: multiplies the coalition reward ``R(C)`` in the critic target (> 0).
+        ego_first: every actor's coalition view lists its own observation first (needed for
+            ``share_params``: one actor for all CAVs must know which slot is its own).
+        shapley_chunk_states: states per pass of the Shapley computation (None: all at once;
+            8 measured fastest on a 2-core AVX2 CPU at n = 30, see benchmarks/RESULTS.md).
+        shapley_bf16: evaluate the Shapley critic passes under bf16 autocast (pays on CPUs with
+            AVX512-BF16/AMX and on GPUs; about 9x slower on AVX2-only CPUs).
     """
 
     # run directories written before the shared off-policy names read under the new ones
@@ -95,7 +108,7 @@ class ShapleyACConfig(OffPolicyConfig):
     eval_interval: int = 400
     eval_episodes: int = 2
     checkpoint_interval: int = 1000
-    share_params: bool = False
+    share_params: bool = True
     batch_size: int = 128
     updates_per_batch: int = 10
     critic_cells: list[int] = dataclasses.field(default_factory=lambda: [128, 128])
@@ -105,6 +118,18 @@ class ShapleyACConfig(OffPolicyConfig):
     exact_max_agents: int = 10
     num_permutations: int = 32
     logits_reg: float = 0.1
+    reward_scale: float = 1.0
+    ego_first: bool = True
+    shapley_chunk_states: int | None = 8
+    shapley_bf16: bool = False
+
+    @classmethod
+    def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
+        """A ``config.yaml`` written before ego-first views existed trained actors that see the
+        agents in index order: it resumes with ``ego_first=False``, not today's default."""
+        data = super().upgrade_dict(data)
+        data.setdefault("ego_first", False)
+        return data
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -129,12 +154,19 @@ class ShapleyACConfig(OffPolicyConfig):
             self.exact_max_agents,
         )
         check(
-            self.num_permutations >= 2 and self.num_permutations % 2 == 0,
+            self.num_permutations >= 4 and self.num_permutations % 2 == 0,
             "num_permutations",
-            "an even int >= 2",
+            "an even int >= 4",
             self.num_permutations,
         )
         check(self.logits_reg >= 0, "logits_reg", ">= 0", self.logits_reg)
+        check(self.reward_scale > 0, "reward_scale", "> 0", self.reward_scale)
+        check(
+            self.shapley_chunk_states is None or self.shapley_chunk_states >= 1,
+            "shapley_chunk_states",
+            "None or an int >= 1",
+            self.shapley_chunk_states,
+        )
 
 
 class ShapleyAC(Experiment):
@@ -165,6 +197,7 @@ class ShapleyAC(Experiment):
             discrete=True,
             num_cells=config.num_cells,
             share_params=config.share_params,
+            ego_first=config.ego_first,
             action_head=GumbelSoftmaxHead(config.gumbel_tau),
             device=device,
         )
@@ -192,6 +225,9 @@ class ShapleyAC(Experiment):
             num_permutations=config.num_permutations,
             gumbel_temperature=config.gumbel_tau,
             logits_reg=config.logits_reg,
+            chunk_states=config.shapley_chunk_states,
+            autocast_bf16=config.shapley_bf16,
+            reward_scale=config.reward_scale,
         )
         self.updater = SoftUpdate(self.loss, tau=config.tau)
         self.actor_optim = torch.optim.Adam(

@@ -4,6 +4,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 from mapets_rl.experiment import ConfigError, list_checkpoints
 from recipes.shapley_ac import ShapleyAC, ShapleyACConfig
@@ -60,3 +61,14 @@ def test_config_validation() -> None:
         _config(num_permutations=3)
     with pytest.raises(ConfigError, match="eval_coalition"):
         _config(eval_coalition="half")
+
+
+def test_config_written_before_ego_first_views_keeps_index_order(tmp_path: Path) -> None:
+    cfg = _config()
+    assert cfg.ego_first and cfg.share_params  # today's defaults
+    data = cfg.to_dict()
+    del data["ego_first"]
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(data))
+    old = ShapleyACConfig.from_yaml(path)
+    assert old.ego_first is False and old.share_params is True

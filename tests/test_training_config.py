@@ -81,7 +81,7 @@ def test_shared_fields_are_validated_the_same_way(cls, field, value, message) ->
 def test_per_recipe_defaults_are_kept() -> None:
     shapley, sac, maddpg, mappo = ShapleyACConfig(), SACConfig(), MADDPGConfig(), MAPPOConfig()
     assert (shapley.share_params, shapley.batch_size, shapley.updates_per_batch) == (
-        False,
+        True,
         128,
         10,
     )
@@ -120,6 +120,7 @@ def _shapley_config(**overrides) -> ShapleyACConfig:
         critic_cells=[16],
         gumbel_tau=0.5,
         lr_actor=2e-3,
+        share_params=False,
         env_config={"n_vehicles": 4, "cav_ratio": 0.5, "horizon": 5},
         **TINY,
     )

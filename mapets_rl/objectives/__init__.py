@@ -1,5 +1,6 @@
 """Losses (torchrl LossModules) and the replay-data transforms they rely on."""
 
+from mapets_rl.objectives.coma import COMACritic, COMALoss, counterfactual_advantage
 from mapets_rl.objectives.ddpg import PreactivationRegularisedDDPGLoss
 from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, ensemble_optimizer, train_ensemble
 from mapets_rl.objectives.n_step import STEPS_TO_NEXT_OBS, n_step_transitions
@@ -7,9 +8,12 @@ from mapets_rl.objectives.shapley_actor_critic import ShapleyActorCriticLoss
 
 __all__ = [
     "STEPS_TO_NEXT_OBS",
+    "COMACritic",
+    "COMALoss",
     "EnsembleNLLLoss",
     "PreactivationRegularisedDDPGLoss",
     "ShapleyActorCriticLoss",
+    "counterfactual_advantage",
     "ensemble_optimizer",
     "n_step_transitions",
     "train_ensemble",

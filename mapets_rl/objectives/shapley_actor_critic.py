@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -42,7 +43,12 @@ class ShapleyActorCriticLoss(LossModule):
 
     ``phi`` is exact for ``n <= exact_max_agents`` (``n * 2**(n-1) + 2**n`` coalition values per
     state) and otherwise a permutation estimate with ``num_permutations`` antithetic orderings
-    (``2 * n * num_permutations`` values per state).
+    shared by the whole minibatch (``2 * n * num_permutations`` values per state); the actor
+    loss then reports the estimate's standard error (``shapley_stderr``, over the antithetic
+    pair means). Both paths share the critic's first layer between the with-``i`` and
+    without-``i`` coalitions, evaluate the states in chunks of ``chunk_states`` and take the
+    actor gradient chunk by chunk, so the ``[states, n, K, H]`` intermediates are never held
+    for a backward pass.
 
     Args:
         actor_network: deterministic per-agent policy reading the observation and coalition keys
@@ -52,13 +58,21 @@ class ShapleyActorCriticLoss(LossModule):
         action_space: ``"discrete"`` (one-hot actions) or ``"continuous"``.
         gamma: discount in ``[0, 1]``.
         exact_max_agents: largest ``n`` computed exactly (``1..20``, default 10).
-        num_permutations: orderings per update on the sampled path (even, ``>= 2``).
+        num_permutations: orderings per update on the sampled path (even, ``>= 4``: at least
+            two antithetic pairs for the standard error).
         gumbel_temperature: Gumbel-softmax temperature (``> 0``).
         logits_reg: weight of the mean squared actor logits added to the actor loss (discrete;
             ``>= 0``). As in the original MADDPG code, it keeps the logits from saturating, where
             the softmax gradient vanishes and a deterministic policy stops exploring.
         loss_function: ``"l2"``, ``"l1"`` or ``"smooth_l1"`` for the TD loss.
         delay_actor, delay_value: keep target copies of the actor / critic parameters.
+        chunk_states: states per pass of the Shapley computation (``None``: all at once); the
+            result does not depend on it, the memory traffic does.
+        reward_scale: multiplies ``R(C)`` in the critic target (``> 0``): the characteristic
+            function, and so ``phi``, is learnt in units of ``reward_scale`` rewards.
+        autocast_bf16: evaluate the critic's hidden layers for the Shapley value under bf16
+            autocast (fast where the CPU has AVX512-BF16/AMX or on a GPU; slower on AVX2-only
+            CPUs). Error: see ``benchmarks/shapley.py``.
 
     Keys (``set_keys``): ``observation`` ``[*, n, obs]``, ``action`` ``[*, n, act]``, ``logits``
     ``[*, n, act]`` (actor output, discrete), ``coalition`` ``[*, n]`` bool, ``reward``
@@ -100,6 +114,7 @@ class ShapleyActorCriticLoss(LossModule):
         "target_value",
         "td_error",
         "shapley_value",
+        "shapley_stderr",
     ]
 
     actor_network: TensorDictModule
@@ -123,6 +138,9 @@ class ShapleyActorCriticLoss(LossModule):
         loss_function: str = "l2",
         delay_actor: bool = True,
         delay_value: bool = True,
+        chunk_states: int | None = None,
+        autocast_bf16: bool = False,
+        reward_scale: float = 1.0,
     ) -> None:
         if not isinstance(critic_network, CoalitionCritic):
             raise ValueError(
@@ -136,10 +154,16 @@ class ShapleyActorCriticLoss(LossModule):
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
         if not isinstance(exact_max_agents, int) or not 1 <= exact_max_agents <= 20:
             raise ValueError(f"exact_max_agents must be an int in [1, 20], got {exact_max_agents}")
-        if not isinstance(num_permutations, int) or num_permutations < 2 or num_permutations % 2:
-            raise ValueError(f"num_permutations must be an even int >= 2, got {num_permutations!r}")
+        if not isinstance(num_permutations, int) or num_permutations < 4 or num_permutations % 2:
+            raise ValueError(f"num_permutations must be an even int >= 4, got {num_permutations!r}")
+        if chunk_states is not None and (
+            isinstance(chunk_states, bool) or not isinstance(chunk_states, int) or chunk_states < 1
+        ):
+            raise ValueError(f"chunk_states must be None or an int >= 1, got {chunk_states!r}")
         if not gumbel_temperature > 0:
             raise ValueError(f"gumbel_temperature must be > 0, got {gumbel_temperature}")
+        if not reward_scale > 0:
+            raise ValueError(f"reward_scale must be > 0, got {reward_scale}")
         if not logits_reg >= 0:
             raise ValueError(f"logits_reg must be >= 0, got {logits_reg}")
         if loss_function not in ("l2", "l1", "smooth_l1"):
@@ -157,12 +181,14 @@ class ShapleyActorCriticLoss(LossModule):
         self.loss_function = loss_function
         self.delay_actor = delay_actor
         self.delay_value = delay_value
+        self.chunk_states = chunk_states
+        self.autocast_bf16 = bool(autocast_bf16)
+        self.reward_scale = reward_scale
         self.convert_to_functional(actor_network, "actor_network", create_target_params=delay_actor)
         self.convert_to_functional(
             critic_network, "critic_network", create_target_params=delay_value
         )
         n = self.n_agents
-        self.register_buffer("_eye", torch.eye(n, dtype=torch.bool), persistent=False)
         if n <= exact_max_agents:
             # Coalitions containing each agent i, [n, 2**(n-1), n], and their eq. 3 weights.
             masks = coalition_masks(n)
@@ -171,6 +197,7 @@ class ShapleyActorCriticLoss(LossModule):
             self.register_buffer("_masks_with", masks[with_i], persistent=False)
             self.register_buffer("_weights_with", m.T.gather(1, with_i), persistent=False)
             self.register_buffer("_m_without", m.clamp(max=0.0), persistent=False)
+            self.register_buffer("_masks_all", masks, persistent=False)
 
     @property
     def in_keys(self) -> list[NestedKey]:
@@ -250,6 +277,7 @@ class ShapleyActorCriticLoss(LossModule):
             terminated = terminated.reshape(*terminated.shape[: coalition.ndim - 1], -1)
             next_coalition = coalition & ~terminated.expand_as(coalition)
             coalition_reward = (reward * coalition.to(reward.dtype)).sum(-1)  # R(C), eq. 10
+            coalition_reward = coalition_reward * self.reward_scale
             next_action, _ = self._policy_action(
                 self.target_actor_network_params, next_obs, coalition, greedy=True
             )
@@ -269,51 +297,116 @@ class ShapleyActorCriticLoss(LossModule):
         }
         return loss, meta
 
-    def shapley_values(self, tensordict: TensorDictBase) -> torch.Tensor:
+    def shapley_values(
+        self, tensordict: TensorDictBase, *, return_stderr: bool = False
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         """``phi_i(s, a)`` with ``a_i = pi_i(s^C)``, differentiable through ``a_i`` only.
 
-        Returns ``[*, n]``. Gradients reach the actor parameters, not the critic's.
+        Returns ``[*, n]`` (and, with ``return_stderr``, its standard error ``[*, n]``: zero on
+        the exact path, over the antithetic pair means on the sampled path). Gradients reach
+        the actor parameters, not the critic's.
         """
-        return self._shapley_and_logits(tensordict)[0]
+        phi, stderr, _ = self._shapley_and_logits(tensordict)
+        return (phi, stderr) if return_stderr else phi
 
     def _shapley_and_logits(
         self, tensordict: TensorDictBase
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """``(phi [*, n], stderr [*, n], logits)``; ``stderr`` is zero on the exact path."""
         keys = self.tensor_keys
         obs = tensordict.get(keys.observation)
         coalition = tensordict.get(keys.coalition).bool()
         self._check_shapes(obs, coalition)
         a_batch = tensordict.get(keys.action).to(obs.dtype)
         a_pol, logits = self._policy_action(self.actor_network_params, obs, coalition, greedy=False)
-        # joint[..., i, j] = a_pol_j if i == j else a_batch_j: agent i's own action substituted.
-        joint = torch.where(self._eye.unsqueeze(-1), a_pol.unsqueeze(-3), a_batch.unsqueeze(-3))
-        obs_i = obs.unsqueeze(-3)  # [*, 1, n, obs], broadcast over the substituted agent i
         critic = self.critic_network
         with self.critic_network_params.detach().to_module(critic, preserve_module_state=False):
-            if self.n_agents <= self.exact_max_agents:
-                # eq. 3: phi_i = sum_{C ∌ i} w(|C|) v(C + i) - sum_{C ∌ i} w(|C|) v(C)
-                v_with = critic.coalition_values(obs_i, joint, self._masks_with)  # [*, n, 2**(n-1)]
-                phi = (v_with * self._weights_with.to(v_with.dtype)).sum(-1)
-                with torch.no_grad():
-                    v_all = critic.all_coalition_values(obs, a_batch)  # [*, 2**n]
-                    phi_without = v_all @ self._m_without.to(v_all.dtype)
-            else:
-                perms = sample_permutations(
-                    self.num_permutations, self.n_agents, antithetic=True, device=obs.device
-                )
-                before = permutation_prefix_masks(perms).transpose(0, 1)  # [n, P, n]
-                with_i = before | self._eye.unsqueeze(-2)
-                v_with = critic.coalition_values(obs_i, joint, with_i)  # [*, n, P]
-                phi = v_with.mean(-1)
-                with torch.no_grad():
-                    v_before = critic.coalition_values(obs_i, a_batch.unsqueeze(-3), before)
-                    phi_without = -v_before.mean(-1)
-        return phi + phi_without, logits
+            # First-layer factorisation: a coalition's pre-activation is masks @ h + bias, and
+            # substituting agent i's own action adds delta_i = h_i(a_pol) - h_i(a_batch) to the
+            # coalitions that contain i. Only delta carries the actor's gradient.
+            with torch.no_grad():
+                h_batch = critic.embed(obs, a_batch)  # [*, n, H]
+            delta = critic.embed(obs, a_pol) - h_batch  # [*, n, H]
+            lead = h_batch.shape[:-2]
+            phi, stderr = self._shapley_from_embeddings(
+                critic,
+                h_batch.reshape(-1, *h_batch.shape[-2:]),
+                delta.reshape(-1, *delta.shape[-2:]),
+            )
+        return phi.reshape(*lead, -1), stderr.reshape(*lead, -1), logits
+
+    def _shapley_from_embeddings(
+        self, critic: CoalitionCritic, h_batch: torch.Tensor, delta: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``h_batch, delta [S, n, H] -> (phi, stderr) [S, n]``, chunked over the ``S`` states.
+
+        The heavy part runs without building a graph over the actor: per chunk, the gradient
+        ``g_i = d phi_i / d delta_i`` (``phi_i`` depends on ``delta_i`` only) is taken at once
+        and ``phi_i`` is returned as ``phi_i + <delta_i - stop_grad(delta_i), g_i>``, whose value
+        is ``phi_i`` and whose gradient with respect to the actor is exactly that of ``phi_i``.
+        """
+        n = self.n_agents
+        exact = n <= self.exact_max_agents
+        if exact:
+            masks = self._masks_with.to(h_batch.dtype)  # [n, K, n]
+            weights = self._weights_with.to(h_batch.dtype)  # [n, K]
+        else:
+            # one set of orderings for the whole minibatch (antithetic pairs: rows 2q, 2q+1)
+            perms = sample_permutations(
+                self.num_permutations, n, antithetic=True, device=h_batch.device
+            )
+            before = permutation_prefix_masks(perms).transpose(0, 1)  # [n, P, n]
+            masks = before.to(h_batch.dtype)
+            nonempty = before.any(-1).to(h_batch.dtype)  # [n, P]
+        need_grad = torch.is_grad_enabled() and delta.requires_grad
+        size = h_batch.shape[0] if self.chunk_states is None else self.chunk_states
+        autocast = dict(
+            device_type=h_batch.device.type,
+            dtype=torch.bfloat16,
+            enabled=self.autocast_bf16,
+        )
+
+        def head(z: torch.Tensor) -> torch.Tensor:
+            with torch.autocast(**autocast):
+                return critic.head(z).squeeze(-1).to(h_batch.dtype)
+
+        phis, grads, stderrs = [], [], []
+        for start in range(0, h_batch.shape[0], size):
+            hb = h_batch[start : start + size]
+            d = delta[start : start + size].detach().requires_grad_(need_grad)
+            with torch.no_grad():
+                base = masks @ hb.unsqueeze(-3) + critic.bias  # [S_c, n, K, H]
+            with torch.enable_grad() if need_grad else torch.no_grad():
+                # exact: the coalitions already hold h_i(a_batch), add delta_i; sampled: the
+                # prefixes before i do not hold i, add h_i(a_pol) = h_i(a_batch) + delta_i
+                own = d if exact else hb + d
+                v_with = head(base + own.unsqueeze(-2))  # [S_c, n, K]: coalitions with i
+                if exact:
+                    phi_with = (v_with * weights).sum(-1)
+                else:
+                    phi_with = v_with.mean(-1)
+            if need_grad:
+                grads.append(torch.autograd.grad(phi_with.sum(), d)[0])
+            with torch.no_grad():
+                if exact:
+                    v_all = critic.values_from_embedding(hb, self._masks_all)  # [S_c, 2**n]
+                    phis.append(phi_with.detach() + v_all @ self._m_without.to(v_all.dtype))
+                    stderrs.append(torch.zeros_like(phi_with))
+                else:
+                    marginal = v_with.detach() - head(base) * nonempty  # [S_c, n, P]
+                    pairs = marginal.unflatten(-1, (-1, 2)).mean(-1)  # [S_c, n, P/2]
+                    phis.append(pairs.mean(-1))
+                    stderrs.append(pairs.std(-1, correction=1) / math.sqrt(pairs.shape[-1]))
+        phi, stderr = torch.cat(phis), torch.cat(stderrs)
+        if need_grad:
+            grad = torch.cat(grads)
+            phi = phi + ((delta - delta.detach()) * grad).sum(-1)
+        return phi, stderr
 
     def loss_actor(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """Shapley deterministic policy gradient (Algorithm 1 lines 12-13), plus
         ``logits_reg * mean(logits**2)`` for discrete actions."""
-        phi, logits = self._shapley_and_logits(tensordict)
+        phi, stderr, logits = self._shapley_and_logits(tensordict)
         mask = tensordict.get(self.tensor_keys.mask, None)
         if mask is None:
             loss = -phi.mean()
@@ -322,7 +415,10 @@ class ShapleyActorCriticLoss(LossModule):
             loss = -(phi * weight).sum() / weight.sum().clamp_min(1.0)
         if logits is not None and self.logits_reg > 0:
             loss = loss + self.logits_reg * logits.pow(2).mean()
-        return loss, {"shapley_value": phi.detach().mean()}
+        meta = {"shapley_value": phi.detach().mean()}
+        if self.n_agents > self.exact_max_agents:
+            meta["shapley_stderr"] = stderr.mean()
+        return loss, meta
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """``tensordict [*B]`` from the replay buffer -> TensorDict with ``loss_value``,

@@ -24,7 +24,10 @@ class CoalitionObservation(TensorDictModuleBase):
     are appended so that a zero observation and an unseen one differ.
 
     Reads ``observation [*, n, obs]`` and ``coalition [*, n]`` (bool); writes
-    ``out_key [*, n, n * (obs + 1)]`` (row ``i`` = agent ``i``'s flattened view).
+    ``out_key [*, n, n * (obs + 1)]`` (row ``i`` = agent ``i``'s flattened view). With
+    ``ego_first`` row ``i`` lists the agents in the order ``i, i+1, ..., i-1`` (its own
+    observation first), so that one network shared by all agents knows which slot is its own;
+    without it every row lists agents ``0..n-1``.
     """
 
     def __init__(
@@ -34,14 +37,19 @@ class CoalitionObservation(TensorDictModuleBase):
         observation_key: NestedKey = ("agents", "observation"),
         coalition_key: NestedKey = ("agents", "coalition"),
         out_key: NestedKey = ("agents", "coalition_observation"),
+        ego_first: bool = False,
     ) -> None:
         if not isinstance(n_agents, int) or n_agents < 1:
             raise ValueError(f"n_agents must be an int >= 1, got {n_agents!r}")
         super().__init__()
         self.n_agents = n_agents
+        self.ego_first = bool(ego_first)
         self.in_keys = [observation_key, coalition_key]
         self.out_keys = [out_key]
         self.register_buffer("_eye", torch.eye(n_agents, dtype=torch.bool), persistent=False)
+        # order[i, k] = (i + k) mod n: the k-th agent in agent i's ego-first view
+        order = (torch.arange(n_agents).unsqueeze(-1) + torch.arange(n_agents)) % n_agents
+        self.register_buffer("_order", order, persistent=False)
 
     def view(self, observation: torch.Tensor, coalition: torch.Tensor) -> torch.Tensor:
         """``[..., n, obs], [..., n] -> [..., n, n * (obs + 1)]``."""
@@ -59,6 +67,9 @@ class CoalitionObservation(TensorDictModuleBase):
         visible = (coalition.unsqueeze(-1) & coalition.unsqueeze(-2)) | self._eye  # [..., n, n]
         seen = observation.unsqueeze(-3) * visible.unsqueeze(-1).to(observation.dtype)
         view = torch.cat([seen, visible.unsqueeze(-1).to(observation.dtype)], dim=-1)
+        if self.ego_first:  # [..., n, n, obs + 1]: reorder the agents axis of every row
+            index = self._order.view(n, n, 1).expand(*view.shape[:-3], n, n, view.shape[-1])
+            view = view.gather(-2, index)
         return view.flatten(-2)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -78,6 +89,7 @@ def make_coalition_actor(
     num_cells: Sequence[int] = (64, 64),
     activation_class: type[nn.Module] = nn.Tanh,
     share_params: bool = False,
+    ego_first: bool = False,
     action_head: nn.Module | None = None,
     action_low: float = -1.0,
     action_high: float = 1.0,
@@ -89,6 +101,9 @@ def make_coalition_actor(
 ) -> TensorDictSequential:
     """Deterministic per-agent actors ``pi_i(s^C)`` (torchrl ``MultiAgentMLP``, one set of
     parameters per agent unless ``share_params``).
+
+    ``ego_first``: each agent's view lists its own observation first (see
+    :class:`CoalitionObservation`; use it with ``share_params``).
 
     Discrete: writes ``logits_key [*, n, act]`` and ``action_key [*, n, act]``, the one-hot image
     of the logits by ``action_head`` (default: greedy ``argmax``; pass e.g. a Gumbel-softmax
@@ -107,7 +122,11 @@ def make_coalition_actor(
         raise ValueError(f"action_low must be < action_high, got {action_low}, {action_high}")
     view_key = ("agents", "coalition_observation")
     view = CoalitionObservation(
-        n_agents, observation_key=observation_key, coalition_key=coalition_key, out_key=view_key
+        n_agents,
+        observation_key=observation_key,
+        coalition_key=coalition_key,
+        out_key=view_key,
+        ego_first=ego_first,
     )
     net = MultiAgentMLP(
         n_agent_inputs=n_agents * (observation_dim + 1),

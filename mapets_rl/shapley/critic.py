@@ -114,14 +114,69 @@ class CoalitionCritic(TensorDictModuleBase):
         x = torch.cat([observation, action.to(observation.dtype)], dim=-1)
         return torch.einsum("...ni,nih->...nh", x, self.agent_weight) + self.membership
 
+    def values_from_embedding(
+        self,
+        h: torch.Tensor,
+        masks: torch.Tensor,
+        *,
+        chunk_states: int | None = None,
+        autocast_dtype: torch.dtype | None = None,
+    ) -> torch.Tensor:
+        """``v(s, a, C)`` from the per-agent first-layer terms ``h`` of :meth:`embed`.
+
+        Args:
+            h: ``[..., n, H]``; masks: bool ``[..., K, n]`` (broadcast against the leading dims).
+            chunk_states: evaluate at most this many states (leading elements of the broadcast
+                batch) per pass, so that the ``[chunk, K, H]`` intermediates stay in cache;
+                ``None``: one pass. The result does not depend on it.
+            autocast_dtype: run the hidden layers under ``torch.autocast`` in this dtype (e.g.
+                ``torch.bfloat16``); the values come back in ``h``'s dtype. ``None``: no autocast.
+
+        Returns:
+            ``[..., K]``; zero for the empty coalition.
+        """
+        if masks.shape[-1] != self.n_agents or masks.ndim < 2:
+            raise ValueError(
+                f"masks must have shape [..., K, n_agents={self.n_agents}], "
+                f"got {tuple(masks.shape)}"
+            )
+        if chunk_states is not None and (
+            isinstance(chunk_states, bool) or not isinstance(chunk_states, int) or chunk_states < 1
+        ):
+            raise ValueError(f"chunk_states must be None or an int >= 1, got {chunk_states!r}")
+        batch = torch.broadcast_shapes(h.shape[:-2], masks.shape[:-2])
+        k = masks.shape[-2]
+        h = h.expand(*batch, *h.shape[-2:]).reshape(-1, *h.shape[-2:])  # [S, n, H]
+        shared_masks = masks.ndim == 2  # one set of coalitions for every state: not copied
+        m = masks if shared_masks else masks.expand(*batch, *masks.shape[-2:]).flatten(0, -3)
+        size = h.shape[0] if chunk_states is None else chunk_states
+        parts = []
+        for start in range(0, h.shape[0], size):
+            hc = h[start : start + size]
+            mc = m if shared_masks else m[start : start + size]
+            z = mc.to(hc.dtype) @ hc + self.bias  # [S_c, K, H]
+            with torch.autocast(
+                hc.device.type, dtype=autocast_dtype or torch.bfloat16, enabled=bool(autocast_dtype)
+            ):
+                value = self.head(z).squeeze(-1)
+            parts.append(value.to(h.dtype) * mc.any(-1).to(h.dtype))
+        return torch.cat(parts).reshape(*batch, k)
+
     def coalition_values(
-        self, observation: torch.Tensor, action: torch.Tensor, masks: torch.Tensor
+        self,
+        observation: torch.Tensor,
+        action: torch.Tensor,
+        masks: torch.Tensor,
+        *,
+        chunk_states: int | None = None,
+        autocast_dtype: torch.dtype | None = None,
     ) -> torch.Tensor:
         """``v(s, a, C)`` for ``K`` coalitions per state.
 
         Args:
             observation: ``[..., n, obs]``; action: ``[..., n, act]``.
             masks: bool ``[..., K, n]`` (broadcast against the leading dims).
+            chunk_states, autocast_dtype: see :meth:`values_from_embedding`.
 
         Returns:
             ``[..., K]``; zero for the empty coalition.
@@ -132,15 +187,25 @@ class CoalitionCritic(TensorDictModuleBase):
                 f"got {tuple(masks.shape)}"
             )
         h = self.embed(observation, action)  # [..., n, H]
-        z = masks.to(h.dtype) @ h + self.bias  # [..., K, H]
-        value = self.head(z).squeeze(-1)
-        return value * masks.any(-1).to(value.dtype)
+        return self.values_from_embedding(
+            h, masks, chunk_states=chunk_states, autocast_dtype=autocast_dtype
+        )
 
-    def all_coalition_values(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    def all_coalition_values(
+        self,
+        observation: torch.Tensor,
+        action: torch.Tensor,
+        *,
+        chunk_states: int | None = None,
+        autocast_dtype: torch.dtype | None = None,
+    ) -> torch.Tensor:
         """``v(s, a, C_k)`` for all ``2**n`` coalitions: ``-> [..., 2**n]`` (encoding of
-        :func:`~mapets_rl.shapley.coalition_masks`), one batched call."""
+        :func:`~mapets_rl.shapley.coalition_masks`), one batched call (or one per chunk of
+        ``chunk_states`` states; see :meth:`values_from_embedding`)."""
         masks = coalition_masks(self.n_agents, device=self.bias.device)
-        return self.coalition_values(observation, action, masks)
+        return self.coalition_values(
+            observation, action, masks, chunk_states=chunk_states, autocast_dtype=autocast_dtype
+        )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Reads observation ``[*, n, obs]``, action ``[*, n, act]``, coalition ``[*, n]``;
