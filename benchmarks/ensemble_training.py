@@ -7,20 +7,31 @@ bounds and a per-member bootstrap resample of each minibatch.
 * vectorized: ``train_ensemble(EnsembleNLLLoss(ProbabilisticEnsemble(...)), ...)`` —
   stacked weights, one ``baddbmm`` per layer for all ``I * B`` MLPs;
 * loop: the same math with one ``nn.Sequential`` per (agent, member), forward passes in a
-  Python loop over agents and members, one summed backward and one (foreach) Adam step.
+  Python loop over agents and members, one summed backward and one (foreach) Adam step;
+* with ``--reference mbrl-lib``: mbrl-lib's ``ModelTrainer`` on a ``GaussianMLP`` ensemble of
+  the same sizes, one trainer per agent (mbrl-lib has no multi-agent batching), same data,
+  epochs, batch size, bootstrap, NLL with learned log-variance bounds and Adam lr (see
+  ``benchmarks/mbrl_reference.train_ensembles``). Headline: mbrl-lib's time per agent over
+  ours (medians of the interleaved repeats, with min..max). Optional: it needs mbrl-lib,
+  which this script never installs (without it the flag prints how to install it beside the
+  pinned torch and exits with status 2).
 
 Example::
 
     python benchmarks/ensemble_training.py --repeats 3                      # cpu preset, 3x64
     python benchmarks/ensemble_training.py --hidden 300 300 300 --repeats 2 # paper model
+    PYTHONPATH=. /work/mbrl-venv/bin/python benchmarks/ensemble_training.py \
+        --reference mbrl-lib --agents 1 --hidden 300 300 300 --threads 1 --repeats 3 --no-loop
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import time
 
 import torch
+from mbrl_reference import REFERENCES, require_mbrl, train_ensembles
 from tensordict import TensorDict
 from torch import nn
 from torch.nn import functional as F
@@ -111,7 +122,19 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=128)
     parser.add_argument("--repeats", type=int, default=3, help="best of this many runs")
     parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument(
+        "--no-loop", dest="loop", action="store_false", help="skip the per-member loop"
+    )
+    parser.add_argument(
+        "--reference",
+        choices=REFERENCES,
+        default=None,
+        help="also time mbrl-lib's ModelTrainer on the same workload (needs mbrl-lib, installed "
+        "separately: without it this prints how and exits with status 2)",
+    )
     args = parser.parse_args()
+    if args.reference is not None:
+        require_mbrl(args.reference)
     for name in ("agents", "members", "transitions", "epochs", "batch_size", "repeats"):
         if getattr(args, name) <= 0:
             parser.error(f"--{name.replace('_', '-')} must be positive")
@@ -126,13 +149,51 @@ def main() -> None:
         f"B={args.members}, hidden={args.hidden}, {args.transitions} transitions/agent, "
         f"{args.epochs} epochs x batch {args.batch_size} = {steps} steps"
     )
-    # Alternate the two (best of --repeats each) so load changes on a shared machine hit both.
-    runs = [(vectorized(data, args), loop(data, args)) for _ in range(args.repeats)]
-    vec = min(r[0] for r in runs)
-    ref = min(r[1] for r in runs)
+    # Alternate the variants (best of --repeats each) so load changes on a shared machine hit
+    # all of them.
+    times: dict[str, list[float]] = {"vectorized": []}
+    if args.loop:
+        times["loop"] = []
+    if args.reference is not None:
+        times["mbrl-lib"] = []
+        obs = data["agents", "observation"]
+        act = data["agents", "action"]
+        nxt = data["next", "agents", "observation"]
+    for _ in range(args.repeats):
+        times["vectorized"].append(vectorized(data, args))
+        if args.loop:
+            times["loop"].append(loop(data, args))
+        if args.reference is not None:
+            seconds, losses = train_ensembles(
+                obs, act, nxt, args.members, tuple(args.hidden), args.epochs, args.batch_size
+            )
+            times["mbrl-lib"].append(seconds)
+    vec = min(times["vectorized"])
     print(f"vectorized (one batched program): {vec:8.2f} s  ({vec / steps * 1e3:.1f} ms/step)")
-    print(f"loop over agents x members:       {ref:8.2f} s  ({ref / steps * 1e3:.1f} ms/step)")
-    print(f"speed-up: {ref / vec:.2f}x")
+    if args.loop:
+        ref = min(times["loop"])
+        print(f"loop over agents x members:       {ref:8.2f} s  ({ref / steps * 1e3:.1f} ms/step)")
+        print(f"speed-up: {ref / vec:.2f}x")
+    if args.reference is not None:
+        mbrl = [t / args.agents for t in times["mbrl-lib"]]
+        ours = [t / args.agents for t in times["vectorized"]]
+        paired = [m / o for m, o in zip(mbrl, ours, strict=True)]
+        print(
+            f"mbrl-lib ModelTrainer, {args.agents} separate trainers: per agent "
+            f"{spread(mbrl)}; last-epoch training loss per agent "
+            f"{[round(v, 3) for v in losses]} (mbrl-lib's NLL on unnormalised targets)"
+        )
+        print(
+            f"HEADLINE I={args.agents}, hidden={args.hidden}: ours per agent {spread(ours)}; "
+            f"mbrl-lib / ours per agent = {statistics.median(mbrl) / statistics.median(ours):.2f}x"
+            f" (medians; per-repeat pairs {min(paired):.2f}..{max(paired):.2f}, "
+            f"n={len(paired)})"
+        )
+
+
+def spread(values: list[float]) -> str:
+    """``median (min..max)`` of timings in seconds."""
+    return f"{statistics.median(values):.3f} s ({min(values):.3f}..{max(values):.3f})"
 
 
 if __name__ == "__main__":

@@ -13,7 +13,14 @@ reports, all measured in the same run:
 * bf16 vs fp32: speed-up and the difference of the chosen actions (relative to the action
   range), next to the fp32 seed-to-seed spread as the noise floor;
 * one call for ``I`` agents vs ``I`` separate single-agent calls;
-* peak resident memory of the whole process during the decisions (VmHWM, reset before each one).
+* peak resident memory of the whole process during the decisions (VmHWM, reset before each one);
+* with ``--reference mbrl-lib``: mbrl-lib's PETS agent (``TrajectoryOptimizerAgent`` + CEM +
+  ``GaussianMLP`` ensemble, TS-inf; see ``benchmarks/mbrl_reference.py``) at the same sizes,
+  models (our weights copied), observations and reward: ``I`` separate ``agent.act(obs)``
+  calls (mbrl-lib has no multi-agent batching), interleaved with our one call for the ``I``
+  agents; the headline is our time per agent over mbrl-lib's (medians, with min..max).
+  Optional: it needs mbrl-lib, which this script never installs (without it the flag prints
+  how to install it beside the pinned torch and exits with status 2).
 
 Examples::
 
@@ -21,16 +28,20 @@ Examples::
     python benchmarks/planner.py --configs paper --agents 1 8 22 --dtypes fp32 --repeats 1
     python benchmarks/planner.py --configs cpu --agents 1 8 22 --dtypes fp32 bf16 --repeats 5
     python benchmarks/planner.py --device cuda --configs paper --agents 1 8 22 --dtypes fp32 bf16
+    PYTHONPATH=. /work/mbrl-venv/bin/python benchmarks/planner.py --reference mbrl-lib \
+        --configs paper --agents 1 --dtypes fp32 --threads 1 --repeats 2 --naive-max-agents 0
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import time
 from collections.abc import Callable
 from dataclasses import replace
 
 import torch
+from mbrl_reference import REFERENCES, pets_agents, require_mbrl
 from torch.nn import functional as F
 
 from mapets_rl.envs import figure_eight_reward
@@ -293,6 +304,12 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
     if n_agents <= args.naive_max_agents and DEVICE.type == "cpu":
         gen = torch.Generator().manual_seed(0)
         variants["naive"] = lambda: naive_plan(model, cfg, obs, gen)
+    if args.reference == "mbrl-lib":
+        agents = pets_agents(model, cfg, LOW, HIGH, figure_eight_reward, seed=0)
+        obs_np = obs.numpy()
+        variants["mbrl-lib"] = lambda: [
+            agent.act(o) for agent, o in zip(agents, obs_np, strict=True)
+        ]
     for _ in range(args.warmup):
         for fn in variants.values():
             fn()
@@ -368,6 +385,28 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
         )
     if name == "cpu":
         print(f"      200-step episode at this I: ~{200 * sec:.1f} s of planning (fp32)")
+    if "mbrl-lib" in times:
+        reference_headline(times, planners, n_agents)
+
+
+def spread(values: list[float]) -> str:
+    """``median (min..max)`` of timings in seconds."""
+    return f"{statistics.median(values):.4f} s ({min(values):.4f}..{max(values):.4f})"
+
+
+def reference_headline(times: dict[str, list[float]], planners: dict, n_agents: int) -> None:
+    """Our seconds per agent and decision over mbrl-lib's, from the interleaved repeats."""
+    ref = [t / n_agents for t in times["mbrl-lib"]]
+    print(f"      mbrl-lib PETS, {n_agents} separate agents: per agent {spread(ref)}")
+    for key in planners:
+        ours = [t / n_agents for t in times[key]]
+        paired = [r / o for r, o in zip(ref, ours, strict=True)]
+        ratio = statistics.median(ref) / statistics.median(ours)
+        print(
+            f"      HEADLINE {key}, I={n_agents} in one call: per agent {spread(ours)}; "
+            f"mbrl-lib / ours per agent = {ratio:.2f}x (medians; per-repeat pairs "
+            f"{min(paired):.2f}..{max(paired):.2f}, n={len(paired)})"
+        )
 
 
 def main() -> None:
@@ -405,7 +444,16 @@ def main() -> None:
         help="also time torch.compile (inductor) of the MLP as a reference kernel",
     )
     parser.add_argument("--quick", action="store_true", help="cpu preset, I in {1, 8}, 2 repeats")
+    parser.add_argument(
+        "--reference",
+        choices=REFERENCES,
+        default=None,
+        help="also time mbrl-lib's PETS agent at the same config (needs mbrl-lib, installed "
+        "separately: without it this prints how and exits with status 2)",
+    )
     args = parser.parse_args()
+    if args.reference is not None:
+        require_mbrl(args.reference)
     if args.quick:
         args.configs, args.agents, args.repeats = ["cpu"], [1, 8], 2
     if args.repeats <= 0 or args.warmup < 0 or any(i <= 0 for i in args.agents):
@@ -416,6 +464,8 @@ def main() -> None:
     DEVICE = torch.device(args.device)
     if DEVICE.type == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda: torch.cuda.is_available() is False on this machine")
+    if args.reference is not None and DEVICE.type != "cpu":
+        parser.error("--reference mbrl-lib runs on the CPU only (use --device cpu)")
     if DEVICE.type == "cuda":
         print(f"device {torch.cuda.get_device_name(DEVICE)}")
     print(
