@@ -30,7 +30,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.objectives import SoftUpdate
 
-from mapets_rl.experiment import Experiment, check
+from mapets_rl.experiment import Experiment, SystemRewardMetrics, check
 from mapets_rl.experiment.training import OnPolicyConfig
 from mapets_rl.modules import ACTION, ACTION_VALUE, OBS, AgentGroupSpec, make_stochastic_policy
 from mapets_rl.objectives import COMACritic, COMALoss
@@ -89,7 +89,7 @@ class COMAConfig(OnPolicyConfig):
         check(0 < self.tau <= 1, "tau", "in (0, 1]", self.tau)
 
 
-class COMA(Experiment):
+class COMA(SystemRewardMetrics, Experiment):
     """Counterfactual multi-agent policy gradients with a centralised critic (discrete)."""
 
     name = "coma"
@@ -181,16 +181,3 @@ class COMA(Experiment):
             "critic_optim": self.critic_optim,
             "buffer": self.buffer,
         }
-
-    def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
-        """Adds the system reward per step (sum over CAVs, the paper's Fig. 2 quantity)."""
-        out = super().batch_metrics(batch)
-        reward = batch.get(("next", "agents", "reward")).float()
-        out["system_reward"] = reward.sum((-2, -1)).mean().item()
-        return out
-
-    def episode_metrics(self, rollout: TensorDictBase) -> dict[str, float]:
-        """Adds ``system_return``: the episode's reward summed over CAVs and steps."""
-        out = super().episode_metrics(rollout)
-        out["system_return"] = rollout.get(("next", "agents", "reward")).float().sum().item()
-        return out

@@ -34,13 +34,12 @@ from mapets_rl.modules import (
     LOSS_KEYS,
     MASK,
     OBS,
-    OBS_ACTION,
     OBS_NORM,
     Q_VALUE,
     AgentGroupSpec,
     GumbelSoftmaxHead,
-    concat_last,
     make_obs_norm,
+    make_q_critic,
     sync_target_statistics,
 )
 from mapets_rl.objectives.ddpg import PreactivationRegularisedDDPGLoss
@@ -157,23 +156,8 @@ class MADDPG(Experiment):
             )
             collection_policy = TensorDictSequential(self.actor, self.exploration)
         # centralised critic Q_i(o_1..o_I, a_1..a_I), one output per agent
-        self.critic = TensorDictSequential(
-            *front,
-            TensorDictModule(concat_last, in_keys=[obs_key, ACTION], out_keys=[OBS_ACTION]),
-            TensorDictModule(
-                MultiAgentMLP(
-                    n_agent_inputs=spec.obs_dim + spec.action_dim,
-                    n_agent_outputs=1,
-                    n_agents=spec.n_agents,
-                    centralized=True,
-                    share_params=True,
-                    depth=depth,
-                    num_cells=cells,
-                    activation_class=nn.ReLU,
-                ),
-                in_keys=[OBS_ACTION],
-                out_keys=[Q_VALUE],
-            ),
+        self.critic = make_q_critic(
+            spec, cells, centralized=True, share_params=True, obs_norm=norm_module
         )
 
         # collector

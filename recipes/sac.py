@@ -31,12 +31,11 @@ from mapets_rl.modules import (
     LOSS_KEYS,
     MASK,
     OBS,
-    OBS_ACTION,
     OBS_NORM,
     Q_VALUE,
     AgentGroupSpec,
-    concat_last,
     make_obs_norm,
+    make_q_critic,
     make_stochastic_policy,
     sync_target_statistics,
 )
@@ -114,23 +113,12 @@ class SAC(Experiment):
                 ),
             )
         else:
-            self.qvalue = TensorDictSequential(
-                *front,
-                TensorDictModule(concat_last, in_keys=[obs_key, ACTION], out_keys=[OBS_ACTION]),
-                TensorDictModule(
-                    MultiAgentMLP(
-                        n_agent_inputs=spec.obs_dim + spec.action_dim,
-                        n_agent_outputs=1,
-                        n_agents=spec.n_agents,
-                        centralized=False,
-                        share_params=config.share_params,
-                        depth=depth,
-                        num_cells=cells,
-                        activation_class=nn.ReLU,
-                    ),
-                    in_keys=[OBS_ACTION],
-                    out_keys=[Q_VALUE],
-                ),
+            self.qvalue = make_q_critic(
+                spec,
+                cells,
+                centralized=False,
+                share_params=config.share_params,
+                obs_norm=norm_module,
             )
 
         # collector

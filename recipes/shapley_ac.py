@@ -30,7 +30,7 @@ from tensordict.nn import TensorDictSequential
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SoftUpdate
 
-from mapets_rl.experiment import Experiment, check
+from mapets_rl.experiment import Experiment, SystemRewardMetrics, check
 from mapets_rl.experiment.training import OffPolicyConfig
 from mapets_rl.modules import AgentGroupSpec, GumbelSoftmaxHead
 from mapets_rl.objectives import ShapleyActorCriticLoss
@@ -169,7 +169,7 @@ class ShapleyACConfig(OffPolicyConfig):
         )
 
 
-class ShapleyAC(Experiment):
+class ShapleyAC(SystemRewardMetrics, Experiment):
     """Cooperative policy learning with Shapley value reward reallocation (Algorithm 1)."""
 
     name = "shapley_ac"
@@ -276,16 +276,3 @@ class ShapleyAC(Experiment):
             "critic_optim": self.critic_optim,
             "buffer": self.buffer,
         }
-
-    def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
-        """Adds the system reward per step (sum over CAVs, the paper's Fig. 2 quantity)."""
-        out = super().batch_metrics(batch)
-        reward = batch.get(("next", "agents", "reward")).float()
-        out["system_reward"] = reward.sum((-2, -1)).mean().item()
-        return out
-
-    def episode_metrics(self, rollout: TensorDictBase) -> dict[str, float]:
-        """Adds ``system_return``: the episode's reward summed over CAVs and steps."""
-        out = super().episode_metrics(rollout)
-        out["system_return"] = rollout.get(("next", "agents", "reward")).float().sum().item()
-        return out

@@ -115,6 +115,7 @@ if TYPE_CHECKING:
     )
     from mapets_rl.experiment.runner import (
         Experiment,
+        SystemRewardMetrics,
         available_envs,
         build_env,
         default_run_dir,
@@ -136,6 +137,7 @@ _EXPORTS = {
     "OnPolicyConfig": "training",
     "ResultsWriter": "results",
     "RunConfig": "config",
+    "SystemRewardMetrics": "runner",
     "atomic_torch_save": "checkpoint",
     "atomic_savefig": "files",
     "atomic_write": "files",
@@ -193,6 +195,7 @@ __all__ = [
     "OnPolicyConfig",
     "ResultsWriter",
     "RunConfig",
+    "SystemRewardMetrics",
     "atomic_torch_save",
     "atomic_savefig",
     "atomic_write",

@@ -764,3 +764,21 @@ __all__ = [
     "register_env",
     "run_recipe_name",
 ]
+
+
+class SystemRewardMetrics:
+    """Mixin for an :class:`Experiment` (list it first among the bases): adds the system
+    reward, the Shapley paper's Fig. 2 quantity, to the shared metrics: ``system_reward``
+    per training step (reward summed over CAVs, averaged over steps) and ``system_return``
+    per evaluation episode (reward summed over CAVs and steps)."""
+
+    def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
+        out = super().batch_metrics(batch)
+        reward = batch.get(("next", "agents", "reward")).float()
+        out["system_reward"] = reward.sum((-2, -1)).mean().item()
+        return out
+
+    def episode_metrics(self, rollout: TensorDictBase) -> dict[str, float]:
+        out = super().episode_metrics(rollout)
+        out["system_return"] = rollout.get(("next", "agents", "reward")).float().sum().item()
+        return out

@@ -23,7 +23,7 @@ from mapets_rl.modules.keys import (
     VALUE,
 )
 from mapets_rl.modules.normalization import RunningObsNorm, make_obs_norm, sync_target_statistics
-from mapets_rl.modules.policies import concat_last, make_stochastic_policy
+from mapets_rl.modules.policies import concat_last, make_q_critic, make_stochastic_policy
 
 __all__ = [
     "ACTION",
@@ -46,6 +46,7 @@ __all__ = [
     "concat_last",
     "gumbel_one_hot",
     "make_obs_norm",
+    "make_q_critic",
     "make_stochastic_policy",
     "masked_mean",
     "one_hot_argmax",

@@ -8,7 +8,7 @@ from torch import nn
 from torchrl.modules import MultiAgentMLP, OneHotCategorical, ProbabilisticActor, TanhNormal
 
 from mapets_rl.modules.agents import AgentGroupSpec
-from mapets_rl.modules.keys import ACTION, GROUP, LOG_PROB, OBS, OBS_NORM
+from mapets_rl.modules.keys import ACTION, GROUP, LOG_PROB, OBS, OBS_ACTION, OBS_NORM, Q_VALUE
 
 
 def concat_last(*tensors: torch.Tensor) -> torch.Tensor:
@@ -61,4 +61,39 @@ def make_stochastic_policy(
         distribution_kwargs=dist_kwargs,
         return_log_prob=return_log_prob,
         log_prob_key=LOG_PROB,
+    )
+
+
+def make_q_critic(
+    spec: AgentGroupSpec,
+    num_cells: list[int],
+    *,
+    centralized: bool,
+    share_params: bool,
+    obs_norm: TensorDictModule | None = None,
+) -> TensorDictSequential:
+    """Critic ``Q(o, a)`` of continuous or one-hot actions: (``obs_norm`` ->) the observation
+    ``[*, I, obs]`` and ``("agents","action")`` ``[*, I, act]`` concatenated into
+    ``("agents","obs_action")``, then a ReLU ``MultiAgentMLP`` writing
+    ``("agents","state_action_value")`` ``[*, I, 1]``; ``centralized``: every agent's Q reads
+    all agents' observations and actions (MADDPG), else only its own (SAC)."""
+    obs_key = OBS if obs_norm is None else OBS_NORM
+    front = [] if obs_norm is None else [obs_norm]
+    return TensorDictSequential(
+        *front,
+        TensorDictModule(concat_last, in_keys=[obs_key, ACTION], out_keys=[OBS_ACTION]),
+        TensorDictModule(
+            MultiAgentMLP(
+                n_agent_inputs=spec.obs_dim + spec.action_dim,
+                n_agent_outputs=1,
+                n_agents=spec.n_agents,
+                centralized=centralized,
+                share_params=share_params,
+                depth=len(num_cells),
+                num_cells=num_cells,
+                activation_class=nn.ReLU,
+            ),
+            in_keys=[OBS_ACTION],
+            out_keys=[Q_VALUE],
+        ),
     )
