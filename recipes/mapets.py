@@ -43,14 +43,27 @@ from typing import Any, ClassVar
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictSequential
+from torchrl.envs import EnvBase
 
 from mapets_rl.comm import CommConfig, CommunicationRange, NeighbourDatasets, clique_cover_number
-from mapets_rl.envs import figure_eight_collision, figure_eight_reward
+from mapets_rl.envs import (
+    figure_eight_collision,
+    figure_eight_observation_bounds,
+    figure_eight_reward,
+)
 from mapets_rl.envs.figure_eight import OBSERVATIONS
 from mapets_rl.experiment import Experiment, RunConfig, check, log_scalars
 from mapets_rl.experiment.runner import build_env
 from mapets_rl.models import EnsembleConfig, ProbabilisticEnsemble
-from mapets_rl.modules import AgentGroupSpec, masked_mean
+from mapets_rl.modules import (
+    AgentGroupSpec,
+    TileCodedObservation,
+    TileCoder,
+    TileCodingConfig,
+    action_quantiser,
+    masked_mean,
+)
 from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, ensemble_optimizer, train_ensemble
 from mapets_rl.planning import (
     PRESETS,
@@ -110,7 +123,9 @@ class MAPETSConfig(RunConfig):
     - ``model``: :class:`~mapets_rl.models.EnsembleConfig`, the ensembles' sizes and training
       (``model.hidden=[64,64]``, ``model.epochs=30``);
     - ``comm``: :class:`~mapets_rl.comm.CommConfig`, range-limited sharing
-      (``comm.comm_range=inf``).
+      (``comm.comm_range=inf``);
+    - ``tile_coding``: :class:`~mapets_rl.modules.TileCodingConfig`, the paper's discretised
+      variant (``tile_coding.tilings=4``; off by default).
 
     ``preset`` picks the sizes: the ``planner`` and ``model`` fields not given (a section passed
     as a mapping, e.g. ``planner={"horizon": 15}``, or a dotted override) come from it:
@@ -138,6 +153,15 @@ class MAPETSConfig(RunConfig):
             where 5 passes are 40-80 gradient steps that leave the model underestimating fast
             closing and the training NLL flattens by ~30).
         comm: the communication section (``comm_range`` ``d``, paper: 100; ``p_fail``).
+        tile_coding: the discretised variant (paper sec. VI, its check of the tabular
+            Assumption 1): with ``tilings >= 1`` the CAVs observe tile-coded observations
+            (every feature one of ``bins * tilings`` values, :class:`TileCodedObservation`)
+            and act on a grid (every action dimension one of ``action_bins * tilings``
+            values, random episodes included); datasets, models and the planner's start
+            states are discrete, the CEM still searches continuous action sequences and the
+            model's predictions stay continuous. The figure-eight's feature bounds come
+            from :func:`~mapets_rl.envs.figure_eight_observation_bounds`; other scenarios
+            give ``tile_coding.obs_low`` / ``obs_high``.
         collision_gap: the planner predicts a collision when a predicted gap ahead falls below
             this many metres (:func:`~mapets_rl.envs.figure_eight_collision`).
         crossing_gap: with the crossing observation, the planner predicts a collision when the
@@ -161,6 +185,7 @@ class MAPETSConfig(RunConfig):
     planner: PlannerConfig | None = None
     model: EnsembleConfig | None = None
     comm: CommConfig = dataclasses.field(default_factory=CommConfig)
+    tile_coding: TileCodingConfig = dataclasses.field(default_factory=TileCodingConfig)
     collision_gap: float = dataclasses.field(default=2.0, metadata={"unit": "m"})
     crossing_gap: float = dataclasses.field(default=6.0, metadata={"unit": "m"})
     collision_reward: float = -10.0
@@ -309,6 +334,10 @@ class MAPETS(Experiment):
                 f"env {config.env!r} must have continuous actions for mapets (the CEM planner "
                 "optimises real-valued action sequences), e.g. figure-eight"
             )
+        bounds = group.action_spec.space
+        self.obs_coder, self.action_coder = self._tile_coders(group, bounds.low, bounds.high)
+        if self.obs_coder is not None:
+            self.env.append_transform(TileCodedObservation(self.obs_coder, in_keys=[OBS]))
         if reward_fn is None and group.obs_dim not in OBSERVATIONS.values():
             raise ValueError(
                 f"reward_fn is required for env {config.env!r}: the default figure_eight_reward "
@@ -350,7 +379,6 @@ class MAPETS(Experiment):
         self.shuffle_generator = torch.Generator(device=device)
 
         # batched CEM planner with trajectory sampling over every CAV's ensemble
-        bounds = group.action_spec.space
         self.plan_generator = torch.Generator(device=device)
         self.planner = TrajectorySamplingCEM(
             self.model,
@@ -362,13 +390,47 @@ class MAPETS(Experiment):
             **config.planner.planner_kwargs(),
         )
         log.info("planner compute dtype: %s", self.planner.dtype_reason)
-        self.eval_policy = self.planner
+        self.policy = (
+            self.planner
+            if self.action_coder is None
+            else TensorDictSequential(self.planner, action_quantiser(self.action_coder))
+        )
+        self.eval_policy = self.policy
 
         # D(i)+ of every CAV over one shared storage
         self.datasets = NeighbourDatasets(
             n, config.model.buffer_size, device=device, seed=config.seed
         )
         self.counters = _Counters()
+
+    def _tile_coders(
+        self, group: AgentGroupSpec, action_low: torch.Tensor, action_high: torch.Tensor
+    ) -> tuple[TileCoder | None, TileCoder | None]:
+        """The observations' and the actions' :class:`TileCoder` (``action_low`` /
+        ``action_high`` ``[I, A]``, one row per CAV), ``(None, None)`` when the discretised
+        variant is off."""
+        tc = self.config.tile_coding
+        if not tc.enabled:
+            return None, None
+        if tc.obs_low is not None:
+            low, high = tc.obs_low, tc.obs_high
+        elif group.obs_dim in OBSERVATIONS.values():
+            low, high = figure_eight_observation_bounds(self.config.env_config)
+        else:
+            raise ValueError(
+                f"tile_coding.obs_low and tile_coding.obs_high are required for env "
+                f"{self.config.env!r}: the default bounds are the figure-eight's (observation "
+                f"sizes {sorted(OBSERVATIONS.values())}), got {group.obs_dim} features"
+            )
+        check(
+            len(low) == group.obs_dim,
+            "tile_coding.obs_low",
+            f"{group.obs_dim} bounds (one per observation feature)",
+            len(low),
+        )
+        obs_coder = TileCoder(low, high, tc.bins, tc.tilings).to(self.device)
+        action_coder = TileCoder(action_low[0], action_high[0], tc.action_bins, tc.tilings)
+        return obs_coder, action_coder.to(self.device)
 
     @property
     def episode(self) -> int:
@@ -396,12 +458,17 @@ class MAPETS(Experiment):
         """One episode until every CAV is done: ``[T]`` rollout (random or planned actions)."""
         self.planner.reset()
         self.planner.nonfinite_rewards.zero_()
+        policy = self.policy
+        if random_actions:
+            policy = None if self.action_coder is None else self._random_on_grid
         with torch.no_grad():
-            return self.env.rollout(
-                MAX_STEPS,
-                policy=None if random_actions else self.planner,
-                break_when_any_done=True,
-            )
+            return self.env.rollout(MAX_STEPS, policy=policy, break_when_any_done=True)
+
+    def _random_on_grid(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Uniformly random actions snapped to the tile-coded action grid."""
+        tensordict = self.env.rand_action(tensordict)
+        action = tensordict.get(ACTION)
+        return tensordict.set(ACTION, self.action_coder.quantise(action))
 
     def store_and_share(self, rollout: TensorDictBase) -> dict[str, float]:
         """Add every CAV's transitions of ``rollout`` to its ``D(i)+`` and exchange them with
@@ -534,6 +601,15 @@ class MAPETS(Experiment):
         return self.results.train
 
     # ------------------------------------------------------------------ evaluation
+    def _render_env(self) -> EnvBase:
+        """The video env, observing tile-coded observations when the variant is on."""
+        fresh = self._video_env is None
+        env = super()._render_env()
+        if fresh and self.obs_coder is not None:
+            env = env.append_transform(TileCodedObservation(self.obs_coder, in_keys=[OBS]))
+            self._video_env = env
+        return env
+
     def _eval_episode(self, frames: list[Any] | None) -> TensorDictBase:
         self.planner.reset()
         return super()._eval_episode(frames)

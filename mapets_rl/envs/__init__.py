@@ -12,6 +12,7 @@ from mapets_rl.envs.factory import (
 from mapets_rl.envs.figure_eight import (
     FigureEightEnv,
     figure_eight_collision,
+    figure_eight_observation_bounds,
     figure_eight_reward,
 )
 from mapets_rl.envs.freeway import ACTION_NAMES, FreewayEnv
@@ -32,6 +33,7 @@ __all__ = [
     "TrafficParallelEnv",
     "TrafficPettingZooWrapper",
     "figure_eight_collision",
+    "figure_eight_observation_bounds",
     "figure_eight_reward",
     "make_env",
     "make_parallel_env",

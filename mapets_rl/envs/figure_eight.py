@@ -26,6 +26,8 @@ CAV action: target speed in ``[0, 13.89]`` m/s, plus on two lanes a lane-change 
 
 from __future__ import annotations
 
+import math
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -474,6 +476,29 @@ class FigureEightEnv(MultiAgentTrafficEnv):
             target = cav.speed + acc / cav.KP_A
             action[i, 0] = clip(target, 0.0, self.config["max_speed"])
         return action
+
+
+def figure_eight_observation_bounds(
+    env_config: Mapping[str, Any] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-feature bounds ``(low, high)``, each ``[7]`` or ``[10]``, of the figure-eight's
+    observation under ``env_config`` (defaults for keys not given): speeds in ``[0, v_max]``
+    with ``v_max`` the larger of ``max_speed`` and the human drivers' top target speed, the
+    position inside the loop's bounding box (lobe radius plus the lanes' width), gaps in
+    ``[0, 75]`` m, crossing distances in ``[-5, 75]`` m. Tile coding
+    (:class:`~mapets_rl.modules.TileCoder`) covers this box."""
+    config = {**FigureEightEnv.default_config(), **dict(env_config or {})}
+    hv = config["hv_target_speed"]
+    v_max = float(max(config["max_speed"], *(hv if isinstance(hv, (tuple, list)) else [hv])))
+    geometry = FigureEightGeometry(config["length"], config["lanes"])
+    margin = geometry.radius + config["lanes"] * geometry.lane_width
+    x_max = math.sqrt(2.0) * geometry.radius + margin
+    low = [0.0, -x_max, -margin, 0.0, 0.0, 0.0, 0.0]
+    high = [v_max, x_max, margin, v_max, v_max, GAP_RANGE, GAP_RANGE]
+    if config["observation"] == "crossing":
+        low += [-CROSSING_CLEAR, -CROSSING_CLEAR, 0.0]
+        high += [GAP_RANGE, GAP_RANGE, v_max]
+    return np.array(low, dtype=np.float32), np.array(high, dtype=np.float32)
 
 
 def figure_eight_collision(

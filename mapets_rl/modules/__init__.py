@@ -1,6 +1,7 @@
 """Building blocks that the recipes share (as torchrl's ``modules``): the ``"agents"`` group's
 keys and spec, the masked mean over driving agents, running observation normalisation, one-hot
-action heads (greedy and Gumbel-softmax) and the baselines' stochastic policy.
+action heads (greedy and Gumbel-softmax), the baselines' stochastic policy and tile coding
+(MA-PETS's discretised variant).
 
 Recipes import these from here, never from each other."""
 
@@ -24,6 +25,12 @@ from mapets_rl.modules.keys import (
 )
 from mapets_rl.modules.normalization import RunningObsNorm, make_obs_norm, sync_target_statistics
 from mapets_rl.modules.policies import concat_last, make_q_critic, make_stochastic_policy
+from mapets_rl.modules.tile_coding import (
+    TileCodedObservation,
+    TileCoder,
+    TileCodingConfig,
+    action_quantiser,
+)
 
 __all__ = [
     "ACTION",
@@ -43,6 +50,10 @@ __all__ = [
     "AgentGroupSpec",
     "GumbelSoftmaxHead",
     "RunningObsNorm",
+    "TileCodedObservation",
+    "TileCoder",
+    "TileCodingConfig",
+    "action_quantiser",
     "concat_last",
     "gumbel_one_hot",
     "make_obs_norm",
