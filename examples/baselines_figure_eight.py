@@ -1,13 +1,19 @@
-"""MAPPO, MADDPG and SAC on the figure-eight (8 CAVs) at MA-PETS's sample budget.
+"""MAPPO, MADDPG and SAC on the figure-eight (8 CAVs) at MA-PETS's sample budget, optionally
+on one plot with MA-PETS (the MA-PETS paper's Figs. 3-4).
 
-MA-PETS trains for 15 episodes of 200 steps = 3000 environment steps. This script trains each
-baseline for that budget (``--budget-multiplier 1``, the default) or a multiple of it (``10``:
-30 000 steps), over several seeds, then runs ``mapets-rl compare`` on the runs: learning curves
-with a 95% confidence band over seeds (PNG) and a markdown table of the final agility, safety
-and reward.
+MA-PETS trains for 15 episodes of 200 steps = 3000 environment steps (``--episodes``). This
+script trains each baseline for that budget (``--budget-multiplier 1``, the default) or a
+multiple of it (``10``: 30 000 steps), over several seeds, then runs ``mapets-rl compare`` on
+the runs: learning curves with a 95% confidence band over seeds (PNG) and a markdown table of
+the final agility, safety and reward. ``--mapets RUN_DIR ...`` adds MA-PETS runs (e.g. the
+trials of ``benchmarks/ablations/comm_range.py``) to the same plot, one group per
+communication range; MA-PETS's points are its training episodes (its planner acts the same
+way in training and evaluation), the baselines' are deterministic evaluations.
 
     python examples/baselines_figure_eight.py                       # 3 x 3 runs of 3000 steps
     python examples/baselines_figure_eight.py --budget-multiplier 10 --workers 4
+    python examples/baselines_figure_eight.py --episodes 10 --eval-interval 200 \
+        --mapets outputs/ablations/comm_range/trials/comm.comm_range={0,100}__seed=*
 
 Runs live in ``OUT/steps<N>/<recipe>_seed<S>``; re-running the script skips finished runs and
 resumes interrupted ones from their last checkpoint (bit-exact), so a long sweep can be spread
@@ -23,7 +29,6 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 EPISODE_STEPS = 200
-MAPETS_EPISODES = 15
 
 # Hyper-parameters chosen for the small budget: one episode per collected batch, and for the
 # off-policy methods one episode of random actions first (as MA-PETS's first episode) and
@@ -89,6 +94,26 @@ def main() -> None:
         default=1,
         help="multiple of MA-PETS's 3000 environment steps (default 1)",
     )
+    parser.add_argument(
+        "--episodes",
+        type=int,
+        default=15,
+        help="MA-PETS's budget in 200-step episodes (default 15, the paper's)",
+    )
+    parser.add_argument(
+        "--eval-interval",
+        type=int,
+        default=None,
+        help="frames between evaluations (default: a third of the budget, a tenth with "
+        "--budget-multiplier > 1); 200 gives one point per episode",
+    )
+    parser.add_argument(
+        "--mapets",
+        nargs="+",
+        default=[],
+        metavar="RUN_DIR",
+        help="MA-PETS run directories to draw on the same plot (grouped by comm.comm_range)",
+    )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument(
         "--recipes", nargs="+", default=["mappo", "maddpg", "sac"], choices=sorted(RECIPE_OVERRIDES)
@@ -101,9 +126,18 @@ def main() -> None:
         parser.error(f"--budget-multiplier must be >= 1, got {args.budget_multiplier}")
     if args.workers < 1:
         parser.error(f"--workers must be >= 1, got {args.workers}")
+    if args.episodes < 1:
+        parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    if args.eval_interval is not None and args.eval_interval < 1:
+        parser.error(f"--eval-interval must be >= 1 frame, got {args.eval_interval}")
+    missing = [d for d in args.mapets if not (Path(d) / "results.json").is_file()]
+    if missing:
+        parser.error(f"--mapets: no results.json in {missing}")
 
-    steps = args.budget_multiplier * MAPETS_EPISODES * EPISODE_STEPS
-    eval_interval = steps // 3 if args.budget_multiplier == 1 else steps // 10
+    steps = args.budget_multiplier * args.episodes * EPISODE_STEPS
+    eval_interval = args.eval_interval or (
+        steps // 3 if args.budget_multiplier == 1 else steps // 10
+    )
     root = Path(args.out) / f"steps{steps}"
     jobs = [
         (r, s, steps, str(root / f"{r}_seed{s}"), eval_interval, args.eval_episodes)
@@ -125,9 +159,11 @@ def main() -> None:
     from mapets_rl.experiment import compare
 
     out = compare(
-        [job[3] for job in jobs],
-        root / "compare",
+        [job[3] for job in jobs] + args.mapets,
+        root / ("compare_with_mapets" if args.mapets else "compare"),
         metrics=["agility", "safety", "reward", "collisions"],
+        group_by="comm.comm_range" if args.mapets else None,
+        title="figure-eight, 8 CAVs",
     )
     print(out["table"].read_text())
     print(json.dumps({k: os.fspath(v) for k, v in out.items()}))

@@ -153,6 +153,39 @@ def test_group_by_splits_a_sweep_with_bands_per_value(tmp_path: Path) -> None:
         compare(runs, tmp_path / "cmp2", group_by="nope")
 
 
+def test_group_by_splits_the_recipes_that_have_the_field_and_keeps_the_others_whole(
+    tmp_path: Path,
+) -> None:
+    """MA-PETS by communication range beside a baseline without one (paper Figs. 3-4)."""
+    runs = [
+        fake_run(
+            tmp_path / f"mapets_d{d}_{s}",
+            "mapets",
+            s,
+            train=train_entries(0.1 * s, 0.2),
+            comm={"comm_range": d},
+        )
+        for d in (0, 100)
+        for s in (0, 1)
+    ]
+    runs += [
+        fake_run(tmp_path / f"mappo{s}", "mappo", s, evaluations=eval_entries(1.0, 2.0))
+        for s in (0, 1)
+    ]
+    out = compare(runs, tmp_path / "cmp", ["return"], group_by="comm.comm_range")
+    groups = json.loads(out["curves"].read_text())["groups"]
+    assert sorted(groups) == [
+        "mapets comm.comm_range=0 (train)",
+        "mapets comm.comm_range=100 (train)",
+        "mappo (eval)",
+    ]
+    assert groups["mappo (eval)"]["group"] == {} and len(groups["mappo (eval)"]["runs"]) == 2
+    partial = fake_run(tmp_path / "mapets_flat", "mapets", 2, train=train_entries(0.1, 0.2))
+    with pytest.raises(ValueError, match="other mapets runs have it"):
+        compare([*runs, partial], tmp_path / "cmp2", group_by="comm.comm_range")
+    assert not (tmp_path / "cmp2").exists()
+
+
 def test_group_by_an_env_config_field_exempts_it_from_the_scenario_check(tmp_path: Path) -> None:
     runs = [
         fake_run(

@@ -96,14 +96,43 @@ def _fmt(value: Any) -> str:
     return value if isinstance(value, str) else json.dumps(value, sort_keys=True)
 
 
-def _config_field(res: Mapping[str, Any], field: str, run: str) -> Any:
-    """Value of the dotted config ``field`` (e.g. ``env_config.observation``) of a run."""
+_MISSING = object()
+
+
+def _lookup(res: Mapping[str, Any], field: str) -> Any:
+    """Value of the dotted config ``field`` (e.g. ``env_config.observation``) of a run,
+    ``_MISSING`` when its config has no such field."""
     value: Any = res.get("config", {})
     for part in field.split("."):
         if not isinstance(value, Mapping) or part not in value:
-            raise ValueError(f"group_by field {field!r} is not in the config of run_dir {run!r}")
+            return _MISSING
         value = value[part]
     return value
+
+
+def _group_values(
+    runs: Sequence[str], results: Sequence[Mapping[str, Any]], fields: Sequence[str]
+) -> list[dict[str, Any]]:
+    """Per run, ``{field: value}`` of the ``group_by`` fields its recipe has.
+
+    A field that no run of a recipe has is left out of that recipe's groups (``comm.comm_range``
+    splits MA-PETS runs and leaves the baselines beside them whole); a field that some runs of
+    one recipe have and others lack, or that no run has, is a ValueError naming a run."""
+    values = [{f: _lookup(res, f) for f in fields} for res in results]
+    for field in fields:
+        if all(v[field] is _MISSING for v in values):
+            raise ValueError(
+                f"group_by field {field!r} is not in the config of run_dir {runs[0]!r}"
+            )
+        for recipe in {res["recipe"] for res in results}:
+            mine = [i for i, res in enumerate(results) if res["recipe"] == recipe]
+            missing = [i for i in mine if values[i][field] is _MISSING]
+            if missing and len(missing) < len(mine):
+                raise ValueError(
+                    f"group_by field {field!r} is not in the config of run_dir "
+                    f"{runs[missing[0]]!r} (other {recipe} runs have it)"
+                )
+    return [{f: v for f, v in vals.items() if v is not _MISSING} for vals in values]
 
 
 def _scenario(res: Mapping[str, Any]) -> dict[str, str]:
@@ -177,7 +206,9 @@ def compare(
             and its group is marked ``(train)``. ``"train"``: training entries, every run must
             have some.
         group_by: config fields (dotted for nested ones, e.g. ``"comm.comm_range"``,
-            ``"env_config.observation"``) whose values split each recipe's runs into groups.
+            ``"env_config.observation"``) whose values split each recipe's runs into groups;
+            a recipe none of whose runs has a field is not split by it (MA-PETS by range
+            beside the baselines).
         x: the x axis: ``"frames"`` (environment frames) or a metric of every entry that
             numbers the entries, e.g. ``"episode"`` (runs whose episodes differ in length
             share episodes, not frames).
@@ -239,8 +270,9 @@ def compare(
     # groups: recipe + group_by values (+ scenario when mixed, + source when mixed)
     mixed_sources = len(set(sources)) > 1
     groups: dict[str, dict[str, Any]] = {}
-    for run, res, src in zip(runs, results, sources, strict=True):
-        values = {f: _config_field(res, f, run) for f in fields}
+    for run, res, src, values in zip(
+        runs, results, sources, _group_values(runs, results, fields), strict=True
+    ):
         label = " ".join([res["recipe"], *(f"{f}={_fmt(v)}" for f, v in values.items())])
         if diffs:
             scenario = _scenario(res)
