@@ -163,6 +163,7 @@ def main() -> None:
         root / ("compare_with_mapets" if args.mapets else "compare"),
         metrics=["agility", "safety", "reward", "collisions"],
         group_by="comm.comm_range" if args.mapets else None,
+        x_grid=EPISODE_STEPS if args.mapets else None,  # MA-PETS episodes may end early
         title="figure-eight, 8 CAVs",
     )
     print(out["table"].read_text())

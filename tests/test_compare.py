@@ -186,6 +186,31 @@ def test_group_by_splits_the_recipes_that_have_the_field_and_keeps_the_others_wh
     assert not (tmp_path / "cmp2").exists()
 
 
+def test_x_grid_lines_up_runs_that_log_at_different_frames(tmp_path: Path) -> None:
+    """Episodes that end early (190, 370 frames) share a curve with runs logged every 200."""
+    ragged = fake_run(
+        tmp_path / "a",
+        "mapets",
+        0,
+        train=[(190, {"safety": 0.2}), (370, {"safety": 0.4}), (570, {"safety": 0.6})],
+    )
+    regular = fake_run(
+        tmp_path / "b",
+        "mapets",
+        1,
+        train=[(200, {"safety": 0.4}), (400, {"safety": 0.6}), (600, {"safety": 0.8})],
+    )
+    plain = compare([ragged, regular], tmp_path / "plain", ["safety"], source="train")
+    assert json.loads(plain["curves"].read_text())["groups"]["mapets"]["n"] == [1] * 6
+    out = compare([ragged, regular], tmp_path / "grid", ["safety"], source="train", x_grid=200)
+    group = json.loads(out["curves"].read_text())["groups"]["mapets"]
+    assert group["x"] == [200, 400, 600] and group["n"] == [2, 2, 2]
+    assert group["metrics"]["safety"]["mean"] == pytest.approx([0.3, 0.5, 0.7])
+    for bad in (0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="x_grid must be a finite number > 0"):
+            compare([ragged], tmp_path / "bad", x_grid=bad)
+
+
 def test_group_by_an_env_config_field_exempts_it_from_the_scenario_check(tmp_path: Path) -> None:
     runs = [
         fake_run(

@@ -219,6 +219,15 @@ def build_parser() -> argparse.ArgumentParser:
         "e.g. episode (mapets's episodes differ in length)",
     )
     compare.add_argument(
+        "--x-grid",
+        type=float,
+        default=None,
+        metavar="STEP",
+        help="put every run on the x values STEP, 2 STEP, ... (each run's last entry at or "
+        "before each), so runs that log at different x share a curve, e.g. 200 for mapets "
+        "episodes beside baselines evaluated every 200 frames",
+    )
+    compare.add_argument(
         "--allow-mixed-env",
         action="store_true",
         help="compare runs on different scenarios (env or env_config), each "
@@ -373,6 +382,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             source=args.source,
             group_by=group_by,
             x=args.x,
+            x_grid=args.x_grid,
             allow_mixed_env=args.allow_mixed_env,
             legacy_as=args.legacy_as,
         )

@@ -178,6 +178,7 @@ def compare(
     source: str = "eval",
     group_by: Sequence[str] | str | None = None,
     x: str = "frames",
+    x_grid: float | None = None,
     allow_mixed_env: bool = False,
     legacy_as: str = "eval",
     title: str | None = None,
@@ -212,6 +213,11 @@ def compare(
         x: the x axis: ``"frames"`` (environment frames) or a metric of every entry that
             numbers the entries, e.g. ``"episode"`` (runs whose episodes differ in length
             share episodes, not frames).
+        x_grid: put every run on the x values ``x_grid, 2 x_grid, ...``: at each, the run's
+            last entry at or before it (up to the first grid value at or past its last
+            entry). Runs that log at different x then share a curve, e.g. MA-PETS's
+            episodes, which end early when every CAV crashed, beside baselines evaluated
+            every 200 frames (``x_grid=200``). ``None`` (default): the x values as logged.
         allow_mixed_env: compare runs whose ``env`` or ``env_config`` differ (beyond the
             ``group_by`` fields): a warning is logged and each group is labelled with its
             scenario. Without it such runs are refused.
@@ -229,6 +235,8 @@ def compare(
     """
     if not run_dirs:
         raise ValueError("run_dirs must name at least one run directory")
+    if x_grid is not None and not (math.isfinite(x_grid) and x_grid > 0):
+        raise ValueError(f"x_grid must be a finite number > 0 (or None), got {x_grid!r}")
     if metrics is not None and not list(metrics):
         raise ValueError("metrics must name at least one metric (or None for all common ones)")
     if source not in SOURCES:
@@ -352,6 +360,8 @@ def compare(
                 "source": group["source"],
             }
         by_x = [{_x_value(e, x): e["metrics"] for e in entries} for entries in group["entries"]]
+        if x_grid is not None:
+            by_x = [_on_grid(bx, x_grid) for bx in by_x]
         xs = sorted(set().union(*by_x))
         stats: dict[str, dict[str, list[float]]] = {}
         for m in metrics:
@@ -409,6 +419,21 @@ def _cell(metric: str, stats: Mapping[str, Any]) -> str:
         mph = MPH_PER_MPS * stats["mean"], MPH_PER_MPS * stats["ci95"]
         text += f" ({mph[0]:.4g} ± {mph[1]:.2g} mph)"
     return f"{text} (n={stats['n']})"
+
+
+def _on_grid(by_x: Mapping[float, Any], step: float) -> dict[float, Any]:
+    """``{k * step: the value of the largest x <= k * step}`` for ``k = 1 .. ceil(max x /
+    step)`` (grid values before the first x are left out)."""
+    xs = sorted(by_x)
+    out: dict[float, Any] = {}
+    j = -1
+    for k in range(1, math.ceil(xs[-1] / step) + 1):
+        g = k * step
+        while j + 1 < len(xs) and xs[j + 1] <= g:
+            j += 1
+        if j >= 0:
+            out[int(g) if float(g).is_integer() else g] = by_x[xs[j]]
+    return out
 
 
 def _x_value(entry: Mapping[str, Any], x: str) -> float:
