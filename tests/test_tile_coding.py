@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from test_recipe_mapets import tiny
 from torchrl.envs.utils import check_env_specs
 
 from mapets_rl.envs import figure_eight_observation_bounds, make_env
@@ -105,16 +106,9 @@ def test_tile_coded_env_passes_check_env_specs_and_observes_the_grid():
 
 
 def test_tile_coded_mapets_acts_stores_and_learns_on_the_grid(tmp_path):
-    config = MAPETSConfig(
-        env_config={"n_cavs": 3, "n_hvs": 2, "horizon": 20},
-        preset="cpu",
-        planner={"horizon": 3, "population": 8, "elites": 2, "iterations": 2, "particles": 5},
-        model={"hidden": [16], "buffer_size": 64, "batch_size": 16, "epochs": 2},
-        num_threads=1,
-        progress=False,
-        episodes=2,
-        seed=0,
-    ).with_overrides(["tile_coding.tilings=2", "tile_coding.bins=4", "tile_coding.action_bins=3"])
+    config = tiny(episodes=2, seed=0).with_overrides(
+        ["tile_coding.tilings=2", "tile_coding.bins=4", "tile_coding.action_bins=3"]
+    )
     exp = MAPETS(config, tmp_path / "run")
     assert exp.action_coder.levels == 6 and exp.obs_coder.levels == 8
     for random_actions in (True, False):
