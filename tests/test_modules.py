@@ -4,12 +4,18 @@ and the one Gumbel-softmax / one-hot implementation."""
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
+from typing import Any
 
+import pytest
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mapets_rl.modules import GumbelSoftmaxHead, gumbel_one_hot, one_hot_argmax
+from mapets_rl.modules.arguments import hidden_sizes, require_positive_ints
+from mapets_rl.objectives.coma import COMACritic
+from mapets_rl.shapley import CoalitionCritic, RandomCoalition
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -54,3 +60,24 @@ def test_one_gumbel_softmax_implementation() -> None:
     (greedy * torch.arange(4.0)).sum().backward()
     soft_grad = torch.autograd.grad((logits.softmax(-1) * torch.arange(4.0)).sum(), logits)[0]
     torch.testing.assert_close(logits.grad, soft_grad)
+
+
+@pytest.mark.parametrize(
+    ("build", "message"),
+    [
+        (lambda: CoalitionCritic(True, 3, 4), "n_agents must be an int >= 1, got True"),
+        (lambda: CoalitionCritic(3, 0, 4), "observation_dim must be an int >= 1, got 0"),
+        (lambda: COMACritic(3, 2, 2.0), "n_actions must be an int >= 1, got 2.0"),
+        (lambda: COMACritic(3, 2, 4, num_cells=[]), "num_cells must be a non-empty list"),
+        (lambda: COMACritic(3, 2, 4, num_cells=[64, 0]), "num_cells must be a non-empty list"),
+        (lambda: RandomCoalition(-1), "n_agents must be an int >= 1, got -1"),
+    ],
+)
+def test_network_arguments_are_checked_by_name(build: Any, message: str) -> None:
+    with pytest.raises(ValueError, match=re.escape(message)):
+        build()
+
+
+def test_hidden_sizes_returns_a_list() -> None:
+    assert hidden_sizes((64, 32)) == [64, 32]
+    require_positive_ints(a=1, b=7)

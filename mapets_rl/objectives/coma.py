@@ -22,6 +22,8 @@ from torchrl.objectives import LossModule
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value.functional import td_lambda_return_estimate
 
+from mapets_rl.modules.arguments import hidden_sizes, require_positive_ints
+
 __all__ = ["COMACritic", "COMALoss", "counterfactual_advantage"]
 
 
@@ -75,16 +77,10 @@ class COMACritic(nn.Module):
         activation_class: type[nn.Module] = nn.ReLU,
         device: torch.device | str | None = None,
     ) -> None:
-        for name, val in (
-            ("n_agents", n_agents),
-            ("observation_dim", observation_dim),
-            ("n_actions", n_actions),
-        ):
-            if isinstance(val, bool) or not isinstance(val, int) or val < 1:
-                raise ValueError(f"{name} must be an int >= 1, got {val!r}")
-        num_cells = list(num_cells)
-        if not num_cells or any(not isinstance(c, int) or c < 1 for c in num_cells):
-            raise ValueError(f"num_cells must be a non-empty list of ints >= 1, got {num_cells}")
+        require_positive_ints(
+            n_agents=n_agents, observation_dim=observation_dim, n_actions=n_actions
+        )
+        num_cells = hidden_sizes(num_cells)
         super().__init__()
         self.n_agents = n_agents
         self.observation_dim = observation_dim
@@ -178,6 +174,7 @@ class COMALoss(LossModule):
     critic_network: TensorDictModule
     actor_network_params: TensorDictParams
     critic_network_params: TensorDictParams
+    target_actor_network_params: None
     target_critic_network_params: TensorDictParams
 
     def __init__(

@@ -11,6 +11,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import MultiAgentMLP, TanhModule
 
+from mapets_rl.modules.arguments import require_positive_ints
 from mapets_rl.modules.heads import one_hot_argmax
 
 __all__ = ["CoalitionObservation", "make_coalition_actor"]
@@ -39,8 +40,7 @@ class CoalitionObservation(TensorDictModuleBase):
         out_key: NestedKey = ("agents", "coalition_observation"),
         ego_first: bool = False,
     ) -> None:
-        if not isinstance(n_agents, int) or n_agents < 1:
-            raise ValueError(f"n_agents must be an int >= 1, got {n_agents!r}")
+        require_positive_ints(n_agents=n_agents)
         super().__init__()
         self.n_agents = n_agents
         self.ego_first = bool(ego_first)
@@ -111,13 +111,7 @@ def make_coalition_actor(
     Continuous: writes ``action_key [*, n, act]`` squashed into ``[action_low, action_high]``
     with ``TanhModule``.
     """
-    for name, val in (
-        ("n_agents", n_agents),
-        ("observation_dim", observation_dim),
-        ("action_dim", action_dim),
-    ):
-        if not isinstance(val, int) or val < 1:
-            raise ValueError(f"{name} must be an int >= 1, got {val!r}")
+    require_positive_ints(n_agents=n_agents, observation_dim=observation_dim, action_dim=action_dim)
     if not discrete and not action_low < action_high:
         raise ValueError(f"action_low must be < action_high, got {action_low}, {action_high}")
     view_key = ("agents", "coalition_observation")

@@ -8,6 +8,8 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.envs.utils import ExplorationType, exploration_type
 
+from mapets_rl.modules.arguments import require_positive_ints
+
 __all__ = ["RandomCoalition"]
 
 _EVAL_MODES = ("grand", "empty", "random")
@@ -35,8 +37,7 @@ class RandomCoalition(TensorDictModuleBase):
         mask_key: NestedKey = ("agents", "mask"),
         out_key: NestedKey = ("agents", "coalition"),
     ) -> None:
-        if not isinstance(n_agents, int) or n_agents < 1:
-            raise ValueError(f"n_agents must be an int >= 1, got {n_agents!r}")
+        require_positive_ints(n_agents=n_agents)
         if not 0.0 <= join_prob <= 1.0:
             raise ValueError(f"join_prob must be in [0, 1], got {join_prob}")
         if eval_mode not in _EVAL_MODES:

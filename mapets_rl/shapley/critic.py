@@ -12,6 +12,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import MLP
 
+from mapets_rl.modules.arguments import hidden_sizes, require_positive_ints
 from mapets_rl.shapley.game import coalition_masks
 
 __all__ = ["CoalitionCritic"]
@@ -56,16 +57,10 @@ class CoalitionCritic(TensorDictModuleBase):
         out_key: NestedKey = "coalition_value",
         device: torch.device | str | None = None,
     ) -> None:
-        for name, val in (
-            ("n_agents", n_agents),
-            ("observation_dim", observation_dim),
-            ("action_dim", action_dim),
-        ):
-            if not isinstance(val, int) or val < 1:
-                raise ValueError(f"{name} must be an int >= 1, got {val!r}")
-        num_cells = list(num_cells)
-        if not num_cells or any(not isinstance(c, int) or c < 1 for c in num_cells):
-            raise ValueError(f"num_cells must be a non-empty list of ints >= 1, got {num_cells}")
+        require_positive_ints(
+            n_agents=n_agents, observation_dim=observation_dim, action_dim=action_dim
+        )
+        num_cells = hidden_sizes(num_cells)
         super().__init__()
         self.n_agents = n_agents
         self.observation_dim = observation_dim
@@ -96,6 +91,13 @@ class CoalitionCritic(TensorDictModuleBase):
                 device=device,
             ),
         )
+
+    def _check_masks(self, masks: torch.Tensor) -> None:
+        if masks.shape[-1] != self.n_agents or masks.ndim < 2:
+            raise ValueError(
+                f"masks must have shape [..., K, n_agents={self.n_agents}], "
+                f"got {tuple(masks.shape)}"
+            )
 
     def embed(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Per-agent first-layer terms ``h_j``: ``[..., n, obs], [..., n, act] -> [..., n, H]``."""
@@ -135,11 +137,7 @@ class CoalitionCritic(TensorDictModuleBase):
         Returns:
             ``[..., K]``; zero for the empty coalition.
         """
-        if masks.shape[-1] != self.n_agents or masks.ndim < 2:
-            raise ValueError(
-                f"masks must have shape [..., K, n_agents={self.n_agents}], "
-                f"got {tuple(masks.shape)}"
-            )
+        self._check_masks(masks)
         if chunk_states is not None and (
             isinstance(chunk_states, bool) or not isinstance(chunk_states, int) or chunk_states < 1
         ):
@@ -181,11 +179,7 @@ class CoalitionCritic(TensorDictModuleBase):
         Returns:
             ``[..., K]``; zero for the empty coalition.
         """
-        if masks.shape[-1] != self.n_agents or masks.ndim < 2:
-            raise ValueError(
-                f"masks must have shape [..., K, n_agents={self.n_agents}], "
-                f"got {tuple(masks.shape)}"
-            )
+        self._check_masks(masks)
         h = self.embed(observation, action)  # [..., n, H]
         return self.values_from_embedding(
             h, masks, chunk_states=chunk_states, autocast_dtype=autocast_dtype
