@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -50,6 +51,9 @@ def run_one(algo: str, seed: int, args: argparse.Namespace) -> Path:
     run_dir = Path(args.out) / "runs" / f"{algo}_seed{seed}"
     overrides = [f"total_frames={args.frames}"]
     if latest_checkpoint(run_dir) is not None:
+        evaluations = read_results(run_dir)["evaluations"]
+        if evaluations and evaluations[-1]["frames"] >= args.frames:
+            return run_dir  # finished: nothing is rebuilt or rewritten
         exp = cls.from_run_dir(run_dir, overrides=overrides)
         if exp.frames >= args.frames:
             return run_dir
@@ -73,15 +77,18 @@ def run_one(algo: str, seed: int, args: argparse.Namespace) -> Path:
     return run_dir
 
 
-def system_curves(run_dir: Path, n_cavs: int) -> tuple[np.ndarray, np.ndarray]:
-    """Evaluation frames and mean episode system reward (per-CAV return x CAVs)."""
+def system_curves(run_dir: Path, n_cavs: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """Evaluation frames ``[E]``, mean episode system reward ``[E]`` (per-CAV return x CAVs)
+    and the final evaluation's collisions per episode."""
     evals = read_results(run_dir)["evaluations"]
     frames = np.array([e["frames"] for e in evals])
     system = np.array([e["metrics"]["return"] * n_cavs for e in evals])
-    return frames, system
+    return frames, system, float(evals[-1]["metrics"].get("collisions", 0.0))
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
+    """Train (or resume) every run, then write the plot, table and summary; returns the
+    summary."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--algorithms", nargs="+", default=list(ALGORITHMS))
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
@@ -93,7 +100,7 @@ def main() -> None:
     parser.add_argument("--cav-ratio", type=float, default=0.5)
     parser.add_argument("--out", default="outputs/shapley_freeway")
     parser.add_argument("--progress", action="store_true")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     for name, val in (("frames", args.frames), ("eval_interval", args.eval_interval)):
         if val < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {val}")
@@ -104,14 +111,14 @@ def main() -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    curves: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+    curves: dict[str, list[tuple[np.ndarray, np.ndarray, float]]] = {}
     for algo in args.algorithms:
         for seed in args.seeds:
             print(f"training {algo} seed {seed} ...", flush=True)
             curves.setdefault(algo, []).append(system_curves(run_one(algo, seed, args), n_cavs))
 
     fig, ax = plt.subplots(figsize=(6, 4))
-    summary: dict[str, dict[str, float]] = {}
+    summary: dict[str, dict[str, Any]] = {}
     rows = []
     for algo, runs in curves.items():
         frames = runs[0][0]
@@ -124,17 +131,23 @@ def main() -> None:
         ax.plot(episodes, mean, label=LABELS[algo])
         ax.fill_between(episodes, mean - half, mean + half, alpha=0.2)
         first, last = stats[0], stats[-1]
+        finals = values[:, -1]
+        collisions = [r[2] for r in runs]
         summary[algo] = {
             "first_mean": first[0],
             "first_ci95": first[1],
             "final_mean": last[0],
             "final_ci95": last[1],
+            "final_per_seed": finals.tolist(),
+            "final_spread": float(finals.max() - finals.min()),
+            "final_collisions_per_seed": collisions,
             "seeds": len(runs),
             "frames": int(frames[length - 1]),
         }
         rows.append(
             f"| {LABELS[algo]} | {first[0]:.1f} ± {first[1]:.1f} | "
-            f"{last[0]:.1f} ± {last[1]:.1f} | {len(runs)} |"
+            f"{last[0]:.1f} ± {last[1]:.1f} | {', '.join(f'{v:.1f}' for v in finals)} "
+            f"| {finals.max() - finals.min():.1f} | {', '.join(f'{c:g}' for c in collisions)} |"
         )
     ax.set_xlabel("training episodes (40 steps)")
     ax.set_ylabel("mean episode system reward")
@@ -147,14 +160,16 @@ def main() -> None:
             f"Mean episode system reward (sum over {n_cavs} CAVs and 40 steps), mean ± 95% CI over "
             f"seeds, {args.frames} training frames per run.",
             "",
-            "| algorithm | first evaluation | final evaluation | seeds |",
-            "|---|---|---|---|",
+            "| algorithm | first evaluation | final evaluation | final, per seed "
+            "| spread (max - min) | collisions / episode (final, per seed) |",
+            "|---|---|---|---|---|---|",
             *rows,
         ]
     )
     atomic_write_text(out / "system_reward.md", table + "\n")
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
     print(table)
+    return summary
 
 
 if __name__ == "__main__":

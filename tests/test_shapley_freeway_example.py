@@ -1,0 +1,39 @@
+"""examples/shapley_freeway.py (paper Fig. 2) at a tiny scale: all four algorithms on one
+plot, per-seed finals, their spread and collisions in the table, resumed runs not retrained."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "shapley_freeway.py"
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location("shapley_freeway", EXAMPLE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_four_algorithms_tiny(tmp_path: Path) -> None:
+    example = _module()
+    argv = [
+        "--frames", "80", "--eval-interval", "40", "--eval-episodes", "1", "--seeds", "0", "1",
+        "--n-vehicles", "4", "--cav-ratio", "0.5", "--out", str(tmp_path),
+    ]  # fmt: skip
+    summary = example.main(argv)
+    assert set(summary) == {"shapley_ac", "maddpg", "coma", "mappo"}
+    for algo, row in summary.items():
+        assert row["seeds"] == 2 and len(row["final_per_seed"]) == 2
+        assert row["final_spread"] == max(row["final_per_seed"]) - min(row["final_per_seed"])
+        assert all(c >= 0 for c in row["final_collisions_per_seed"])
+        # system reward = per-CAV return x 2 CAVs, read from the run's own results
+        results = json.loads((tmp_path / "runs" / f"{algo}_seed1" / "results.json").read_text())
+        last = results["evaluations"][-1]["metrics"]["return"] * 2
+        assert abs(row["final_per_seed"][1] - last) < 1e-6
+    table = (tmp_path / "system_reward.md").read_text()
+    assert "spread (max - min)" in table and "| MAPPO |" in table
+    assert (tmp_path / "system_reward.png").stat().st_size > 0
+    stamp = (tmp_path / "runs" / "coma_seed0" / "results.json").stat().st_mtime_ns
+    assert example.main(argv) == summary
+    assert (tmp_path / "runs" / "coma_seed0" / "results.json").stat().st_mtime_ns == stamp
