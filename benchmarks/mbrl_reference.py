@@ -49,6 +49,7 @@ import sys
 import time
 from collections.abc import Callable
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 import torch
@@ -105,7 +106,7 @@ def require_mbrl(reference: str) -> ModuleType:
         raise SystemExit(2) from None
 
 
-def _gaussian_mlp(
+def _gaussian_dynamics(
     mbrl: ModuleType,
     in_size: int,
     out_size: int,
@@ -113,12 +114,14 @@ def _gaussian_mlp(
     hidden: tuple[int, ...],
     propagation: str | None,
     learn_logvar_bounds: bool,
-) -> torch.nn.Module:
+) -> Any:
+    """mbrl-lib's ``GaussianMLP`` ensemble (SiLU, equal hidden sizes) inside a
+    ``OneDTransitionRewardModel`` predicting normalised state deltas (no learned reward)."""
     if len(set(hidden)) != 1:
         raise ValueError(
             f"mbrl-lib's GaussianMLP has equal hidden sizes, got hidden={list(hidden)}."
         )
-    return mbrl.models.GaussianMLP(
+    net = mbrl.models.GaussianMLP(
         in_size,
         out_size,
         "cpu",
@@ -129,6 +132,13 @@ def _gaussian_mlp(
         propagation_method=propagation,
         learn_logvar_bounds=learn_logvar_bounds,
         activation_fn_cfg={"_target_": "torch.nn.SiLU"},
+    )
+    return mbrl.models.OneDTransitionRewardModel(
+        net,
+        target_is_delta=True,
+        normalize=True,
+        normalize_double_precision=True,
+        learned_rewards=False,
     )
 
 
@@ -191,7 +201,7 @@ def pets_agents(
 
     agents = []
     for i in range(model.n_agents):
-        net = _gaussian_mlp(
+        dynamics = _gaussian_dynamics(
             mbrl,
             obs_dim + act_dim,
             obs_dim,
@@ -200,14 +210,7 @@ def pets_agents(
             "fixed_model",
             learn_logvar_bounds=False,
         )
-        _copy_member_weights(net, model, i)
-        dynamics = mbrl.models.OneDTransitionRewardModel(
-            net,
-            target_is_delta=True,
-            normalize=True,
-            normalize_double_precision=True,
-            learned_rewards=False,
-        )
+        _copy_member_weights(dynamics.model, model, i)
         dynamics.input_normalizer.mean = model.input_mean[i, 0].double().clone()
         dynamics.input_normalizer.std = model.input_std[i, 0].double().clone()
         model_env = mbrl.models.ModelEnv(
@@ -288,7 +291,7 @@ def train_ensembles(
     total, losses = 0.0, []
     for i in range(n_agents):
         torch.manual_seed(seed + i)
-        net = _gaussian_mlp(
+        dynamics = _gaussian_dynamics(
             mbrl,
             obs_dim + act_dim,
             obs_dim,
@@ -296,13 +299,6 @@ def train_ensembles(
             tuple(hidden),
             None,
             learn_logvar_bounds=True,
-        )
-        dynamics = mbrl.models.OneDTransitionRewardModel(
-            net,
-            target_is_delta=True,
-            normalize=True,
-            normalize_double_precision=True,
-            learned_rewards=False,
         )
         trainer = mbrl.models.ModelTrainer(dynamics, optim_lr=lr, weight_decay=0.0)
         batch = mbrl.types.TransitionBatch(
