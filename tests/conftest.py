@@ -1,19 +1,23 @@
 """Fixtures shared by the test modules: entry points installed for one test only, and the
 toy scenario and recipe of ``examples/extending`` (that folder is put on ``sys.path`` so the
-tests import ``toy_scenario`` and ``toy_recipe`` as a researcher's package would)."""
+tests import ``toy_scenario`` and ``toy_recipe`` as a researcher's package would), and the
+scripts of ``examples/`` imported as modules."""
 
 from __future__ import annotations
 
+import importlib.util
 import sys
 from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
 from mapets_rl.experiment import register_env, runner
 
-EXTENDING = Path(__file__).resolve().parents[1] / "examples" / "extending"
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+EXTENDING = EXAMPLES / "extending"
 sys.path.insert(0, str(EXTENDING))
 
 
@@ -55,3 +59,17 @@ def toy_recipe(add_entry_point, toy_scenario) -> None:
     """``ToyLearner`` of ``examples/extending/toy_recipe.py`` installed as recipe ``toy``, with
     the ``toy`` scenario registered."""
     add_entry_point("mapets_rl.recipes", "toy", "toy_recipe:ToyLearner")
+
+
+@pytest.fixture
+def load_example() -> Callable[[str], ModuleType]:
+    """``load_example(name)``: ``examples/<name>.py`` imported as a module (the examples are
+    scripts, not a package)."""
+
+    def load(name: str) -> ModuleType:
+        spec = importlib.util.spec_from_file_location(name, EXAMPLES / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load

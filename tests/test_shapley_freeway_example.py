@@ -1,22 +1,14 @@
 """examples/shapley_freeway.py (paper Fig. 2) at a tiny scale: all four algorithms on one
 plot, per-seed finals, their spread and collisions in the table, resumed runs not retrained."""
 
-import importlib.util
 import json
+from collections.abc import Callable
 from pathlib import Path
-
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "shapley_freeway.py"
-
-
-def _module():
-    spec = importlib.util.spec_from_file_location("shapley_freeway", EXAMPLE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from types import ModuleType
 
 
-def test_four_algorithms_tiny(tmp_path: Path) -> None:
-    example = _module()
+def test_four_algorithms_tiny(tmp_path: Path, load_example: Callable[[str], ModuleType]) -> None:
+    example = load_example("shapley_freeway")
     argv = [
         "--frames", "80", "--eval-interval", "40", "--eval-episodes", "1", "--seeds", "0", "1",
         "--n-vehicles", "4", "--cav-ratio", "0.5", "--out", str(tmp_path),

@@ -1,24 +1,16 @@
 """examples/mixed_traffic.py (paper Table I) at the smoke scale: both methods, two seeds, the
 all-human row, intervals and units in the table."""
 
-import importlib.util
 import json
+from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "mixed_traffic.py"
 
-
-def _module():
-    spec = importlib.util.spec_from_file_location("mixed_traffic", EXAMPLE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_table_smoke(tmp_path: Path) -> None:
-    mixed = _module()
+def test_table_smoke(tmp_path: Path, load_example: Callable[[str], ModuleType]) -> None:
+    mixed = load_example("mixed_traffic")
     tiny = ["env_config.horizon=5", "eval_episodes=1", "num_cells=[8]", "critic_cells=[8]"]
     argv = [
         "--scale", "smoke", "--n-vehicles", "4", "--frames", "40", "--ratios", "0", "0.5",
@@ -41,8 +33,8 @@ def test_table_smoke(tmp_path: Path) -> None:
     assert mixed.main(argv) == results
 
 
-def test_bad_arguments() -> None:
-    mixed = _module()
+def test_bad_arguments(load_example: Callable[[str], ModuleType]) -> None:
+    mixed = load_example("mixed_traffic")
     with pytest.raises(SystemExit):
         mixed.parse_args(["--ratios", "1.5"])
     with pytest.raises(SystemExit):
