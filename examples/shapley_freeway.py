@@ -2,9 +2,11 @@
 
 Every algorithm trains on the same freeway configuration for the same number of environment
 frames with ``--seeds`` seeds; each evaluation runs ``--eval-episodes`` deterministic episodes
-(Shapley AC with the grand coalition). The reported quantity is the paper's *mean episode
-system reward*: the reward summed over all CAVs and the 40 steps of an episode, i.e. the
-recipes' per-CAV ``return`` times the number of CAVs.
+(Shapley AC with the grand coalition). The scripted policy "every CAV keeps its lane" (speed
+under IDM, no lane change, no emergency stop) is scored on the same evaluation episodes as a
+reference line: it shows whether a learned policy does better than never acting. The reported
+quantity is the paper's *mean episode system reward*: the reward summed over all CAVs and the
+40 steps of an episode, i.e. the recipes' per-CAV ``return`` times the number of CAVs.
 
 Paper scale: 30 CAVs, 100k episodes x 5 seeds on a 4-GPU server. Default scale here (CPU, about
 an hour for the 12 runs on a 2-core machine): 8 vehicles of which 4 CAVs, 1600 frames (40
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +32,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from tensordict.nn import TensorDictModule  # noqa: E402
 
 from mapets_rl.experiment import (  # noqa: E402
     atomic_savefig,
@@ -38,11 +43,42 @@ from mapets_rl.experiment import (  # noqa: E402
     mean_ci95,
     read_results,
 )
+from mapets_rl.modules import ACTION, OBS  # noqa: E402
 
 ALGORITHMS = ("shapley_ac", "maddpg", "coma", "mappo")
 LABELS = {"shapley_ac": "Shapley AC", "maddpg": "MADDPG", "coma": "COMA", "mappo": "MAPPO"}
 # On-policy MAPPO collects 5 episodes per PPO update (its minibatch is 100 transitions).
 ON_POLICY_FRAMES_PER_BATCH = 200
+KEEP_LANE = 0  # the freeway's action order: KL, CL, CR, ES
+N_ACTIONS = 4
+
+
+def keep_lane(observation: torch.Tensor) -> torch.Tensor:
+    """The scripted policy "every CAV keeps its lane" (speed stays under IDM control):
+    ``[*, n, obs] -> [*, n, 4]`` one-hot KL."""
+    index = torch.full(observation.shape[:-1], KEEP_LANE, dtype=torch.long)
+    return torch.nn.functional.one_hot(index, N_ACTIONS)
+
+
+def keep_lane_reference(seed: int, args: argparse.Namespace) -> tuple[float, float]:
+    """System reward and collisions per episode of :func:`keep_lane` on the evaluation
+    episodes of ``seed`` (the runner re-seeds them identically, so these are the episodes the
+    learned runs of that seed are scored on)."""
+    cls = load_recipe("coma")
+    config = cls.Config(
+        env="freeway",
+        env_config={"n_vehicles": args.n_vehicles, "cav_ratio": args.cav_ratio},
+        seed=seed,
+        eval_episodes=args.eval_episodes,
+        logger="csv",
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        exp = cls(config, tmp)
+        exp.eval_policy = TensorDictModule(keep_lane, in_keys=[OBS], out_keys=[ACTION])
+        metrics = exp.evaluate()
+        exp.collector.shutdown()
+    n_cavs = int(round(args.cav_ratio * args.n_vehicles))
+    return metrics["return"] * n_cavs, float(metrics.get("collisions", 0.0))
 
 
 def run_one(algo: str, seed: int, args: argparse.Namespace) -> Path:
@@ -149,6 +185,24 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
             f"{last[0]:.1f} ± {last[1]:.1f} | {', '.join(f'{v:.1f}' for v in finals)} "
             f"| {finals.max() - finals.min():.1f} | {', '.join(f'{c:g}' for c in collisions)} |"
         )
+    reference = [keep_lane_reference(seed, args) for seed in args.seeds]
+    finals = np.array([r[0] for r in reference])
+    mean, half = mean_ci95(finals.tolist())
+    ax.axhline(mean, color="black", linestyle="--", linewidth=1, label="keep lane (scripted)")
+    summary["keep_lane"] = {
+        "final_mean": mean,
+        "final_ci95": half,
+        "final_per_seed": finals.tolist(),
+        "final_spread": float(finals.max() - finals.min()),
+        "final_collisions_per_seed": [r[1] for r in reference],
+        "seeds": len(reference),
+        "frames": 0,
+    }
+    rows.append(
+        f"| keep lane (scripted, untrained) | - | {mean:.1f} ± {half:.1f} "
+        f"| {', '.join(f'{v:.1f}' for v in finals)} | {finals.max() - finals.min():.1f} "
+        f"| {', '.join(f'{r[1]:g}' for r in reference)} |"
+    )
     ax.set_xlabel("training episodes (40 steps)")
     ax.set_ylabel("mean episode system reward")
     ax.set_title(f"freeway, {n_cavs} CAVs / {args.n_vehicles} vehicles")
@@ -158,7 +212,8 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
     table = "\n".join(
         [
             f"Mean episode system reward (sum over {n_cavs} CAVs and 40 steps), mean ± 95% CI over "
-            f"seeds, {args.frames} training frames per run.",
+            f"seeds, {args.frames} training frames per run. The scripted keep-lane policy "
+            "(speed under IDM) is scored on the same evaluation episodes per seed.",
             "",
             "| algorithm | first evaluation | final evaluation | final, per seed "
             "| spread (max - min) | collisions / episode (final, per seed) |",

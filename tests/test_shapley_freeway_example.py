@@ -6,6 +6,9 @@ from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
+import numpy as np
+import torch
+
 
 def test_four_algorithms_tiny(tmp_path: Path, load_example: Callable[[str], ModuleType]) -> None:
     example = load_example("shapley_freeway")
@@ -14,7 +17,11 @@ def test_four_algorithms_tiny(tmp_path: Path, load_example: Callable[[str], Modu
         "--n-vehicles", "4", "--cav-ratio", "0.5", "--out", str(tmp_path),
     ]  # fmt: skip
     summary = example.main(argv)
-    assert set(summary) == {"shapley_ac", "maddpg", "coma", "mappo"}
+    assert set(summary) == {"shapley_ac", "maddpg", "coma", "mappo", "keep_lane"}
+    # the scripted reference is scored on each seed's evaluation episodes, trained on nothing
+    keep = summary.pop("keep_lane")
+    assert keep["frames"] == 0 and len(keep["final_per_seed"]) == 2
+    assert all(np.isfinite(keep["final_per_seed"]))
     for algo, row in summary.items():
         assert row["seeds"] == 2 and len(row["final_per_seed"]) == 2
         assert row["final_spread"] == max(row["final_per_seed"]) - min(row["final_per_seed"])
@@ -25,7 +32,15 @@ def test_four_algorithms_tiny(tmp_path: Path, load_example: Callable[[str], Modu
         assert abs(row["final_per_seed"][1] - last) < 1e-6
     table = (tmp_path / "system_reward.md").read_text()
     assert "spread (max - min)" in table and "| MAPPO |" in table
+    assert "| keep lane (scripted, untrained) | - |" in table
     assert (tmp_path / "system_reward.png").stat().st_size > 0
     stamp = (tmp_path / "runs" / "coma_seed0" / "results.json").stat().st_mtime_ns
-    assert example.main(argv) == summary
+    assert example.main(argv) == {**summary, "keep_lane": keep}
     assert (tmp_path / "runs" / "coma_seed0" / "results.json").stat().st_mtime_ns == stamp
+
+
+def test_keep_lane_policy_is_one_hot_keep_lane(load_example: Callable[[str], ModuleType]) -> None:
+    example = load_example("shapley_freeway")
+    action = example.keep_lane(torch.randn(5, 3, 22))
+    assert action.shape == (5, 3, 4)
+    assert (action.sum(-1) == 1).all() and (action[..., 0] == 1).all()
