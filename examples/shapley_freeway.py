@@ -60,6 +60,11 @@ def keep_lane(observation: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.one_hot(index, N_ACTIONS)
 
 
+def env_overrides(args: argparse.Namespace) -> list[str]:
+    """``--env-override KEY=VALUE`` as recipe-config overrides ``env_config.KEY=VALUE``."""
+    return [f"env_config.{item}" for item in args.env_override]
+
+
 def keep_lane_reference(seed: int, args: argparse.Namespace) -> tuple[float, float]:
     """System reward and collisions per episode of :func:`keep_lane` on the evaluation
     episodes of ``seed`` (the runner re-seeds them identically, so these are the episodes the
@@ -73,7 +78,7 @@ def keep_lane_reference(seed: int, args: argparse.Namespace) -> tuple[float, flo
         logger="csv",
     )
     with tempfile.TemporaryDirectory() as tmp:
-        exp = cls(config, tmp)
+        exp = cls(config.with_overrides(env_overrides(args)), tmp)
         exp.eval_policy = TensorDictModule(keep_lane, in_keys=[OBS], out_keys=[ACTION])
         metrics = exp.evaluate()
         exp.collector.shutdown()
@@ -108,7 +113,7 @@ def run_one(algo: str, seed: int, args: argparse.Namespace) -> Path:
             logger="csv",
             progress=args.progress,
         )
-        exp = cls(config, run_dir)
+        exp = cls(config.with_overrides(env_overrides(args)), run_dir)
     exp.train()
     return run_dir
 
@@ -134,6 +139,13 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
     parser.add_argument("--eval-episodes", type=int, default=2)
     parser.add_argument("--n-vehicles", type=int, default=8)
     parser.add_argument("--cav-ratio", type=float, default=0.5)
+    parser.add_argument(
+        "--env-override",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="freeway config values for every run and the reference (velocity_weight=1.0)",
+    )
     parser.add_argument("--out", default="outputs/shapley_freeway")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
@@ -144,6 +156,8 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
     if unknown:
         raise ValueError(f"--algorithms must be among {ALGORITHMS}, got {unknown}")
     n_cavs = int(round(args.cav_ratio * args.n_vehicles))
+    # first: a bad --n-vehicles / --cav-ratio / --env-override fails here, before any training
+    reference = [keep_lane_reference(seed, args) for seed in args.seeds]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
@@ -185,7 +199,6 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
             f"{last[0]:.1f} ± {last[1]:.1f} | {', '.join(f'{v:.1f}' for v in finals)} "
             f"| {finals.max() - finals.min():.1f} | {', '.join(f'{c:g}' for c in collisions)} |"
         )
-    reference = [keep_lane_reference(seed, args) for seed in args.seeds]
     finals = np.array([r[0] for r in reference])
     mean, half = mean_ci95(finals.tolist())
     ax.axhline(mean, color="black", linestyle="--", linewidth=1, label="keep lane (scripted)")
@@ -205,14 +218,18 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
     )
     ax.set_xlabel("training episodes (40 steps)")
     ax.set_ylabel("mean episode system reward")
-    ax.set_title(f"freeway, {n_cavs} CAVs / {args.n_vehicles} vehicles")
+    ax.set_title(
+        f"freeway, {n_cavs} CAVs / {args.n_vehicles} vehicles {' '.join(args.env_override)}"
+    )
     ax.legend()
     fig.tight_layout()
     atomic_savefig(fig, out / "system_reward.png")
     table = "\n".join(
         [
             f"Mean episode system reward (sum over {n_cavs} CAVs and 40 steps), mean ± 95% CI over "
-            f"seeds, {args.frames} training frames per run. The scripted keep-lane policy "
+            f"seeds, {args.frames} training frames per run"
+            f"{' (' + ', '.join(args.env_override) + ')' if args.env_override else ''}. "
+            "The scripted keep-lane policy "
             "(speed under IDM) is scored on the same evaluation episodes per seed.",
             "",
             "| algorithm | first evaluation | final evaluation | final, per seed "

@@ -7,6 +7,7 @@ from pathlib import Path
 from types import ModuleType
 
 import numpy as np
+import pytest
 import torch
 
 
@@ -15,6 +16,7 @@ def test_four_algorithms_tiny(tmp_path: Path, load_example: Callable[[str], Modu
     argv = [
         "--frames", "80", "--eval-interval", "40", "--eval-episodes", "1", "--seeds", "0", "1",
         "--n-vehicles", "4", "--cav-ratio", "0.5", "--out", str(tmp_path),
+        "--env-override", "velocity_weight=0.5",
     ]  # fmt: skip
     summary = example.main(argv)
     assert set(summary) == {"shapley_ac", "maddpg", "coma", "mappo", "keep_lane"}
@@ -30,6 +32,10 @@ def test_four_algorithms_tiny(tmp_path: Path, load_example: Callable[[str], Modu
         results = json.loads((tmp_path / "runs" / f"{algo}_seed1" / "results.json").read_text())
         last = results["evaluations"][-1]["metrics"]["return"] * 2
         assert abs(row["final_per_seed"][1] - last) < 1e-6
+        assert (
+            "velocity_weight: 0.5"
+            in (tmp_path / "runs" / f"{algo}_seed0" / "config.yaml").read_text()
+        )
     table = (tmp_path / "system_reward.md").read_text()
     assert "spread (max - min)" in table and "| MAPPO |" in table
     assert "| keep lane (scripted, untrained) | - |" in table
@@ -44,3 +50,13 @@ def test_keep_lane_policy_is_one_hot_keep_lane(load_example: Callable[[str], Mod
     action = example.keep_lane(torch.randn(5, 3, 22))
     assert action.shape == (5, 3, 4)
     assert (action.sum(-1) == 1).all() and (action[..., 0] == 1).all()
+
+
+def test_bad_env_override_fails_before_training(
+    tmp_path: Path, load_example: Callable[[str], ModuleType]
+) -> None:
+    example = load_example("shapley_freeway")
+    argv = ["--n-vehicles", "4", "--frames", "40", "--seeds", "0", "--out", str(tmp_path / "out")]
+    with pytest.raises(ValueError, match="velocty_weight"):
+        example.main([*argv, "--env-override", "velocty_weight=1.0"])
+    assert not (tmp_path / "out").exists()
