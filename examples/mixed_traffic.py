@@ -4,6 +4,10 @@ Table I), Shapley AC and COMA side by side.
 For every method (``--methods``: ``shapley_ac``, ``coma``), CAV ratio and seed the recipe is
 trained on the freeway with ``--n-vehicles`` vehicles, then evaluated for ``--eval-episodes``
 deterministic episodes (Shapley AC with the grand coalition, COMA with its policies' modes).
+The method ``scripted`` trains nothing: every CAV keeps its lane under IDM (target speed
+``cav_target_speed``, 31 m/s, against the humans' 25-30 m/s), scored on the same evaluation
+episodes as the learned runs of each seed. It separates what learning adds from what the CAVs'
+car-following controller gives by itself.
 Ratio 0 has no CAV to train: the all-human ``FreewayEnv`` is simulated per seed. Average
 velocity (m/s and mph) and comfort (paper eq. 9: 3 keep-lane with mean ``|acc| < 1.5 m/s^2``,
 2 keep-lane braking/accelerating harder, 1 lane change, 0 emergency stop, averaged over all
@@ -27,7 +31,7 @@ Scales (``--scale``; ``--frames``, ``--n-vehicles``, ``--eval-episodes`` and the
 * ``paper``: 30 vehicles, 400,000 frames (10,000 episodes) per run, 5 evaluation episodes,
   recipe defaults (hours per run: the paper trained 100k episodes on 4 GPUs).
 
-Run:  python examples/mixed_traffic.py [--scale cpu] [--methods shapley_ac coma]
+Run:  python examples/mixed_traffic.py [--scale cpu] [--methods shapley_ac coma scripted]
       [--ratios 0 0.5 1] [--seeds 0 1 2] [--out outputs/mixed_traffic]
 Writes ``<out>/table.md`` and ``<out>/results.json``; runs that already finished in
 ``<out>/runs`` are not retrained.
@@ -43,7 +47,13 @@ from typing import Any
 import numpy as np
 
 from mapets_rl.envs import FreewayEnv
-from mapets_rl.experiment import atomic_write_text, mean_ci95, mean_metrics
+from mapets_rl.experiment import (
+    ExperimentConfig,
+    atomic_write_text,
+    evaluate_scripted,
+    mean_ci95,
+    mean_metrics,
+)
 from recipes.coma import COMA, COMAConfig
 from recipes.shapley_ac import ShapleyAC, ShapleyACConfig
 
@@ -61,6 +71,7 @@ SCALE_OVERRIDES = {
     "paper": {},
 }
 METHODS = {"shapley_ac": (ShapleyAC, ShapleyACConfig), "coma": (COMA, COMAConfig)}
+SCRIPTED = "scripted"  # keep lane under IDM, nothing trained
 # Paper Table I: CAV ratio -> (average velocity mph, average comfort), Shapley and COMA.
 PAPER_SHAPLEY = {
     0.0: (60.06, 2.61),
@@ -94,6 +105,19 @@ def all_human(n_vehicles: int, episodes: int, seed: int) -> dict[str, float]:
             done = terminated or truncated
         per_episode.append({k: float(v) for k, v in info["episode"].items()})
     return mean_metrics(per_episode)
+
+
+def scripted(ratio: float, seed: int, args: argparse.Namespace) -> dict[str, float]:
+    """Evaluation metrics of the scripted keep-lane CAVs at ``ratio`` on the evaluation
+    episodes of ``seed`` (the ones the learned runs of that seed are scored on)."""
+    return evaluate_scripted(
+        ExperimentConfig(
+            env="freeway",
+            env_config={"n_vehicles": args.n_vehicles, "cav_ratio": ratio},
+            seed=seed,
+            eval_episodes=args.eval_episodes,
+        )
+    )
 
 
 def train_and_evaluate(
@@ -142,7 +166,7 @@ def build_table(results: dict[str, Any], args: argparse.Namespace) -> str:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for method, by_ratio in results.items():
-        paper = PAPER_SHAPLEY if method == "shapley_ac" else PAPER_COMA
+        paper = {"shapley_ac": PAPER_SHAPLEY, "coma": PAPER_COMA}.get(method, {})
         for key, runs in by_ratio.items():
             ratio = float(key)
             v = [r["average_velocity"] for r in runs]
@@ -160,7 +184,12 @@ def build_table(results: dict[str, Any], args: argparse.Namespace) -> str:
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scale", choices=sorted(SCALES), default="cpu")
-    parser.add_argument("--methods", nargs="+", choices=sorted(METHODS), default=list(METHODS))
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        choices=sorted([*METHODS, SCRIPTED]),
+        default=[*METHODS, SCRIPTED],
+    )
     parser.add_argument("--ratios", nargs="+", type=float, default=list(RATIOS))
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--n-vehicles", type=int, default=None)
@@ -211,6 +240,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 print(f"{method}: CAV ratio {ratio:.2f} ({n_cavs} CAVs), seed {seed}", flush=True)
                 if n_cavs == 0:
                     runs.append(all_human(args.n_vehicles, args.eval_episodes, seed))
+                elif method == SCRIPTED:
+                    runs.append(scripted(ratio, seed, args))
                 else:
                     runs.append(train_and_evaluate(method, ratio, seed, args))
             results[method][f"{ratio:.2f}"] = runs

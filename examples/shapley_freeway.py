@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -32,32 +31,22 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from tensordict.nn import TensorDictModule  # noqa: E402
 
 from mapets_rl.experiment import (  # noqa: E402
+    ExperimentConfig,
     atomic_savefig,
     atomic_write_text,
+    evaluate_scripted,
     latest_checkpoint,
     load_recipe,
     mean_ci95,
     read_results,
 )
-from mapets_rl.modules import ACTION, OBS  # noqa: E402
 
 ALGORITHMS = ("shapley_ac", "maddpg", "coma", "mappo")
 LABELS = {"shapley_ac": "Shapley AC", "maddpg": "MADDPG", "coma": "COMA", "mappo": "MAPPO"}
 # On-policy MAPPO collects 5 episodes per PPO update (its minibatch is 100 transitions).
 ON_POLICY_FRAMES_PER_BATCH = 200
-KEEP_LANE = 0  # the freeway's action order: KL, CL, CR, ES
-N_ACTIONS = 4
-
-
-def keep_lane(observation: torch.Tensor) -> torch.Tensor:
-    """The scripted policy "every CAV keeps its lane" (speed stays under IDM control):
-    ``[*, n, obs] -> [*, n, 4]`` one-hot KL."""
-    index = torch.full(observation.shape[:-1], KEEP_LANE, dtype=torch.long)
-    return torch.nn.functional.one_hot(index, N_ACTIONS)
 
 
 def env_overrides(args: argparse.Namespace) -> list[str]:
@@ -66,22 +55,16 @@ def env_overrides(args: argparse.Namespace) -> list[str]:
 
 
 def keep_lane_reference(seed: int, args: argparse.Namespace) -> tuple[float, float]:
-    """System reward and collisions per episode of :func:`keep_lane` on the evaluation
-    episodes of ``seed`` (the runner re-seeds them identically, so these are the episodes the
-    learned runs of that seed are scored on)."""
-    cls = load_recipe("coma")
-    config = cls.Config(
+    """System reward and collisions per episode of the scripted keep-lane policy
+    (:func:`~mapets_rl.experiment.evaluate_scripted`) on the evaluation episodes the learned
+    runs of ``seed`` are scored on."""
+    config = ExperimentConfig(
         env="freeway",
         env_config={"n_vehicles": args.n_vehicles, "cav_ratio": args.cav_ratio},
         seed=seed,
         eval_episodes=args.eval_episodes,
-        logger="csv",
-    )
-    with tempfile.TemporaryDirectory() as tmp:
-        exp = cls(config.with_overrides(env_overrides(args)), tmp)
-        exp.eval_policy = TensorDictModule(keep_lane, in_keys=[OBS], out_keys=[ACTION])
-        metrics = exp.evaluate()
-        exp.collector.shutdown()
+    ).with_overrides(env_overrides(args))
+    metrics = evaluate_scripted(config)
     n_cavs = int(round(args.cav_ratio * args.n_vehicles))
     return metrics["return"] * n_cavs, float(metrics.get("collisions", 0.0))
 

@@ -8,7 +8,6 @@ from types import ModuleType
 
 import numpy as np
 import pytest
-import torch
 
 
 def test_four_algorithms_tiny(tmp_path: Path, load_example: Callable[[str], ModuleType]) -> None:
@@ -43,13 +42,6 @@ def test_four_algorithms_tiny(tmp_path: Path, load_example: Callable[[str], Modu
     stamp = (tmp_path / "runs" / "coma_seed0" / "results.json").stat().st_mtime_ns
     assert example.main(argv) == {**summary, "keep_lane": keep}
     assert (tmp_path / "runs" / "coma_seed0" / "results.json").stat().st_mtime_ns == stamp
-
-
-def test_keep_lane_policy_is_one_hot_keep_lane(load_example: Callable[[str], ModuleType]) -> None:
-    example = load_example("shapley_freeway")
-    action = example.keep_lane(torch.randn(5, 3, 22))
-    assert action.shape == (5, 3, 4)
-    assert (action.sum(-1) == 1).all() and (action[..., 0] == 1).all()
 
 
 def test_bad_env_override_fails_before_training(

@@ -19,7 +19,7 @@ def test_table_smoke(tmp_path: Path, load_example: Callable[[str], ModuleType]) 
         "--coma-override", *tiny, "minibatch_size=20",
     ]  # fmt: skip
     results = mixed.main(argv)
-    assert set(results) == {"shapley_ac", "coma"}
+    assert set(results) == {"shapley_ac", "coma", "scripted"}
     for method in results:
         assert set(results[method]) == {"0.00", "0.50"}
         assert all(len(runs) == 2 for runs in results[method].values())
@@ -27,6 +27,9 @@ def test_table_smoke(tmp_path: Path, load_example: Callable[[str], ModuleType]) 
     table = (tmp_path / "table.md").read_text()
     assert "velocity (mph)" in table and "velocity (m/s)" in table and "±" in table
     assert "| coma | 0.50 | 2 |" in table and "| shapley_ac | 1.00" not in table
+    # the scripted keep-lane CAVs train nothing and have no paper column
+    assert "| scripted | 0.50 | 2 |" in table and table.rstrip().endswith("| - | - |")
+    assert not (tmp_path / "runs" / "scripted").exists()
     assert json.loads((tmp_path / "results.json").read_text()).keys() == results.keys()
     assert (tmp_path / "runs" / "coma" / "ratio0.50" / "seed1" / "results.json").is_file()
     # finished runs are reused: a second call trains nothing and gives the same table

@@ -106,6 +106,7 @@ if TYPE_CHECKING:
     )
     from mapets_rl.experiment.files import atomic_savefig, atomic_write, atomic_write_text
     from mapets_rl.experiment.plugins import available_recipes, load_recipe
+    from mapets_rl.experiment.reference import evaluate_scripted
     from mapets_rl.experiment.results import (
         ResultsWriter,
         log_scalars,
@@ -149,6 +150,7 @@ _EXPORTS = {
     "compare": "comparison",
     "default_run_dir": "runner",
     "digest_path": "checkpoint",
+    "evaluate_scripted": "reference",
     "file_sha256": "checkpoint",
     "latest_checkpoint": "checkpoint",
     "list_checkpoints": "checkpoint",
@@ -207,6 +209,7 @@ __all__ = [
     "compare",
     "default_run_dir",
     "digest_path",
+    "evaluate_scripted",
     "file_sha256",
     "latest_checkpoint",
     "list_checkpoints",
