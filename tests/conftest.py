@@ -1,7 +1,7 @@
 """Fixtures shared by the test modules: entry points installed for one test only, and the
 toy scenario and recipe of ``examples/extending`` (that folder is put on ``sys.path`` so the
 tests import ``toy_scenario`` and ``toy_recipe`` as a researcher's package would), and the
-scripts of ``examples/`` imported as modules."""
+repository's scripts imported as modules."""
 
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ import pytest
 
 from mapets_rl.experiment import register_env, runner
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
-EXTENDING = EXAMPLES / "extending"
+ROOT = Path(__file__).resolve().parents[1]
+EXTENDING = ROOT / "examples" / "extending"
 sys.path.insert(0, str(EXTENDING))
 
 
@@ -62,12 +62,12 @@ def toy_recipe(add_entry_point, toy_scenario) -> None:
 
 
 @pytest.fixture
-def load_example() -> Callable[[str], ModuleType]:
-    """``load_example(name)``: ``examples/<name>.py`` imported as a module (the examples are
-    scripts, not a package)."""
+def load_script() -> Callable[[str], ModuleType]:
+    """``load_script("examples/mixed_traffic.py")``: a script of the repository imported as a
+    module (examples and benchmarks are scripts, not packages)."""
 
-    def load(name: str) -> ModuleType:
-        spec = importlib.util.spec_from_file_location(name, EXAMPLES / f"{name}.py")
+    def load(path: str) -> ModuleType:
+        spec = importlib.util.spec_from_file_location(Path(path).stem, ROOT / path)
         module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
         return module

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 
-def test_four_algorithms_tiny(tmp_path: Path, load_example: Callable[[str], ModuleType]) -> None:
-    example = load_example("shapley_freeway")
+def test_four_algorithms_tiny(tmp_path: Path, load_script: Callable[[str], ModuleType]) -> None:
+    example = load_script("examples/shapley_freeway.py")
     argv = [
         "--frames", "80", "--eval-interval", "40", "--eval-episodes", "1", "--seeds", "0", "1",
         "--n-vehicles", "4", "--cav-ratio", "0.5", "--out", str(tmp_path),
@@ -45,9 +45,9 @@ def test_four_algorithms_tiny(tmp_path: Path, load_example: Callable[[str], Modu
 
 
 def test_bad_env_override_fails_before_training(
-    tmp_path: Path, load_example: Callable[[str], ModuleType]
+    tmp_path: Path, load_script: Callable[[str], ModuleType]
 ) -> None:
-    example = load_example("shapley_freeway")
+    example = load_script("examples/shapley_freeway.py")
     argv = ["--n-vehicles", "4", "--frames", "40", "--seeds", "0", "--out", str(tmp_path / "out")]
     with pytest.raises(ValueError, match="velocty_weight"):
         example.main([*argv, "--env-override", "velocty_weight=1.0"])

@@ -9,8 +9,8 @@ from types import ModuleType
 import pytest
 
 
-def test_table_smoke(tmp_path: Path, load_example: Callable[[str], ModuleType]) -> None:
-    mixed = load_example("mixed_traffic")
+def test_table_smoke(tmp_path: Path, load_script: Callable[[str], ModuleType]) -> None:
+    mixed = load_script("examples/mixed_traffic.py")
     tiny = ["env_config.horizon=5", "eval_episodes=1", "num_cells=[8]", "critic_cells=[8]"]
     argv = [
         "--scale", "smoke", "--n-vehicles", "4", "--frames", "40", "--ratios", "0", "0.5",
@@ -36,8 +36,8 @@ def test_table_smoke(tmp_path: Path, load_example: Callable[[str], ModuleType]) 
     assert mixed.main(argv) == results
 
 
-def test_bad_arguments(load_example: Callable[[str], ModuleType]) -> None:
-    mixed = load_example("mixed_traffic")
+def test_bad_arguments(load_script: Callable[[str], ModuleType]) -> None:
+    mixed = load_script("examples/mixed_traffic.py")
     with pytest.raises(SystemExit):
         mixed.parse_args(["--ratios", "1.5"])
     with pytest.raises(SystemExit):
