@@ -33,8 +33,8 @@ Scales (``--scale``; ``--frames``, ``--n-vehicles``, ``--eval-episodes`` and the
 
 Run:  python examples/mixed_traffic.py [--scale cpu] [--methods shapley_ac coma scripted]
       [--ratios 0 0.5 1] [--seeds 0 1 2] [--out outputs/mixed_traffic]
-Writes ``<out>/table.md`` and ``<out>/results.json``; runs that already finished in
-``<out>/runs`` are not retrained.
+Writes ``<out>/table.md``, ``<out>/results.json`` and ``<out>/velocity_comfort.png``; runs
+that already finished in ``<out>/runs`` are not retrained.
 """
 
 from __future__ import annotations
@@ -44,18 +44,23 @@ import json
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+import matplotlib
 
-from mapets_rl.envs import FreewayEnv
-from mapets_rl.experiment import (
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from mapets_rl.envs import FreewayEnv  # noqa: E402
+from mapets_rl.experiment import (  # noqa: E402
     ExperimentConfig,
+    atomic_savefig,
     atomic_write_text,
     evaluate_scripted,
     mean_ci95,
     mean_metrics,
 )
-from recipes.coma import COMA, COMAConfig
-from recipes.shapley_ac import ShapleyAC, ShapleyACConfig
+from recipes.coma import COMA, COMAConfig  # noqa: E402
+from recipes.shapley_ac import ShapleyAC, ShapleyACConfig  # noqa: E402
 
 RATIOS = (0.0, 0.17, 0.33, 0.5, 0.67, 0.83, 1.0)
 MPS_TO_MPH = 2.2369362920544
@@ -181,6 +186,31 @@ def build_table(results: dict[str, Any], args: argparse.Namespace) -> str:
     return "\n".join(lines)
 
 
+def plot_table(results: dict[str, Any], path: Path) -> None:
+    """Velocity (mph) and comfort against the CAV ratio, one line per method with 95%
+    intervals over seeds, and the paper's Shapley and COMA columns dashed."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for method, by_ratio in results.items():
+        ratios = [float(k) for k in by_ratio]
+        for ax, key, scale in zip(
+            axes, ("average_velocity", "average_comfort"), (MPS_TO_MPH, 1.0), strict=True
+        ):
+            stats = [mean_ci95([r[key] * scale for r in runs]) for runs in by_ratio.values()]
+            ax.errorbar(
+                ratios, [m for m, _ in stats], yerr=[h for _, h in stats], capsize=3, label=method
+            )
+    for name, paper in (("paper Shapley", PAPER_SHAPLEY), ("paper COMA", PAPER_COMA)):
+        for ax, k in zip(axes, (0, 1), strict=True):
+            ax.plot(list(paper), [v[k] for v in paper.values()], "--", label=name)
+    for ax, label in zip(axes, ("average velocity (mph)", "average comfort"), strict=True):
+        ax.set_xlabel("CAV ratio")
+        ax.set_ylabel(label)
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    atomic_savefig(fig, path)
+    plt.close(fig)
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scale", choices=sorted(SCALES), default="cpu")
@@ -248,6 +278,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     table = build_table(results, args)
     atomic_write_text(out / "table.md", table + "\n")
     atomic_write_text(out / "results.json", json.dumps(results, indent=1))
+    plot_table(results, out / "velocity_comfort.png")
     print(table)
     return results
 

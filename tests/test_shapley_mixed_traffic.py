@@ -31,6 +31,7 @@ def test_table_smoke(tmp_path: Path, load_script: Callable[[str], ModuleType]) -
     assert "| scripted | 0.50 | 2 |" in table and table.rstrip().endswith("| - | - |")
     assert not (tmp_path / "runs" / "scripted").exists()
     assert json.loads((tmp_path / "results.json").read_text()).keys() == results.keys()
+    assert (tmp_path / "velocity_comfort.png").stat().st_size > 0
     assert (tmp_path / "runs" / "coma" / "ratio0.50" / "seed1" / "results.json").is_file()
     # finished runs are reused: a second call trains nothing and gives the same table
     assert mixed.main(argv) == results
