@@ -27,7 +27,9 @@ Scales (``--scale``; ``--frames``, ``--n-vehicles``, ``--eval-episodes`` and the
   8 antithetic orderings, minibatches of 64 and the exact value up to 5 CAVs: about a minute
   per run on a 2-core CPU. At ratio 1 the default shared ego-first actor drove the 30 CAVs
   collision-free from 400-800 frames on (3 of 3 seeds), so this budget reaches the plateau of
-  the freeway's reward, not the paper's 100k episodes.
+  the freeway's reward, not the paper's 100k episodes. That plateau is the keep-lane policy
+  (compare the ``scripted`` rows; ``benchmarks/freeway_headroom.py`` measures how little the
+  reward leaves above it).
 * ``paper``: 30 vehicles, 400,000 frames (10,000 episodes) per run, 5 evaluation episodes,
   recipe defaults (hours per run: the paper trained 100k episodes on 4 GPUs).
 
