@@ -28,9 +28,8 @@ from torchrl.envs import EnvBase
 from mapets_rl.envs import traffic_env
 from mapets_rl.envs.freeway import CL, CR, KL
 from mapets_rl.experiment import ExperimentConfig, evaluate_scripted, mean_ci95
+from mapets_rl.metrics import MPH_PER_MPS
 from mapets_rl.modules import ACTION, OBS
-
-MPS_TO_MPH = 2.2369362920544
 
 
 class GreedyOvertaking(TensorDictModuleBase):
@@ -117,7 +116,7 @@ def main(argv: list[str] | None = None) -> None:
             cells = []
             for key, scale, digits in (
                 ("system_return", 1.0, 1),
-                ("average_velocity", MPS_TO_MPH, 2),
+                ("average_velocity", MPH_PER_MPS, 2),
                 ("average_comfort", 1.0, 2),
                 ("collisions", 1.0, 1),
             ):

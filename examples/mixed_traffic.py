@@ -61,11 +61,11 @@ from mapets_rl.experiment import (  # noqa: E402
     mean_ci95,
     mean_metrics,
 )
+from mapets_rl.metrics import MPH_PER_MPS  # noqa: E402
 from recipes.coma import COMA, COMAConfig  # noqa: E402
 from recipes.shapley_ac import ShapleyAC, ShapleyACConfig  # noqa: E402
 
 RATIOS = (0.0, 0.17, 0.33, 0.5, 0.67, 0.83, 1.0)
-MPS_TO_MPH = 2.2369362920544
 SCALES = {
     "smoke": {"n_vehicles": 8, "frames": 80, "eval_episodes": 1},
     "cpu": {"n_vehicles": 30, "frames": 800, "eval_episodes": 2},
@@ -180,7 +180,7 @@ def build_table(results: dict[str, Any], args: argparse.Namespace) -> str:
             ref = paper.get(round(ratio, 2))
             lines.append(
                 f"| {method} | {ratio:.2f} | {int(round(ratio * args.n_vehicles))} "
-                f"| {_cell([x * MPS_TO_MPH for x in v])} | {_cell(v)} "
+                f"| {_cell([x * MPH_PER_MPS for x in v])} | {_cell(v)} "
                 f"| {_cell([r['average_comfort'] for r in runs])} "
                 f"| {_cell([r.get('collisions', 0.0) for r in runs], 1)} "
                 f"| {ref[0] if ref else '-'} | {ref[1] if ref else '-'} |"
@@ -195,7 +195,7 @@ def plot_table(results: dict[str, Any], path: Path) -> None:
     for method, by_ratio in results.items():
         ratios = [float(k) for k in by_ratio]
         for ax, key, scale in zip(
-            axes, ("average_velocity", "average_comfort"), (MPS_TO_MPH, 1.0), strict=True
+            axes, ("average_velocity", "average_comfort"), (MPH_PER_MPS, 1.0), strict=True
         ):
             stats = [mean_ci95([r[key] * scale for r in runs]) for runs in by_ratio.values()]
             ax.errorbar(
