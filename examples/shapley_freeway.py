@@ -110,6 +110,26 @@ def system_curves(run_dir: Path, n_cavs: int) -> tuple[np.ndarray, np.ndarray, f
     return frames, system, float(evals[-1]["metrics"].get("collisions", 0.0))
 
 
+def final_columns(finals: np.ndarray, collisions: list[float]) -> tuple[dict[str, Any], str]:
+    """Summary fields and table cells of the final evaluation of each seed: system reward
+    ``finals [seeds]`` (mean ± 95% CI, per seed, spread) and collisions per episode."""
+    mean, half = mean_ci95(finals.tolist())
+    spread = float(finals.max() - finals.min())
+    fields = {
+        "final_mean": mean,
+        "final_ci95": half,
+        "final_per_seed": finals.tolist(),
+        "final_spread": spread,
+        "final_collisions_per_seed": collisions,
+        "seeds": len(finals),
+    }
+    cells = (
+        f"{mean:.1f} ± {half:.1f} | {', '.join(f'{v:.1f}' for v in finals)} | {spread:.1f} "
+        f"| {', '.join(f'{c:g}' for c in collisions)}"
+    )
+    return fields, cells
+
+
 def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
     """Train (or resume) every run, then write the plot, table and summary; returns the
     summary."""
@@ -163,42 +183,20 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
         episodes = frames[:length] / 40
         ax.plot(episodes, mean, label=LABELS[algo])
         ax.fill_between(episodes, mean - half, mean + half, alpha=0.2)
-        first, last = stats[0], stats[-1]
-        finals = values[:, -1]
-        collisions = [r[2] for r in runs]
+        first = stats[0]
+        fields, cells = final_columns(values[:, -1], [r[2] for r in runs])
         summary[algo] = {
             "first_mean": first[0],
             "first_ci95": first[1],
-            "final_mean": last[0],
-            "final_ci95": last[1],
-            "final_per_seed": finals.tolist(),
-            "final_spread": float(finals.max() - finals.min()),
-            "final_collisions_per_seed": collisions,
-            "seeds": len(runs),
+            **fields,
             "frames": int(frames[length - 1]),
         }
-        rows.append(
-            f"| {LABELS[algo]} | {first[0]:.1f} ± {first[1]:.1f} | "
-            f"{last[0]:.1f} ± {last[1]:.1f} | {', '.join(f'{v:.1f}' for v in finals)} "
-            f"| {finals.max() - finals.min():.1f} | {', '.join(f'{c:g}' for c in collisions)} |"
-        )
-    finals = np.array([r[0] for r in reference])
-    mean, half = mean_ci95(finals.tolist())
-    ax.axhline(mean, color="black", linestyle="--", linewidth=1, label="keep lane (scripted)")
-    summary["keep_lane"] = {
-        "final_mean": mean,
-        "final_ci95": half,
-        "final_per_seed": finals.tolist(),
-        "final_spread": float(finals.max() - finals.min()),
-        "final_collisions_per_seed": [r[1] for r in reference],
-        "seeds": len(reference),
-        "frames": 0,
-    }
-    rows.append(
-        f"| keep lane (scripted, untrained) | - | {mean:.1f} ± {half:.1f} "
-        f"| {', '.join(f'{v:.1f}' for v in finals)} | {finals.max() - finals.min():.1f} "
-        f"| {', '.join(f'{r[1]:g}' for r in reference)} |"
-    )
+        rows.append(f"| {LABELS[algo]} | {first[0]:.1f} ± {first[1]:.1f} | {cells} |")
+    fields, cells = final_columns(np.array([r[0] for r in reference]), [r[1] for r in reference])
+    summary["keep_lane"] = {**fields, "frames": 0}
+    rows.append(f"| keep lane (scripted, untrained) | - | {cells} |")
+    reference_line = {"color": "black", "linestyle": "--", "linewidth": 1}
+    ax.axhline(fields["final_mean"], label="keep lane (scripted)", **reference_line)
     ax.set_xlabel("training episodes (40 steps)")
     ax.set_ylabel("mean episode system reward")
     ax.set_title(
