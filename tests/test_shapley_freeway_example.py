@@ -42,6 +42,9 @@ def test_four_algorithms_tiny(tmp_path: Path, load_script: Callable[[str], Modul
     stamp = (tmp_path / "runs" / "coma_seed0" / "results.json").stat().st_mtime_ns
     assert example.main(argv) == {**summary, "keep_lane": keep}
     assert (tmp_path / "runs" / "coma_seed0" / "results.json").stat().st_mtime_ns == stamp
+    # a finished run without its results.json is restored from its checkpoint, not retrained
+    (tmp_path / "runs" / "coma_seed0" / "results.json").unlink()
+    assert example.main(argv) == {**summary, "keep_lane": keep}
 
 
 def test_bad_env_override_fails_before_training(
