@@ -52,7 +52,8 @@ from mapets_rl.envs import (
     figure_eight_observation_bounds,
     figure_eight_reward,
 )
-from mapets_rl.envs.figure_eight import OBSERVATIONS
+from mapets_rl.envs.factory import SCENARIOS
+from mapets_rl.envs.figure_eight import OBSERVATION_SIZES
 from mapets_rl.experiment import Experiment, RunConfig, check, log_scalars
 from mapets_rl.experiment.runner import build_env
 from mapets_rl.models import EnsembleConfig, ProbabilisticEnsemble
@@ -167,6 +168,14 @@ class MAPETSConfig(RunConfig):
         crossing_gap: with the crossing observation, the planner predicts a collision when the
             CAV and the first conflicting vehicle are both within this many metres of the
             crossing point.
+        headway: time headway [s] of the planner's margin ahead: a predicted gap ahead that
+            closes while below ``collision_gap + headway * v`` counts as a collision
+            (:func:`~mapets_rl.envs.figure_eight_collision`). 0 is the fixed 2 m margin of
+            earlier versions; 0.5 s keeps the room to react to a braking leader that a
+            constant-speed prediction does not see (``benchmarks/multilane_diagnosis.py``).
+        lane_change_gap: on two lanes (the 15-feature crossing observation), the planner
+            predicts a collision when it requests a lane change while the gap ahead or behind
+            in the other lane is below this many metres.
         collision_reward: the planner's reward ``beta`` of a predicted collision (paper eq. 26:
             -10). A predicted collision also ends the particle's trajectory (no reward after
             it), so the paper's -10 suffices.
@@ -188,6 +197,8 @@ class MAPETSConfig(RunConfig):
     tile_coding: TileCodingConfig = dataclasses.field(default_factory=TileCodingConfig)
     collision_gap: float = dataclasses.field(default=2.0, metadata={"unit": "m"})
     crossing_gap: float = dataclasses.field(default=6.0, metadata={"unit": "m"})
+    headway: float = dataclasses.field(default=0.5, metadata={"unit": "s"})
+    lane_change_gap: float = dataclasses.field(default=8.0, metadata={"unit": "m"})
     collision_reward: float = -10.0
     num_threads: int = 0
 
@@ -228,6 +239,8 @@ class MAPETSConfig(RunConfig):
         )
         check(self.collision_gap >= 0, "collision_gap", ">= 0 metres", self.collision_gap)
         check(self.crossing_gap >= 0, "crossing_gap", ">= 0 metres", self.crossing_gap)
+        check(self.lane_change_gap >= 0, "lane_change_gap", ">= 0 metres", self.lane_change_gap)
+        check(0 <= self.headway <= 10, "headway", "in [0, 10] seconds", self.headway)
         check(self.collision_reward <= 0, "collision_reward", "<= 0", self.collision_reward)
         check(self.num_threads >= 0, "num_threads", ">= 0", self.num_threads)
 
@@ -291,8 +304,9 @@ class MAPETS(Experiment):
         reward_fn: the known reward the planner maximises, ``(obs [..., S], action [..., A],
             next_obs [..., S]) -> [...]``; default :func:`mapets_rl.envs.figure_eight_reward`
             (paper eq. 26 with a predicted-collision penalty, ``config.collision_gap``,
-            ``config.crossing_gap`` and ``config.collision_reward``), which needs a figure-eight
-            observation (7 or 10 features).
+            ``config.crossing_gap``, ``config.lane_change_gap``, ``config.headway`` and
+            ``config.collision_reward``),
+            which needs a figure-eight observation (7, 10 or 15 features).
         termination_fn: the known termination of a planned trajectory, ``(obs, action,
             next_obs) -> [...]`` bool; default (with the default ``reward_fn`` only)
             :func:`mapets_rl.envs.figure_eight_collision`; ``None`` with a custom ``reward_fn``
@@ -338,14 +352,19 @@ class MAPETS(Experiment):
         self.obs_coder, self.action_coder = self._tile_coders(group, bounds.low, bounds.high)
         if self.obs_coder is not None:
             self.env.append_transform(TileCodedObservation(self.obs_coder, in_keys=[OBS]))
-        if reward_fn is None and group.obs_dim not in OBSERVATIONS.values():
+        if reward_fn is None and group.obs_dim not in OBSERVATION_SIZES:
             raise ValueError(
                 f"reward_fn is required for env {config.env!r}: the default figure_eight_reward "
-                f"needs the figure-eight's observation (sizes {sorted(OBSERVATIONS.values())}), "
+                f"needs the figure-eight's observation (sizes {list(OBSERVATION_SIZES)}), "
                 f"got {group.obs_dim}"
             )
         if reward_fn is None:
-            gaps = {"collision_gap": config.collision_gap, "crossing_gap": config.crossing_gap}
+            gaps = {
+                "collision_gap": config.collision_gap,
+                "crossing_gap": config.crossing_gap,
+                "lane_change_gap": config.lane_change_gap,
+                "headway": config.headway,
+            }
             reward_fn = functools.partial(
                 figure_eight_reward, collision_reward=config.collision_reward, **gaps
             )
@@ -414,13 +433,15 @@ class MAPETS(Experiment):
             return None, None
         if tc.obs_low is not None:
             low, high = tc.obs_low, tc.obs_high
-        elif group.obs_dim in OBSERVATIONS.values():
-            low, high = figure_eight_observation_bounds(self.config.env_config)
+        elif group.obs_dim in OBSERVATION_SIZES:
+            # the scenario's own defaults (two lanes for figure-eight-multilane), then the user's
+            scenario = SCENARIOS.get(self.config.env, (None, {}))[1]
+            low, high = figure_eight_observation_bounds({**scenario, **self.config.env_config})
         else:
             raise ValueError(
                 f"tile_coding.obs_low and tile_coding.obs_high are required for env "
                 f"{self.config.env!r}: the default bounds are the figure-eight's (observation "
-                f"sizes {sorted(OBSERVATIONS.values())}), got {group.obs_dim} features"
+                f"sizes {list(OBSERVATION_SIZES)}), got {group.obs_dim} features"
             )
         check(
             len(low) == group.obs_dim,

@@ -298,7 +298,8 @@ def test_run_with_flat_field_names_resumes_with_nested_sections(tmp_path, caplog
     flat = {k: v for k, v in nested.items() if k not in ("planner", "model", "comm")}
     flat.update(nested["planner"], **nested["model"], **nested["comm"])
     flat["cem_momentum"] = flat.pop("alpha")
-    del flat["dtype"]  # flat config.yaml files predate planner.dtype
+    for newer in ("dtype", "anchor_candidates", "keep_best"):
+        del flat[newer]  # flat config.yaml files predate these planner fields
     path.write_text(yaml.safe_dump(flat, sort_keys=False))
     with caplog.at_level("WARNING", logger="mapets_rl"):
         resumed = MAPETS.from_run_dir(run_dir, overrides=["episodes=2"])

@@ -14,10 +14,24 @@ the first vehicle on the other branch that has not cleared it (both in ``[-5, 75
 speed 0 when nobody is within 75 m). A vehicle has cleared the crossing once its centre is 5 m
 past the crossing point.
 
+On two lanes (``lanes=2``) ``observation="crossing"`` has 15 features (a further deviation: the
+paper's CAVs cannot see the other lane, so a lane change, theirs or a human's, is a jump no model
+can predict): the 10 above, then ``(lane, v_ahead_other, v_behind_other, gap_ahead_other,
+gap_behind_other)``. ``lane`` is the CAV's lateral position in lane widths (0 = centre of the inner
+lane 0, 1 = centre of lane 1; it moves continuously through a lane change, so the model can
+learn when the CAV's lane switches), the other four are the leader and follower of the CAV in
+the lane it is not on, measured and clipped like the own-lane gaps. ``observation="paper"`` stays
+the paper's 7 features on two lanes.
+
 ``info["neighbour_changed"]`` ``[I]`` flags the CAVs whose observed neighbours changed identity in
-this step (a new leader or follower, one removed after a crash, a vehicle entering or leaving the
-75 m range, a new conflicting vehicle or crossing): their gap features jump, which no dynamics
-model of the CAV's own motion can predict.
+this step in a way the previous observation cannot explain: a new leader or follower that was
+not observed before (the next car after one removed in a crash, a vehicle entering the 75 m
+range), nobody in range any more, a new conflicting vehicle or crossing. Their gap features
+jump, which no dynamics model of the CAV's own motion can predict. A leader or follower that
+was already observed in another slot (the other lane's leader becoming the own leader when the
+CAV or that vehicle changes lanes) is not flagged: the jump is the previous observation's own
+numbers moving between features, which a model with the two-lane features can learn. Changes of
+the other lane's neighbours alone are not flagged either.
 
 CAV action: target speed in ``[0, 13.89]`` m/s, plus on two lanes a lane-change flag in
 ``[0, 1]`` (> 0.5 requests a change to the other lane). Reward (paper eq. 26):
@@ -49,9 +63,15 @@ GAP_RANGE = 75.0
 OBS_DIM = 7
 """Size of the paper's observation (``observation="paper"``)."""
 CROSSING_OBS_DIM = 10
-"""Size of the observation with the crossing features (``observation="crossing"``)."""
+"""Size of the observation with the crossing features (``observation="crossing"``, one lane)."""
+TWO_LANE_OBS_DIM = 15
+"""Size of ``observation="crossing"`` on two lanes: the crossing features + lane + other lane."""
 OBSERVATIONS = {"paper": OBS_DIM, "crossing": CROSSING_OBS_DIM}
-"""Observation options of the figure-eight and their sizes."""
+"""Observation options of the figure-eight and their sizes on one lane."""
+OBSERVATION_SIZES = (OBS_DIM, CROSSING_OBS_DIM, TWO_LANE_OBS_DIM)
+"""Every size a figure-eight observation can have (one or two lanes)."""
+LANE_CHANGE_THRESHOLD = 0.5
+"""A lane-change flag above this requests a change to the other lane."""
 CROSSING_CLEAR = 5.0
 """A vehicle whose centre is this far past a crossing point [m] has cleared the crossing."""
 COLLISION_REWARD = -10.0
@@ -177,7 +197,7 @@ class TargetSpeedAction(ActionType):
             if not env.alive[i]:
                 continue
             cav.target_speed = float(action[i, 0])
-            if action.shape[1] == 2 and action[i, 1] > 0.5:
+            if action.shape[1] == 2 and action[i, 1] > LANE_CHANGE_THRESHOLD:
                 _from, _to, lane = cav.lane_index
                 cav.request_lane_change((_from, _to, 1 - lane))
 
@@ -199,8 +219,8 @@ class FigureEightEnv(MultiAgentTrafficEnv):
 
     @property
     def obs_dim(self) -> int:
-        """Observation size of the configured ``observation`` option (7 or 10)."""
-        return OBSERVATIONS[self.config["observation"]]
+        """Observation size of the configured ``observation`` option and lanes (7, 10 or 15)."""
+        return observation_size(self.config["observation"], self.config["lanes"])
 
     @classmethod
     def default_config(cls) -> dict:
@@ -347,11 +367,11 @@ class FigureEightEnv(MultiAgentTrafficEnv):
         self._previous_ids = None
 
     def _neighbour_features(
-        self, cav: TargetSpeedVehicle
+        self, cav: TargetSpeedVehicle, lane_index: tuple | None = None
     ) -> tuple[tuple[float, float, float, float], tuple[int, int]]:
         """``(v_ahead, v_behind, gap_ahead, gap_behind)`` and the ids (``-1``: nobody in range)
-        of the leader and follower of ``cav``."""
-        front, rear = self.road.neighbour_vehicles(cav)
+        of the leader and follower of ``cav`` in lane ``lane_index`` (default: its own)."""
+        front, rear = self.road.neighbour_vehicles(cav, lane_index)
         out, ids = [], []
         for other, sign in ((front, 1.0), (rear, -1.0)):
             gap = GAP_RANGE + 1.0
@@ -392,11 +412,29 @@ class FigureEightEnv(MultiAgentTrafficEnv):
         vehicle = id(self.road.vehicles[nearest])
         return (d_cross, float(others[nearest]), float(speeds[nearest])), (branch, vehicle)
 
+    def _lane_features(
+        self, cav: TargetSpeedVehicle
+    ) -> tuple[tuple[float, float, float, float, float], tuple[int, int]]:
+        """``(lane, v_ahead_other, v_behind_other, gap_ahead_other, gap_behind_other)`` of
+        ``cav`` on two lanes and the ids of its leader and follower in the other lane."""
+        _from, _to, lane = cav.lane_index
+        _s, lateral = cav.lane.local_coordinates(cav.position)
+        position = lane + lateral / self.geometry.lane_width
+        features, ids = self._neighbour_features(cav, (_from, _to, 1 - lane))
+        return (position, *features), ids
+
     def observe_agents(self) -> np.ndarray:
-        """Per-CAV observations ``[I, obs_dim]`` (zero rows for crashed CAVs)."""
+        """Per-CAV observations ``[I, obs_dim]`` (zero rows for crashed CAVs).
+
+        Also records the observed vehicles' ids ``[I, K]`` (``-1``: nobody) for
+        ``neighbour_changed``: columns leader, follower, then with the crossing features the
+        crossing branch and the conflicting vehicle, then on two lanes the other lane's leader
+        and follower.
+        """
         crossing = self.config["observation"] == "crossing"
+        two_lanes = self.obs_dim == TWO_LANE_OBS_DIM
         obs = np.zeros((len(self.cavs), self.obs_dim), dtype=np.float32)
-        ids = np.full((len(self.cavs), 4 if crossing else 2), -1, dtype=np.int64)
+        ids = np.full((len(self.cavs), 2 + 2 * crossing + 2 * two_lanes), -1, dtype=np.int64)
         if crossing:
             vehicles = self.road.vehicles
             coords = np.array([self.road.route_coordinate(v) for v in vehicles])
@@ -407,20 +445,26 @@ class FigureEightEnv(MultiAgentTrafficEnv):
                 features, ids[i, :2] = self._neighbour_features(cav)
                 row = [cav.speed, *cav.position, *features]
                 if crossing:
-                    cross, ids[i, 2:] = self._crossing_features(coords, speeds, road_index[id(cav)])
+                    cross, ids[i, 2:4] = self._crossing_features(
+                        coords, speeds, road_index[id(cav)]
+                    )
                     row.extend(cross)
+                if two_lanes:
+                    lane, ids[i, 4:] = self._lane_features(cav)
+                    row.extend(lane)
                 obs[i] = row
         self._observed_ids = ids
         return obs
 
     def _info(self, obs: np.ndarray, action: Any = None) -> dict:
-        """Adds ``neighbour_changed`` ``[I]``: observed neighbours changed identity (see the
-        module docstring); ``False`` at reset and for CAVs that are no longer driving."""
+        """Adds ``neighbour_changed`` ``[I]``: observed neighbours changed identity in a way the
+        previous observation cannot explain (see :func:`unexplained_neighbour_change`);
+        ``False`` at reset and for CAVs that are no longer driving."""
         info = super()._info(obs, action)
         current, previous = self._observed_ids, self._previous_ids
         changed = np.zeros(len(self.cavs), dtype=bool)
         if previous is not None and current is not None:
-            changed = (current != previous).any(axis=1) & self.alive
+            changed = unexplained_neighbour_change(previous, current) & self.alive
         self._previous_ids = current
         info["neighbour_changed"] = changed
         return info
@@ -478,15 +522,50 @@ class FigureEightEnv(MultiAgentTrafficEnv):
         return action
 
 
+def observation_size(observation: str, lanes: int) -> int:
+    """Size of the figure-eight's observation option ``observation`` on ``lanes`` lanes."""
+    if observation == "crossing" and lanes == 2:
+        return TWO_LANE_OBS_DIM
+    return OBSERVATIONS[observation]
+
+
+def unexplained_neighbour_change(previous: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """Per CAV, whether its observed neighbours changed in a way the previous observation cannot
+    explain (``info["neighbour_changed"]``).
+
+    Args:
+        previous: ``[I, K]`` observed ids of the previous step (``-1``: nobody): columns
+            leader, follower, then optionally crossing branch and conflicting vehicle, then
+            optionally the other lane's leader and follower (see ``observe_agents``).
+        current: ``[I, K]`` the same for this step.
+
+    Returns:
+        ``[I]`` bool: the crossing branch or the conflicting vehicle changed, or the leader or
+        follower changed to a vehicle that was not observed in the previous step (in any slot)
+        or to nobody in range (the features jump to the 75 m / speed 0 convention). A leader or
+        follower taken from the other lane's slots is explained (its gap and speed were
+        observed); the other lane's slots changing alone are not flagged.
+    """
+    changed = current != previous  # [I, K]
+    flagged = changed[:, 2:4].any(axis=1)
+    own, other = slice(0, 2), slice(4, 6)
+    observed_before = np.concatenate([previous[:, own], previous[:, other]], axis=1)  # [I, <=4]
+    unexplained = (current[:, own, None] != observed_before[:, None, :]).all(-1) | (
+        current[:, own] < 0
+    )  # [I, 2]
+    return flagged | (changed[:, own] & unexplained).any(axis=1)
+
+
 def figure_eight_observation_bounds(
     env_config: Mapping[str, Any] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-feature bounds ``(low, high)``, each ``[7]`` or ``[10]``, of the figure-eight's
-    observation under ``env_config`` (defaults for keys not given): speeds in ``[0, v_max]``
-    with ``v_max`` the larger of ``max_speed`` and the human drivers' top target speed, the
-    position inside the loop's bounding box (lobe radius plus the lanes' width), gaps in
-    ``[0, 75]`` m, crossing distances in ``[-5, 75]`` m. Tile coding
-    (:class:`~mapets_rl.modules.TileCoder`) covers this box."""
+    """Per-feature bounds ``(low, high)``, each ``[7]``, ``[10]`` or ``[15]``, of the
+    figure-eight's observation under ``env_config`` (the env's defaults for keys not given: pass
+    a scenario's own defaults too, e.g. ``lanes=2`` for ``figure-eight-multilane``): speeds in
+    ``[0, v_max]`` with ``v_max`` the larger of ``max_speed`` and the human drivers' top target
+    speed, the position inside the loop's bounding box (lobe radius plus the lanes' width), gaps
+    in ``[0, 75]`` m, crossing distances in ``[-5, 75]`` m, the lane position in ``[-0.5, 1.5]``
+    lane widths. Tile coding (:class:`~mapets_rl.modules.TileCoder`) covers this box."""
     config = {**FigureEightEnv.default_config(), **dict(env_config or {})}
     hv = config["hv_target_speed"]
     v_max = float(max(config["max_speed"], *(hv if isinstance(hv, (tuple, list)) else [hv])))
@@ -498,6 +577,9 @@ def figure_eight_observation_bounds(
     if config["observation"] == "crossing":
         low += [-CROSSING_CLEAR, -CROSSING_CLEAR, 0.0]
         high += [GAP_RANGE, GAP_RANGE, v_max]
+    if observation_size(config["observation"], config["lanes"]) == TWO_LANE_OBS_DIM:
+        low += [-0.5, 0.0, 0.0, 0.0, 0.0]
+        high += [1.5, v_max, v_max, GAP_RANGE, GAP_RANGE]
     return np.array(low, dtype=np.float32), np.array(high, dtype=np.float32)
 
 
@@ -507,30 +589,47 @@ def figure_eight_collision(
     next_obs: torch.Tensor,
     collision_gap: float = 2.0,
     crossing_gap: float = 6.0,
+    lane_change_gap: float = 8.0,
+    headway: float = 0.0,
 ) -> torch.Tensor:
     """Predicted collision of a figure-eight CAV, vectorised (the planner's termination).
 
     A collision is predicted when the (predicted) gap ahead falls below ``collision_gap``
-    metres, or, with the crossing features (10-dim observation), when the CAV and the first
+    metres or closes while below ``collision_gap + headway * v`` (``v`` the CAV's predicted
+    speed; a CAV inside that margin that opens the gap, e.g. after a cut-in, is not stopped),
+    or, with the crossing features (10 or 15 features), when the CAV and the first
     conflicting vehicle of the other branch are both within ``crossing_gap`` metres of the
-    crossing point and neither has cleared it (``> -5`` m). The gap behind is not tested: a CAV
-    cannot avoid a follower by speeding into its leader. The margins let a 0.1 s step resolve an
-    approach (a CAV at 13.89 m/s covers 1.4 m per step).
+    crossing point and neither has cleared it (``> -5`` m), or, with the two-lane features (15),
+    when the action requests a lane change (flag ``> 0.5``) while the gap ahead or behind in the
+    other lane is below ``lane_change_gap`` metres (a lane change takes about 2 s, in which the
+    CAV shares both lanes). The gap behind in the own lane is not tested: a CAV cannot avoid a
+    follower by speeding into its leader. The margins let a 0.1 s step resolve an approach (a
+    CAV at 13.89 m/s covers 1.4 m per step).
 
     Args:
-        obs: ``[..., 7 or 10]`` current observation (unused: the test is on the outcome).
-        action: ``[..., act_dim]`` action (unused).
-        next_obs: ``[..., 7 or 10]`` (predicted) next observation.
+        obs: ``[..., 7, 10 or 15]`` current observation (read for the lane-change test only).
+        action: ``[..., act_dim]`` action (its lane-change flag, ``act_dim = 2``, is read with
+            the two-lane observation).
+        next_obs: ``[..., 7, 10 or 15]`` (predicted) next observation.
         collision_gap: margin on the gap ahead [m].
         crossing_gap: half-width of the conflict zone around the crossing point [m].
+        lane_change_gap: margin on the other lane's gaps ahead and behind for a lane change [m].
+        headway: time headway added to the margin ahead [s] (0: a fixed margin).
 
     Returns:
         ``[...]`` bool.
     """
-    collided = next_obs[..., 5] < collision_gap
-    if next_obs.shape[-1] == CROSSING_OBS_DIM:
+    gap = next_obs[..., 5]
+    collided = (gap < collision_gap) | (
+        (gap < collision_gap + headway * next_obs[..., 0]) & (gap < obs[..., 5])
+    )
+    if next_obs.shape[-1] in (CROSSING_OBS_DIM, TWO_LANE_OBS_DIM):
         inside = (next_obs[..., 7:9] < crossing_gap) & (next_obs[..., 7:9] > -CROSSING_CLEAR)
         collided = collided | inside.all(-1)
+    if obs.shape[-1] == TWO_LANE_OBS_DIM and action is not None and action.shape[-1] == 2:
+        changing = action[..., 1] > LANE_CHANGE_THRESHOLD
+        short = obs[..., 13:15].amin(-1) < lane_change_gap
+        collided = collided | (changing & short)
     return collided
 
 
@@ -541,6 +640,8 @@ def figure_eight_reward(
     collision_gap: float = 2.0,
     crossing_gap: float = 6.0,
     collision_reward: float = COLLISION_REWARD,
+    lane_change_gap: float = 8.0,
+    headway: float = 0.0,
 ) -> torch.Tensor:
     """Known figure-eight reward for planning (paper eq. 26), vectorised.
 
@@ -550,15 +651,18 @@ def figure_eight_reward(
     predicted crash ends the particle's trajectory.
 
     Args:
-        obs: ``[..., 7 or 10]`` current observation (unused: the reward depends on the outcome).
-        action: ``[..., act_dim]`` action (unused).
-        next_obs: ``[..., 7 or 10]`` (predicted) next observation.
-        collision_gap, crossing_gap: see :func:`figure_eight_collision`.
+        obs: ``[..., 7, 10 or 15]`` current observation (for the lane-change test).
+        action: ``[..., act_dim]`` action (its lane-change flag, for the lane-change test).
+        next_obs: ``[..., 7, 10 or 15]`` (predicted) next observation.
+        collision_gap, crossing_gap, lane_change_gap, headway: see
+            :func:`figure_eight_collision`.
         collision_reward: ``beta`` of a predicted collision (paper: -10).
 
     Returns:
         ``[...]`` rewards.
     """
     speed_terms = next_obs[..., 0] + next_obs[..., 3] + next_obs[..., 4]
-    collided = figure_eight_collision(obs, action, next_obs, collision_gap, crossing_gap)
+    collided = figure_eight_collision(
+        obs, action, next_obs, collision_gap, crossing_gap, lane_change_gap, headway
+    )
     return speed_terms + collision_reward * collided.to(speed_terms.dtype)

@@ -1,0 +1,159 @@
+"""The two-lane figure-eight's observation, neighbour-change filter and planning termination."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from mapets_rl.envs import figure_eight_collision, figure_eight_observation_bounds, make_env
+from mapets_rl.envs.figure_eight import (
+    TWO_LANE_OBS_DIM,
+    FigureEightEnv,
+    unexplained_neighbour_change,
+)
+
+
+def place(env: FigureEightEnv, vehicle, coordinate: float, speed: float, lane: int) -> None:
+    """Put ``vehicle`` at route coordinate ``coordinate`` on ``lane`` with ``speed``."""
+    index, s = env.geometry.lane_at(coordinate, lane)
+    lane_obj = env.geometry.network.get_lane(index)
+    vehicle.position = lane_obj.position(s, 0.0)
+    vehicle.heading = lane_obj.heading_at(s)
+    vehicle.speed = speed
+    vehicle.lane_index = vehicle.target_lane_index = index
+    vehicle.lane = lane_obj
+
+
+def two_lane_env(n_hvs: int) -> FigureEightEnv:
+    env = FigureEightEnv({"lanes": 2, "n_cavs": 1, "n_hvs": n_hvs, "horizon": 50})
+    env.reset(seed=0)
+    return env
+
+
+def test_two_lane_observation_on_constructed_scene() -> None:
+    env = two_lane_env(n_hvs=4)
+    assert env.obs_dim == TWO_LANE_OBS_DIM and env.observation_space.shape == (1, 15)
+    cav = env.cavs[0]
+    ahead, behind, other_ahead, other_behind = [v for v in env.road.vehicles if v is not cav]
+    # straight 2 (route coordinates ~190-260 m), far from the crossing points
+    place(env, cav, 200.0, 10.0, lane=0)
+    place(env, ahead, 230.0, 11.0, lane=0)  # 30 m centre to centre: gap 25 m
+    place(env, behind, 185.0, 9.0, lane=0)  # gap 10 m
+    place(env, other_ahead, 212.0, 12.0, lane=1)  # gap 7 m in the other lane
+    place(env, other_behind, 160.0, 8.0, lane=1)  # gap 35 m
+    env.road.refresh()
+    obs = env.observe_agents()[0]
+    np.testing.assert_allclose(obs[3:7], [11.0, 9.0, 25.0, 10.0], atol=1e-3)
+    np.testing.assert_allclose(obs[10:], [0.0, 12.0, 8.0, 7.0, 35.0], atol=1e-3)
+    # the same scene seen from lane 1: own and other lane swap, lane position 1
+    for vehicle, lane in ((cav, 1), (ahead, 1), (behind, 1), (other_ahead, 0), (other_behind, 0)):
+        place(env, vehicle, env.road.route_coordinate(vehicle), vehicle.speed, lane)
+    env.road.refresh()
+    obs = env.observe_agents()[0]
+    np.testing.assert_allclose(obs[3:7], [11.0, 9.0, 25.0, 10.0], atol=1e-2)
+    np.testing.assert_allclose(obs[10:], [1.0, 12.0, 8.0, 7.0, 35.0], atol=1e-2)
+    # nobody in the other lane within 75 m: gaps clip at 75, speeds 0
+    for vehicle in (other_ahead, other_behind):
+        place(env, vehicle, 400.0, 5.0, lane=0)
+    env.road.refresh()
+    np.testing.assert_allclose(env.observe_agents()[0, 11:], [0.0, 0.0, 75.0, 75.0], atol=1e-3)
+    # the paper's observation stays 7 features on two lanes
+    paper = FigureEightEnv({"lanes": 2, "n_cavs": 1, "n_hvs": 0, "observation": "paper"})
+    assert paper.obs_dim == 7
+
+
+def test_lane_position_moves_continuously_through_a_lane_change() -> None:
+    env = two_lane_env(n_hvs=0)
+    cav = env.cavs[0]
+    place(env, cav, 200.0, 8.0, lane=0)
+    env.road.refresh()
+    positions = [env.observe_agents()[0, 10]]
+    for step in range(40):
+        flag = 1.0 if step == 0 else 0.0
+        obs, *_ = env.step(np.array([[8.0, flag]], dtype=np.float32))
+        positions.append(obs[0, 10])
+    positions = np.array(positions)
+    assert positions[0] == pytest.approx(0.0, abs=1e-3)
+    assert positions[-1] == pytest.approx(1.0, abs=0.05)  # arrived in lane 1
+    assert np.abs(np.diff(positions)).max() < 0.25  # no jump when the lane index switches
+    assert cav.lane_index[2] == 1
+
+
+def test_filter_keeps_a_lane_change_to_an_observed_leader_and_flags_a_new_one() -> None:
+    # columns: leader, follower, branch, conflict, other leader, other follower
+    before = np.array([[10, 11, 0, -1, 20, 21]] * 5)
+    after = np.array(
+        [
+            [10, 11, 0, -1, 20, 21],  # nothing changed
+            [20, 21, 0, -1, 10, 11],  # the CAV changed lanes: both lanes' slots swap
+            [20, 11, 0, -1, 22, 21],  # the other lane's leader cut in; a new other leader
+            [30, 11, 0, -1, 20, 21],  # a leader nobody observed before
+            [10, 11, 0, -1, 22, 23],  # only the other lane's vehicles changed
+        ]
+    )
+    assert unexplained_neighbour_change(before, after).tolist() == [
+        False,
+        False,
+        False,
+        True,
+        False,
+    ]
+    # leaving the range, a new conflicting vehicle and a new crossing branch are flagged
+    before = np.array([[10, 11, 0, 5, 20, 21]] * 3)
+    after = np.array([[-1, 11, 0, 5, 20, 21], [10, 11, 0, 6, 20, 21], [10, 11, 1, 5, 20, 21]])
+    assert unexplained_neighbour_change(before, after).tolist() == [True, True, True]
+    # one lane (leader, follower, branch, conflict): the rule of the single-lane scenario
+    before = np.array([[10, 11, 0, 5]] * 2)
+    after = np.array([[10, 11, 0, 5], [12, 11, 0, 5]])
+    assert unexplained_neighbour_change(before, after).tolist() == [False, True]
+
+
+def test_a_lane_change_in_the_env_is_not_flagged() -> None:
+    env = two_lane_env(n_hvs=2)
+    cav = env.cavs[0]
+    own, other = [v for v in env.road.vehicles if v is not cav]
+    place(env, cav, 200.0, 8.0, lane=0)
+    place(env, own, 230.0, 8.0, lane=0)
+    place(env, other, 225.0, 8.0, lane=1)
+    env.road.refresh()
+    env._info(env.observe_agents())
+    flags, leaders = [], []
+    for step in range(30):
+        flag = 1.0 if step == 0 else 0.0
+        _, _, _, _, info = env.step(np.array([[8.0, flag]], dtype=np.float32))
+        flags.append(bool(info["neighbour_changed"][0]))
+        leaders.append(env.road.neighbour_vehicles(cav)[0])
+    assert leaders[0] is own and leaders[-1] is other  # the CAV's leader changed identity
+    assert not any(flags)
+
+
+def test_planning_termination_refuses_a_lane_change_into_a_short_gap() -> None:
+    base = [8.0, 0, 0, 8, 8, 30, 30, 60, 60, 0, 0.0, 8, 8, 20, 20]
+    rows = torch.tensor(
+        [
+            base,
+            base[:13] + [5.0, 20],  # other lane: a car 5 m ahead
+            base[:13] + [20, 3.0],  # other lane: a car 3 m behind
+            base[:13] + [0.0, 0.0],  # side by side
+        ]
+    )
+    change = torch.tensor([[8.0, 0.9]]).expand(4, 2)
+    keep = torch.tensor([[8.0, 0.1]]).expand(4, 2)
+    assert figure_eight_collision(rows, change, rows).tolist() == [False, True, True, True]
+    assert figure_eight_collision(rows, keep, rows).tolist() == [False, False, False, False]
+    assert figure_eight_collision(rows, change, rows, lane_change_gap=2.0).tolist() == [
+        False,
+        False,
+        False,
+        True,
+    ]
+
+
+def test_observation_bounds_on_two_lanes_cover_an_episode() -> None:
+    low, high = figure_eight_observation_bounds({"lanes": 2})
+    assert low.shape == high.shape == (TWO_LANE_OBS_DIM,)
+    env = make_env("figure-eight-multilane", seed=0, n_hvs=10, horizon=60)
+    obs = env.rollout(60, break_when_any_done=False)["agents", "observation"]
+    assert (obs >= torch.from_numpy(low) - 1e-4).all()
+    assert (obs <= torch.from_numpy(high) + 1e-4).all()
