@@ -62,6 +62,8 @@ class CEMOptimizer:
         initial_mean: torch.Tensor,
         action_low: torch.Tensor,
         action_high: torch.Tensor,
+        anchors: torch.Tensor | None = None,
+        keep_best: bool = False,
     ) -> torch.Tensor:
         """Run the CEM from ``initial_mean`` with sigma a quarter of the action range.
 
@@ -69,9 +71,16 @@ class CEMOptimizer:
             score_fn: maps candidates ``[I, M, Q, H, act]`` to scores ``[I, M, Q]``.
             initial_mean: ``[I, M, H, act]`` starting mean (e.g. the warm start).
             action_low / action_high: ``[I, 1, 1, act]`` bounds.
+            anchors: optional ``[I, M, K, H, act]`` noise-free sequences scored in every
+                iteration beside the sampled ones (and eligible as elites), plus the current
+                mean itself (iCEM, Pinneri et al. 2020, adds the mean; a planner can add safe
+                fallbacks such as "brake"). Within the bounds.
+            keep_best: return the best-scoring sequence of all iterations instead of the final
+                mean (iCEM's executed action).
 
         Returns:
-            ``[I, M, H, act]`` the optimised mean. ``last_iterations`` holds the rounds run.
+            ``[I, M, H, act]`` the optimised mean (or best sequence). ``last_iterations`` holds
+            the rounds run.
         """
         mu = initial_mean
         std = ((action_high - action_low) / 4).expand_as(mu).clone()
@@ -84,10 +93,25 @@ class CEMOptimizer:
         host_check = mu.device.type == "cpu" if self.host_sync is None else self.host_sync
         iterations: int | torch.Tensor = 0
         stopped = torch.zeros((), dtype=torch.bool, device=mu.device)
+        best = best_score = None
         for _ in range(self.iterations):
             noise = torch.randn(shape, generator=self.generator, device=mu.device)
             candidates = torch.clamp(mu.unsqueeze(2) + std.unsqueeze(2) * noise, low, high)
-            scores = score_fn(candidates)  # [I, M, Q]
+            if anchors is not None:
+                mean = torch.clamp(mu, action_low, action_high).unsqueeze(2)
+                candidates = torch.cat([candidates, anchors, mean], dim=2)
+            scores = score_fn(candidates)  # [I, M, Q (+ K + 1)]
+            if keep_best:
+                top, where = scores.max(dim=-1)  # [I, M]
+                found = torch.gather(
+                    candidates, 2, where[:, :, None, None, None].expand(-1, -1, 1, *shape[1:])
+                ).squeeze(2)
+                if best is None:
+                    best, best_score = found, top
+                else:
+                    better = top > best_score
+                    best = torch.where(better[:, :, None, None], found, best)
+                    best_score = torch.maximum(top, best_score)
             elite_idx = scores.topk(self.elites, dim=-1).indices  # [I, M, X]
             elites = torch.gather(
                 candidates, 2, elite_idx[..., None, None].expand(-1, -1, -1, *shape[1:])
@@ -105,7 +129,7 @@ class CEMOptimizer:
                 std = torch.where(stopped, std, new_std)
                 stopped = stopped | (std.max() < self.epsilon)
         self._last_iterations = iterations
-        return mu
+        return best if keep_best else mu
 
     @property
     def last_iterations(self) -> int:

@@ -32,6 +32,11 @@ class PlannerConfig(ConfigSection):
         dtype: compute dtype of the ensemble forward while planning: ``"auto"`` (bf16 on
             CPUs with AVX512-BF16/AMX and on CUDA devices with bf16, fp32 elsewhere),
             ``"fp32"`` or ``"bf16"``.
+        anchor_candidates: also score the current mean, "stop" (the constant sequence at the
+            lowest action) and "hold" (the warm start's first action held) in every CEM
+            iteration (iCEM's fallbacks; see :class:`~mapets_rl.planning.TrajectorySamplingCEM`).
+        keep_best: execute the best-scoring sequence of all iterations instead of the final CEM
+            mean (iCEM).
     """
 
     horizon: int = dataclasses.field(default=25, metadata={"unit": "steps"})
@@ -43,6 +48,8 @@ class PlannerConfig(ConfigSection):
     epsilon: float = 1e-3
     alpha: float = 0.1
     dtype: str = "auto"
+    anchor_candidates: bool = False
+    keep_best: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -88,7 +95,15 @@ PAPER_PRESET = Preset(planner=PlannerConfig(), model=EnsembleConfig())
 #: gradient steps at this size and leave the model underestimating fast closing; the training
 #: NLL flattens by ~30. See benchmarks/RESULTS.md for timings and the NLL curve.
 CPU_PRESET = Preset(
-    planner=PlannerConfig(horizon=25, population=32, elites=4, iterations=2, particles=5),
+    planner=PlannerConfig(
+        horizon=25,
+        population=32,
+        elites=4,
+        iterations=2,
+        particles=5,
+        anchor_candidates=True,
+        keep_best=True,
+    ),
     model=EnsembleConfig(ensemble_size=5, hidden=[64, 64, 64], epochs=30),
 )
 

@@ -90,6 +90,12 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             :func:`~mapets_rl.planning.precision.resolve_dtype`), ``"fp32"``, ``"bf16"`` or a
             torch dtype. States, rewards and CEM statistics stay float32. The choice and its
             reason are kept in ``dtype`` / ``dtype_reason``.
+        anchor_candidates: score, in every CEM iteration and beside the ``population``
+            sampled candidates, three noise-free sequences: the current mean, the constant
+            sequence at ``action_low`` (on the figure-eight: stop and keep the lane) and the
+            warm start's first action held (iCEM's mean and constant fallbacks).
+        keep_best: execute (and warm-start from) the best-scoring sequence of all
+            iterations instead of the final CEM mean (iCEM).
         seed / generator: reproducible randomness (``generator`` wins if both are given).
         observation_key / action_key / is_init_key: TensorDict keys.
     """
@@ -109,6 +115,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         epsilon: float = 1e-3,
         alpha: float = 0.1,
         dtype: str | torch.dtype = "auto",
+        anchor_candidates: bool = False,
+        keep_best: bool = False,
         *,
         seed: int | None = None,
         generator: torch.Generator | None = None,
@@ -178,6 +186,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         self.propagation = propagation
         self.dtype = resolved_dtype
         self.dtype_reason = dtype_reason
+        self.anchor_candidates = bool(anchor_candidates)
+        self.keep_best = bool(keep_best)
         if generator is None and seed is not None:
             generator = torch.Generator(device=device)
             generator.manual_seed(seed)
@@ -291,6 +301,14 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         """The last call's optimised mean sequence, ``[*, I, horizon, act]`` (or ``None``)."""
         return self._to_batch_layout(self._solution)
 
+    def _anchors(self, envs: int) -> torch.Tensor:
+        """``[I, M, 2, H, act]`` the noise-free fallbacks scored in every CEM iteration: the
+        constant sequence at ``action_low`` (on the figure-eight: stop, keep the lane) and the
+        warm start's first action held for the whole horizon."""
+        low = self.action_low.expand(-1, envs, self.horizon, -1)
+        hold = self._mean[:, :, :1].expand(-1, -1, self.horizon, -1)
+        return torch.stack([low, hold], dim=2)
+
     def _initial_mean(self, envs: int) -> torch.Tensor:
         """``[I, M, H, act]`` centre of the action box."""
         centre = (self.action_low + self.action_high) / 2  # [I, 1, 1, act]
@@ -346,7 +364,15 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             self.nonfinite_rewards += nonfinite
             return scores
 
-        mu = self.optimizer.optimize(score, self._mean, self.action_low, self.action_high)
+        anchors = self._anchors(envs) if self.anchor_candidates else None
+        mu = self.optimizer.optimize(
+            score,
+            self._mean,
+            self.action_low,
+            self.action_high,
+            anchors=anchors,
+            keep_best=self.keep_best,
+        )
         self._warn_nonfinite()
         self._solution = mu
         action = torch.clamp(mu[:, :, 0], self.action_low[:, 0], self.action_high[:, 0])

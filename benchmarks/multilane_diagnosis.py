@@ -1,0 +1,277 @@
+"""Why CAVs crash on the two-lane figure-eight: policies scored and every crash classified.
+
+Drives ``figure-eight-multilane`` (22 CAVs, 400 steps, the recipe's scenario defaults) with
+policies that separate the causes, one change at a time, on the same seeds:
+
+- ``scripted``: :class:`~mapets_rl.envs.ScriptedCAVPolicy` (IDM, first come first served at
+  the crossing, never changes lanes): the scenario is drivable;
+- ``random`` / ``random-keep-lane``: uniform target speeds with uniform lane-change flags /
+  with the flag held at 0 (what the first MA-PETS episode drives, and its share of lane changes);
+- ``oracle`` / ``oracle-keep-lane``: the MA-PETS planner (cpu-preset CEM, the recipe's reward
+  and termination with the lane-aware test) planning through
+  :class:`~mapets_rl.envs.figure_eight_kinematics.FigureEightKinematicModel` (exact own speed,
+  constant-speed neighbours) instead of a learned ensemble: a crash here is the planner's or
+  the unforeseeable traffic's, not the model's. ``--lane-change-gap 0`` switches the lane-aware
+  termination off.
+
+Every CAV crash is classified from the simulator state of the step before it: ``crossing``
+(the two vehicles on different branches, both near the crossing point), ``lane change (CAV)``
+/ ``lane change (other)`` (one of the two was between lanes), ``into leader`` (the partner was
+ahead in the CAV's lane), ``rear-ended`` (it was behind). The partner is the nearest vehicle
+that crashed in the same step.
+
+Usage::
+
+    python benchmarks/multilane_diagnosis.py --seeds 0 1 2 --policies scripted random oracle
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import platform
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from mapets_rl.envs import ScriptedCAVPolicy, make_env, traffic_env
+from mapets_rl.envs.figure_eight import figure_eight_collision, figure_eight_reward
+from mapets_rl.envs.figure_eight_kinematics import FigureEightKinematicModel
+from mapets_rl.planning import CPU_PRESET, TrajectorySamplingCEM
+
+SCENARIO = "figure-eight-multilane"
+POLICIES = ("scripted", "random", "random-keep-lane", "oracle", "oracle-keep-lane")
+CLASSES = ("crossing", "lane change (CAV)", "lane change (other)", "into leader", "rear-ended")
+NEAR_CROSSING = 10.0
+"""A vehicle within this many metres of a crossing point [m] is at the crossing."""
+BETWEEN_LANES = 0.6
+"""A vehicle more than this far from its lane's centre [m], or steering to another lane, is
+changing lanes."""
+
+
+class RandomPolicy(TensorDictModuleBase):
+    """Uniform target speeds, uniform lane-change flags (``keep_lane``: flag 0)."""
+
+    in_keys = [("agents", "observation")]
+    out_keys = [("agents", "action")]
+
+    def __init__(self, env, keep_lane: bool, seed: int) -> None:
+        super().__init__()
+        self.env, self.keep_lane = env, keep_lane
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        spec = self.env.full_action_spec["agents", "action"]
+        low, high = spec.space.low, spec.space.high
+        action = low + (high - low) * torch.rand(low.shape, generator=self.generator)
+        if self.keep_lane:
+            action[..., 1] = 0.0
+        return tensordict.set(("agents", "action"), action)
+
+
+class KeepLane(TensorDictModuleBase):
+    """Wraps a policy and sets its lane-change flag to 0."""
+
+    def __init__(self, policy: TensorDictModuleBase) -> None:
+        super().__init__()
+        self.policy = policy
+        self.in_keys, self.out_keys = policy.in_keys, policy.out_keys
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        tensordict = self.policy(tensordict)
+        tensordict.get(("agents", "action"))[..., 1] = 0.0
+        return tensordict
+
+
+def oracle_planner(
+    env, lane_change_gap: float, seed: int, headway: float = 0.0, **cem: bool
+) -> TrajectorySamplingCEM:
+    """The cpu-preset CEM over the kinematic model (one particle: the model is deterministic);
+    ``cem``: planner options (``anchor_candidates``, ``keep_best``)."""
+    spec = env.full_action_spec["agents", "action"]
+    n_agents, action_dim = spec.shape
+    obs_dim = env.observation_spec["agents", "observation"].shape[-1]
+    gaps = {
+        "collision_gap": 2.0,
+        "crossing_gap": 6.0,
+        "lane_change_gap": lane_change_gap,
+        "headway": headway,
+    }
+    kwargs = CPU_PRESET.planner.planner_kwargs()
+    kwargs.update(particles=1, propagation="expectation", **cem)
+    return TrajectorySamplingCEM(
+        FigureEightKinematicModel(n_agents, obs_dim, action_dim),
+        functools.partial(figure_eight_reward, **gaps),
+        spec.space.low,
+        spec.space.high,
+        termination_fn=functools.partial(figure_eight_collision, **gaps),
+        seed=seed,
+        **kwargs,
+    )
+
+
+def make_policy(
+    name: str, env, seed: int, lane_change_gap: float, **cem: Any
+) -> TensorDictModuleBase:
+    if name == "scripted":
+        return ScriptedCAVPolicy(env)
+    if name.startswith("random"):
+        return RandomPolicy(env, keep_lane=name.endswith("keep-lane"), seed=seed)
+    planner = oracle_planner(env, lane_change_gap, seed, **cem)
+    return KeepLane(planner) if name.endswith("keep-lane") else planner
+
+
+def snapshot(raw) -> dict[int, dict]:
+    """Per vehicle (by id): route coordinate, lane, lateral offset, lane-changing, CAV."""
+    cavs = {id(c) for c in raw.cavs}
+    out = {}
+    for v in raw.road.vehicles:
+        _s, lateral = v.lane.local_coordinates(v.position)
+        out[id(v)] = {
+            "vehicle": v,
+            "coord": raw.road.route_coordinate(v),
+            "lane": v.lane_index[2],
+            "changing": v.lane_index != v.target_lane_index or abs(lateral) > BETWEEN_LANES,
+            "cav": id(v) in cavs,
+        }
+    return out
+
+
+def classify(raw, before: dict[int, dict], cav) -> tuple[str, bool]:
+    """Class of ``cav``'s crash and whether the partner was a CAV."""
+    crashed = [s for k, s in before.items() if k != id(cav) and s["vehicle"].crashed]
+    me = before[id(cav)]
+    if not crashed:
+        return "into leader", False
+    partner = min(crashed, key=lambda s: np.linalg.norm(s["vehicle"].position - cav.position))
+    period, crossings = raw.road.period, raw.geometry.crossing_coordinates
+
+    def branch_at_crossing(coord: float) -> int | None:
+        r = np.abs((coord - crossings + period / 2) % period - period / 2)
+        return int(np.argmin(r)) if r.min() < NEAR_CROSSING else None
+
+    mine, theirs = branch_at_crossing(me["coord"]), branch_at_crossing(partner["coord"])
+    if mine is not None and theirs is not None and mine != theirs:
+        return "crossing", partner["cav"]
+    if me["changing"]:
+        return "lane change (CAV)", partner["cav"]
+    if partner["changing"] or partner["lane"] != me["lane"]:
+        return "lane change (other)", partner["cav"]
+    ahead = (partner["coord"] - me["coord"] + period / 2) % period - period / 2
+    return ("into leader" if ahead > 0 else "rear-ended"), partner["cav"]
+
+
+def run_episode(
+    name: str,
+    seed: int,
+    horizon: int,
+    lane_change_gap: float,
+    scenario: str = SCENARIO,
+    **cem: Any,
+) -> dict:
+    env = make_env(scenario, seed=seed, horizon=horizon)
+    raw = traffic_env(env)
+    policy = make_policy(name, env, seed, lane_change_gap, **cem)
+    if hasattr(policy, "reset"):
+        policy.reset()
+    td = env.reset()
+    classes: Counter = Counter()
+    with_cav = 0
+    start = time.perf_counter()
+    steps = 0
+    with torch.no_grad():
+        while True:
+            before = snapshot(raw)
+            alive = raw.alive.copy()
+            td = env.step(policy(td))
+            steps += 1
+            for i in np.flatnonzero(alive & ~raw.alive):
+                label, partner_cav = classify(raw, before, raw.cavs[i])
+                classes[label] += 1
+                with_cav += partner_cav
+            if bool(td["next", "done"].all()):
+                break
+            td = td["next"]
+    metrics = raw.episode_metrics()
+    return {
+        "policy": name,
+        "seed": seed,
+        "safety": metrics["safety"],
+        "agility": metrics["agility"],
+        "crashes": metrics["collisions"],
+        "partner_cav": with_cav,
+        "classes": dict(classes),
+        "step_time": (time.perf_counter() - start) / steps,
+    }
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--policies", nargs="+", choices=POLICIES, default=list(POLICIES))
+    parser.add_argument(
+        "--scenario",
+        default=SCENARIO,
+        choices=("figure-eight", SCENARIO),
+        help="figure-eight: the one-lane reference (no keep-lane variants: one action)",
+    )
+    parser.add_argument("--horizon", type=int, default=400, help="steps per episode")
+    parser.add_argument("--lane-change-gap", type=float, default=8.0, help="metres")
+    parser.add_argument(
+        "--anchor-candidates", action="store_true", help="oracle: iCEM's fallback candidates"
+    )
+    parser.add_argument("--keep-best", action="store_true", help="oracle: best sequence")
+    parser.add_argument("--headway", type=float, default=0.0, help="oracle: margin [s]")
+    parser.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    print(
+        f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, "
+        f"cpu capability {torch.backends.cpu.get_cpu_capability()}"
+    )
+    rows = []
+    for name in args.policies:
+        for seed in args.seeds:
+            row = run_episode(
+                name,
+                seed,
+                args.horizon,
+                args.lane_change_gap,
+                args.scenario,
+                anchor_candidates=args.anchor_candidates,
+                keep_best=args.keep_best,
+                headway=args.headway,
+            )
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    header = " | ".join(CLASSES)
+    print(f"\n| policy | seeds | safety | agility [m/step] | crashes / 22 | {header} |")
+    print("|---|---|---|---|---|" + "---|" * len(CLASSES))
+    for name in args.policies:
+        group = [r for r in rows if r["policy"] == name]
+        total: Counter = Counter()
+        for r in group:
+            total.update(r["classes"])
+        n = len(group)
+        cells = " | ".join(f"{total[c] / n:.1f}" for c in CLASSES)
+        print(
+            f"| {name} | {n} | {np.mean([r['safety'] for r in group]):.3f} | "
+            f"{np.mean([r['agility'] for r in group]):.3f} | "
+            f"{np.mean([r['crashes'] for r in group]):.1f} | {cells} |"
+        )
+    if args.out is not None:
+        tmp = args.out.with_suffix(".tmp")
+        tmp.write_text(json.dumps(rows, indent=1))
+        tmp.replace(args.out)
+    return rows
+
+
+if __name__ == "__main__":
+    main()
