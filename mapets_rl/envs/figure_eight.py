@@ -34,7 +34,9 @@ numbers moving between features, which a model with the two-lane features can le
 the other lane's neighbours alone are not flagged either.
 
 CAV action: target speed in ``[0, 13.89]`` m/s, plus on two lanes a lane-change flag in
-``[0, 1]`` (> 0.5 requests a change to the other lane). Reward (paper eq. 26):
+``[0, 1]`` (> 0.5 requests a change to the other lane; a request starts a change only while
+the CAV is settled within 0.5 m of its lane's centre, so a flag held through a change does not
+turn it back). Reward (paper eq. 26):
 ``r = v + v_ahead + v_behind + beta`` with ``beta = -10`` on collision.
 """
 
@@ -72,6 +74,8 @@ OBSERVATION_SIZES = (OBS_DIM, CROSSING_OBS_DIM, TWO_LANE_OBS_DIM)
 """Every size a figure-eight observation can have (one or two lanes)."""
 LANE_CHANGE_THRESHOLD = 0.5
 """A lane-change flag above this requests a change to the other lane."""
+SETTLED_LANE_POSITION = TargetSpeedVehicle.SETTLED / 4.0
+"""The lane position (in lane widths of 4 m) within which a CAV may start a lane change."""
 CROSSING_CLEAR = 5.0
 """A vehicle whose centre is this far past a crossing point [m] has cleared the crossing."""
 COLLISION_REWARD = -10.0
@@ -602,7 +606,8 @@ def figure_eight_collision(
     crossing point and neither has cleared it (``> -5`` m), or, with the two-lane features (15),
     when the action requests a lane change (flag ``> 0.5``) while the gap ahead or behind in the
     other lane is below ``lane_change_gap`` metres (a lane change takes about 2 s, in which the
-    CAV shares both lanes). The gap behind in the own lane is not tested: a CAV cannot avoid a
+    CAV shares both lanes; tested only while the CAV is settled in its lane, the only time a
+    request starts a change). The gap behind in the own lane is not tested: a CAV cannot avoid a
     follower by speeding into its leader. The margins let a 0.1 s step resolve an approach (a
     CAV at 13.89 m/s covers 1.4 m per step).
 
@@ -627,7 +632,8 @@ def figure_eight_collision(
         inside = (next_obs[..., 7:9] < crossing_gap) & (next_obs[..., 7:9] > -CROSSING_CLEAR)
         collided = collided | inside.all(-1)
     if obs.shape[-1] == TWO_LANE_OBS_DIM and action is not None and action.shape[-1] == 2:
-        changing = action[..., 1] > LANE_CHANGE_THRESHOLD
+        settled = (obs[..., 10] - obs[..., 10].round()).abs() <= SETTLED_LANE_POSITION
+        changing = (action[..., 1] > LANE_CHANGE_THRESHOLD) & settled
         short = obs[..., 13:15].amin(-1) < lane_change_gap
         collided = collided | (changing & short)
     return collided

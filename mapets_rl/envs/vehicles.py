@@ -265,9 +265,17 @@ class TargetSpeedVehicle(RouteVehicleMixin, ControlledVehicle):
             },
         )
 
+    SETTLED = 0.5
+    """A lane change can start only within this many metres of the lane's centre [m]."""
+
     def request_lane_change(self, lane_index: LaneIndex) -> None:
-        """Start a lane change to ``lane_index`` unless one is already under way."""
-        if self.lane_index == self.target_lane_index:
+        """Start a lane change to ``lane_index`` unless one is under way: the vehicle must be
+        on its target lane and within ``SETTLED`` metres of its centre (once its lane index
+        has switched halfway through a change, a request does not turn it back)."""
+        if self.lane_index != self.target_lane_index:
+            return
+        _s, lateral = self.lane.local_coordinates(self.position)
+        if abs(lateral) <= self.SETTLED:
             self.target_lane_index = lane_index
 
 
