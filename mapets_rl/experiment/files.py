@@ -1,18 +1,33 @@
-"""Files a run writes: directories checked before anything is created, atomic writes.
+"""Files a run writes: directories checked before anything is created, atomic writes, and the
+lock that makes a process the only writer of a run directory.
 
 Every file a run saves (config, results, checkpoints, plots) is written to a temp file in the
 same directory and renamed over its final name, so a crash never leaves a half-written file.
+
+A run (``train``, ``resume``, ``evaluate``) holds :class:`RunDirLock` on its run directory for
+its whole life: an exclusive ``flock`` on ``RUN_DIR/.lock``, which the kernel drops when the
+process ends however it ends (kill -9 included), so a lock is never left stale. A second writer
+is refused with a :class:`RunDirLocked` error naming the pid of the holder before it writes
+anything.
 """
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import os
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+LOCK_FILE = ".lock"
+"""Name of the lock file in a run directory (see :class:`RunDirLock`)."""
+
 __all__ = [
+    "LOCK_FILE",
+    "RunDirLock",
+    "RunDirLocked",
     "atomic_savefig",
     "atomic_write",
     "atomic_write_text",
@@ -99,3 +114,115 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 def atomic_savefig(fig: Any, path: str | os.PathLike, **savefig_kwargs: Any) -> None:
     """Save the matplotlib figure ``fig`` to ``path`` atomically (see :func:`atomic_write`)."""
     atomic_write(path, lambda tmp: fig.savefig(tmp, **savefig_kwargs))
+
+
+class RunDirLocked(ValueError):
+    """Another process (or another object of this process) holds the lock of a run
+    directory."""
+
+
+class RunDirLock:
+    """Exclusive advisory lock on a run directory: ``flock(LOCK_EX)`` on ``RUN_DIR/.lock``.
+
+    The lock belongs to the open file, so it conflicts with every other holder, another
+    object of the same process included, and the kernel releases it when the file is closed:
+    at :meth:`release`, when this object is garbage collected, or when the process dies (kill
+    -9 included), so there is never a stale lock to clean up. The holder writes its pid into
+    the file so that a refused writer can name it; the file itself stays (deleting it would let
+    two processes lock two different files of the same name).
+
+    Use :meth:`acquire`; ``with RunDirLock.acquire(run_dir): ...`` releases at the end.
+    """
+
+    def __init__(self, run_dir: Path, fd: int) -> None:
+        """Wraps ``fd``, an open descriptor of ``run_dir/.lock`` that is already locked; use
+        :meth:`acquire`."""
+        self.run_dir = run_dir
+        self.path = run_dir / LOCK_FILE
+        self._fd: int | None = fd
+
+    @classmethod
+    def acquire(cls, run_dir: str | os.PathLike, what: str = "run_dir") -> RunDirLock:
+        """Lock the existing directory ``run_dir`` without waiting.
+
+        Raises:
+            RunDirLocked: another holder has it: one line naming ``run_dir`` and the holder's
+                pid.
+            ValueError: the lock file cannot be created or locked (one line naming ``what``).
+        """
+        run_dir = Path(run_dir)
+        path = run_dir / LOCK_FILE
+        umask = os.umask(0)
+        os.umask(umask)
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666 & ~umask)
+        except OSError as err:
+            raise ValueError(
+                f"{what} {str(run_dir)!r} cannot be locked: {str(path)!r} cannot be "
+                f"opened ({err.strerror or type(err).__name__})"
+            ) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as err:
+            holder = _read_pid(fd)
+            os.close(fd)
+            if err.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise ValueError(
+                    f"{what} {str(run_dir)!r} cannot be locked: "
+                    f"{err.strerror or type(err).__name__}"
+                ) from None
+            who = "an unknown pid" if holder is None else f"pid {holder}"
+            if holder == os.getpid():
+                who += " (this process: another experiment on the same directory)"
+            raise RunDirLocked(
+                f"{what} {str(run_dir)!r} is in use by another writer ({who} holds "
+                f"{LOCK_FILE}); wait for it to finish or choose another {what}"
+            ) from None
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError:
+            pass  # the pid is only informative: the lock is held either way
+        return cls(run_dir, fd)
+
+    @property
+    def held(self) -> bool:
+        """Whether this object still holds the lock."""
+        return self._fd is not None
+
+    def release(self) -> None:
+        """Drop the lock (idempotent): clear the pid and close the file."""
+        fd, self._fd = self._fd, None
+        if fd is None:
+            return
+        try:
+            os.ftruncate(fd, 0)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)  # closing the last descriptor of the open file unlocks it
+
+    def __enter__(self) -> RunDirLock:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+    def __del__(self) -> None:
+        try:
+            self.release()
+        except Exception:  # noqa: BLE001 - nothing to report to at garbage collection
+            pass
+
+    def __repr__(self) -> str:
+        state = "held" if self.held else "released"
+        return f"{type(self).__name__}({str(self.run_dir)!r}, {state})"
+
+
+def _read_pid(fd: int) -> int | None:
+    """The pid written in an open lock file, ``None`` when it holds none."""
+    try:
+        text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None

@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from mapets_rl.experiment.checkpoint import (
     first_line,
-    latest_checkpoint,
+    list_checkpoints,
     load_latest_checkpoint,
     remove_stale_files,
     rng_state,
@@ -43,6 +43,7 @@ from mapets_rl.experiment.config import (
     read_yaml_mapping,
 )
 from mapets_rl.experiment.files import (
+    RunDirLock,
     atomic_write,
     atomic_write_text,
     check_writable_dir,
@@ -162,6 +163,13 @@ class Experiment:
     iteration, on a :class:`RunConfig` without a frame budget) overrides the loop's steps
     (:meth:`progress`, :meth:`run_iteration`, :meth:`end_iteration`, :meth:`start_training`,
     :meth:`finish_training`, the progress bar's label and postfix) instead of the loop.
+
+    An experiment is the only writer of its run directory: it takes the directory's
+    :class:`~mapets_rl.experiment.files.RunDirLock` before it writes anything there (a second
+    experiment on the same directory, in this process or another, is refused with one line
+    naming the holder's pid) and holds it until :meth:`train` returns or :meth:`close` is
+    called (or the object is garbage collected, or the process dies). :meth:`train` and
+    :meth:`save_checkpoint` take it again when it was released.
     """
 
     name: ClassVar[str] = "experiment"
@@ -174,6 +182,28 @@ class Experiment:
     # set by from_run_dir on the instance before __init__ runs: the run directory's checkpoints
     # are the ones being restored, and config.yaml is rewritten once they are
     _resuming: bool = False
+    # the run directory's lock while this experiment may write there (see close)
+    _lock: RunDirLock | None = None
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """Wrap a recipe's own ``__init__`` so that an instance whose construction fails
+        releases the run directory's lock at once (a traceback kept alive, e.g. by a notebook
+        or ``pytest.raises``, would otherwise hold it until it is collected)."""
+        super().__init_subclass__(**kwargs)
+        init = cls.__dict__.get("__init__")
+        if init is None or getattr(init, "_releases_lock_on_error", False):
+            return
+
+        @functools.wraps(init)
+        def __init__(self: Experiment, *args: Any, **kw: Any) -> None:
+            try:
+                init(self, *args, **kw)
+            except BaseException:
+                self.close()
+                raise
+
+        __init__._releases_lock_on_error = True  # type: ignore[attr-defined]
+        cls.__init__ = __init__  # type: ignore[method-assign]
 
     def __init__(
         self,
@@ -195,12 +225,8 @@ class Experiment:
             else default_run_dir(self.name, config.env, config.seed)
         )
         restoring = self._resuming
-        if latest_checkpoint(self.run_dir) is not None and not restoring:
-            raise ValueError(
-                f"run_dir {str(self.run_dir)!r} already holds a run with "
-                "checkpoints; continue it with from_run_dir / `mapets-rl resume` "
-                "or choose another run_dir"
-            )
+        if not restoring:
+            self._refuse_finished_run()
         check_writable_dir(self.run_dir)
         seed_everything(config.seed)
         self.threads = configure_threads(config_threads(config))
@@ -211,8 +237,27 @@ class Experiment:
         # a bad env_config fails here, before the run directory is touched
         self.env = self.make_env() if env is None else env
         make_writable_dir(self.run_dir)
+        try:
+            self._init_run_dir(restoring)
+        except BaseException:
+            self.close()
+            raise
+        self.collector: BaseCollector | None = None
+        self._collector_args: tuple[TensorDictModuleBase, int, dict[str, Any]] | None = None
+        self.eval_policy: TensorDictModuleBase | None = None
+        self.latest_metrics: dict[str, float] = {}
+        self._video_env: EnvBase | None = None
+
+    def _init_run_dir(self, restoring: bool) -> None:
+        """Lock the (existing) run directory, then prepare it: stale temp files removed,
+        ``config.yaml`` and ``run.json`` written (unless ``restoring``: from_run_dir writes
+        the config once the checkpoint is restored), logger and results writer opened."""
+        self._hold_lock()
+        config = self.config
+        if not restoring:  # again under the lock: a writer that held it may have finished
+            self._refuse_finished_run()
         remove_stale_files(self.run_dir)
-        if not restoring:  # from_run_dir writes config.yaml once the checkpoint is restored
+        if not restoring:
             config.to_yaml(self.run_dir / CONFIG_FILE)
             atomic_write_text(
                 self.run_dir / RUN_FILE,
@@ -222,11 +267,36 @@ class Experiment:
         self.results = ResultsWriter(
             self.run_dir, self.name, config.env, config.seed, config.to_dict()
         )
-        self.collector: BaseCollector | None = None
-        self._collector_args: tuple[TensorDictModuleBase, int, dict[str, Any]] | None = None
-        self.eval_policy: TensorDictModuleBase | None = None
-        self.latest_metrics: dict[str, float] = {}
-        self._video_env: EnvBase | None = None
+
+    def _refuse_finished_run(self) -> None:
+        """ValueError when the run directory already holds checkpoints (of another run)."""
+        if list_checkpoints(self.run_dir):
+            raise ValueError(
+                f"run_dir {str(self.run_dir)!r} already holds a run with "
+                "checkpoints; continue it with from_run_dir / `mapets-rl resume` "
+                "or choose another run_dir"
+            )
+
+    def _hold_lock(self) -> None:
+        """Take the run directory's lock unless this experiment holds it already;
+        :class:`~mapets_rl.experiment.files.RunDirLocked` (one line naming the holder's pid)
+        when another writer has it."""
+        if self._lock is None or not self._lock.held:
+            self._lock = RunDirLock.acquire(self.run_dir)
+
+    def close(self) -> None:
+        """Release the run directory's lock (idempotent): another experiment may then write
+        there. :meth:`train` calls it when it returns; :meth:`train` and
+        :meth:`save_checkpoint` take the lock again when called later."""
+        lock, self._lock = self._lock, None
+        if lock is not None:
+            lock.release()
+
+    def __enter__(self) -> Experiment:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     # ------------------------------------------------------------------ recipe-facing helpers
     def make_env(self) -> EnvBase:
@@ -318,7 +388,20 @@ class Experiment:
         under ``train`` (and the frames per second under ``timers``), then
         :meth:`end_iteration` (evaluation, checkpoint, results) and
         ``on_iteration_end(metrics)``. Returns :meth:`finish_training`'s entries (by default the
-        evaluations)."""
+        evaluations).
+
+        The run directory's lock is held for the whole loop and released when it ends,
+        normally or not (see :meth:`close`)."""
+        self._hold_lock()
+        try:
+            return self._train(on_iteration_end)
+        finally:
+            self.close()
+
+    def _train(
+        self, on_iteration_end: Callable[[dict[str, float]], None] | None
+    ) -> list[dict[str, Any]]:
+        """The loop of :meth:`train`, under the run directory's lock."""
         cfg = self.config
         self.start_training()
         done, total = self.progress()
@@ -521,6 +604,10 @@ class Experiment:
         set_rng_state(state["rng"])
 
     def save_checkpoint(self) -> Path:
+        """Write the training state as ``checkpoints/ckpt_<frames>.pt`` (see
+        :func:`~mapets_rl.experiment.checkpoint.save_checkpoint`), under the run directory's
+        lock."""
+        self._hold_lock()
         return save_checkpoint(self.state_dict(), self.run_dir, self.frames, self.config.keep_last)
 
     @classmethod
@@ -534,9 +621,29 @@ class Experiment:
         first, overrides that change the shape of the saved state (scenario, agent count,
         network sizes) are refused naming the key, and ``config.yaml`` is rewritten (atomically)
         only after the checkpoint is loaded. Every failure is a one-line ValueError.
+
+        The run directory's lock is taken before anything is read: a run directory that
+        another experiment (or process) writes to is refused with
+        :class:`~mapets_rl.experiment.files.RunDirLocked` naming the holder's pid. The
+        experiment returned holds the lock (until its :meth:`train` returns or
+        :meth:`close`).
         """
         run_dir = Path(run_dir)
         overrides = list(overrides or [])
+        if not (run_dir / CONFIG_FILE).is_file():  # no lock file in what is not a run dir
+            raise ConfigError(f"run_dir {str(run_dir)!r} has no {CONFIG_FILE}")
+        lock = RunDirLock.acquire(run_dir)
+        try:
+            return cls._from_locked_run_dir(run_dir, overrides, load, lock)
+        except BaseException:
+            lock.release()
+            raise
+
+    @classmethod
+    def _from_locked_run_dir(
+        cls, run_dir: Path, overrides: list[str], load: bool, lock: RunDirLock
+    ) -> Experiment:
+        """:meth:`from_run_dir` once ``lock`` (of ``run_dir``) is held."""
         saved, config, on_disk = cls._run_config(run_dir, overrides)
         if config.env != saved.env:
             raise ConfigError(
@@ -548,6 +655,7 @@ class Experiment:
             ckpt, state = load_latest_checkpoint(run_dir, map_location=config.device)
         exp = cls.__new__(cls)
         exp._resuming = True
+        exp._lock = lock
         exp.__init__(config, run_dir)
         if state is not None:
             exp._restore(state, ckpt, _changed_keys(saved.to_dict(), config.to_dict()))
