@@ -23,14 +23,17 @@ from toy_recipe import ToyConfig, ToyLearner
 from mapets_rl.experiment import (
     CheckpointError,
     ConfigError,
+    checkpoint_problem,
     digest_path,
     file_sha256,
+    latest_checkpoint,
     list_checkpoints,
     load_checkpoint,
     load_latest_checkpoint,
     read_results,
     remove_stale_files,
     save_checkpoint,
+    verified_checkpoints,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -422,3 +425,84 @@ def test_kill_9_during_a_checkpoint_write_resumes_bit_exactly(tmp_path: Path, mo
     assert all(not (run / "checkpoints" / name).exists() for name in leftovers)
     assert resumed.train() == full_evals
     assert torch.equal(_params(resumed), _params(full))
+
+
+# ------------------------------------------------------------ a bogus "newest" checkpoint
+BOGUS = "ckpt_999999999999.pt"
+
+
+def _bogus_garbage(run: Path) -> None:
+    (run / "checkpoints" / BOGUS).write_bytes(os.urandom(4096))
+
+
+def _bogus_garbage_with_wrong_digest(run: Path) -> None:
+    path = run / "checkpoints" / BOGUS
+    path.write_bytes(os.urandom(4096))
+    digest_path(path).write_text(f"{'0' * 64}  {BOGUS}\n")
+
+
+def _bogus_copy_of_a_real_one(run: Path) -> None:
+    """A real checkpoint and its digest copied under the bogus name (the digest names the
+    original file)."""
+    real = list_checkpoints(run)[0]
+    (run / "checkpoints" / BOGUS).write_bytes(real.read_bytes())
+    digest_path(run / "checkpoints" / BOGUS).write_text(digest_path(real).read_text())
+
+
+BOGUS_KINDS: dict[str, tuple[Callable[[Path], None], str]] = {
+    "garbage": (_bogus_garbage, "has no digest file ckpt_999999999999.pt.sha256 and is not an "),
+    "wrong digest": (_bogus_garbage_with_wrong_digest, "does not match its SHA-256 digest"),
+    "copy": (_bogus_copy_of_a_real_one, "does not hold the SHA-256 digest of " + BOGUS),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(BOGUS_KINDS))
+def test_a_bogus_newest_checkpoint_is_ranked_by_what_verifies(
+    tmp_path: Path, kind: str, caplog
+) -> None:
+    """A stray ``ckpt_999999999999.pt`` is neither "newest" nor counted by pruning; what is
+    wrong with it is reported in one line (and it is never unpickled)."""
+    run = _trained(tmp_path)
+    make, reason = BOGUS_KINDS[kind]
+    make(run)
+    bogus = run / "checkpoints" / BOGUS
+    ckpt_40 = run / "checkpoints" / "ckpt_000000000040.pt"
+    assert list_checkpoints(run)[-1] == bogus  # newest by name ...
+    assert latest_checkpoint(run) == ckpt_40  # ... but not by what verifies
+    assert verified_checkpoints(run) == list_checkpoints(run)[:2]
+    problem = checkpoint_problem(bogus)
+    assert problem is not None and reason in problem and "\n" not in problem
+    assert "pickled Python objects" not in problem
+    assert checkpoint_problem(ckpt_40) is None
+    with caplog.at_level(logging.WARNING, logger="mapets_rl"):
+        path, state = load_latest_checkpoint(run)
+    assert path == ckpt_40 and state["frames"] == 40
+    warnings = [r.getMessage() for r in caplog.records]
+    assert len(warnings) == 1 and BOGUS in warnings[0] and reason in warnings[0], warnings
+    assert "pickled Python objects" not in warnings[0]
+    # resuming writes two more checkpoints: pruning keeps the two newest real ones (the bogus
+    # file is not one of them), reports the bogus file once and leaves it in place
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="mapets_rl"):
+        resumed = ToyLearner.from_run_dir(run, overrides=["total_frames=80"])
+        assert resumed.frames == 40
+        resumed.train()
+    assert [p.name for p in list_checkpoints(run)] == [
+        "ckpt_000000000060.pt",
+        "ckpt_000000000080.pt",
+        BOGUS,
+    ]
+    assert latest_checkpoint(run).name == "ckpt_000000000080.pt"
+    pruning = [r.getMessage() for r in caplog.records if "not counted" in r.getMessage()]
+    assert len(pruning) == 1 and BOGUS in pruning[0] and reason in pruning[0], pruning
+    assert ToyLearner.from_run_dir(run).frames == 80
+
+
+def test_cli_evaluate_names_what_is_wrong_with_a_bogus_checkpoint(
+    tmp_path: Path, toy_recipe, capsys
+) -> None:
+    run = _trained(tmp_path)
+    _bogus_garbage(run)
+    code, out, err = run_cli(["evaluate", str(run)], capsys)
+    assert code == 0 and '"frames": 40' in out
+    assert err.count("\n") == 1 and BOGUS in err and "is not an archive torch.save writes" in err

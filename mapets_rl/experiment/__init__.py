@@ -55,15 +55,19 @@ Run directory layout: ``config.yaml`` (resolved config), ``run.json`` (recipe, s
 ``results.json`` (frames and metrics of every deterministic evaluation under
 ``evaluations`` and of training entries, e.g. MA-PETS's episodes, under ``train``; read by
 :func:`read_results` and :func:`compare`),
-``checkpoints/ckpt_<frames>.pt`` (atomic, the newest ``keep_last``, each with its SHA-256 digest
-``ckpt_<frames>.pt.sha256``), ``logs/`` (torchrl logger), ``videos/`` (GIFs when
-``video=true``). Every file is written atomically with the same permissions.
+``checkpoints/ckpt_<frames>.pt`` (atomic, the newest ``keep_last`` that verify, each with its
+SHA-256 digest ``ckpt_<frames>.pt.sha256``; replay storages save only their filled rows),
+``logs/`` (torchrl logger), ``videos/`` (GIFs when ``video=true``), and ``.lock`` (the pid of the
+process writing the run while it runs). Every file is written atomically with the same
+permissions.
 
 Reliability: a config is validated when it is built (finite numbers, a device this machine has,
 a registered scenario, installed logger packages), an env config when the env is built, and both
 before anything is written to the run directory. Resuming verifies checkpoints and falls back to
 the newest one that verifies; a resume that fails (bad override, no usable checkpoint) leaves
-the run directory as it was.
+the run directory as it was. One process writes a run directory at a time: a run holds an OS
+lock on it (``.lock``, released with the process, kill -9 included), and a second writer is
+refused with one line naming the holder's pid.
 
 Custom scenarios: ``register_env("name", factory)`` makes ``factory(**env_config)`` available
 to every recipe and to ``--env name`` in this process (replacing an existing scenario needs
@@ -83,6 +87,7 @@ if TYPE_CHECKING:
     from mapets_rl.experiment.checkpoint import (
         CheckpointError,
         atomic_torch_save,
+        checkpoint_problem,
         digest_path,
         file_sha256,
         latest_checkpoint,
@@ -94,6 +99,7 @@ if TYPE_CHECKING:
         save_checkpoint,
         seed_everything,
         set_rng_state,
+        verified_checkpoints,
         verify_checkpoint,
     )
     from mapets_rl.experiment.comparison import compare, mean_ci95, student_t_quantile
@@ -147,6 +153,7 @@ _EXPORTS = {
     "available_recipes": "plugins",
     "build_env": "runner",
     "check": "config",
+    "checkpoint_problem": "checkpoint",
     "compare": "comparison",
     "default_run_dir": "runner",
     "digest_path": "checkpoint",
@@ -170,6 +177,7 @@ _EXPORTS = {
     "seed_everything": "checkpoint",
     "set_rng_state": "checkpoint",
     "student_t_quantile": "comparison",
+    "verified_checkpoints": "checkpoint",
     "verify_checkpoint": "checkpoint",
 }
 
@@ -206,6 +214,7 @@ __all__ = [
     "available_recipes",
     "build_env",
     "check",
+    "checkpoint_problem",
     "compare",
     "default_run_dir",
     "digest_path",
@@ -229,5 +238,6 @@ __all__ = [
     "seed_everything",
     "set_rng_state",
     "student_t_quantile",
+    "verified_checkpoints",
     "verify_checkpoint",
 ]

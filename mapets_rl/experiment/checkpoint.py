@@ -10,9 +10,16 @@ and every checkpoint that appears has its digest already in place.
 :func:`load_checkpoint` verifies the digest before it parses anything and then loads with
 ``torch.load(weights_only=True)``, so a corrupted, truncated or modified file is refused and a
 checkpoint file cannot execute code (a checkpoint of an older version, which has no digest file,
-is loaded with a warning). Every refusal is a :class:`CheckpointError` whose one-line
-message names the file. :func:`load_latest_checkpoint` falls back to the newest checkpoint that
-verifies, logging one line per file it skipped.
+is loaded with a warning; a file without a digest that is not even an archive ``torch.save``
+writes is refused). Every refusal is a :class:`CheckpointError` whose one-line message names the
+file.
+
+Checkpoints are ranked by what verifies, not by their names alone: :func:`latest_checkpoint` is
+the newest checkpoint that verifies, :func:`load_latest_checkpoint` falls back to the newest
+checkpoint that verifies and loads, logging one line per file it skipped, and the pruning of
+:func:`save_checkpoint` keeps the newest ``keep_last`` checkpoints that verify (a file that does
+not, e.g. a stray ``ckpt_999999999999.pt``, is reported in one warning and left alone; it never
+counts as one of the kept checkpoints).
 
 RNG states of python, numpy and torch are stored as tensors (:func:`rng_state`).
 """
@@ -25,6 +32,7 @@ import os
 import pickle
 import random
 import re
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +50,13 @@ _TEMP_NAME = re.compile(r"^\..+\.[a-z0-9_]{8}\.tmp(\.[^.]+)?$")
 and of older checkpoint writes (``.ckpt_<frames>.pt.<random>.tmp``)."""
 
 logger = logging.getLogger(__name__)
+
+_VERIFIED: dict[tuple, str | None] = {}
+"""What :func:`checkpoint_problem` found, keyed by the checkpoint's and its digest file's
+(path, inode, size, mtime): a file is hashed again only when it changed."""
+_VERIFIED_MAX = 1024
+_REPORTED: set[tuple | None] = set()
+"""Keys (as in ``_VERIFIED``) of the files that pruning has reported as not verifying."""
 
 
 class CheckpointError(ValueError):
@@ -141,11 +156,16 @@ def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:
 
     atomic_write(path, write)
     _fsync_dir(path.parent)
+    key = _verification_key(path)
+    if key is not None:  # written and digested just now: it verifies
+        _remember(key, None)
     return path
 
 
 def list_checkpoints(run_dir: str | os.PathLike) -> list[Path]:
-    """Checkpoint files of ``run_dir``, oldest first (temp and digest files are ignored)."""
+    """Files named like checkpoints (``ckpt_<frames>.pt``) in ``run_dir``, oldest first by the
+    step in their names, whether they verify or not (temp and digest files are ignored; see
+    :func:`verified_checkpoints` for the ones that verify)."""
     ckpt_dir = Path(run_dir) / CHECKPOINT_DIR
     if not ckpt_dir.is_dir():
         return []
@@ -153,23 +173,113 @@ def list_checkpoints(run_dir: str | os.PathLike) -> list[Path]:
     return [p for _, p in sorted(found)]
 
 
+def verified_checkpoints(run_dir: str | os.PathLike) -> list[Path]:
+    """The checkpoints of ``run_dir`` that verify (see :func:`checkpoint_problem`), oldest
+    first; files that do not are left out silently."""
+    return [p for p in list_checkpoints(run_dir) if checkpoint_problem(p) is None]
+
+
 def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
-    """The newest checkpoint file of ``run_dir`` (not verified), ``None`` if there is none."""
-    ckpts = list_checkpoints(run_dir)
-    return ckpts[-1] if ckpts else None
+    """The newest checkpoint of ``run_dir`` that verifies (see :func:`checkpoint_problem`),
+    ``None`` if there is none. Newer files that do not verify are passed over silently
+    (:func:`load_latest_checkpoint` reports them)."""
+    for path in reversed(list_checkpoints(run_dir)):
+        if checkpoint_problem(path) is None:
+            return path
+    return None
+
+
+def checkpoint_problem(path: str | os.PathLike) -> str | None:
+    """What is wrong with checkpoint file ``path``, in one line naming it, or ``None`` when it
+    verifies: its digest file matches it, or (a checkpoint written before checkpoints carried
+    digests) it has no digest file but is an archive ``torch.save`` writes.
+
+    The file is not unpickled (that is :func:`load_checkpoint`'s business), and the answer is
+    remembered until the file or its digest file changes, so asking again costs no hashing.
+    """
+    path = Path(path)
+    key = _verification_key(path)
+    if key is not None and key in _VERIFIED:
+        return _VERIFIED[key]
+    try:
+        problem = None if verify_checkpoint(path) or _is_torch_archive(path) else _not_torch(path)
+    except CheckpointError as err:
+        problem = str(err)
+    if key is not None:
+        _remember(key, problem)
+    return problem
+
+
+def _verification_key(path: Path) -> tuple | None:
+    """(path, inode, size, mtime) of ``path`` and of its digest file (``None`` for a digest file
+    that does not exist); ``None`` when ``path`` cannot be stat-ed."""
+
+    def identity(p: Path) -> tuple[int, int, int] | None:
+        try:
+            st = p.stat()
+        except OSError:
+            return None
+        return st.st_ino, st.st_size, st.st_mtime_ns
+
+    own = identity(path)
+    return None if own is None else (str(path), own, identity(digest_path(path)))
+
+
+def _remember(key: tuple, problem: str | None) -> None:
+    if len(_VERIFIED) >= _VERIFIED_MAX:
+        _VERIFIED.clear()
+    _VERIFIED[key] = problem
+
+
+def _is_torch_archive(path: Path) -> bool:
+    """Whether ``path`` is a zip archive holding the ``data.pkl`` record ``torch.save``
+    writes (reads the archive's directory only)."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return any(
+                name == "data.pkl" or name.endswith("/data.pkl") for name in archive.namelist()
+            )
+    except (OSError, zipfile.BadZipFile, ValueError):
+        return False
+
+
+def _not_torch(path: Path) -> str:
+    """The one-line problem of a file without digest that ``torch.save`` did not write."""
+    return (
+        f"checkpoint {str(path)!r} has no digest file {digest_path(path).name} and is not an "
+        "archive torch.save writes (not a checkpoint this library wrote)"
+    )
 
 
 def save_checkpoint(
     state: dict[str, Any], run_dir: str | os.PathLike, step: int, keep_last: int = 2
 ) -> Path:
     """Write ``state`` as ``run_dir/checkpoints/ckpt_<step>.pt`` (+ digest) atomically; keep the
-    newest ``keep_last`` checkpoints and delete older ones (only after the new one is in place)."""
+    newest ``keep_last`` checkpoints that verify and delete older ones (only after the new one
+    is in place).
+
+    A file named like a checkpoint that does not verify (:func:`checkpoint_problem`) is not
+    counted among the kept ones and is not deleted: it is reported in one logged warning
+    (once per process while it stays the same) and left for its owner to inspect.
+    """
     if step < 0:
         raise ValueError(f"step must be >= 0, got {step}")
     if keep_last < 1:
         raise ValueError(f"keep_last must be >= 1, got {keep_last}")
     path = atomic_torch_save(state, Path(run_dir) / CHECKPOINT_DIR / f"ckpt_{step:012d}.pt")
-    for old in list_checkpoints(run_dir)[:-keep_last]:
+    verified = []
+    for candidate in list_checkpoints(run_dir):
+        problem = checkpoint_problem(candidate)
+        if problem is None:
+            verified.append(candidate)
+            continue
+        key = _verification_key(candidate)
+        if key not in _REPORTED:
+            if len(_REPORTED) >= _VERIFIED_MAX:
+                _REPORTED.clear()
+            _REPORTED.add(key)
+            logger.warning("%s; not counted as a checkpoint to keep, left in place", problem)
+    for old in verified[:-keep_last]:
         old.unlink(missing_ok=True)
         digest_path(old).unlink(missing_ok=True)
     return path
@@ -221,6 +331,8 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     """
     path = Path(path)
     if not verify_checkpoint(path):
+        if not _is_torch_archive(path):
+            raise CheckpointError(_not_torch(path))
         logger.warning(
             "checkpoint %r has no digest file %s (written before checkpoints carried "
             "digests); loading it without an integrity check",
@@ -250,8 +362,9 @@ def load_latest_checkpoint(
 ) -> tuple[Path, dict]:
     """The newest checkpoint of ``run_dir`` that verifies and loads, and its state.
 
-    Each newer checkpoint that fails is skipped with one logged warning naming the file and
-    the reason.
+    Each newer file named like a checkpoint that fails (does not verify, see
+    :func:`checkpoint_problem`, or does not load) is skipped with one logged warning naming the
+    file and the reason.
 
     Raises:
         CheckpointError: when ``run_dir`` has no checkpoint, or none of them verifies.
