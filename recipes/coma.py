@@ -26,11 +26,12 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.objectives import SoftUpdate
 
 from mapets_rl.experiment import Experiment, SystemRewardMetrics, check
+from mapets_rl.experiment.storage import FilledTensorStorage
 from mapets_rl.experiment.training import OnPolicyConfig
 from mapets_rl.modules import ACTION, ACTION_VALUE, OBS, AgentGroupSpec, make_stochastic_policy
 from mapets_rl.objectives import COMACritic, COMALoss
@@ -128,7 +129,7 @@ class COMA(SystemRewardMetrics, Experiment):
 
         # buffer: the latest batch, minibatches without replacement
         self.buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(config.frames_per_batch, device=self.device),
+            storage=FilledTensorStorage(config.frames_per_batch, device=self.device),
             sampler=SamplerWithoutReplacement(),
             batch_size=config.minibatch_size,
         )

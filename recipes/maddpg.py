@@ -22,11 +22,12 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import TensorDictReplayBuffer
 from torchrl.modules import AdditiveGaussianModule, MultiAgentMLP, TanhModule
 from torchrl.objectives import SoftUpdate, ValueEstimators
 
 from mapets_rl.experiment import Experiment, check
+from mapets_rl.experiment.storage import FilledTensorStorage
 from mapets_rl.experiment.training import OffPolicyConfig
 from mapets_rl.modules import (
     ACTION,
@@ -168,7 +169,7 @@ class MADDPG(Experiment):
 
         # buffer
         self.buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(config.buffer_size), batch_size=config.batch_size
+            storage=FilledTensorStorage(config.buffer_size), batch_size=config.batch_size
         )
 
         # loss: DDPG with per-agent TD(0) targets through target actor and critic

@@ -16,13 +16,14 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.modules import MultiAgentMLP
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.multiagent import IPPOLoss, MAPPOLoss
 
 from mapets_rl.experiment import Experiment, check
+from mapets_rl.experiment.storage import FilledTensorStorage
 from mapets_rl.experiment.training import OnPolicyConfig
 from mapets_rl.modules import (
     ACTION,
@@ -104,7 +105,7 @@ class MAPPO(Experiment):
 
         # buffer: the latest batch, minibatches without replacement
         self.buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(config.frames_per_batch),
+            storage=FilledTensorStorage(config.frames_per_batch),
             sampler=SamplerWithoutReplacement(),
             batch_size=config.minibatch_size,
         )

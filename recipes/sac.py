@@ -19,11 +19,12 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import TensorDictReplayBuffer
 from torchrl.modules import MultiAgentMLP
 from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate, ValueEstimators
 
 from mapets_rl.experiment import Experiment, check
+from mapets_rl.experiment.storage import FilledTensorStorage
 from mapets_rl.experiment.training import OffPolicyConfig
 from mapets_rl.modules import (
     ACTION,
@@ -129,7 +130,7 @@ class SAC(Experiment):
 
         # buffer
         self.buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(config.buffer_size), batch_size=config.batch_size
+            storage=FilledTensorStorage(config.buffer_size), batch_size=config.batch_size
         )
 
         # loss: twin-Q soft Bellman targets, learned temperature (target entropy per agent)

@@ -27,10 +27,11 @@ from typing import Any, ClassVar
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import TensorDictReplayBuffer
 from torchrl.objectives import SoftUpdate
 
 from mapets_rl.experiment import Experiment, SystemRewardMetrics, check
+from mapets_rl.experiment.storage import FilledTensorStorage
 from mapets_rl.experiment.training import OffPolicyConfig
 from mapets_rl.modules import AgentGroupSpec, GumbelSoftmaxHead
 from mapets_rl.objectives import ShapleyActorCriticLoss
@@ -211,7 +212,7 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
         self.eval_policy = self.policy
 
         self.buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(config.buffer_size, device=device),
+            storage=FilledTensorStorage(config.buffer_size, device=device),
             batch_size=config.batch_size,
         )
 

@@ -10,6 +10,11 @@ that storage (``[I, C]`` long tensor). A storage slot is reference-counted by th
 it and reused once no ring does, so the storage never needs more than ``I * C`` slots: memory is
 fixed at construction and does not grow with the number of neighbours. Exchanging data only
 writes indices. The overhead that a real radio would carry (one copy per link) is counted.
+
+A checkpoint (:meth:`NeighbourDatasets.state_dict`) holds the slots that were ever written and
+their transitions, not the whole storage: the slots never written hold whatever the allocator
+left there (``torch.empty``), which would make identical runs write different checkpoints, put
+the process's old memory on disk and cost ``I * C`` transitions of space from the first episode.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage
 
 __all__ = ["ExchangeStats", "NeighbourDatasets"]
@@ -343,11 +348,17 @@ class NeighbourDatasets:
 
     # ------------------------------------------------------------------ checkpointing
     def state_dict(self) -> dict[str, Any]:
-        """Everything needed to resume: storage, rings, counters and the sampling RNG."""
+        """Everything needed to resume: the stored transitions, rings, counters and the
+        sampling RNG.
+
+        ``"storage"`` is ``{"slots": [S] long, "data": {key: tensor [S, ...]}}``: the slots
+        ever written (the only ones a ring can point to) and their transitions, ``{}`` before
+        the first :meth:`add`; slots never written are not saved (see the module docstring).
+        """
         return {
             "n_agents": self.n_agents,
             "capacity_per_agent": self.capacity_per_agent,
-            "storage": self.storage.state_dict(),
+            "storage": self._storage_state(),
             "ring": self._ring.clone(),
             "cursor": self._cursor.clone(),
             "size": self._size.clone(),
@@ -371,7 +382,7 @@ class NeighbourDatasets:
                     f"{name} of the state dict ({state_dict[name]}) differs from this "
                     f"instance ({getattr(self, name)})"
                 )
-        self.storage.load_state_dict(state_dict["storage"])
+        self._load_storage_state(state_dict["storage"])
         for name in ("ring", "cursor", "size", "refcount", "owner", "uid", "pending"):
             setattr(self, f"_{name}", state_dict[name].to(self.device).clone())
         self._next_uid = int(state_dict["next_uid"])
@@ -380,6 +391,28 @@ class NeighbourDatasets:
         self.total_bytes_sent = int(state_dict["total_bytes_sent"])
         self.n_exchanges = int(state_dict["n_exchanges"])
         self.generator.set_state(state_dict["generator"])
+
+    def _storage_state(self) -> dict[str, Any]:
+        """The written slots of the storage and their transitions (see :meth:`state_dict`)."""
+        if not self.storage.initialized:
+            return {}
+        slots = torch.nonzero(self._uid >= 0).squeeze(1)
+        return {"slots": slots, "data": self.storage.get(slots).to_dict()}
+
+    def _load_storage_state(self, state: dict[str, Any]) -> None:
+        """Rebuild the storage from :meth:`_storage_state` output (or, from a checkpoint of an
+        older version, a whole ``LazyTensorStorage`` state)."""
+        self.storage = LazyTensorStorage(
+            self.n_agents * self.capacity_per_agent, device=self.device
+        )
+        if "slots" not in state:
+            if state:
+                self.storage.load_state_dict(state)
+            return
+        slots = state["slots"].to(self.device)
+        data = TensorDict(state["data"], batch_size=slots.shape).to(self.device)
+        if slots.numel():
+            self.storage.set(slots, data)
 
     def __repr__(self) -> str:
         return (
