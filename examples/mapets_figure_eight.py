@@ -1,6 +1,8 @@
-"""MA-PETS on the single-lane figure-eight (paper sec. VI-B, Fig. 3 and Fig. 5 analogue).
+"""MA-PETS on the figure-eight (paper sec. VI-B: Figs. 3 and 5 on one lane, Fig. 4 on two).
 
-Trains MA-PETS with 8 CAVs for ``--episodes`` episodes, for every communication range of
+Trains MA-PETS on ``--scenario`` (``figure-eight``: 8 CAVs, 200-step episodes;
+``figure-eight-multilane``: the paper's second experiment, 2 lanes, 22 CAVs, 400-step episodes)
+for ``--episodes`` episodes, for every communication range of
 ``--ranges`` (default d = 100 m, the paper's setting, and d = 0, independent learners), every
 observation option of ``--observations`` (default ``crossing``, the library's default, and
 ``paper``, the paper's 7 features) and every seed of ``--seeds``; then prints a per-episode table
@@ -20,6 +22,7 @@ option and d (``OUT/summary``: ``learning_curves.png``, ``curves.json``, ``summa
 ``final_metrics.md``).
 
     python examples/mapets_figure_eight.py               # 3 seeds x d in {100, 0} x 2 options
+    python examples/mapets_figure_eight.py --scenario figure-eight-multilane  # paper Fig. 4
     python examples/mapets_figure_eight.py --ranges 100 --seeds 0 --observations crossing
     python examples/mapets_figure_eight.py --report-only             # table + plot only
     python examples/mapets_figure_eight.py --set model.epochs=5 --out DIR  # one change
@@ -45,6 +48,11 @@ from mapets_rl.experiment.sweep import (
 )
 
 METRICS = ("agility", "safety")
+SCENARIO_DEFAULTS = {
+    "figure-eight": {"cavs": 8, "horizon": 200, "observations": ["crossing", "paper"]},
+    "figure-eight-multilane": {"cavs": 22, "horizon": 400, "observations": ["crossing"]},
+}
+"""Per scenario: the paper's CAVs and episode length, and the observation options compared."""
 
 
 def group_name(observation: str, comm_range: float) -> str:
@@ -143,14 +151,22 @@ def main() -> None:
         help="communication ranges d in metres",
     )
     parser.add_argument(
+        "--scenario",
+        default="figure-eight",
+        choices=list(SCENARIO_DEFAULTS),
+        help="one lane (paper Figs. 3, 5) or two lanes (paper Fig. 4)",
+    )
+    parser.add_argument(
         "--observations",
         nargs="+",
-        default=["crossing", "paper"],
+        default=None,
         choices=["crossing", "paper"],
-        help="figure-eight observation options",
+        help="figure-eight observation options (default: both on one lane, crossing on two)",
     )
-    parser.add_argument("--cavs", type=int, default=8, help="CAVs I (paper: 8)")
-    parser.add_argument("--horizon", type=int, default=200, help="steps per episode H")
+    parser.add_argument("--cavs", type=int, default=None, help="CAVs I (paper: 8 / 22)")
+    parser.add_argument(
+        "--horizon", type=int, default=None, help="steps per episode H (paper: 200 / 400)"
+    )
     parser.add_argument("--preset", default="cpu", choices=["cpu", "paper"])
     parser.add_argument("--threads", type=int, default=1, help="torch threads (CPUs) per run")
     parser.add_argument(
@@ -172,6 +188,10 @@ def main() -> None:
         "--report-only", action="store_true", help="only aggregate the runs already in --out"
     )
     args = parser.parse_args()
+    defaults = SCENARIO_DEFAULTS[args.scenario]
+    for name, value in defaults.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
     for name in ("episodes", "cavs", "horizon", "threads"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
@@ -179,7 +199,7 @@ def main() -> None:
         parser.error(f"--ranges must be >= 0 metres, got {args.ranges}")
     spec = SweepSpec(
         recipe="mapets",
-        env="figure-eight",
+        env=args.scenario,
         seeds=args.seeds,
         out=args.out,
         grid={"env_config.observation": args.observations, "comm.comm_range": args.ranges},
