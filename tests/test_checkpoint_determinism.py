@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 import torch
 from tensordict import TensorDict
+from test_recipe_mapets import TINY
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 
@@ -23,16 +24,7 @@ from recipes.maddpg import MADDPG, MADDPGConfig
 from recipes.mapets import MAPETS, MAPETSConfig
 from recipes.mappo import MAPPO, MAPPOConfig
 
-TINY_MAPETS = dict(
-    env_config={"n_cavs": 3, "n_hvs": 2, "horizon": 20},
-    preset="cpu",
-    planner={"horizon": 3, "population": 8, "elites": 2, "iterations": 2, "particles": 5},
-    model={"hidden": [16], "buffer_size": 64, "batch_size": 16, "epochs": 2},
-    num_threads=1,
-    progress=False,
-    episodes=2,
-    seed=3,
-)
+TINY_MAPETS = dict(TINY, episodes=2, seed=3)
 WALL_CLOCK = ("train_time", "step_time")
 """MA-PETS's per-episode metrics that are measured durations (differ between any two runs)."""
 

@@ -5,20 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from test_envs import place
 
 from mapets_rl.envs import figure_eight_collision, figure_eight_observation_bounds, make_env
 from mapets_rl.envs.figure_eight import TWO_LANE_OBS_DIM, FigureEightEnv
-
-
-def place(env: FigureEightEnv, vehicle, coordinate: float, speed: float, lane: int) -> None:
-    """Put ``vehicle`` at route coordinate ``coordinate`` on ``lane`` with ``speed``."""
-    index, s = env.geometry.lane_at(coordinate, lane)
-    lane_obj = env.geometry.network.get_lane(index)
-    vehicle.position = lane_obj.position(s, 0.0)
-    vehicle.heading = lane_obj.heading_at(s)
-    vehicle.speed = speed
-    vehicle.lane_index = vehicle.target_lane_index = index
-    vehicle.lane = lane_obj
 
 
 def two_lane_env(n_hvs: int) -> FigureEightEnv:
