@@ -326,6 +326,7 @@ class MAPETS(Experiment):
     name = "mapets"
     Config = MAPETSConfig
     action_kinds = ("continuous",)
+    progress_unit = "episode"
 
     def __init__(
         self,

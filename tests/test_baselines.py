@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from PIL import Image
 from torchrl.modules import MultiAgentMLP
 
 from mapets_rl.experiment import ConfigError
@@ -175,5 +176,8 @@ def test_evaluation_video_is_a_gif(tmp_path: Path) -> None:
     )
     exp = MAPPO(config, tmp_path)
     metrics = exp.evaluate(episodes=1, video=True)
-    frames = imageio.mimread(tmp_path / "videos" / "eval_000000000000.gif")
+    path = tmp_path / "videos" / "eval_000000000000.gif"
+    frames = imageio.mimread(path)
     assert len(frames) == metrics["length"] == 5 and frames[0].ndim == 3
+    with Image.open(path) as gif:  # real time: 0.1 s steps on the figure-eight
+        assert gif.info["duration"] == 100

@@ -559,11 +559,21 @@ class Experiment:
         render = getattr(self.env, "render", None)
         return render() if callable(render) else None
 
+    def _policy_frequency(self) -> float:
+        """Policy steps per second of the video env's scenario (``policy_frequency`` of a
+        highway-env scenario; 10 when the env does not say)."""
+        scenario = getattr(getattr(self._video_env, "base_env", None), "_env", None)
+        config = getattr(getattr(scenario, "env", None), "config", None) or {}
+        return float(config.get("policy_frequency", 10))
+
     def _write_video(self, frames: list[Any]) -> Path:
+        """An animated GIF of ``frames``, one per policy step, played in real time (imageio's
+        GIF writer reads ``duration`` in milliseconds per frame)."""
         import imageio.v2 as imageio
 
+        delay_ms = 1000.0 / self._policy_frequency()
         path = self.run_dir / "videos" / f"eval_{self.frames:012d}.gif"
-        atomic_write(path, lambda tmp: imageio.mimsave(tmp, frames, duration=0.1))
+        atomic_write(path, lambda tmp: imageio.mimsave(tmp, frames, duration=delay_ms))
         return path
 
     # ----------------------------------------------------------------------- checkpoints
