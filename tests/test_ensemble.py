@@ -257,3 +257,27 @@ def test_ensemble_optimizer_is_fused_adam_on_cpu():
     group = optim.param_groups[0]
     assert group["lr"] == 3e-3 and group["fused"] is True
     assert len(group["params"]) == len(list(loss.parameters()))
+
+
+def test_bf16_predictions_follow_fused_adam_updates():
+    """A fused Adam step changes the parameters without bumping their version counters; a
+    prediction in another dtype after the step must still see the new weights (a cache keyed
+    on versions planned every later episode with stale weights)."""
+    torch.manual_seed(0)
+    model = ProbabilisticEnsemble(3, 1, 2, ensemble_size=2, hidden=(8,))
+    optim = ensemble_optimizer(EnsembleNLLLoss(model), lr=1e-1)
+    obs, act = torch.randn(2, 2, 5, 3), torch.randn(2, 2, 5, 1)
+
+    def predict_bf16() -> torch.Tensor:
+        with torch.no_grad(), model.frozen_parameters(torch.bfloat16):
+            first = model.predict(obs, act, dtype=torch.bfloat16)[0]
+            torch.testing.assert_close(model.predict(obs, act, dtype=torch.bfloat16)[0], first)
+            return first
+
+    before = predict_bf16()
+    model.predict(obs, act)[0].square().sum().backward()
+    optim.step()
+    after = predict_bf16()
+    assert not torch.equal(before, after)
+    torch.testing.assert_close(after, model.predict(obs, act, dtype=torch.bfloat16)[0])
+    assert model._param_cache is None  # nothing outlives the block

@@ -88,6 +88,23 @@ def test_resume_continues_at_episode_3_like_an_uninterrupted_run(two_episodes, t
         torch.testing.assert_close(a, b)
 
 
+def test_bf16_planner_resumes_like_an_uninterrupted_run(tmp_path):
+    """The bf16 planner (``dtype="auto"`` on AVX512-BF16 CPUs) plans with the weights trained
+    in this process exactly as with the same weights loaded from a checkpoint."""
+    planner = {**TINY["planner"], "dtype": "bf16"}
+    first = MAPETS(tiny(episodes=2, seed=3, planner=planner), tmp_path / "run")
+    first.train()
+    resumed = MAPETS.from_run_dir(tmp_path / "run", overrides=["episodes=3"])
+    resumed.train()
+    straight = MAPETS(tiny(episodes=3, seed=3, planner=planner), tmp_path / "straight")
+    straight.train()
+    got, ref = (r.results.train[2]["metrics"] for r in (resumed, straight))
+    timings = {k for k in ref if k.endswith("_time")}
+    assert timings and {k: v for k, v in got.items() if k not in timings} == {
+        k: v for k, v in ref.items() if k not in timings
+    }
+
+
 def test_d0_shares_nothing_and_d_inf_shares(tmp_path):
     exp = MAPETS(tiny(episodes=1, comm={"comm_range": 0.0}), tmp_path / "d0")
     (metrics,) = [e["metrics"] for e in exp.train()]

@@ -18,8 +18,9 @@ Two entry points:
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import torch
 from tensordict import TensorDictBase
@@ -132,7 +133,8 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
         self.register_buffer("input_std", torch.ones(n_agents, 1, 1, in_dim))
         self.register_buffer("output_mean", torch.zeros(n_agents, 1, 1, obs_dim))
         self.register_buffer("output_std", torch.ones(n_agents, 1, 1, obs_dim))
-        self._param_cache: tuple[tuple, list[tuple[torch.Tensor, torch.Tensor]]] | None = None
+        # (dtype, per-layer parameters) while a frozen_parameters block is open
+        self._param_cache: tuple[torch.dtype, list[tuple[torch.Tensor, torch.Tensor]]] | None = None
         self._buffers_cache: list[torch.Tensor] | None = None  # inference workspace
 
     # ------------------------------------------------------------------ normalisation
@@ -216,25 +218,43 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
     def _batched_params(self, dtype: torch.dtype) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """Per layer ``(weight [G*B, in, out], bias [G*B, 1, out])`` in ``dtype``.
 
-        With autograd on and the parameters' dtype these are fresh views (gradients flow);
-        otherwise detached copies / views cached until a parameter changes (in-place updates
-        bump ``_version``), so a planning call does not rebuild them at every horizon step.
+        Inside :meth:`frozen_parameters` the copies made on entry; otherwise fresh views
+        (gradients flow) or, in another dtype, fresh detached casts.
         """
-        if torch.is_grad_enabled() and dtype == self.weights[0].dtype:
+        if self._param_cache is not None and self._param_cache[0] == dtype:
+            return self._param_cache[1]
+        if dtype == self.weights[0].dtype:
             return [
                 (w.flatten(0, 1), b.flatten(0, 1))
                 for w, b in zip(self.weights, self.biases, strict=True)
             ]
-        params = [*self.weights, *self.biases]
-        key = (dtype, *(id(p) for p in params), *(p._version for p in params))
-        if self._param_cache is None or self._param_cache[0] != key:
-            with torch.no_grad():
-                cast = [
-                    (w.detach().flatten(0, 1).to(dtype), b.detach().flatten(0, 1).to(dtype))
-                    for w, b in zip(self.weights, self.biases, strict=True)
-                ]
-            self._param_cache = (key, cast)
-        return self._param_cache[1]
+        with torch.no_grad():
+            return [
+                (w.detach().flatten(0, 1).to(dtype), b.detach().flatten(0, 1).to(dtype))
+                for w, b in zip(self.weights, self.biases, strict=True)
+            ]
+
+    @contextlib.contextmanager
+    def frozen_parameters(self, dtype: torch.dtype | None = None) -> Iterator[None]:
+        """Within the block, :meth:`predict` in ``dtype`` (default: the parameters') reuses one
+        detached copy of the parameters cast on entry, instead of casting at every call (a
+        planner calls it ``H`` times per CEM iteration). The parameters must not change inside
+        the block. The copy is dropped on exit: optimisers update parameters in place, and a
+        fused Adam does not bump their version counters, so no cache can outlive a block."""
+        dtype = self.weights[0].dtype if dtype is None else dtype
+        if self._param_cache is not None and self._param_cache[0] == dtype:
+            yield  # nested: the outer block's copy is still valid
+            return
+        outer = self._param_cache
+        with torch.no_grad():
+            self._param_cache = (
+                dtype,
+                [(w.detach(), b.detach()) for w, b in self._batched_params(dtype)],
+            )
+        try:
+            yield
+        finally:
+            self._param_cache = outer
 
     def _workspace(self, rows: int, dtype: torch.dtype, device: torch.device) -> list[torch.Tensor]:
         """Two flat buffers for ``rows`` x widest hidden layer, reused while the size fits."""

@@ -10,6 +10,7 @@ Python loops are over CEM iterations and horizon steps.
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from collections.abc import Sequence
 
@@ -365,14 +366,16 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             return scores
 
         anchors = self._anchors(envs) if self.anchor_candidates else None
-        mu = self.optimizer.optimize(
-            score,
-            self._mean,
-            self.action_low,
-            self.action_high,
-            anchors=anchors,
-            keep_best=self.keep_best,
-        )
+        frozen = getattr(model, "frozen_parameters", None)  # optional (DynamicsModel)
+        with frozen(self.dtype) if frozen is not None else contextlib.nullcontext():
+            mu = self.optimizer.optimize(
+                score,
+                self._mean,
+                self.action_low,
+                self.action_high,
+                anchors=anchors,
+                keep_best=self.keep_best,
+            )
         self._warn_nonfinite()
         self._solution = mu
         action = torch.clamp(mu[:, :, 0], self.action_low[:, 0], self.action_high[:, 0])

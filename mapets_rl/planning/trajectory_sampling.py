@@ -47,7 +47,11 @@ class DynamicsModel(Protocol):
         self, obs: torch.Tensor, action: torch.Tensor, dtype: torch.dtype = torch.float32
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Delta mean and log-variance ``[I, B, N, S]`` from ``obs [I, B, N, S]`` and
-        ``action [I, B, N, A]`` (member ``b`` predicts rows ``[:, b]``)."""
+        ``action [I, B, N, A]`` (member ``b`` predicts rows ``[:, b]``).
+
+        A model may also offer ``frozen_parameters(dtype)``, a context manager within which
+        its parameters are prepared once for many ``predict`` calls (``TrajectorySamplingCEM``
+        opens it around each ``plan``; ``ProbabilisticEnsemble`` has one)."""
         ...
 
 
