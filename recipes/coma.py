@@ -95,6 +95,7 @@ class COMA(SystemRewardMetrics, Experiment):
 
     name = "coma"
     Config = COMAConfig
+    action_kinds = ("discrete",)
 
     def __init__(self, config: COMAConfig, run_dir: Any = None) -> None:
         super().__init__(config, run_dir)

@@ -469,7 +469,8 @@ class MAPETS(Experiment):
     # ------------------------------------------------------------------ the loop
     def _seed_episode(self, episode: int) -> None:
         """Seed the env and every private random stream from ``(seed, episode)``."""
-        base = self.config.seed * 1_000_003 + episode * 7_919
+        # reduced below 2**62 so that every stream's seed fits a signed 64-bit integer
+        base = (self.config.seed * 1_000_003 + episode * 7_919) % (1 << 62)
         self.env.set_seed(base)
         self.comm.set_seed(base + 1)
         self.plan_generator.manual_seed(base + 2)

@@ -99,7 +99,7 @@ CONFIG_CASES = [
         lambda: ToyConfig(env="nowhere"),
         "env must be one of the registered scenarios",
     ),
-    ("seed=-1", lambda: ToyConfig(seed=-1), "seed must be >= 0"),
+    ("seed=-1", lambda: ToyConfig(seed=-1), r"seed must be in \[0, 4611686018427387903\]"),
 ]
 
 
@@ -156,6 +156,23 @@ def bad_yaml(tmp_path: Path) -> Path:
 
 
 @pytest.fixture
+def dup_yaml(tmp_path: Path) -> Path:
+    path = tmp_path / "dup.yaml"
+    path.write_text("lr: 0.1\ntotal_frames: 40\nlr: 0.2\n")
+    return path
+
+
+@pytest.fixture
+def alias_yaml(tmp_path: Path) -> Path:
+    """A "billion laughs" document: each line doubles the last (2**9 here, unbounded in
+    general)."""
+    lines = ["a0: &a0 [x, x]"] + [f"a{i}: &a{i} [*a{i - 1}, *a{i - 1}]" for i in range(1, 9)]
+    path = tmp_path / "bomb.yaml"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.fixture
 def finished_run(tmp_path: Path) -> Path:
     run = tmp_path / "done"
     ToyLearner(ToyConfig(total_frames=20), run).train()
@@ -169,7 +186,38 @@ CLI_CASES = [
     ("lr=nan", TRAIN + ["lr=nan"], "lr must be a finite number"),
     ("device=bogus", TRAIN + ["device=bogus"], "device must be one of"),
     ("device=cuda", TRAIN + [f"device={NO_CUDA_DEVICE}"], "device must be one of"),
-    ("env=nowhere override", TRAIN + ["env=nowhere"], "env must be one of the registered"),
+    (
+        "env=nowhere override",
+        TRAIN + ["env=nowhere"],
+        r"chosen by --env \(toy\), not by 'env=nowhere'",
+    ),
+    ("--env and env=", TRAIN + ["env=freeway"], r"chosen by --env \(toy\), not by 'env=freeway'"),
+    ("--seed and seed=", TRAIN + ["--seed", "1", "seed=2"], "--seed 1 and 'seed=2' both set"),
+    ("a key twice", TRAIN + ["lr=0.1", "lr=0.2"], r"lr is set twice \('lr=0.1' and 'lr=0.2'\)"),
+    ("--run-dir ''", TRAIN + ["--run-dir", ""], "--run-dir must be a non-empty path"),
+    (
+        "--run-dir name too long",
+        TRAIN + ["--run-dir", "{tmp_path}/" + "x" * 300],
+        "run_dir cannot be created: the name .* is 300 bytes, this file system allows",
+    ),
+    (
+        "total_frames below one batch",
+        TRAIN + ["total_frames=20", "frames_per_batch=200"],
+        "total_frames must be >= frames_per_batch=200",
+    ),
+    ("seed=2**64", TRAIN + [f"seed={2**64}"], r"seed must be in \[0, 4611686018427387903\]"),
+    ("--config /dev/zero", TRAIN + ["--config", "/dev/zero"], "larger than 1048576 bytes"),
+    (
+        "--config duplicate key",
+        TRAIN + ["--config", "{dup_yaml}"],
+        "key 'lr' given twice at line 3",
+    ),
+    ("--config alias bomb", TRAIN + ["--config", "{alias_yaml}"], r"aliases \(\*name\) are not"),
+    (
+        "coma on continuous actions",
+        ["train", "coma", "--env", "figure-eight", "total_frames=20"],
+        "coma needs discrete actions; scenario 'figure-eight' has continuous actions",
+    ),
     ("malformed --config", TRAIN + ["--config", "{bad_yaml}"], "is not valid YAML"),
     ("missing --config", TRAIN + ["--config", "/nonexistent/c.yaml"], "cannot be read"),
     (
@@ -225,7 +273,7 @@ CLI_CASES = [
 def test_cli_exits_2_with_one_line(
     argv: list[str], match: str, toy_recipe, tmp_path: Path, request, capsys
 ) -> None:
-    names = {"a_file", "bad_yaml", "finished_run", "tmp_path"}
+    names = {"a_file", "bad_yaml", "dup_yaml", "alias_yaml", "finished_run", "tmp_path"}
     values = {n: request.getfixturevalue(n) for n in names if any(f"{{{n}}}" in a for a in argv)}
     argv = [a.format(**values) for a in argv]
     capsys.readouterr()

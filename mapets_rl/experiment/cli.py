@@ -65,10 +65,51 @@ def _show_library_warnings() -> None:
 
 
 def _overrides(items: Sequence[str]) -> list[str]:
+    """The ``key=value`` arguments, refused (exit 2, one line) when one is not of that form or
+    two set the same key (which would otherwise leave the last one winning silently)."""
+    seen: dict[str, str] = {}
     for item in items:
-        if "=" not in item:
+        key, sep, _ = item.partition("=")
+        if not sep or not key.strip():
             _fail(f"expected key=value, got {item!r}")
+        key = key.strip()
+        if key in seen:
+            _fail(f"{key} is set twice ({seen[key]!r} and {item!r}): give it once")
+        seen[key] = item
     return list(items)
+
+
+def _check_flag_conflicts(args: argparse.Namespace, overrides: Sequence[str]) -> None:
+    """``--env``/``--seed``/``--run-dir`` against ``key=value`` overrides of the same field."""
+    keys = {item.partition("=")[0].strip(): item for item in overrides}
+    if "env" in keys:
+        _fail(f"the scenario is chosen by --env ({args.env}), not by {keys['env']!r}")
+    if args.seed is not None and "seed" in keys:
+        _fail(f"--seed {args.seed} and {keys['seed']!r} both set the seed: give one")
+    if args.run_dir == "":
+        _fail("--run-dir must be a non-empty path, got ''")
+
+
+def _check_action_kind(cls: type, env_name: str) -> None:
+    """Refuse (exit 2, one line) a recipe on a scenario whose actions it cannot take, before
+    its config is read (a recipe's default ``env_config`` is written for the scenarios it
+    supports)."""
+    kinds = tuple(getattr(cls, "action_kinds", ("continuous", "discrete")))
+    if {"continuous", "discrete"} <= set(kinds):
+        return
+    from mapets_rl.experiment.runner import build_env
+    from mapets_rl.modules import AgentGroupSpec
+
+    env = build_env(env_name, {})
+    try:
+        kind = "discrete" if AgentGroupSpec.from_env(env).discrete else "continuous"
+    finally:
+        env.close()
+    if kind not in kinds:
+        _fail(
+            f"{cls.name} needs {' or '.join(kinds)} actions; scenario {env_name!r} has {kind} "
+            f"actions (`mapets-rl train {cls.name} --help` lists the scenarios it supports)"
+        )
 
 
 def _recipe_names() -> str:
@@ -266,6 +307,9 @@ def _check_env(name: str) -> None:
 def _cmd_train(args: argparse.Namespace) -> int:
     cls = _recipe_class(args.recipe)  # an unknown name fails before torch is imported
     _check_env(args.env)
+    user_overrides = _overrides(args.overrides)
+    _check_flag_conflicts(args, user_overrides)
+    _check_action_kind(cls, args.env)
     from mapets_rl.experiment.config import ConfigError
     from mapets_rl.experiment.files import check_writable_dir
     from mapets_rl.experiment.runner import default_run_dir
@@ -275,10 +319,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
         overrides.append(f"seed={args.seed}")
     try:
         config = cls.Config.from_yaml(args.config) if args.config else cls.Config()
-        config = config.with_overrides(overrides + _overrides(args.overrides))
+        config = config.with_overrides(overrides + user_overrides)
     except ConfigError as err:
         _fail(str(err))
-    if args.run_dir:
+    if args.run_dir is not None:
         run_dir = args.run_dir
     else:
         try:

@@ -45,8 +45,7 @@ import os
 import types
 import typing
 import warnings
-from collections.abc import Iterable, Mapping
-from pathlib import Path
+from collections.abc import Hashable, Iterable, Mapping
 from typing import Any, ClassVar, Literal, Union, get_args, get_origin
 
 import yaml
@@ -58,6 +57,10 @@ LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb"}
 """Logger kind -> the package it needs (checked when a config is built)."""
 DEVICE_TYPES = ("cpu", "cuda", "mps")
 COLLECTORS = ("auto", "single", "multi_sync", "ray")
+
+MAX_SEED = 2**62 - 1
+"""The largest ``seed``: the seeds derived from it (offsets per evaluation and checkpoint
+boundary) must stay signed 64-bit integers."""
 
 
 class ConfigError(ValueError):
@@ -271,7 +274,7 @@ class RunConfig:
         check(bool(self.env), "env", "a non-empty scenario name", self.env)
         check_env_name(self.env)
         check_device(self.device)
-        check(self.seed >= 0, "seed", ">= 0", self.seed)
+        check(0 <= self.seed <= MAX_SEED, "seed", f"in [0, {MAX_SEED}] (2**62 - 1)", self.seed)
         check(self.eval_episodes >= 1, "eval_episodes", ">= 1", self.eval_episodes)
         check(self.keep_last >= 1, "keep_last", ">= 1", self.keep_last)
         check(self.logger in LOGGERS, "logger", f"one of {list(LOGGERS)}", self.logger)
@@ -419,6 +422,12 @@ class ExperimentConfig(RunConfig):
         super().__post_init__()
         check(self.total_frames > 0, "total_frames", "> 0", self.total_frames)
         check(self.frames_per_batch > 0, "frames_per_batch", "> 0", self.frames_per_batch)
+        check(
+            self.total_frames >= self.frames_per_batch,
+            "total_frames",
+            f">= frames_per_batch={self.frames_per_batch} (one collected batch)",
+            self.total_frames,
+        )
         check(self.num_envs >= 1, "num_envs", ">= 1", self.num_envs)
         check(
             self.collector in COLLECTORS, "collector", f"one of {list(COLLECTORS)}", self.collector
@@ -454,6 +463,43 @@ class ExperimentConfig(RunConfig):
         return data
 
 
+MAX_CONFIG_BYTES = 1 << 20
+"""The largest config file read (1 MiB: a config is a few hundred bytes; this bounds a read of
+``/dev/zero`` or of a wrong file)."""
+
+
+class _ConfigLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, minus what a config file never needs and an attacker can abuse:
+    a key given twice is refused (the safe loader keeps the last silently), and so are aliases
+    (``*name``), whose nested expansion ("billion laughs") can take unbounded memory."""
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node | None:
+        if self.check_event(yaml.AliasEvent):
+            mark = self.peek_event().start_mark
+            raise yaml.composer.ComposerError(
+                None, None, "aliases (*name) are not accepted in a config", mark
+            )
+        return super().compose_node(parent, index)
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if isinstance(key, Hashable):
+                if key in seen:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"key {key!r} given twice", key_node.start_mark
+                    )
+                seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def load_yaml(text: str) -> Any:
+    """``text`` parsed as YAML by the config loader (safe types only; duplicate keys and
+    aliases refused with a ``yaml.YAMLError``)."""
+    return yaml.load(text, Loader=_ConfigLoader)  # noqa: S506 - a SafeLoader subclass
+
+
 def parse_override(item: str) -> tuple[str, Any]:
     """``"key=value"`` -> ``(key, value parsed as YAML)`` (the raw string if it is not YAML)."""
     key, sep, raw = item.partition("=")
@@ -461,7 +507,7 @@ def parse_override(item: str) -> tuple[str, Any]:
     if not sep or not key:
         raise ConfigError(f"override {item!r} must look like key=value")
     try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
+        value = load_yaml(raw) if raw.strip() else ""
     except yaml.YAMLError:
         value = raw
     return key, value
@@ -469,14 +515,21 @@ def parse_override(item: str) -> tuple[str, Any]:
 
 def read_yaml_mapping(path: str | os.PathLike) -> dict[str, Any]:
     """The mapping a YAML file holds; ConfigError (one line naming the file) when it cannot be
-    read, is not valid YAML or does not hold a mapping."""
+    read, is larger than :data:`MAX_CONFIG_BYTES`, is not valid YAML (a key given twice and
+    aliases included) or does not hold a mapping."""
     try:
-        text = Path(path).read_text()
+        with open(path, "rb") as fh:
+            raw = fh.read(MAX_CONFIG_BYTES + 1)
+        if len(raw) > MAX_CONFIG_BYTES:
+            raise ConfigError(
+                f"config file {str(path)!r} is larger than {MAX_CONFIG_BYTES} bytes: not a config"
+            )
+        text = raw.decode()
     except (OSError, UnicodeDecodeError) as err:
         reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
         raise ConfigError(f"config file {str(path)!r} cannot be read: {reason}") from None
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""

@@ -39,7 +39,16 @@ __all__ = [
 def check_writable_dir(path: str | os.PathLike, what: str = "run_dir") -> None:
     """ValueError (one line naming ``what``) unless ``path`` is, or can be created as, a
     directory this process can write to. Creates nothing."""
+    if not os.fspath(path):
+        raise ValueError(f"{what} must be a non-empty path, got ''")
     path = Path(path)
+    limit = os.pathconf(path.anchor or ".", "PC_NAME_MAX")
+    too_long = [part for part in path.parts if len(os.fsencode(part)) > limit]
+    if too_long:
+        raise ValueError(
+            f"{what} cannot be created: the name {too_long[0][:40]!r}... is "
+            f"{len(os.fsencode(too_long[0]))} bytes, this file system allows {limit}"
+        )
     probe = path
     while not probe.exists() and probe.parent != probe:
         probe = probe.parent
@@ -57,8 +66,8 @@ def check_writable_dir(path: str | os.PathLike, what: str = "run_dir") -> None:
 def make_writable_dir(path: str | os.PathLike, what: str = "run_dir") -> Path:
     """Create directory ``path`` (and parents) and prove it writable with a probe file;
     ValueError (one line naming ``what``) otherwise."""
-    path = Path(path)
     check_writable_dir(path, what)
+    path = Path(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
         fd, probe = tempfile.mkstemp(dir=path, prefix=".write-probe.", suffix=".tmp")

@@ -225,9 +225,9 @@ class Experiment:
             else default_run_dir(self.name, config.env, config.seed)
         )
         restoring = self._resuming
+        check_writable_dir(self.run_dir if run_dir is None else run_dir)  # '' is refused
         if not restoring:
             self._refuse_finished_run()
-        check_writable_dir(self.run_dir)
         seed_everything(config.seed)
         self.threads = configure_threads(config_threads(config))
         self.device = torch.device(config.device)

@@ -69,7 +69,13 @@ from typing import Any
 
 import yaml
 
-from mapets_rl.experiment.config import ConfigError, check, parse_override, read_yaml_mapping
+from mapets_rl.experiment.config import (
+    ConfigError,
+    check,
+    load_yaml,
+    parse_override,
+    read_yaml_mapping,
+)
 from mapets_rl.experiment.files import atomic_write_text, check_writable_dir, make_writable_dir
 
 MANIFEST = "sweep.json"
@@ -234,7 +240,7 @@ def parse_grid(items: Sequence[str]) -> dict[str, list[Any]]:
             raise ConfigError(f"grid key {key!r} is given twice; list its values once")
         if raw.strip().startswith("["):
             try:
-                values = yaml.safe_load(raw)
+                values = load_yaml(raw)
             except yaml.YAMLError:
                 raise ConfigError(f"grid {key!r}: {raw!r} is not a YAML list") from None
             if not isinstance(values, list):
