@@ -736,6 +736,11 @@ NON_FINITE_CASES = [
         r"\('next', 'agents', 'reward'\) must be finite, got 18 NaN or infinite entries of 18",
     ),
     (
+        "COMA loss NaN reward",
+        lambda: _coma_loss()(_coma_batch(reward=_nan_at((5, N_AG, 1), 1))),
+        r"\('next', 'agents', 'reward'\) contains NaN or inf values for agent\(s\) \[1\]",
+    ),
+    (
         "CommunicationRange NaN position",
         lambda: CommunicationRange(1000.0)(_positions(_nan_at((N_AG, 2), 1))),
         r"position must be finite for every unmasked agent, got NaN or inf for agent\(s\) \[1\]",

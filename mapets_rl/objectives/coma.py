@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule
-from tensordict.utils import NestedKey
+from tensordict.utils import NestedKey, unravel_key
 from torch import nn
 from torchrl.modules import MLP
 from torchrl.objectives import LossModule
@@ -229,7 +229,7 @@ class COMALoss(LossModule):
 
     def _flags(self, tensordict: TensorDictBase, key: NestedKey, expected: str) -> torch.Tensor:
         """``tensordict[key]`` as bool; ValueError if missing or holding values other than 0/1."""
-        return as_mask(repr(key), self._get(tensordict, key, expected), expected)
+        return as_mask(repr(unravel_key(key)), self._get(tensordict, key, expected), expected)
 
     def _logits(self, observation: torch.Tensor) -> torch.Tensor:
         keys = self.tensor_keys
@@ -263,7 +263,8 @@ class COMALoss(LossModule):
         reward = self._get(tensordict, ("next", keys.reward), "[*, T, n, 1]")
         done = self._flags(tensordict, ("next", keys.done), "[*, T, 1]")
         terminated = self._flags(tensordict, ("next", keys.terminated), "[*, T, 1]")
-        check_finite_many({"next observation": next_obs, "reward": reward}, agent_dim=-2)
+        names = (repr(unravel_key(("next", key))) for key in (keys.observation, keys.reward))
+        check_finite_many(dict(zip(names, (next_obs, reward), strict=True)), agent_dim=-2)
         logits = self._logits(next_obs)
         next_action = torch.distributions.OneHotCategorical(logits=logits).sample()
         q_next = self._q_values(self.target_critic_network_params, next_obs, next_action)
@@ -303,7 +304,7 @@ class COMALoss(LossModule):
         if mask is not None:
             mask = as_mask(repr(keys.mask), mask, "[*, n]")
         target = self._get(tensordict, keys.value_target, "[*, n]")
-        check_finite_many({"observation": obs, "value_target": target})
+        check_finite_many({repr(keys.observation): obs, repr(keys.value_target): target})
 
         q_values = self._q_values(self.critic_network_params, obs, action)  # [*, n, A]
         logits = self._logits(obs)
