@@ -233,16 +233,22 @@ def test_presets_build_planner_and_model():
         assert model.hidden == tuple(preset.model.hidden)
 
 
-def test_nan_observation_of_one_agent_leaves_others_untouched():
+def test_nan_observation_of_one_agent_is_refused_naming_it():
+    """A NaN observation is refused at plan entry, naming the agent (issue 23): planned, it
+    used to yield a finite action and a warning that blamed reward_fn. The envs zero a crashed
+    CAV's observation, so no valid rollout feeds one."""
     model = linear_ensemble([point_mass_matrix(), point_mass_matrix(2.0)])
     obs = torch.tensor([[1.0, 0.5], [-2.0, 1.0]])
-    clean = make_planner(model).plan(obs)
+    planner = make_planner(model)
+    clean = planner.plan(obs)
     broken = obs.clone()
     broken[0, 1] = torch.nan  # e.g. a crashed agent's stale observation
-    with pytest.warns(RuntimeWarning, match=r"agent\(s\) \[0\]"):
-        action = make_planner(model).plan(broken)
-    assert torch.isfinite(action).all() and bool(((action >= -20) & (action <= 20)).all())
-    torch.testing.assert_close(action[1], clean[1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # refused before any rollout: no reward_fn warning
+        with pytest.raises(ValueError, match=r"observation contains NaN .* agent\(s\) \[0\]"):
+            planner.plan(broken)
+    assert planner.nonfinite_rewards.sum() == 0
+    torch.testing.assert_close(make_planner(model).plan(obs), clean)  # the clean one plans
 
 
 def test_shared_weights_model_plans_like_per_agent_copies():

@@ -10,6 +10,9 @@ from tensordict.utils import NestedKey
 from torchrl.data import Binary, Composite, TensorSpec
 from torchrl.envs.transforms import Transform
 
+from mapets_rl.modules.arguments import is_real_number, seed_value
+from mapets_rl.modules.tensor_checks import as_mask, check_real, get_tensor
+
 __all__ = ["CommunicationRange", "communication_graph"]
 
 
@@ -18,17 +21,15 @@ def _as_tuple(key: NestedKey) -> tuple[str, ...]:
 
 
 def _check_comm_range(comm_range: float) -> float:
-    comm_range = float(comm_range)
-    if math.isnan(comm_range) or comm_range < 0:
-        raise ValueError(f"comm_range must be a number in [0, inf], got {comm_range}")
-    return comm_range
+    if not is_real_number(comm_range) or math.isnan(comm_range) or comm_range < 0:
+        raise ValueError(f"comm_range must be a number in [0, inf], got {comm_range!r}")
+    return float(comm_range)
 
 
 def _check_p_fail(p_fail: float) -> float:
-    p_fail = float(p_fail)
-    if not 0.0 <= p_fail <= 1.0:
-        raise ValueError(f"p_fail must be in [0, 1], got {p_fail}")
-    return p_fail
+    if not is_real_number(p_fail) or not 0.0 <= p_fail <= 1.0:
+        raise ValueError(f"p_fail must be a number in [0, 1], got {p_fail!r}")
+    return float(p_fail)
 
 
 def communication_graph(
@@ -43,11 +44,13 @@ def communication_graph(
     The set ``F_d(i)`` of the paper (sec. III-B): ``j in F_d(i)`` iff ``dis(i, j) <= d``.
 
     Args:
-        position: ``[*B, I, 2]`` agent positions (metres).
+        position: ``[*B, I, 2]`` agent positions (metres), float or int (cast to float);
+            finite for every agent that ``mask`` keeps.
         comm_range: ``d`` in ``[0, inf]``. ``0`` gives no links (even for co-located agents:
             ``d = 0`` means no sharing in the paper), ``inf`` the complete graph.
         p_fail: probability that a link fails, independently per unordered pair.
-        mask: optional ``[*B, I]`` bool; agents with ``False`` (crashed/removed) get no links.
+        mask: optional ``[*B, I]`` bool (or 0/1); agents with ``False`` (crashed/removed) get no
+            links, whatever their position.
         generator: random generator (CPU) for link failures.
 
     Returns:
@@ -55,8 +58,11 @@ def communication_graph(
     """
     comm_range = _check_comm_range(comm_range)
     p_fail = _check_p_fail(p_fail)
+    check_real("position", position, "[*B, I, 2]")
     if position.ndim < 2 or position.shape[-1] != 2:
         raise ValueError(f"position must have shape [*B, I, 2], got {tuple(position.shape)}")
+    if not position.is_floating_point():  # e.g. int64 metres
+        position = position.to(torch.get_default_dtype())
     n_agents = position.shape[-2]
     if mask is not None:
         if mask.shape == position.shape[:-1] + (1,):
@@ -65,6 +71,15 @@ def communication_graph(
             raise ValueError(
                 f"mask must have shape {tuple(position.shape[:-1])}, got {tuple(mask.shape)}"
             )
+        mask = as_mask("mask", mask, f"{tuple(position.shape[:-1])}")
+    finite = torch.isfinite(position).all(-1)  # [*B, I]; masked agents may be anywhere
+    if not bool((finite if mask is None else finite | ~mask).all()):
+        bad = ~finite if mask is None else ~finite & mask
+        agents = torch.nonzero(bad.reshape(-1, n_agents).any(0)).flatten().tolist()
+        raise ValueError(
+            f"position must be finite for every unmasked agent, got NaN or inf for agent(s) "
+            f"{agents} (mask them out or clean the positions)"
+        )
     if comm_range == 0.0 or p_fail == 1.0:
         return torch.zeros(
             (*position.shape[:-2], n_agents, n_agents), dtype=torch.bool, device=position.device
@@ -74,7 +89,6 @@ def communication_graph(
     dist = torch.linalg.vector_norm(diff, dim=-1)  # [*B, I, I], exactly symmetric
     adjacency = (dist <= comm_range) & ~eye
     if mask is not None:
-        mask = mask.to(torch.bool)
         adjacency = adjacency & mask.unsqueeze(-1) & mask.unsqueeze(-2)
     if p_fail > 0.0:
         # One uniform draw per unordered pair (upper triangle), mirrored: symmetric failures.
@@ -100,7 +114,7 @@ class CommunicationRange(Transform):
         comm_range: ``d`` in metres, in ``[0, inf]``. ``0`` gives no links, ``inf`` the complete
             graph (of the unmasked agents).
         p_fail: link failure probability in ``[0, 1]``.
-        seed: seed of the link-failure generator.
+        seed: seed of the link-failure generator (an int >= 0, or ``None``).
         position_key, mask_key, neighbors_key: keys read/written.
 
     The exchange graph of an episode is :meth:`episode_graph` of its rollout: every agent
@@ -136,10 +150,11 @@ class CommunicationRange(Transform):
 
     def set_seed(self, seed: int | None) -> None:
         """Reseeds the link-failure generator (``None``: a non-deterministic seed)."""
+        seed = seed_value("seed", seed)
         if seed is None:
             self.generator.seed()
         else:
-            self.generator.manual_seed(int(seed))
+            self.generator.manual_seed(seed)
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         position = next_tensordict.get(self.position_key, default=None)
@@ -173,7 +188,17 @@ class CommunicationRange(Transform):
         """
         if rollout.batch_dims < 1:
             raise ValueError("rollout must have a time dimension (batch size [*B, T])")
-        positions = rollout.get(("next", *_as_tuple(self.position_key)))  # [*B, T, I, 2]
+        positions = get_tensor(  # [*B, T, I, 2]
+            rollout,
+            ("next", *_as_tuple(self.position_key)),
+            "[*B, T, I, 2]",
+            f"{type(self).__name__}.episode_graph",
+        )
+        if positions.ndim < 3:
+            raise ValueError(
+                f"{('next', *_as_tuple(self.position_key))!r} must have shape [*B, T, I, 2], "
+                f"got {tuple(positions.shape)}"
+            )
         steps = positions.shape[-3]
         active = None
         if self.mask_key is not None:
@@ -182,8 +207,9 @@ class CommunicationRange(Transform):
             active = torch.ones(positions.shape[:-1], dtype=torch.bool, device=positions.device)
         if active.shape == positions.shape[:-1] + (1,):
             active = active.squeeze(-1)
+        active = as_mask(repr(self.mask_key), active, f"{tuple(positions.shape[:-1])}")
         time = torch.arange(steps, device=positions.device).view(steps, 1)
-        last = torch.where(active.to(torch.bool), time, -1).amax(dim=-2)  # [*B, I]
+        last = torch.where(active, time, -1).amax(dim=-2)  # [*B, I]
         index = last.clamp_min(0)[..., None, :, None].expand(*last.shape[:-1], 1, -1, 2)
         position = positions.gather(-3, index).squeeze(-3)  # [*B, I, 2]
         return communication_graph(

@@ -29,24 +29,15 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torch.nn import functional as F
 
+from mapets_rl.modules.tensor_checks import (
+    as_mask,
+    check_finite,
+    check_finite_many,
+    check_real,
+    get_tensor,
+)
+
 __all__ = ["ProbabilisticEnsemble", "check_finite"]
-
-
-def check_finite(name: str, value: torch.Tensor, agent_dim: int) -> None:
-    """Raise ``ValueError`` naming ``name`` and the offending agents if ``value`` has NaN/inf.
-
-    Args:
-        name: the parameter / key name used in the message.
-        value: any tensor with an agent dimension.
-        agent_dim: index of the agent dimension in ``value``.
-    """
-    finite = torch.isfinite(value)
-    if bool(finite.all()):
-        return
-    dims = [d for d in range(value.ndim) if d != agent_dim % value.ndim]
-    bad_agents = (~finite).any(dim=dims) if dims else ~finite
-    agents = torch.nonzero(bad_agents).flatten().tolist()
-    raise ValueError(f"{name} contains NaN or inf values for agent(s) {agents}; clean the batch.")
 
 
 class ProbabilisticEnsemble(TensorDictModuleBase):
@@ -93,10 +84,12 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
             ("n_agents", n_agents),
             ("ensemble_size", ensemble_size),
         ):
-            if not isinstance(value, int) or value <= 0:
+            if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}.")
         hidden = tuple(hidden)
-        if len(hidden) == 0 or any(not isinstance(h, int) or h <= 0 for h in hidden):
+        if len(hidden) == 0 or any(
+            not isinstance(h, int) or isinstance(h, bool) or h <= 0 for h in hidden
+        ):
             raise ValueError(f"hidden must be a non-empty sequence of positive ints, got {hidden}.")
         if not init_min_logvar < init_max_logvar:
             raise ValueError(
@@ -155,6 +148,8 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
             mask: optional ``[N, I]`` bool, ``False`` for rows that are padding / invalid for
                 that agent (agents may hold datasets of different sizes).
         """
+        if mask is not None:
+            mask = as_mask("mask", mask, "[N, n_agents]")
         self.check_batch(obs, action, next_obs, mask)
         if mask is not None:  # masked rows may hold anything (NaN padding): zero them out
             keep = mask.unsqueeze(-1)
@@ -187,12 +182,14 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
         next_obs: torch.Tensor | None = None,
         mask: torch.Tensor | None = None,
     ) -> None:
-        """Validate ``[N, I, *]`` training tensors (shape and finiteness)."""
+        """Validate ``[N, I, *]`` training tensors (dtype, shape and finiteness) and the bool
+        (or 0/1) ``[N, I]`` mask."""
         expected = {"obs": self.obs_dim, "action": self.action_dim, "next_obs": self.obs_dim}
         tensors = {"obs": obs, "action": action, "next_obs": next_obs}
         for name, value in tensors.items():
             if value is None:
                 continue
+            check_real(name, value, f"[N, n_agents={self.n_agents}, {expected[name]}]")
             if (
                 value.ndim != 3
                 or value.shape[1] != self.n_agents
@@ -208,6 +205,8 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
             raise ValueError(
                 f"mask must be shaped {tuple(obs.shape[:2])}, got {tuple(mask.shape)}."
             )
+        if mask is not None:
+            mask = as_mask("mask", mask, f"{tuple(obs.shape[:2])}")
         for name, value in tensors.items():
             if value is not None:
                 if mask is not None:
@@ -223,6 +222,10 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
         """
         if self._param_cache is not None and self._param_cache[0] == dtype:
             return self._param_cache[1]
+        if not isinstance(dtype, torch.dtype):  # not on a planner's cached path: no cost there
+            raise TypeError(
+                f"dtype must be a torch.dtype (e.g. torch.bfloat16) or None, got {dtype!r}"
+            )
         if dtype == self.weights[0].dtype:
             return [
                 (w.flatten(0, 1), b.flatten(0, 1))
@@ -350,9 +353,14 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
 
     # ------------------------------------------------------------------ TensorDict API
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Write per-member predictions ``[*, I, B, obs]`` for inputs ``[*, I, obs/act]``."""
-        obs = tensordict.get(self.in_keys[0])
-        action = tensordict.get(self.in_keys[1])
+        """Write per-member predictions ``[*, I, B, obs]`` for inputs ``[*, I, obs/act]``
+        (float, finite: checked here, once per call)."""
+        obs_shape = f"[*, {self.n_agents}, {self.obs_dim}]"
+        act_shape = f"[*, {self.n_agents}, {self.action_dim}]"
+        obs = get_tensor(tensordict, self.in_keys[0], obs_shape, type(self).__name__)
+        action = get_tensor(tensordict, self.in_keys[1], act_shape, type(self).__name__)
+        check_real(repr(self.in_keys[0]), obs, obs_shape)
+        check_real(repr(self.in_keys[1]), action, act_shape)
         if obs.ndim < 2 or obs.shape[-2:] != (self.n_agents, self.obs_dim):
             raise ValueError(
                 f"{self.in_keys[0]} must be shaped [*, {self.n_agents}, {self.obs_dim}], "
@@ -363,6 +371,8 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
                 f"{self.in_keys[1]} must be shaped [*, {self.n_agents}, {self.action_dim}], "
                 f"got {tuple(action.shape)}."
             )
+        names = [repr(key) for key in self.in_keys]
+        check_finite_many({names[0]: obs, names[1]: action}, agent_dim=-2)
         batch = obs.shape[:-2]
         # [*, I, d] -> [I, 1, N, d]
         flat_obs = obs.reshape(-1, self.n_agents, self.obs_dim).transpose(0, 1).unsqueeze(1)

@@ -15,14 +15,15 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule
-from tensordict.utils import NestedKey
+from tensordict.utils import NestedKey, unravel_key
 from torch import nn
 from torchrl.modules import MLP
 from torchrl.objectives import LossModule
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value.functional import td_lambda_return_estimate
 
-from mapets_rl.modules.arguments import hidden_sizes, require_positive_ints
+from mapets_rl.modules.arguments import finite_number, hidden_sizes, require_positive_ints
+from mapets_rl.modules.tensor_checks import as_mask, check_finite_many, get_tensor
 
 __all__ = ["COMACritic", "COMALoss", "counterfactual_advantage"]
 
@@ -192,10 +193,8 @@ class COMALoss(LossModule):
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
         if not 0.0 <= lmbda <= 1.0:
             raise ValueError(f"lmbda must be in [0, 1], got {lmbda}")
-        if not entropy_coeff >= 0:
-            raise ValueError(f"entropy_coeff must be >= 0, got {entropy_coeff}")
-        if not reward_scale > 0:
-            raise ValueError(f"reward_scale must be > 0, got {reward_scale}")
+        entropy_coeff = finite_number("entropy_coeff", entropy_coeff, minimum=0)
+        reward_scale = finite_number("reward_scale", reward_scale, minimum=0, strict=True)
         if loss_function not in ("l2", "l1", "smooth_l1"):
             raise ValueError(
                 f"loss_function must be 'l2', 'l1' or 'smooth_l1', got {loss_function!r}"
@@ -223,6 +222,14 @@ class COMALoss(LossModule):
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         """The TD(lambda) target is built into the loss; there is no value estimator."""
+
+    def _get(self, tensordict: TensorDictBase, key: NestedKey, expected: str) -> torch.Tensor:
+        """``tensordict[key]``; a one-line ValueError naming ``key`` when it is missing."""
+        return get_tensor(tensordict, key, expected, type(self).__name__)
+
+    def _flags(self, tensordict: TensorDictBase, key: NestedKey, expected: str) -> torch.Tensor:
+        """``tensordict[key]`` as bool; ValueError if missing or holding values other than 0/1."""
+        return as_mask(repr(unravel_key(key)), self._get(tensordict, key, expected), expected)
 
     def _logits(self, observation: torch.Tensor) -> torch.Tensor:
         keys = self.tensor_keys
@@ -252,15 +259,19 @@ class COMALoss(LossModule):
         drawn from the current policy, read at each agent's drawn action.
         """
         keys = self.tensor_keys
-        next_obs = tensordict.get(("next", keys.observation))
+        next_obs = self._get(tensordict, ("next", keys.observation), "[*, T, n, obs]")
+        reward = self._get(tensordict, ("next", keys.reward), "[*, T, n, 1]")
+        done = self._flags(tensordict, ("next", keys.done), "[*, T, 1]")
+        terminated = self._flags(tensordict, ("next", keys.terminated), "[*, T, 1]")
+        names = (repr(unravel_key(("next", key))) for key in (keys.observation, keys.reward))
+        check_finite_many(dict(zip(names, (next_obs, reward), strict=True)), agent_dim=-2)
         logits = self._logits(next_obs)
         next_action = torch.distributions.OneHotCategorical(logits=logits).sample()
         q_next = self._q_values(self.target_critic_network_params, next_obs, next_action)
         next_value = (q_next * next_action).sum(-1)  # [*, T, n]
-        reward = tensordict.get(("next", keys.reward)).to(next_value.dtype)
+        reward = reward.to(next_value.dtype)
         team = reward.reshape(next_value.shape).sum(-1, keepdim=True) * self.reward_scale
-        done = tensordict.get(("next", keys.done)).bool().reshape(*next_value.shape[:-1], 1)
-        terminated = tensordict.get(("next", keys.terminated)).bool()
+        done = done.reshape(*next_value.shape[:-1], 1)
         terminated = terminated.reshape(*next_value.shape[:-1], 1)
         target = td_lambda_return_estimate(
             self.gamma,
@@ -287,10 +298,13 @@ class COMALoss(LossModule):
         keys = self.tensor_keys
         if keys.value_target not in tensordict.keys(include_nested=True):
             tensordict = self.value_targets(tensordict.copy())
-        obs = tensordict.get(keys.observation)
-        action = tensordict.get(keys.action).to(obs.dtype)
+        obs = self._get(tensordict, keys.observation, "[*, n, obs]")
+        action = self._get(tensordict, keys.action, "[*, n, A] one-hot").to(obs.dtype)
         mask = tensordict.get(keys.mask, None)
-        target = tensordict.get(keys.value_target)
+        if mask is not None:
+            mask = as_mask(repr(keys.mask), mask, "[*, n]")
+        target = self._get(tensordict, keys.value_target, "[*, n]")
+        check_finite_many({repr(keys.observation): obs, repr(keys.value_target): target})
 
         q_values = self._q_values(self.critic_network_params, obs, action)  # [*, n, A]
         logits = self._logits(obs)

@@ -10,6 +10,8 @@ from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
 from mapets_rl.models.ensemble import ProbabilisticEnsemble
+from mapets_rl.modules.arguments import finite_number
+from mapets_rl.modules.tensor_checks import as_mask, get_tensor
 
 __all__ = ["EnsembleNLLLoss", "ensemble_optimizer", "train_ensemble"]
 
@@ -73,12 +75,11 @@ class EnsembleNLLLoss(LossModule):
     ) -> None:
         if not isinstance(model, ProbabilisticEnsemble):
             raise ValueError(f"model must be a ProbabilisticEnsemble, got {type(model).__name__}.")
-        if logvar_bound_coef < 0:
-            raise ValueError(f"logvar_bound_coef must be >= 0, got {logvar_bound_coef}.")
+        logvar_bound_coef = finite_number("logvar_bound_coef", logvar_bound_coef, minimum=0)
         super().__init__()
         self.model = model
         self.bootstrap = bootstrap
-        self.logvar_bound_coef = float(logvar_bound_coef)
+        self.logvar_bound_coef = logvar_bound_coef
         self.generator = generator
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
@@ -95,9 +96,13 @@ class EnsembleNLLLoss(LossModule):
         """Read and flatten the batch to ``[N, I, *]`` tensors, validating shape and values."""
         keys = self.tensor_keys
         model = self.model
-        obs = tensordict.get(keys.observation)
-        action = tensordict.get(keys.action)
-        next_obs = tensordict.get(keys.next_observation)
+        owner = type(self).__name__
+        n = model.n_agents
+        obs = get_tensor(tensordict, keys.observation, f"[*, {n}, {model.obs_dim}]", owner)
+        action = get_tensor(tensordict, keys.action, f"[*, {n}, {model.action_dim}]", owner)
+        next_obs = get_tensor(
+            tensordict, keys.next_observation, f"[*, {n}, {model.obs_dim}]", owner
+        )
         mask = tensordict.get(keys.mask, None)
         if obs.ndim < 2:
             raise ValueError(f"{keys.observation} must be [*, I, obs], got {tuple(obs.shape)}.")
@@ -106,7 +111,13 @@ class EnsembleNLLLoss(LossModule):
         action = action.reshape(-1, *action.shape[-2:]) if action.ndim >= 2 else action
         next_obs = next_obs.reshape(-1, *next_obs.shape[-2:]) if next_obs.ndim >= 2 else next_obs
         if mask is not None:
-            mask = mask.reshape(*batch, model.n_agents).reshape(-1, model.n_agents).bool()
+            expected = (*batch, n)
+            if tuple(mask.shape) not in (expected, (*expected, 1)):
+                raise ValueError(
+                    f"{keys.mask} must have shape {list(expected)} (or {[*expected, 1]}), "
+                    f"got {list(mask.shape)}"
+                )
+            mask = as_mask(repr(keys.mask), mask, f"{list(expected)}").reshape(-1, n)
         model.check_batch(obs, action, next_obs, mask)
         if mask is not None:
             # Masked rows may hold anything (e.g. NaN of removed agents): zero them out.

@@ -12,7 +12,9 @@ from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 from torchrl.objectives.utils import distance_loss
 
+from mapets_rl.modules.arguments import finite_number
 from mapets_rl.modules.heads import gumbel_one_hot, one_hot_argmax
+from mapets_rl.modules.tensor_checks import as_mask, check_finite_many, check_real, get_tensor
 from mapets_rl.shapley.critic import CoalitionCritic
 from mapets_rl.shapley.game import (
     coalition_masks,
@@ -22,6 +24,10 @@ from mapets_rl.shapley.game import (
 )
 
 __all__ = ["ShapleyActorCriticLoss"]
+
+
+def _as_tuple(key: NestedKey) -> tuple[str, ...]:
+    return (key,) if isinstance(key, str) else tuple(key)
 
 
 class ShapleyActorCriticLoss(LossModule):
@@ -160,12 +166,11 @@ class ShapleyActorCriticLoss(LossModule):
             isinstance(chunk_states, bool) or not isinstance(chunk_states, int) or chunk_states < 1
         ):
             raise ValueError(f"chunk_states must be None or an int >= 1, got {chunk_states!r}")
-        if not gumbel_temperature > 0:
-            raise ValueError(f"gumbel_temperature must be > 0, got {gumbel_temperature}")
-        if not reward_scale > 0:
-            raise ValueError(f"reward_scale must be > 0, got {reward_scale}")
-        if not logits_reg >= 0:
-            raise ValueError(f"logits_reg must be >= 0, got {logits_reg}")
+        gumbel_temperature = finite_number(
+            "gumbel_temperature", gumbel_temperature, minimum=0, strict=True
+        )
+        reward_scale = finite_number("reward_scale", reward_scale, minimum=0, strict=True)
+        logits_reg = finite_number("logits_reg", logits_reg, minimum=0)
         if loss_function not in ("l2", "l1", "smooth_l1"):
             raise ValueError(
                 f"loss_function must be 'l2', 'l1' or 'smooth_l1', got {loss_function!r}"
@@ -231,16 +236,49 @@ class ShapleyActorCriticLoss(LossModule):
             self.gamma = gamma
         return self
 
-    def _check_shapes(self, obs: torch.Tensor, coalition: torch.Tensor) -> None:
-        n = self.n_agents
-        if obs.shape[-2] != n:
+    def _inputs(self, tensordict: TensorDictBase, *, target: bool) -> dict[str, torch.Tensor]:
+        """The loss's inputs, checked once per call: present, real (float/int) and finite,
+        ``coalition`` (and ``terminated``) bool or 0/1, shapes as in the class docstring.
+        ``target``: also the ``"next"`` entries of the TD target. One host sync."""
+        keys, n, owner = self.tensor_keys, self.n_agents, type(self).__name__
+        obs = get_tensor(tensordict, keys.observation, f"[*, n_agents={n}, obs]", owner)
+        check_real(repr(keys.observation), obs, f"[*, n_agents={n}, obs]")
+        if obs.ndim < 2 or obs.shape[-2] != n:
             raise ValueError(
                 f"observation must have shape [*, n_agents={n}, obs], got {tuple(obs.shape)}"
             )
-        if coalition.shape[-1] != n:
+        coalition = get_tensor(tensordict, keys.coalition, f"[*, n_agents={n}] bool", owner)
+        if coalition.shape[-1:] != (n,):
             raise ValueError(
                 f"coalition must have shape [*, n_agents={n}], got {tuple(coalition.shape)}"
             )
+        lead = list(coalition.shape)
+        out = {
+            "observation": obs,
+            "coalition": as_mask(repr(keys.coalition), coalition, f"{lead}"),
+            "action": get_tensor(tensordict, keys.action, f"[*, n_agents={n}, act]", owner),
+        }
+        if target:
+            next_obs = ("next", *_as_tuple(keys.observation))
+            reward = ("next", *_as_tuple(keys.reward))
+            terminated = ("next", *_as_tuple(keys.terminated))
+            out["next_observation"] = get_tensor(
+                tensordict, next_obs, f"[*, n_agents={n}, obs]", owner
+            )
+            out["reward"] = get_tensor(tensordict, reward, f"{[*lead, 1]}", owner)
+            if tuple(out["reward"].shape) not in (tuple(lead), (*lead, 1)):
+                raise ValueError(
+                    f"{reward!r} must have shape {[*lead, 1]}, got {list(out['reward'].shape)}"
+                )
+            flags = get_tensor(tensordict, terminated, f"{[*lead, 1]} or {[*lead[:-1], 1]}", owner)
+            out["terminated"] = as_mask(repr(terminated), flags, f"{[*lead, 1]}")
+        names = {"observation": keys.observation, "action": keys.action}
+        if target:
+            names.update(next_observation=next_obs, reward=reward)
+            for name in ("next_observation", "reward"):  # actions may be one-hot bools
+                check_real(repr(names[name]), out[name])
+        check_finite_many({repr(key): out[name] for name, key in names.items()})
+        return out
 
     def _policy_action(
         self, params: TensorDictBase, obs: torch.Tensor, coalition: torch.Tensor, greedy: bool
@@ -262,18 +300,16 @@ class ShapleyActorCriticLoss(LossModule):
 
     def loss_value(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """TD loss of the characteristic function (Algorithm 1 lines 10-11)."""
-        keys = self.tensor_keys
-        obs = tensordict.get(keys.observation)
-        coalition = tensordict.get(keys.coalition).bool()
-        self._check_shapes(obs, coalition)
-        action = tensordict.get(keys.action).to(obs.dtype)
+        inputs = self._inputs(tensordict, target=True)
+        obs, coalition = inputs["observation"], inputs["coalition"]
+        action = inputs["action"].to(obs.dtype)
         with self.critic_network_params.to_module(self.critic_network, preserve_module_state=False):
             pred = self.critic_network.coalition_values(obs, action, coalition.unsqueeze(-2))
         pred = pred.squeeze(-1)  # [*]
         with torch.no_grad():
-            next_obs = tensordict.get(("next", keys.observation))
-            reward = tensordict.get(("next", keys.reward)).reshape(*coalition.shape)
-            terminated = tensordict.get(("next", keys.terminated)).bool()
+            next_obs = inputs["next_observation"]
+            reward = inputs["reward"].reshape(*coalition.shape)
+            terminated = inputs["terminated"]
             terminated = terminated.reshape(*terminated.shape[: coalition.ndim - 1], -1)
             next_coalition = coalition & ~terminated.expand_as(coalition)
             coalition_reward = (reward * coalition.to(reward.dtype)).sum(-1)  # R(C), eq. 10
@@ -313,11 +349,9 @@ class ShapleyActorCriticLoss(LossModule):
         self, tensordict: TensorDictBase
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """``(phi [*, n], stderr [*, n], logits)``; ``stderr`` is zero on the exact path."""
-        keys = self.tensor_keys
-        obs = tensordict.get(keys.observation)
-        coalition = tensordict.get(keys.coalition).bool()
-        self._check_shapes(obs, coalition)
-        a_batch = tensordict.get(keys.action).to(obs.dtype)
+        inputs = self._inputs(tensordict, target=False)
+        obs, coalition = inputs["observation"], inputs["coalition"]
+        a_batch = inputs["action"].to(obs.dtype)
         a_pol, logits = self._policy_action(self.actor_network_params, obs, coalition, greedy=False)
         critic = self.critic_network
         with self.critic_network_params.detach().to_module(critic, preserve_module_state=False):
@@ -411,6 +445,12 @@ class ShapleyActorCriticLoss(LossModule):
         if mask is None:
             loss = -phi.mean()
         else:
+            if mask.numel() != phi.numel():
+                raise ValueError(
+                    f"{self.tensor_keys.mask!r} must have shape {list(phi.shape)}, "
+                    f"got {list(mask.shape)}"
+                )
+            mask = as_mask(repr(self.tensor_keys.mask), mask, f"{list(phi.shape)}")
             weight = mask.reshape(phi.shape).to(phi.dtype)
             loss = -(phi * weight).sum() / weight.sum().clamp_min(1.0)
         if logits is not None and self.logits_reg > 0:

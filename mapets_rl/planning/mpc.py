@@ -19,6 +19,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
+from mapets_rl.modules.tensor_checks import as_mask, check_finite, check_real, get_tensor
 from mapets_rl.planning.cem import CEMOptimizer
 from mapets_rl.planning.precision import resolve_dtype
 from mapets_rl.planning.trajectory_sampling import (
@@ -141,9 +142,9 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             ("iterations", iterations),
             ("particles", particles),
         ):
-            if not isinstance(value, int) or value <= 0:
+            if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}.")
-        if not isinstance(elites, int) or not 1 <= elites <= population:
+        if not isinstance(elites, int) or isinstance(elites, bool) or not 1 <= elites <= population:
             raise ValueError(
                 f"elites must be an integer in [1, population={population}], got {elites!r}."
             )
@@ -168,6 +169,12 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         resolved_dtype, dtype_reason = resolve_dtype(dtype, device)
         low = torch.as_tensor(action_low, dtype=torch.float32, device=device)
         high = torch.as_tensor(action_high, dtype=torch.float32, device=device)
+        for name, bound in (("action_low", low), ("action_high", high)):
+            if not bool(torch.isfinite(bound).all()):
+                raise ValueError(
+                    f"{name} must be finite in every dimension (CEM samples around the centre "
+                    f"of the box), got {bound.tolist()}."
+                )
         act = model.action_dim
         try:
             low, high = (torch.broadcast_to(b, (model.n_agents, act)).clone() for b in (low, high))
@@ -317,7 +324,9 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
 
     # ------------------------------------------------------------------ TensorDict API
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        obs = tensordict.get(self.in_keys[0])
+        model = self.model
+        expected = f"[*, n_agents={model.n_agents}, obs_dim={model.obs_dim}]"
+        obs = get_tensor(tensordict, self.in_keys[0], expected, type(self).__name__)
         is_init = tensordict.get(self.is_init_key, None)
         tensordict.set(self.out_keys[0], self.plan(obs, is_init=is_init))
         return tensordict
@@ -327,27 +336,38 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         """Plan one decision for every agent.
 
         Args:
-            obs: ``[*, I, obs]`` current observations.
+            obs: ``[*, I, obs]`` current observations (real, finite).
             is_init: optional ``[*]`` / ``[*, 1]`` bool; ``True`` resets that env's warm start.
 
         Returns:
             ``[*, I, act]`` first actions of the optimised sequences, within the bounds.
+
+        The inputs are checked here, once per call (one host sync for the finiteness of
+        ``obs``); the CEM iterations run unchecked.
         """
         model = self.model
         n_agents, obs_dim = model.n_agents, model.obs_dim
+        expected = f"[*, n_agents={n_agents}, obs_dim={obs_dim}]"
+        check_real("observation", obs, expected)
         if obs.ndim < 2 or obs.shape[-2:] != (n_agents, obs_dim):
-            raise ValueError(
-                f"observation must be shaped [*, n_agents={n_agents}, obs_dim={obs_dim}], "
-                f"got {tuple(obs.shape)}."
-            )
+            raise ValueError(f"observation must be shaped {expected}, got {tuple(obs.shape)}.")
+        check_finite("observation", obs, agent_dim=-2)
         batch_shape = obs.shape[:-2]
+        if is_init is not None:
+            if tuple(is_init.shape) not in (tuple(batch_shape), (*batch_shape, 1)):
+                raise ValueError(
+                    f"is_init must have shape {list(batch_shape)} or {[*batch_shape, 1]} (one "
+                    f"flag per env of the observation {list(obs.shape)}), got "
+                    f"{list(is_init.shape)}."
+                )
+            is_init = as_mask("is_init", is_init, f"{[*batch_shape, 1]}")
         obs_p = obs.reshape(-1, n_agents, obs_dim).transpose(0, 1).float()  # [I, M, obs]
         envs = obs_p.shape[1]
         if self._mean is None or self._batch_shape != batch_shape:
             self._mean = self._initial_mean(envs)
             self._batch_shape = batch_shape
         elif is_init is not None:
-            reset = is_init.reshape(envs).to(torch.bool).view(1, envs, 1, 1)
+            reset = is_init.reshape(envs).view(1, envs, 1, 1)
             self._mean = torch.where(reset, self._initial_mean(envs), self._mean)
 
         def score(candidates: torch.Tensor) -> torch.Tensor:

@@ -9,6 +9,7 @@ from tensordict.utils import NestedKey
 from torchrl.envs.utils import ExplorationType, exploration_type
 
 from mapets_rl.modules.arguments import require_positive_ints
+from mapets_rl.modules.tensor_checks import as_mask
 
 __all__ = ["RandomCoalition"]
 
@@ -60,6 +61,6 @@ class RandomCoalition(TensorDictModuleBase):
             coalition = torch.full(shape, mode == "grand", dtype=torch.bool, device=obs.device)
         mask = tensordict.get(self.mask_key, None)
         if mask is not None:
-            coalition = coalition & mask.bool()
+            coalition = coalition & as_mask(repr(self.mask_key), mask, f"{list(shape)}")
         tensordict.set(self.out_keys[0], coalition)
         return tensordict

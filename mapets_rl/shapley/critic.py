@@ -13,6 +13,7 @@ from torch import nn
 from torchrl.modules import MLP
 
 from mapets_rl.modules.arguments import hidden_sizes, require_positive_ints
+from mapets_rl.modules.tensor_checks import as_mask, check_finite_many, check_real, get_tensor
 from mapets_rl.shapley.game import coalition_masks
 
 __all__ = ["CoalitionCritic"]
@@ -202,18 +203,24 @@ class CoalitionCritic(TensorDictModuleBase):
         )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Reads observation ``[*, n, obs]``, action ``[*, n, act]``, coalition ``[*, n]``;
-        writes ``out_key [*, 1]``."""
-        coalition = tensordict.get(self.coalition_key)
-        if coalition.shape[-1] != self.n_agents:
+        """Reads observation ``[*, n, obs]`` (real), action ``[*, n, act]`` (both finite) and
+        coalition ``[*, n]`` (bool, or 0/1); writes ``out_key [*, 1]``. The inputs are checked
+        here, once per call."""
+        n, owner = self.n_agents, type(self).__name__
+        obs_shape, act_shape = f"[*, {n}, {self.observation_dim}]", f"[*, {n}, {self.action_dim}]"
+        observation = get_tensor(tensordict, self.observation_key, obs_shape, owner)
+        action = get_tensor(tensordict, self.action_key, act_shape, owner)
+        coalition = get_tensor(tensordict, self.coalition_key, f"[*, n_agents={n}] bool", owner)
+        if coalition.ndim < 1 or coalition.shape[-1] != n:
             raise ValueError(
-                f"coalition ({self.coalition_key}) must have shape [*, n_agents={self.n_agents}], "
+                f"coalition ({self.coalition_key}) must have shape [*, n_agents={n}], "
                 f"got {tuple(coalition.shape)}"
             )
-        value = self.coalition_values(
-            tensordict.get(self.observation_key),
-            tensordict.get(self.action_key),
-            coalition.bool().unsqueeze(-2),
+        coalition = as_mask(repr(self.coalition_key), coalition, f"[*, {n}]")
+        check_real(repr(self.observation_key), observation, obs_shape)
+        check_finite_many(
+            {repr(self.observation_key): observation, repr(self.action_key): action}, agent_dim=-2
         )
+        value = self.coalition_values(observation, action, coalition.unsqueeze(-2))
         tensordict.set(self.out_keys[0], value)
         return tensordict

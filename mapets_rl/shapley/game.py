@@ -18,6 +18,8 @@ from functools import lru_cache
 
 import torch
 
+from mapets_rl.modules.tensor_checks import check_finite
+
 __all__ = [
     "MAX_EXACT_AGENTS",
     "coalition_masks",
@@ -55,16 +57,7 @@ def _check_values(values: torch.Tensor, n: int) -> None:
         )
     if not values.is_floating_point():
         raise ValueError(f"values must be a floating-point tensor, got dtype {values.dtype}")
-    _check_finite(values, "values")
-
-
-def _check_finite(values: torch.Tensor, name: str) -> None:
-    finite = torch.isfinite(values)
-    if not bool(finite.all()):
-        bad = int((~finite).sum())
-        raise ValueError(
-            f"{name} must be finite, got {bad} NaN or infinite entries of {values.numel()}"
-        )
+    check_finite("values", values)
 
 
 def coalition_masks(n: int, device: torch.device | str | None = None) -> torch.Tensor:
@@ -230,7 +223,7 @@ def sampled_shapley(
                 f"value_fn must return values [..., K] with K = {masks.shape[0]} "
                 f"(one per mask), got shape {tuple(part.shape)}"
             )
-        _check_finite(part, "value_fn's values")
+        check_finite("value_fn's values", part)
         parts.append(part)
     values = torch.cat(parts, dim=-1)
     values = values.unflatten(-1, (num_permutations, n + 1))
