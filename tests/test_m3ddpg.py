@@ -19,6 +19,7 @@ from torchrl.objectives import ValueEstimators
 from mapets_rl.experiment import ConfigError
 from mapets_rl.experiment.checkpoint import list_checkpoints
 from mapets_rl.experiment.results import RESULTS_FILE
+from mapets_rl.modules import AgentGroupSpec
 from mapets_rl.objectives import (
     M3DDPGLoss,
     MinimaxCritic,
@@ -261,6 +262,7 @@ def test_recipe_trains_on_the_freeway_checkpoints_and_resumes(tmp_path: Path) ->
     run = tmp_path / "run"
     exp = M3DDPG(M3DDPGConfig(**TINY, total_frames=160), run)
     assert isinstance(exp.loss, M3DDPGLoss) and exp.loss.epsilon_critic == 0.1
+    assert AgentGroupSpec.from_env(exp.env).discrete  # one-hot actions, Gumbel-softmax head
     before = [p.detach().clone() for p in exp.loss.parameters()]
     exp.train()
     assert any(not torch.equal(b, p) for b, p in zip(before, exp.loss.parameters(), strict=True))
@@ -273,6 +275,23 @@ def test_recipe_trains_on_the_freeway_checkpoints_and_resumes(tmp_path: Path) ->
     assert [e["frames"] for e in evaluations] == [160, 320]
     assert all(torch.isfinite(p).all() for p in resumed.loss.parameters())
     assert [c.name for c in list_checkpoints(run)][-1] == f"ckpt_{320:012d}.pt"
+
+
+def test_recipe_trains_on_the_figure_eights_continuous_actions(tmp_path: Path) -> None:
+    config = M3DDPGConfig(
+        **{**TINY, "env": "figure-eight", "env_config": {"n_cavs": 3, "n_hvs": 2, "horizon": 40}},
+        total_frames=80,
+    )
+    exp = M3DDPG(config, tmp_path / "run")
+    assert not AgentGroupSpec.from_env(exp.env).discrete
+    before = [p.detach().clone() for p in exp.loss.parameters()]
+    logs = []
+    step = exp.train_step
+    exp.train_step = lambda batch: logs.append(step(batch)) or logs[-1]
+    exp.train()
+    losses = [v for log in logs for k, v in log.items() if k.startswith("loss_")]
+    assert losses and all(torch.isfinite(torch.tensor(losses)))
+    assert any(not torch.equal(b, p) for b, p in zip(before, exp.loss.parameters(), strict=True))
 
 
 @pytest.mark.parametrize(
