@@ -274,6 +274,11 @@ def test_recipe_trains_on_the_freeway_checkpoints_and_resumes(tmp_path: Path) ->
     evaluations = resumed.train()
     assert [e["frames"] for e in evaluations] == [160, 320]
     assert all(torch.isfinite(p).all() for p in resumed.loss.parameters())
+    # the resumed run is the uninterrupted one
+    full = M3DDPG(M3DDPGConfig(**TINY, total_frames=320), tmp_path / "full")
+    assert full.train() == evaluations
+    for p_full, p_resumed in zip(full.loss.parameters(), resumed.loss.parameters(), strict=True):
+        assert torch.equal(p_full, p_resumed)
     assert [c.name for c in list_checkpoints(run)][-1] == f"ckpt_{320:012d}.pt"
 
 
