@@ -19,7 +19,15 @@ flows through it), and agent ``i``'s critic reads ``Q_i(x, a + delta_i)``:
   as in ``DDPGLoss``). Like this library's MADDPG (torchrl's ``DDPGLoss``), every agent's action
   is the current policy's, so agent ``j``'s actor also receives ``Q_i``'s gradient at the
   perturbed point; the authors' code instead feeds the replayed actions of the other agents.
-  The paper's ``epsilon`` of the actor and of the critic are separate parameters here.
+  This is the paper's actor gradient (its Eq. for ``grad J`` at ``a_j + delta_j``); the
+  authors' released code builds the perturbed ``Q`` for the actor but then minimises the
+  unperturbed one, so there only the critic target is minimax. The actor's and the critic's
+  ``epsilon`` are separate parameters (the authors' code: ``adv_eps`` in the target,
+  ``adv_eps_s`` for teammates in the actor).
+
+Every agent's action is perturbed, crashed CAVs' too (the critic reads them all, as in
+MADDPG). Perturbed actions are not clipped to the action bounds (nor one-hot vectors
+re-projected), as in the paper.
 
 ``epsilon = 0`` is MADDPG exactly (the critic is then called unchanged). Every agent's
 perturbation comes from one backward pass: the joint action is replicated once per agent
