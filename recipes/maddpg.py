@@ -173,15 +173,7 @@ class MADDPG(Experiment):
         )
 
         # loss: DDPG with per-agent TD(0) targets through target actor and critic
-        self.loss = PreactivationRegularisedDDPGLoss(
-            actor_network=self.actor,
-            value_network=self.critic,
-            preactivation_key=PREACTIVATION,
-            preactivation_coef=config.actor_preactivation_coef,
-            delay_actor=True,
-            delay_value=True,
-            loss_function="l2",
-        )
+        self.loss = self.make_loss(config)
         self.loss.set_keys(**LOSS_KEYS, state_action_value=Q_VALUE)
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=config.gamma)
         self.loss.value_estimator.set_keys(steps_to_next_obs=STEPS_TO_NEXT_OBS)
@@ -191,6 +183,26 @@ class MADDPG(Experiment):
         )
         self.optim_critic = torch.optim.Adam(
             self.loss.value_network_params.values(True, True), lr=config.lr_critic
+        )
+
+    def make_loss(
+        self,
+        config: MADDPGConfig,
+        loss_class: type[PreactivationRegularisedDDPGLoss] = PreactivationRegularisedDDPGLoss,
+        **kwargs,
+    ) -> PreactivationRegularisedDDPGLoss:
+        """The loss on ``self.actor`` and ``self.critic``, with target copies of both:
+        ``loss_class`` (a :class:`PreactivationRegularisedDDPGLoss`) built with MADDPG's
+        options and ``kwargs`` (M3DDPG passes its loss and epsilons)."""
+        return loss_class(
+            actor_network=self.actor,
+            value_network=self.critic,
+            preactivation_key=PREACTIVATION,
+            preactivation_coef=config.actor_preactivation_coef,
+            delay_actor=True,
+            delay_value=True,
+            loss_function="l2",
+            **kwargs,
         )
 
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
