@@ -45,6 +45,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictSequential
 from torchrl.envs import EnvBase
+from torchrl.objectives import LossModule
 
 from mapets_rl.comm import CommConfig, CommunicationRange, NeighbourDatasets, clique_cover_number
 from mapets_rl.envs import (
@@ -384,17 +385,7 @@ class MAPETS(Experiment):
             **config.model.model_kwargs(),
         ).to(device)
         self.bootstrap_generator = torch.Generator(device=device)
-        self.loss = EnsembleNLLLoss(
-            self.model,
-            logvar_bound_coef=config.model.logvar_bound_coef,
-            generator=self.bootstrap_generator,
-        )
-        self.loss.set_keys(
-            observation="observation",
-            action="action",
-            next_observation="next_observation",
-            mask="mask",
-        )
+        self.loss = self.make_loss(self.model)
         self.optimizer = ensemble_optimizer(self.loss, lr=config.model.lr)
         self.shuffle_generator = torch.Generator(device=device)
 
@@ -457,6 +448,24 @@ class MAPETS(Experiment):
     @property
     def episode(self) -> int:
         return self.counters.episode
+
+    def make_loss(self, model: ProbabilisticEnsemble) -> LossModule:
+        """The loss that fits the ensembles (Algorithm 1 line 4): the Gaussian NLL of eq. 9
+        with the PETS log-variance bound penalty, each member on its own bootstrap resample.
+
+        Override it to fit them with another loss: any torchrl ``LossModule`` that holds
+        ``model`` as ``.model`` and whose ``forward`` reads a batch ``[n]`` of the ``"agents"``
+        keys (``("agents", "observation")``, ``("agents", "action")``,
+        ``("next", "agents", "observation")`` ``[n, I, *]`` and ``("agents", "mask")``
+        ``[n, I]``, ``False`` on padding) and returns ``loss_*`` scalars (their sum is
+        minimised by Adam) and optionally ``nll_per_member`` ``[I, B]`` (logged as
+        ``model_nll``). The optimiser is built over its parameters.
+        """
+        return EnsembleNLLLoss(
+            model,
+            logvar_bound_coef=self.config.model.logvar_bound_coef,
+            generator=self.bootstrap_generator,
+        )
 
     def stateful_components(self) -> dict[str, Any]:
         return {
@@ -542,10 +551,17 @@ class MAPETS(Experiment):
             return {}
         rows = int(sizes.max())
         # one shuffled pass: row j < |D(i)+| of agent i is a distinct transition of D(i)+
-        data = next(iter(self.datasets.iter_epoch(rows))).transpose(0, 1)  # [N, I]
+        flat = next(iter(self.datasets.iter_epoch(rows))).transpose(0, 1)  # [N, I]
         mask = torch.arange(rows, device=sizes.device)[:, None] < sizes[None, :]
-        data.set("mask", mask)
-        data.batch_size = torch.Size([rows])  # train_ensemble reads keys [N, I, *]
+        data = TensorDict(  # the "agents" layout every loss reads, entries [N, I, *]
+            {
+                OBS: flat["observation"],
+                ACTION: flat["action"],
+                NEXT_OBS: flat["next_observation"],
+                MASK: mask,
+            },
+            batch_size=[rows],
+        )
         history = train_ensemble(
             self.loss,
             self.optimizer,

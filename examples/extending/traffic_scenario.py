@@ -56,6 +56,7 @@ from highway_env.road.road import RoadNetwork
 from highway_env.vehicle.kinematics import Vehicle
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
+from torchrl.objectives import LossModule
 
 from mapets_rl.envs import MultiAgentTrafficEnv, TrafficParallelEnv, wrap_parallel_env
 from mapets_rl.envs.figure_eight import TargetSpeedAction
@@ -63,7 +64,8 @@ from mapets_rl.envs.road import SortedNeighbourRoad
 from mapets_rl.envs.traffic import AgentObservation, require
 from mapets_rl.envs.vehicles import HumanVehicle, TargetSpeedVehicle
 from mapets_rl.metrics import agility, safety
-from mapets_rl.objectives import EnsembleNLLLoss
+from mapets_rl.models import ProbabilisticEnsemble
+from mapets_rl.objectives import read_transitions
 from mapets_rl.planning import PlannerConfig
 from recipes.mapets import MAPETS, MAPETSConfig
 
@@ -235,28 +237,31 @@ def stop_and_go_reward(
 
 
 # ------------------------------------------------------------------------------- 3. a loss
-class EnsembleMSELoss(EnsembleNLLLoss):
+class EnsembleMSELoss(LossModule):
     """Squared error of every member's mean next-state delta (normalised), no bootstrap.
 
-    Same inputs and batch reading as :class:`~mapets_rl.objectives.EnsembleNLLLoss` (keys
-    ``observation`` / ``action`` / ``next_observation`` ``[*, I, *]``, optional ``mask``
-    ``[*, I]``), so ``train_ensemble`` and MA-PETS use it unchanged. Output: ``loss_mse``
-    (sum over agents and members of the mean squared error) and ``nll_per_member`` ``[I, B]``
-    (the per-member MSE, the diagnostic that ``train_ensemble`` records).
+    The contract of :meth:`recipes.mapets.MAPETS.make_loss`: it holds the ensemble as
+    ``model`` and reads a batch ``[n]`` of the ``"agents"`` keys (``("agents",
+    "observation")``, ``("agents", "action")``, ``("next", "agents", "observation")``
+    ``[n, I, *]``, ``("agents", "mask")`` ``[n, I]``), validated by ``read_transitions``.
+    Output: ``loss_mse`` (sum over agents and members of the mean squared error) and
+    ``nll_per_member`` ``[I, B]`` (the per-member MSE, the diagnostic MA-PETS logs).
     """
 
-    out_keys = ["loss_mse", "nll_per_member"]
+    def __init__(self, model: ProbabilisticEnsemble) -> None:
+        super().__init__()
+        self.model = model
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        obs, action, next_obs, mask = self.read_batch(tensordict)
+        obs, action, next_obs, mask = read_transitions(tensordict, self.model)  # [n, I, *]
         model = self.model
-        x = model.normalize_inputs(obs.transpose(0, 1), action.transpose(0, 1))  # [I, N, in]
+        x = model.normalize_inputs(obs.transpose(0, 1), action.transpose(0, 1))  # [I, n, in]
         y = ((next_obs - obs).transpose(0, 1) - model.output_mean[:, 0]) / model.output_std[:, 0]
         mean, _ = model.normalized_forward(x.unsqueeze(1).expand(-1, model.ensemble_size, -1, -1))
-        weight = torch.ones(y.shape[:2], dtype=y.dtype, device=y.device)  # [I, N]
+        weight = torch.ones(y.shape[:2], dtype=y.dtype, device=y.device)  # [I, n]
         if mask is not None:
             weight = mask.transpose(0, 1).to(y.dtype)
-        se = (mean - y.unsqueeze(1)).pow(2).mean(-1)  # [I, B, N]
+        se = (mean - y.unsqueeze(1)).pow(2).mean(-1)  # [I, B, n]
         mse = (se * weight.unsqueeze(1)).sum(-1) / weight.sum(-1, keepdim=True).clamp_min(1.0)
         return TensorDict({"loss_mse": mse.sum(), "nll_per_member": mse.detach()}, batch_size=[])
 
@@ -287,14 +292,9 @@ class StopAndGoMAPETS(MAPETS):
             reward_fn=stop_and_go_reward,
             termination_fn=stop_and_go_collision,
         )
-        self.loss = EnsembleMSELoss(self.model)
-        self.loss.set_keys(
-            observation="observation",
-            action="action",
-            next_observation="next_observation",
-            mask="mask",
-        )
-        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=config.model.lr)
+
+    def make_loss(self, model: ProbabilisticEnsemble) -> LossModule:
+        return EnsembleMSELoss(model)
 
 
 def main() -> None:

@@ -2,7 +2,12 @@
 
 from mapets_rl.objectives.coma import COMACritic, COMALoss, counterfactual_advantage
 from mapets_rl.objectives.ddpg import PreactivationRegularisedDDPGLoss
-from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, ensemble_optimizer, train_ensemble
+from mapets_rl.objectives.ensemble_nll import (
+    EnsembleNLLLoss,
+    ensemble_optimizer,
+    read_transitions,
+    train_ensemble,
+)
 from mapets_rl.objectives.m3ddpg import M3DDPGLoss, MinimaxCritic, minimax_action_perturbation
 from mapets_rl.objectives.n_step import STEPS_TO_NEXT_OBS, n_step_transitions
 from mapets_rl.objectives.shapley_actor_critic import ShapleyActorCriticLoss
@@ -20,5 +25,6 @@ __all__ = [
     "ensemble_optimizer",
     "minimax_action_perturbation",
     "n_step_transitions",
+    "read_transitions",
     "train_ensemble",
 ]

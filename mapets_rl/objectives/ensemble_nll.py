@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -13,7 +14,7 @@ from mapets_rl.models.ensemble import ProbabilisticEnsemble
 from mapets_rl.modules.arguments import finite_number
 from mapets_rl.modules.tensor_checks import as_mask, get_tensor
 
-__all__ = ["EnsembleNLLLoss", "ensemble_optimizer", "train_ensemble"]
+__all__ = ["EnsembleNLLLoss", "ensemble_optimizer", "read_transitions", "train_ensemble"]
 
 
 class EnsembleNLLLoss(LossModule):
@@ -93,39 +94,9 @@ class EnsembleNLLLoss(LossModule):
     def read_batch(
         self, tensordict: TensorDictBase
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """Read and flatten the batch to ``[N, I, *]`` tensors, validating shape and values."""
-        keys = self.tensor_keys
-        model = self.model
-        owner = type(self).__name__
-        n = model.n_agents
-        obs = get_tensor(tensordict, keys.observation, f"[*, {n}, {model.obs_dim}]", owner)
-        action = get_tensor(tensordict, keys.action, f"[*, {n}, {model.action_dim}]", owner)
-        next_obs = get_tensor(
-            tensordict, keys.next_observation, f"[*, {n}, {model.obs_dim}]", owner
-        )
-        mask = tensordict.get(keys.mask, None)
-        if obs.ndim < 2:
-            raise ValueError(f"{keys.observation} must be [*, I, obs], got {tuple(obs.shape)}.")
-        batch = obs.shape[:-2]
-        obs = obs.reshape(-1, *obs.shape[-2:])
-        action = action.reshape(-1, *action.shape[-2:]) if action.ndim >= 2 else action
-        next_obs = next_obs.reshape(-1, *next_obs.shape[-2:]) if next_obs.ndim >= 2 else next_obs
-        if mask is not None:
-            expected = (*batch, n)
-            if tuple(mask.shape) not in (expected, (*expected, 1)):
-                raise ValueError(
-                    f"{keys.mask} must have shape {list(expected)} (or {[*expected, 1]}), "
-                    f"got {list(mask.shape)}"
-                )
-            mask = as_mask(repr(keys.mask), mask, f"{list(expected)}").reshape(-1, n)
-        model.check_batch(obs, action, next_obs, mask)
-        if mask is not None:
-            # Masked rows may hold anything (e.g. NaN of removed agents): zero them out.
-            keep = mask.unsqueeze(-1)
-            obs, action, next_obs = (
-                torch.where(keep, v, torch.zeros_like(v)) for v in (obs, action, next_obs)
-            )
-        return obs, action, next_obs, mask
+        """Read and flatten the batch to ``[N, I, *]`` tensors, validating shape and values
+        (:func:`read_transitions` on this loss's keys)."""
+        return read_transitions(tensordict, self.model, self.tensor_keys, type(self).__name__)
 
     def fit_normalizer(self, tensordict: TensorDictBase) -> None:
         """Fit the model's per-agent normalisation on the loss's keys of ``tensordict``."""
@@ -214,7 +185,7 @@ class EnsembleNLLLoss(LossModule):
         )
 
 
-def ensemble_optimizer(loss_module: EnsembleNLLLoss, lr: float = 1e-3) -> torch.optim.Optimizer:
+def ensemble_optimizer(loss_module: LossModule, lr: float = 1e-3) -> torch.optim.Optimizer:
     """Adam over the loss module's parameters, fused (one kernel for all parameters) where
     torch supports it on their device, else the multi-tensor ``foreach`` implementation."""
     params = list(loss_module.parameters())
@@ -224,8 +195,58 @@ def ensemble_optimizer(loss_module: EnsembleNLLLoss, lr: float = 1e-3) -> torch.
         return torch.optim.Adam(params, lr=lr, foreach=True)
 
 
+def read_transitions(
+    tensordict: TensorDictBase,
+    model: ProbabilisticEnsemble,
+    keys: object = None,
+    owner: str = "train_ensemble",
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """The transitions of ``tensordict`` as ``(obs, action, next_obs, mask)`` ``[N, I, *]``
+    (``mask`` ``[N, I]`` or ``None``), validated against ``model``'s sizes and finiteness;
+    masked-out rows are zeroed.
+
+    Args:
+        tensordict: batch ``[*]`` with ``[*, I, *]`` entries.
+        model: the ensemble the transitions are for (its ``n_agents``, ``obs_dim``,
+            ``action_dim``).
+        keys: an object with ``observation``, ``action``, ``next_observation`` and ``mask``
+            key attributes (default: :class:`EnsembleNLLLoss`'s, the ``"agents"`` layout:
+            ``("agents", "observation")``, ``("agents", "action")``,
+            ``("next", "agents", "observation")``, ``("agents", "mask")``).
+        owner: who reads them, named in the error messages.
+    """
+    keys = EnsembleNLLLoss.default_keys() if keys is None else keys
+    n = model.n_agents
+    obs = get_tensor(tensordict, keys.observation, f"[*, {n}, {model.obs_dim}]", owner)
+    action = get_tensor(tensordict, keys.action, f"[*, {n}, {model.action_dim}]", owner)
+    next_obs = get_tensor(tensordict, keys.next_observation, f"[*, {n}, {model.obs_dim}]", owner)
+    mask = tensordict.get(keys.mask, None)
+    if obs.ndim < 2:
+        raise ValueError(f"{keys.observation} must be [*, I, obs], got {tuple(obs.shape)}.")
+    batch = obs.shape[:-2]
+    obs = obs.reshape(-1, *obs.shape[-2:])
+    action = action.reshape(-1, *action.shape[-2:]) if action.ndim >= 2 else action
+    next_obs = next_obs.reshape(-1, *next_obs.shape[-2:]) if next_obs.ndim >= 2 else next_obs
+    if mask is not None:
+        expected = (*batch, n)
+        if tuple(mask.shape) not in (expected, (*expected, 1)):
+            raise ValueError(
+                f"{keys.mask} must have shape {list(expected)} (or {[*expected, 1]}), "
+                f"got {list(mask.shape)}"
+            )
+        mask = as_mask(repr(keys.mask), mask, f"{list(expected)}").reshape(-1, n)
+    model.check_batch(obs, action, next_obs, mask)
+    if mask is not None:
+        # Masked rows may hold anything (e.g. NaN of removed agents): zero them out.
+        keep = mask.unsqueeze(-1)
+        obs, action, next_obs = (
+            torch.where(keep, v, torch.zeros_like(v)) for v in (obs, action, next_obs)
+        )
+    return obs, action, next_obs, mask
+
+
 def train_ensemble(
-    loss_module: EnsembleNLLLoss,
+    loss_module: LossModule,
     optimizer: torch.optim.Optimizer,
     data: TensorDictBase,
     *,
@@ -237,11 +258,18 @@ def train_ensemble(
     """Train every agent's ensemble for ``epochs`` passes over ``data`` (paper: 5 x 128, Adam).
 
     All ``I * B`` members take each optimisation step together (one batched forward/backward);
-    each member sees its own bootstrap resample of every minibatch (see
-    :class:`~mapets_rl.objectives.EnsembleNLLLoss`).
+    with :class:`~mapets_rl.objectives.EnsembleNLLLoss` each member sees its own bootstrap
+    resample of every minibatch.
+
+    Any other ``LossModule`` trains the ensemble it holds as ``loss_module.model`` through its
+    ``forward`` on TensorDict minibatches of ``data`` (the ``"agents"`` keys, see
+    :func:`read_transitions`), minimising the sum of its ``loss_*`` outputs; its optional
+    ``nll_per_member`` ``[I, B]`` output is what the returned history records (without it,
+    the summed loss over ``I * B``, for every member).
 
     Args:
-        loss_module: an ``EnsembleNLLLoss`` wrapping the ensemble.
+        loss_module: an ``EnsembleNLLLoss`` (keys as set on it), or any ``LossModule`` with
+            the ensemble as ``.model`` that reads the ``"agents"`` keys.
         optimizer: optimiser over ``loss_module.parameters()`` (paper: Adam, lr 1e-3).
         data: transitions with batch shape ``[N]`` and the loss's keys shaped ``[N, I, *]``
             (agents with fewer transitions pad with ``mask=False`` rows).
@@ -261,16 +289,26 @@ def train_ensemble(
         raise ValueError(
             f"data must have a non-empty batch shape [N], got {tuple(data.batch_size)}."
         )
+    model = getattr(loss_module, "model", None)
+    if not isinstance(model, ProbabilisticEnsemble):
+        raise ValueError(
+            f"loss_module must hold the ProbabilisticEnsemble it trains as .model, got "
+            f"{type(model).__name__} on {type(loss_module).__name__}."
+        )
     # Validates shapes and finiteness of the whole dataset once, before any update.
-    batch = loss_module.read_batch(data)
+    if isinstance(loss_module, EnsembleNLLLoss):
+        batch = loss_module.read_batch(data)
+    else:
+        batch = read_transitions(data, model, owner=type(loss_module).__name__)
     if fit_normalizer:
-        loss_module.model.fit_normalizer(*batch)
+        model.fit_normalizer(*batch)
     rows = data.batch_size[0]
     # A subclass that redefines ``forward`` (another loss) is trained through it, on TensorDict
     # minibatches, summing its ``loss_*`` outputs. Otherwise the normalisation is fixed during
     # training, so the dataset is normalised once and the steps only index it (no TensorDict,
     # validation or host sync per step).
     custom = type(loss_module).forward is not EnsembleNLLLoss.forward
+    members = (model.n_agents, model.ensemble_size)
     if not custom:
         x, y, weight = loss_module.normalized_data(*batch)
     history = []
@@ -282,7 +320,9 @@ def train_ensemble(
             if custom:
                 losses = loss_module(data[index])
                 total = sum(v for k, v in losses.items() if k.startswith("loss_"))
-                member = losses["nll_per_member"]
+                member = losses.get("nll_per_member", None)
+                if member is None:
+                    member = (total.detach() / math.prod(members)).expand(members)
             else:
                 nll, bounds = loss_module.member_losses(x, y, weight, index)
                 total, member = nll.sum() + bounds, nll.detach()
