@@ -74,6 +74,7 @@ from mapets_rl.planning import (
     TerminationFn,
     TrajectorySamplingCEM,
 )
+from mapets_rl.planning.memory import available_memory, ensemble_bytes, planner_bytes
 
 OBS = ("agents", "observation")
 ACTION = ("agents", "action")
@@ -343,23 +344,17 @@ class MAPETS(Experiment):
         # the scenario with the communication-range transform appended
         self.comm = CommunicationRange(config.comm.comm_range, config.comm.p_fail)
         env = build_env(config.env, config.env_config).append_transform(self.comm)
+        group = AgentGroupSpec.from_env(env)
+        try:  # refusals before the run directory is written
+            self._check_scenario(config, group, reward_fn)
+        except ValueError:
+            env.close()
+            raise
         super().__init__(config, run_dir, env)
-        group = AgentGroupSpec.from_env(self.env)
-        if group.discrete:
-            raise ValueError(
-                f"env {config.env!r} must have continuous actions for mapets (the CEM planner "
-                "optimises real-valued action sequences), e.g. figure-eight"
-            )
         bounds = group.action_spec.space
         self.obs_coder, self.action_coder = self._tile_coders(group, bounds.low, bounds.high)
         if self.obs_coder is not None:
             self.env.append_transform(TileCodedObservation(self.obs_coder, in_keys=[OBS]))
-        if reward_fn is None and group.obs_dim not in OBSERVATION_SIZES:
-            raise ValueError(
-                f"reward_fn is required for env {config.env!r}: the default figure_eight_reward "
-                f"needs the figure-eight's observation (sizes {list(OBSERVATION_SIZES)}), "
-                f"got {group.obs_dim}"
-            )
         if reward_fn is None:
             gaps = {
                 "collision_gap": config.collision_gap,
@@ -448,6 +443,40 @@ class MAPETS(Experiment):
     @property
     def episode(self) -> int:
         return self.counters.episode
+
+    @staticmethod
+    def _check_scenario(
+        config: MAPETSConfig, group: AgentGroupSpec, reward_fn: RewardFn | None
+    ) -> None:
+        """ValueError (one line) when the scenario's actions, observation or size do not fit
+        MA-PETS with ``config``: discrete actions, no ``reward_fn`` for an observation the
+        figure-eight reward cannot read, or a planner / ensemble larger than the memory the
+        device has available (:mod:`mapets_rl.planning.memory`)."""
+        if group.discrete:
+            raise ValueError(
+                f"env {config.env!r} must have continuous actions for mapets (the CEM planner "
+                "optimises real-valued action sequences), e.g. figure-eight"
+            )
+        if reward_fn is None and group.obs_dim not in OBSERVATION_SIZES:
+            raise ValueError(
+                f"reward_fn is required for env {config.env!r}: the default figure_eight_reward "
+                f"needs the figure-eight's observation (sizes {list(OBSERVATION_SIZES)}), "
+                f"got {group.obs_dim}"
+            )
+        planner, model = config.planner, config.model
+        dims = (group.n_agents, group.obs_dim, group.action_dim)
+        need = planner_bytes(
+            *dims, model.hidden, planner.population, planner.particles, planner.horizon
+        ) + ensemble_bytes(*dims, model.hidden, model.ensemble_size)
+        free = available_memory(config.device)
+        if free is not None and need > free:
+            raise ValueError(
+                f"the planner and ensembles need about {need / 2**30:.1f} GiB on "
+                f"{config.device} ({group.n_agents} agents x planner.population="
+                f"{planner.population} x planner.particles={planner.particles}, model.hidden="
+                f"{list(model.hidden)}), more than the {free / 2**30:.1f} GiB available: lower "
+                "planner.population, planner.particles or model.hidden"
+            )
 
     def make_loss(self, model: ProbabilisticEnsemble) -> LossModule:
         """The loss that fits the ensembles (Algorithm 1 line 4): the Gaussian NLL of eq. 9

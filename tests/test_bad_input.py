@@ -993,3 +993,31 @@ def test_predict_still_takes_torch_dtypes_inside_and_outside_frozen_parameters()
         with model.frozen_parameters(torch.bfloat16):
             torch.testing.assert_close(model.predict(obs, action, torch.bfloat16), bf16)
     torch.testing.assert_close(bf16, outside, atol=0.1, rtol=0.05)
+
+
+# ------------------------------------------------------------- MA-PETS: refusals before writing
+@pytest.mark.parametrize(
+    "env, overrides, match",
+    [
+        ("freeway", [], "must have continuous actions for mapets"),
+        (
+            "figure-eight",
+            ["planner.population=100000000", "planner.elites=2"],
+            r"need about .* GiB on cpu .* more than the .* GiB available: lower",
+        ),
+        (
+            "figure-eight",
+            ["model.hidden=[100000, 100000, 100000]"],
+            r"need about .* GiB on cpu .* model.hidden=\[100000, 100000, 100000\]",
+        ),
+    ],
+    ids=["discrete actions", "planner too large", "ensemble too large"],
+)
+def test_mapets_refuses_a_scenario_or_size_before_writing_the_run_dir(
+    env: str, overrides: list[str], match: str, tmp_path: Path
+) -> None:
+    from recipes.mapets import MAPETS, MAPETSConfig
+
+    config = MAPETSConfig(env=env, preset="cpu").with_overrides(overrides)
+    _refused(lambda: MAPETS(config, tmp_path / "run"), match)
+    assert not (tmp_path / "run").exists()
