@@ -228,4 +228,7 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
 
 
 if __name__ == "__main__":
+    from mapets_rl import quiet_dependencies
+
+    quiet_dependencies()
     main()

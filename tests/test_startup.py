@@ -42,3 +42,19 @@ def test_cli_and_help_import_no_heavy_module(code: str) -> None:
 def test_the_check_sees_heavy_imports() -> None:
     """The same check reports them when a module does import them (the test can fail)."""
     assert _imported_after("import pandas") == ["pandas"]
+
+
+def test_importing_the_package_changes_no_global_logging_or_warning_state() -> None:
+    """``import mapets_rl`` (and its recipes) installs no warning filter and no logging filter;
+    the CLI quiets its dependencies itself."""
+    code = (
+        "import logging, warnings\n"
+        "import mapets_rl, mapets_rl.experiment, recipes.mapets\n"
+        "def ours():\n"
+        "    mine = [f for f in warnings.filters if f[1] and 'PettingZoo' in f[1].pattern]\n"
+        "    return mine, list(logging.getLogger('torchrl').filters)\n"
+        "assert ours() == ([], []), ours()\n"
+        "mapets_rl.quiet_dependencies()\n"
+        "assert all(ours()), ours()\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)

@@ -30,6 +30,7 @@ import sys
 from collections.abc import Sequence
 from typing import NoReturn
 
+from mapets_rl import quiet_dependencies
 from mapets_rl.experiment.threads import prepare_process
 
 PROG = "mapets-rl"
@@ -607,6 +608,7 @@ def _recipe_help(name: str) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``mapets-rl`` console script."""
     prepare_process()  # the OpenMP wait policy must be set before anything imports torch
+    quiet_dependencies()
     argv = list(sys.argv[1:] if argv is None else argv)
     if (
         len(argv) >= 3
