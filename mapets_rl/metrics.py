@@ -18,10 +18,13 @@ Comfort (eq. 9) is a score per vehicle and step, no physical unit: 3 keeping the
 
 Units: :data:`METRIC_UNITS` names the unit of every metric the recipes record;
 :func:`metric_label` writes ``name [unit]`` for tables, plot labels and logs, and speeds in m/s
-also in mph (:data:`MPH_PER_MPS`).
+also in mph (:data:`MPH_PER_MPS`). :data:`TASK_METRICS` are the metrics of what a policy does
+(what ``compare`` shows by default); :data:`METRIC_RANGES` the values a metric can take.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -54,6 +57,68 @@ METRIC_UNITS: dict[str, str] = {
 }
 """Metric name -> unit (see the module docstring for the definitions). Metrics not listed
 (losses, NLLs, counters of recipe internals) carry none."""
+
+
+TASK_METRICS: frozenset[str] = frozenset(
+    {
+        "agility",
+        "safety",
+        "mean_speed",
+        "average_velocity",
+        "velocity",
+        "traffic_velocity",
+        "average_comfort",
+        "comfort",
+        "traffic_comfort",
+        "collisions",
+        "length",
+        "reward",
+        "return",
+    }
+)
+"""The metrics of what a policy does in its scenario: the papers' metrics (agility, safety,
+velocity, comfort), collisions, episode length, reward and return. ``compare`` shows these by
+default; the others, the cost of training (``step_time``, ``train_time``), bookkeeping counters
+(``episode``, ``frames``, ``transitions_*``, ``bytes_shared``, ``dataset_size``) and recipe
+internals (losses, exploration rates), only when asked for by name."""
+
+METRIC_RANGES: dict[str, tuple[float, float]] = {
+    "agility": (0.0, math.inf),
+    "safety": (0.0, 1.0),
+    "mean_speed": (0.0, math.inf),
+    "average_velocity": (0.0, math.inf),
+    "velocity": (0.0, math.inf),
+    "traffic_velocity": (0.0, math.inf),
+    "average_comfort": (0.0, 3.0),
+    "comfort": (0.0, 3.0),
+    "traffic_comfort": (0.0, 3.0),
+    "collisions": (0.0, math.inf),
+    "length": (0.0, math.inf),
+    "episode": (0.0, math.inf),
+    "step_time": (0.0, math.inf),
+    "train_time": (0.0, math.inf),
+    "transitions_stored": (0.0, math.inf),
+    "transitions_filtered": (0.0, math.inf),
+    "transitions_shared": (0.0, math.inf),
+    "bytes_shared": (0.0, math.inf),
+    "dataset_size": (0.0, math.inf),
+    "frames": (0.0, math.inf),
+}
+"""Metric name -> ``(low, high)``, the values it can take: safety is a fraction of ``H``,
+comfort a score in ``[0, 3]``, distances, speeds, counts and times are non-negative. Metrics
+not listed (reward, return, losses) are unbounded."""
+
+
+def metric_range(name: str) -> tuple[float, float]:
+    """``(low, high)`` of metric ``name`` (:data:`METRIC_RANGES`; ``(-inf, inf)`` when it
+    declares none); ``"train/safety"`` and ``"safety"`` alike."""
+    return METRIC_RANGES.get(name.rsplit("/", 1)[-1], (-math.inf, math.inf))
+
+
+def is_task_metric(name: str) -> bool:
+    """Whether ``name`` (``"train/safety"`` and ``"safety"`` alike) is one of
+    :data:`TASK_METRICS`."""
+    return name.rsplit("/", 1)[-1] in TASK_METRICS
 
 
 def metric_unit(name: str) -> str:

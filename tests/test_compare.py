@@ -299,3 +299,207 @@ def test_cli_compare_options(tmp_path: Path, capsys) -> None:
         ["compare", runs[0], "--out", str(tmp_path / "cmp4"), "--group-by", ","], capsys
     )
     assert code == 2 and "--group-by must name at least one config field" in err
+
+
+# ------------------------------------------------------------------ what a researcher reads
+@pytest.fixture
+def figures(monkeypatch) -> list:
+    """The matplotlib figures ``compare`` saves, in order."""
+    from mapets_rl.experiment import comparison
+
+    saved: list = []
+    original = comparison.atomic_savefig
+
+    def savefig(fig, path, **kwargs) -> None:
+        saved.append(fig)
+        original(fig, path, **kwargs)
+
+    monkeypatch.setattr(comparison, "atomic_savefig", savefig)
+    return saved
+
+
+def _panels(fig) -> dict[str, object]:
+    """Metric name (the panel title up to its unit) -> the visible axes of that panel."""
+    return {ax.get_title().split(" [")[0]: ax for ax in fig.axes if ax.get_visible()}
+
+
+def _band_ys(ax) -> list[float]:
+    """The y values of the vertices of every shaded band (``fill_between``) of ``ax``."""
+    return [
+        float(y)
+        for coll in ax.collections
+        for path in coll.get_paths()
+        for y in path.vertices[:, 1]
+    ]
+
+
+def test_a_single_run_shows_n_1_and_no_interval(tmp_path: Path, figures) -> None:
+    run = fake_run(
+        tmp_path / "one",
+        evaluations=[
+            (100, {"return": 1.0, "average_velocity": 20.0}),
+            (200, {"return": 2.0, "average_velocity": 22.0}),
+        ],
+    )
+    out = compare([run], tmp_path / "cmp")
+    table = out["table"].read_text()
+    assert "| toy | deterministic evaluations | 200 | 22 (49.21 mph) (n=1) | 2 (n=1) |" in table
+    assert "±" not in table.splitlines()[-1]
+    summary = json.loads(out["summary"].read_text())["toy"]["return"]
+    assert summary["n"] == 1 and summary["ci95"] is None
+    curves = json.loads(out["curves"].read_text())["groups"]["toy"]["metrics"]["return"]
+    assert curves["ci95"] == [None, None] and curves["std"] == [None, None]
+    (fig,) = figures
+    assert all(not ax.collections for ax in fig.axes)  # no band
+    assert [line.get_label() for line in fig.axes[0].get_lines()] == ["toy (n=1)"]
+
+
+def test_runs_of_different_lengths_are_compared_at_the_last_x_all_reached(tmp_path: Path) -> None:
+    long = fake_run(tmp_path / "long", evaluations=eval_entries(1.0, 2.0, 3.0))
+    short = fake_run(tmp_path / "short", seed=1, evaluations=eval_entries(1.0, 4.0))
+    out = compare([long, short], tmp_path / "cmp", ["return"])
+    summary = json.loads(out["summary"].read_text())["toy"]["return"]
+    assert (
+        summary["mean"] == pytest.approx(3.0) and summary["frames"] == 200
+    )  # 2 and 4, not 3 and 4
+    header = out["table"].read_text().splitlines()[0]
+    assert header.startswith("Last entry of each run: deterministic evaluations;")
+    assert "toy at frames 200 (its runs end at frames 200 to 300)" in header
+    # episodes of different lengths: the runs' second episodes, frames 41 and 61
+    runs = [
+        fake_run(tmp_path / "s0", train=train_entries(0.2, 0.4, 0.6, length=20)),
+        fake_run(tmp_path / "s1", seed=1, train=train_entries(0.4, 0.8, length=30)),
+    ]
+    out = compare(runs, tmp_path / "cmp2", ["episode", "safety"], source="train")
+    assert (
+        "| toy | training entries | 41 | 2 ± 0 (n=2) | 0.6 ± 2.5 (n=2) |"
+        in out["table"].read_text()
+    )
+    out = compare(runs, tmp_path / "cmp3", ["safety"], source="train", x="episode")
+    assert json.loads(out["summary"].read_text())["toy"]["safety"]["mean"] == pytest.approx(0.6)
+    # runs of equal length: the header says nothing more
+    same = fake_run(tmp_path / "same", seed=2, evaluations=eval_entries(5.0, 6.0))
+    out = compare([short, same], tmp_path / "cmp4", ["return"])
+    assert out["table"].read_text().splitlines()[0] == (
+        "Last entry of each run: deterministic evaluations; mean ± 95% CI half-width (n = runs)."
+    )
+
+
+def test_runs_that_share_no_x_are_refused_in_one_line(tmp_path: Path) -> None:
+    a = fake_run(tmp_path / "a", evaluations=eval_entries(1.0, every=100))
+    b = fake_run(tmp_path / "b", seed=1, evaluations=eval_entries(1.0, 2.0, every=150))
+    with pytest.raises(ValueError) as err:
+        compare([a, b], tmp_path / "cmp", ["return"])
+    message = str(err.value)
+    assert "\n" not in message and "x_grid" in message
+    assert f"run_dir {str(b)!r} has no entry at frames <= 100" in message and str(a) in message
+    assert not (tmp_path / "cmp").exists()
+    out = compare([a, b], tmp_path / "grid", ["return"], x_grid=150)
+    assert json.loads(out["summary"].read_text())["toy"]["return"]["mean"] == pytest.approx(1.0)
+
+
+def test_the_default_shows_the_task_metrics_and_all_shows_every_metric(
+    tmp_path: Path, figures, capsys
+) -> None:
+    metrics = {
+        "return": 1.0,
+        "safety": 0.5,
+        "collisions": 1.0,
+        "step_time": 0.01,
+        "train_time": 3.0,
+        "random": 0.2,
+        "episode": 1.0,
+        "transitions_shared": 5.0,
+        "loss": 0.3,
+    }
+    runs = [fake_run(tmp_path / f"r{s}", seed=s, evaluations=[(100, metrics)]) for s in (0, 1)]
+    out = compare(runs, tmp_path / "cmp")
+    assert set(json.loads(out["summary"].read_text())["toy"]) == {"collisions", "return", "safety"}
+    assert "step_time" not in out["table"].read_text()
+    assert sorted(_panels(figures[-1])) == ["collisions", "return", "safety"]
+    out = compare(runs, tmp_path / "all", "all")
+    assert set(json.loads(out["summary"].read_text())["toy"]) == set(metrics)
+    assert len(_panels(figures[-1])) == len(metrics)
+    out = compare(runs, tmp_path / "named", ["step_time", "return"])
+    assert sorted(_panels(figures[-1])) == ["return", "step_time"]
+    code, out, err = run_cli(
+        ["compare", *map(str, runs), "--out", str(tmp_path / "cli"), "--metrics", "all"], capsys
+    )
+    assert code == 0, err
+    assert "step_time [s/step]" in out and "| random |" in out
+    # a recipe that records no task metric: every common metric
+    other = [
+        fake_run(tmp_path / f"o{s}", seed=s, evaluations=[(100, {"score": 1.0 + s})])
+        for s in (0, 1)
+    ]
+    out = compare(other, tmp_path / "other")
+    assert set(json.loads(out["summary"].read_text())["toy"]) == {"score"}
+
+
+def test_the_band_is_clipped_to_the_range_the_metric_declares(tmp_path: Path, figures) -> None:
+    runs = [
+        fake_run(
+            tmp_path / f"r{s}",
+            seed=s,
+            evaluations=[
+                (100, {"safety": safety, "average_velocity": v, "return": r}),
+                (200, {"safety": safety, "average_velocity": v, "return": r}),
+            ],
+        )
+        for s, (safety, v, r) in enumerate([(0.05, 1.0, -1.0), (0.95, 30.0, 1.0)])
+    ]
+    out = compare(runs, tmp_path / "cmp")
+    half = json.loads(out["summary"].read_text())["toy"]["safety"]["ci95"]
+    assert half > 1  # the interval itself is reported unclipped
+    panels = _panels(figures[-1])
+    safety = _band_ys(panels["safety"])
+    assert min(safety) == pytest.approx(0.0) and max(safety) == pytest.approx(1.0)
+    assert min(_band_ys(panels["average_velocity"])) == pytest.approx(0.0)
+    returns = _band_ys(panels["return"])  # unbounded: not clipped
+    assert min(returns) < -5 and max(returns) > 5
+
+
+@pytest.mark.parametrize("x", ["frames", "episode"])
+def test_frames_and_episodes_get_integer_ticks(tmp_path: Path, figures, x: str) -> None:
+    runs = [
+        fake_run(tmp_path / f"s{s}", seed=s, train=train_entries(0.2, 0.4 + s, length=1))
+        for s in (0, 1)
+    ]
+    compare(runs, tmp_path / "cmp", ["safety"], source="train", x=x)
+    (ax,) = _panels(figures[-1]).values()
+    lo, hi = ax.get_xlim()
+    ticks = [t for t in ax.get_xticks() if lo <= t <= hi]
+    assert len(ticks) >= 2 and all(float(t).is_integer() for t in ticks), ticks
+
+
+def test_a_run_given_twice_is_refused(tmp_path: Path, capsys) -> None:
+    run = fake_run(tmp_path / "run", evaluations=eval_entries(1.0))
+    other = fake_run(tmp_path / "other", seed=1, evaluations=eval_entries(2.0))
+    (tmp_path / "link").symlink_to(run)
+    for again in (run, tmp_path / "link", tmp_path / "other" / ".." / "run"):
+        with pytest.raises(ValueError) as err:
+            compare([run, other, again], tmp_path / "cmp")
+        message = str(err.value)
+        assert "\n" not in message
+        assert message.startswith(f"run_dir {str(again)!r} is {str(run)!r} again")
+    assert not (tmp_path / "cmp").exists()
+    code, _, err = run_cli(["compare", str(run), str(run), "--out", str(tmp_path / "cmp")], capsys)
+    assert code == 2 and err.count("\n") == 1 and "again" in err
+
+
+def test_out_inside_a_run_directory_is_refused(tmp_path: Path, capsys) -> None:
+    run = fake_run(tmp_path / "run", evaluations=eval_entries(1.0))
+    other = fake_run(tmp_path / "other", seed=1, evaluations=eval_entries(2.0))
+    before = sorted(p.name for p in run.iterdir())
+    for out in (run, run / "cmp", tmp_path / "other" / ".." / "run" / "cmp"):
+        with pytest.raises(ValueError) as err:
+            compare([other, run], out)
+        message = str(err.value)
+        assert "\n" not in message
+        assert f"out_dir {str(out)!r} is inside run_dir {str(run)!r}" in message
+    assert sorted(p.name for p in run.iterdir()) == before
+    code, _, err = run_cli(["compare", str(run), "--out", str(run)], capsys)
+    assert code == 2 and err.count("\n") == 1 and "is inside run_dir" in err
+    assert sorted(p.name for p in run.iterdir()) == before
+    out = compare([run, other], tmp_path / "cmp")  # beside the runs is fine
+    assert out["table"].is_file()

@@ -9,8 +9,11 @@ The helpers here, used by a scenario's ``render`` when it has a ``render_mode``:
 - :class:`CrashSites`: where and when vehicles crashed (recorded before they leave the road);
   :func:`decorate_frame` marks each site with a red box and cross (:data:`CRASH_COLOR`) for the
   rest of the episode, and draws a legend (CAV / human driver / crash site, with counts) in the
-  top-left corner.
+  top-left corner;
+- :func:`draw_step_counter`: ``step k / H`` in the top-right corner, drawn by
+  ``MultiAgentTrafficEnv.render`` for every scenario.
 
+Both scenarios use them: the figure-eight (whole track in view) and the freeway.
 The camera is the scenario's business (the freeway centres on the mean position of the CAVs
 still driving, ``FreewayEnv.view_centre``).
 """
@@ -34,6 +37,8 @@ LEGEND_ORIGIN = (6, 6)
 """Top-left pixel of the legend box."""
 SWATCH = 10
 """Side of a legend colour swatch [pixels]."""
+STEP_COUNTER_MARGIN = 6
+"""Distance of the step counter's box from the top and right edges [pixels]."""
 
 
 @dataclass
@@ -138,3 +143,19 @@ def _legend(image: Any, counts: dict[str, int], crashes: int) -> None:
         y = y0 + 4 + k * row
         pygame.draw.rect(image, color, (x0 + 4, y, SWATCH, SWATCH))
         image.blit(label, (x0 + SWATCH + 8, y - 1))
+
+
+def draw_step_counter(frame: np.ndarray, step: int, horizon: int) -> np.ndarray:
+    """``frame`` ``[H, W, 3]`` with ``step k / H`` (dark text on a white box) in its top-right
+    corner, :data:`STEP_COUNTER_MARGIN` pixels from the edges; a new uint8 array."""
+    import pygame
+
+    if not pygame.font.get_init():
+        pygame.font.init()
+    image = pygame.surfarray.make_surface(np.ascontiguousarray(np.swapaxes(frame, 0, 1)))
+    label = pygame.font.Font(None, 18).render(f"step {step} / {horizon}", True, LEGEND_TEXT)
+    width, height = label.get_width() + 8, label.get_height() + 6
+    x0 = image.get_width() - STEP_COUNTER_MARGIN - width
+    pygame.draw.rect(image, LEGEND_BACKGROUND, (x0, STEP_COUNTER_MARGIN, width, height))
+    image.blit(label, (x0 + 4, STEP_COUNTER_MARGIN + 3))
+    return np.ascontiguousarray(np.swapaxes(pygame.surfarray.array3d(image), 0, 1))

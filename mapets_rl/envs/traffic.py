@@ -23,6 +23,7 @@ from highway_env.envs.common.graphics import EnvViewer
 from highway_env.envs.common.observation import ObservationType
 from highway_env.vehicle.kinematics import Vehicle
 
+from mapets_rl.envs.rendering import draw_step_counter
 from mapets_rl.envs.road import SortedNeighbourRoad
 from mapets_rl.envs.validation import is_integer, require_number
 
@@ -271,7 +272,13 @@ class MultiAgentTrafficEnv(AbstractEnv):
 
     # --- rendering ---------------------------------------------------------------------------
     def render(self) -> np.ndarray | None:
+        """highway-env's frame centred on :attr:`view_centre`, with ``step k / H`` (policy
+        steps taken of the horizon) in its top-right corner
+        (:func:`mapets_rl.envs.rendering.draw_step_counter`)."""
         if self.viewer is None and self.render_mode is not None:
             self.viewer = EnvViewer(self)
             self.viewer.observer_vehicle = _Origin(self.view_centre)
-        return super().render()
+        frame = super().render()
+        if frame is None or self.render_mode is None:
+            return frame
+        return draw_step_counter(frame, self.steps_taken, self.config["horizon"])

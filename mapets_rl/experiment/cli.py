@@ -227,7 +227,9 @@ def build_parser() -> argparse.ArgumentParser:
         "curves with a 95%% Student-t confidence band over the runs of each group "
         "(learning_curves.png) and write a markdown table of final metrics (final_metrics.md), "
         "summary.json and curves.json into --out. Runs on different scenarios (env or "
-        "env_config) are refused unless --allow-mixed-env.",
+        "env_config) are refused unless --allow-mixed-env; a run named twice, or an --out "
+        "inside a run, is refused. The runs of a group that end at different x are "
+        "compared at the last x all of them reached (the table's header says so).",
     )
     compare.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="run directories")
     compare.add_argument("--out", required=True, metavar="DIR", help="output directory")
@@ -235,7 +237,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--metrics",
         default=None,
         metavar="a,b,...",
-        help="comma-separated metrics to show (default: all common ones)",
+        help="comma-separated metrics to show, or all (every metric common to the runs); "
+        "default: the task metrics among them (agility, safety, velocity, comfort, "
+        "collisions, length, reward, return), not timings, counters or losses",
     )
     compare.add_argument(
         "--source",
@@ -409,11 +413,13 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_compare(args: argparse.Namespace) -> int:
     from mapets_rl.experiment.comparison import compare
 
-    metrics = None
+    metrics: list[str] | str | None = None
     if args.metrics is not None:
         metrics = [m.strip() for m in args.metrics.split(",") if m.strip()]
         if not metrics:
             _fail(f"--metrics must name at least one metric (a,b,...), got {args.metrics!r}")
+        if metrics == ["all"]:
+            metrics = "all"
     group_by = None
     if args.group_by is not None:
         group_by = [f.strip() for f in args.group_by.split(",") if f.strip()]

@@ -11,7 +11,13 @@ A comparison says what it compares and refuses what would mislead:
   refused unless ``allow_mixed_env`` (then each group is labelled with its scenario and a
   warning is logged), except the keys that ``group_by`` names;
 - *grouped how*: by recipe, plus the values of the config fields in ``group_by`` (e.g. a sweep
-  over ``comm.comm_range``), each group a mean and 95% band over its runs (seeds).
+  over ``comm.comm_range``), each group a mean and 95% band over its runs (seeds); a group of
+  one run shows its values, ``n = 1``, and no interval;
+- *at what point*: the table compares the runs of a group at the last ``x`` all of them
+  reached, and its header says so when they end at different ``x``;
+- *which metrics*: by default the task metrics (:data:`mapets_rl.metrics.TASK_METRICS`), every
+  metric when asked (``metrics="all"``);
+- *once*: a run given twice is refused, and so is an ``out_dir`` inside a run directory.
 """
 
 from __future__ import annotations
@@ -34,7 +40,13 @@ from mapets_rl.experiment.files import (
     make_writable_dir,
 )
 from mapets_rl.experiment.results import ENTRY_LISTS, SOURCES, read_results
-from mapets_rl.metrics import MPH_PER_MPS, metric_label, metric_unit
+from mapets_rl.metrics import (
+    MPH_PER_MPS,
+    is_task_metric,
+    metric_label,
+    metric_range,
+    metric_unit,
+)
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +106,11 @@ def _fmt(value: Any) -> str:
     if isinstance(value, (int, float)):
         return f"{value:g}"
     return value if isinstance(value, str) else json.dumps(value, sort_keys=True)
+
+
+def _fmt_x(value: float) -> str:
+    """An x value for a message: integers in full (``1000000``, not ``1e+06``)."""
+    return str(int(value)) if float(value).is_integer() else f"{value:g}"
 
 
 _MISSING = object()
@@ -173,7 +190,7 @@ def _describe(diffs: Mapping[str, Mapping[str, list[str]]]) -> str:
 def compare(
     run_dirs: Sequence[str | os.PathLike],
     out_dir: str | os.PathLike,
-    metrics: Sequence[str] | None = None,
+    metrics: Sequence[str] | str | None = None,
     *,
     source: str = "eval",
     group_by: Sequence[str] | str | None = None,
@@ -189,19 +206,37 @@ def compare(
       runs with a shaded 95% Student-t confidence band, at the ``x`` values every run of the
       group reached; the title names the source;
     - ``final_metrics.md``: markdown table of each run's last entry, ``mean ± half-width
-      (n=runs)``, with the source of every group;
+      (n=runs)`` (``value (n=1)`` for a group of one run: one run has no interval), with the
+      source of every group and its ``frames`` (the fewest of its runs' compared entries);
     - ``summary.json``: those numbers, ``{group: {metric: {"mean", "ci95", "n", "frames",
-      "source"}}}``;
+      "source"}}}`` (``ci95`` null for ``n = 1``);
     - ``curves.json``: ``{"source": the requested source, "x": x, "groups": {group: ...}}``,
       per group its recipe, ``group_by`` values, scenario, source, runs and, at every ``x``
       value any of its runs reached (``x``, ``n`` runs), ``mean`` / ``std`` / ``ci95`` of
-      every metric.
+      every metric (``std`` and ``ci95`` null where ``n = 1``).
+
+    The plot's bands are clipped to the values the metric can take
+    (:data:`mapets_rl.metrics.METRIC_RANGES`: safety in [0, 1], speeds and counts >= 0); the
+    numbers in the files are not. Frames and other integer ``x`` get integer ticks.
+
+    Runs of one group that end at different ``x`` (a run still training, a resumed one, seeds
+    whose episodes end at different frames) are compared, in the table and ``summary.json``,
+    at the last ``x`` all of them reached: each run's last entry at or before it, and the
+    table's header line names the group, that ``x`` and where its runs end. Aligning, rather
+    than refusing, keeps the comparison of a run in progress (or of runs that log at slightly
+    different frames) possible while never averaging entries of different training progress
+    without a word; a group whose runs share no such ``x`` (one run ends before another's first
+    entry) is refused, pointing at ``x_grid``. Different groups are not aligned with each
+    other: each row names its own ``frames``.
 
     Args:
         run_dirs: run directories, each holding ``results.json``.
         out_dir: output directory (created).
-        metrics: metric names to show (default: every metric present in all compared
-            entries); when given, at least one.
+        metrics: metric names to show, at least one; ``"all"``: every metric present in all
+            compared entries; ``None`` (default): those of them that are task metrics
+            (:data:`mapets_rl.metrics.TASK_METRICS`: agility, safety, velocity, comfort,
+            collisions, length, reward, return), not the bookkeeping (timings, counters,
+            losses), or all of them when none is a task metric.
         source: ``"eval"``: deterministic evaluations; a run without any (e.g. MA-PETS, which
             records training episodes) falls back to its training entries, with a logged note,
             and its group is marked ``(train)``. ``"train"``: training entries, every run must
@@ -229,12 +264,17 @@ def compare(
         ``{"plot": Path, "table": Path, "summary": Path, "curves": Path}``.
     Raises:
         ValueError: one line, before anything is written, when a run has no usable results,
-            runs of different scenarios are mixed without ``allow_mixed_env``, a ``group_by``
-            field or the ``x`` metric is missing, a metric is unknown, ``metrics`` is empty, an
-            option is not one of its choices or ``out_dir`` cannot be written.
+            a run is given twice (paths resolved), ``out_dir`` is inside a run directory, runs
+            of different scenarios are mixed without ``allow_mixed_env``, a ``group_by`` field
+            or the ``x`` metric is missing, the runs of a group share no ``x``, a metric is
+            unknown, ``metrics`` is empty, an option is not one of its choices or ``out_dir``
+            cannot be written.
     """
     if not run_dirs:
         raise ValueError("run_dirs must name at least one run directory")
+    every_metric = metrics == "all"
+    if isinstance(metrics, str):
+        metrics = None if every_metric else [metrics]
     if x_grid is not None and not (math.isfinite(x_grid) and x_grid > 0):
         raise ValueError(f"x_grid must be a finite number > 0 (or None), got {x_grid!r}")
     if metrics is not None and not list(metrics):
@@ -244,6 +284,7 @@ def compare(
     fields = [group_by] if isinstance(group_by, str) else list(group_by or [])
     if any(not f or not isinstance(f, str) for f in fields):
         raise ValueError(f"group_by must name config fields, got {group_by!r}")
+    _check_distinct(run_dirs, out_dir)
     check_writable_dir(out_dir, "out_dir")
     runs = [str(d) for d in run_dirs]
     results = [read_results(d, legacy_as=legacy_as) for d in run_dirs]
@@ -321,9 +362,26 @@ def compare(
         metrics = sorted(common)
         if not metrics:
             raise ValueError("the runs have no metric in common to compare")
+        task = [m for m in metrics if is_task_metric(m)]
+        if task and not every_metric:
+            if len(task) < len(metrics):
+                log.info(
+                    "showing the task metrics %s; metrics='all' (--metrics all) shows the "
+                    "others too (%s)",
+                    task,
+                    ", ".join(m for m in metrics if m not in task),
+                )
+            metrics = task
     unknown = [m for m in metrics if m not in common]
     if unknown:
         raise ValueError(f"metrics {unknown} are not in every run (available: {sorted(common)})")
+
+    # per group, each run's entries by x, and the entries the table compares
+    for label, group in groups.items():
+        group["by_entry"] = [{_x_value(e, x): e for e in entries} for entries in group["entries"]]
+        if x_grid is not None:
+            group["by_entry"] = [_on_grid(be, x_grid) for be in group["by_entry"]]
+        group["last"], group["ends"] = _aligned_last(label, group["runs"], group["by_entry"], x)
 
     out_dir = make_writable_dir(out_dir, "out_dir")
     if legacy:
@@ -347,29 +405,34 @@ def compare(
         )
     summary: dict[str, dict[str, dict[str, Any]]] = {}
     curves: dict[str, Any] = {"source": source, "x": x, "groups": {}}
+    cut: list[str] = []
     for label, group in groups.items():
-        last = [entries[-1] for entries in group["entries"]]
+        by_entry, last, ends = group["by_entry"], group["last"], group["ends"]
+        if len(set(ends)) > 1:
+            cut.append(
+                f"{label} at {x} {_fmt_x(min(ends))} (its runs end at {x} "
+                f"{_fmt_x(min(ends))} to {_fmt_x(max(ends))})"
+            )
         summary[label] = {}
         for m in metrics:
             mean, half = mean_ci95([e["metrics"][m] for e in last])
             summary[label][m] = {
                 "mean": mean,
-                "ci95": half,
+                "ci95": half if len(last) > 1 else None,
                 "n": len(last),
                 "frames": min(e["frames"] for e in last),
                 "source": group["source"],
             }
-        by_x = [{_x_value(e, x): e["metrics"] for e in entries} for entries in group["entries"]]
-        if x_grid is not None:
-            by_x = [_on_grid(bx, x_grid) for bx in by_x]
+        by_x = [{v: e["metrics"] for v, e in be.items()} for be in by_entry]
         xs = sorted(set().union(*by_x))
-        stats: dict[str, dict[str, list[float]]] = {}
+        counts = [sum(v in bx for bx in by_x) for v in xs]
+        stats: dict[str, dict[str, list[float | None]]] = {}
         for m in metrics:
             rows = [mean_std_ci95([bx[v][m] for bx in by_x if v in bx]) for v in xs]
             stats[m] = {
                 "mean": [r[0] for r in rows],
-                "std": [r[1] for r in rows],
-                "ci95": [r[2] for r in rows],
+                "std": [r[1] if k > 1 else None for r, k in zip(rows, counts, strict=True)],
+                "ci95": [r[2] if k > 1 else None for r, k in zip(rows, counts, strict=True)],
             }
         curves["groups"][label] = {
             "recipe": group["recipe"],
@@ -378,7 +441,7 @@ def compare(
             "source": group["source"],
             "runs": group["runs"],
             "x": xs,
-            "n": [sum(v in bx for bx in by_x) for v in xs],
+            "n": counts,
             "metrics": stats,
         }
 
@@ -390,8 +453,14 @@ def compare(
     plot = out_dir / "learning_curves.png"
     _plot(curves["groups"], metrics, x, plot, f"{title}: {described}" if title else described)
     table = out_dir / "final_metrics.md"
+    aligned = (
+        f" Runs of a group that end at different {x} are compared at the last {x} all of "
+        f"them reached: {'; '.join(cut)}."
+        if cut
+        else ""
+    )
     lines = [
-        f"Last entry of each run: {described}; mean ± 95% CI half-width (n = runs).",
+        f"Last entry of each run: {described}; mean ± 95% CI half-width (n = runs).{aligned}",
         "",
         "| group | source | frames | " + " | ".join(map(metric_label, metrics)) + " |",
         "|" + "---|" * (len(metrics) + 3),
@@ -413,12 +482,62 @@ def compare(
 
 
 def _cell(metric: str, stats: Mapping[str, Any]) -> str:
-    """A table cell: mean ± 95% CI half-width (n), speeds in m/s also in mph."""
-    text = f"{stats['mean']:.4g} ± {stats['ci95']:.2g}"
-    if metric_unit(metric) == "m/s":
-        mph = MPH_PER_MPS * stats["mean"], MPH_PER_MPS * stats["ci95"]
-        text += f" ({mph[0]:.4g} ± {mph[1]:.2g} mph)"
+    """A table cell: mean ± 95% CI half-width (n), speeds in m/s also in mph; the value alone
+    for one run (``n=1``), which has no interval."""
+    mph = metric_unit(metric) == "m/s"
+    if stats["ci95"] is None:
+        text = f"{stats['mean']:.4g}"
+        if mph:
+            text += f" ({MPH_PER_MPS * stats['mean']:.4g} mph)"
+    else:
+        text = f"{stats['mean']:.4g} ± {stats['ci95']:.2g}"
+        if mph:
+            text += f" ({MPH_PER_MPS * stats['mean']:.4g} ± {MPH_PER_MPS * stats['ci95']:.2g} mph)"
     return f"{text} (n={stats['n']})"
+
+
+def _check_distinct(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike) -> None:
+    """One-line ValueError when a run directory is given twice (paths resolved: symlinks,
+    ``..``) or ``out_dir`` is, or is inside, one of them (the comparison would be written into
+    a run)."""
+    seen: dict[Path, str] = {}
+    for run in run_dirs:
+        real = Path(run).resolve()
+        if real in seen:
+            raise ValueError(
+                f"run_dir {str(run)!r} is {seen[real]!r} again: a run counted twice would "
+                "weigh double in its group's mean; name each run once"
+            )
+        seen[real] = str(run)
+    out = Path(out_dir).resolve()
+    for real, run in seen.items():
+        if out == real or real in out.parents:
+            raise ValueError(
+                f"out_dir {str(out_dir)!r} is inside run_dir {run!r}: the comparison would be "
+                "written into a run; choose an --out outside every compared run"
+            )
+
+
+def _aligned_last(
+    label: str, runs: Sequence[str], by_entry: Sequence[Mapping[float, Any]], x: str
+) -> tuple[list[Mapping[str, Any]], list[float]]:
+    """Each run's entry at the last ``x`` all runs of the group reached (its last entry at or
+    before the smallest last ``x``), and the last ``x`` of each run. A one-line ValueError
+    naming the runs when one has no entry that early."""
+    ends = [max(be) for be in by_entry]
+    common = min(ends)
+    first = ends.index(common)
+    last = []
+    for run, be in zip(runs, by_entry, strict=True):
+        before = [v for v in be if v <= common]
+        if not before:
+            raise ValueError(
+                f"group {label!r}: run_dir {run!r} has no entry at {x} <= {_fmt_x(common)}, "
+                f"where run_dir {runs[first]!r} ends, so the runs share no {x} to compare at; "
+                "put them on common x values with x_grid (--x-grid)"
+            )
+        last.append(be[max(before)])
+    return last, ends
 
 
 def _on_grid(by_x: Mapping[float, Any], step: float) -> dict[float, Any]:
@@ -444,13 +563,16 @@ def _x_value(entry: Mapping[str, Any], x: str) -> float:
 def _plot(
     groups: Mapping[str, Mapping[str, Any]], metrics: Sequence[str], x: str, path: Path, title: str
 ) -> None:
-    """One panel per metric: every group's mean and 95% band at the x values all its runs
-    reached (a group whose runs share none is left out, with a logged note)."""
+    """One panel per metric: every group's mean and 95% band (none for one run; clipped to the
+    metric's range) at the x values all its runs reached (a group whose runs share none is left
+    out, with a logged note); integer ticks when every x is an integer (frames, episodes)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
+    integer_x = all(float(v).is_integer() for group in groups.values() for v in group["x"])
     n = max(len(metrics), 1)
     cols = min(n, 3)
     rows = math.ceil(n / cols)
@@ -476,9 +598,19 @@ def _plot(
             mean = np.array([group["metrics"][m]["mean"][i] for i in full])
             half = np.array([group["metrics"][m]["ci95"][i] for i in full])
             (line,) = ax.plot(xs, mean, marker="o", ms=3, label=f"{label} (n={len(group['runs'])})")
-            ax.fill_between(xs, mean - half, mean + half, alpha=0.2, color=line.get_color())
+            if len(group["runs"]) > 1:  # one run has no interval
+                low, high = metric_range(m)
+                ax.fill_between(
+                    xs,
+                    np.clip(mean - half, low, high),
+                    np.clip(mean + half, low, high),
+                    alpha=0.2,
+                    color=line.get_color(),
+                )
         ax.set_title(metric_label(m), fontsize=9)
         ax.set_xlabel("environment frames [env steps]" if x == "frames" else metric_label(x))
+        if integer_x:
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[n:]:
         ax.set_visible(False)
