@@ -12,7 +12,10 @@ policies that separate the causes, one change at a time, on the same seeds:
   :class:`~mapets_rl.envs.figure_eight_kinematics.FigureEightKinematicModel` (exact own speed,
   constant-speed neighbours) instead of a learned ensemble: a crash here is the planner's or
   the unforeseeable traffic's, not the model's. ``--lane-change-gap 0`` switches the lane-aware
-  termination off.
+  termination off;
+- ``learned``: the planner of a trained MA-PETS run (``--run RUN_DIR``, its last checkpoint:
+  the learned ensembles, the recipe's reward, termination and CEM) on the same seeds: what the
+  learned model adds to the oracle's crashes, class by class.
 
 Every CAV crash is classified from the simulator state of the step before it: ``crossing``
 (the two vehicles on different branches, both near the crossing point), ``lane change (CAV)``
@@ -23,6 +26,7 @@ that crashed in the same step.
 Usage::
 
     python benchmarks/multilane_diagnosis.py --seeds 0 1 2 --policies scripted random oracle
+    python benchmarks/multilane_diagnosis.py --policies learned --run RUN_DIR
 """
 
 from __future__ import annotations
@@ -47,7 +51,7 @@ from mapets_rl.envs.figure_eight_kinematics import FigureEightKinematicModel
 from mapets_rl.planning import CPU_PRESET, TrajectorySamplingCEM
 
 SCENARIO = "figure-eight-multilane"
-POLICIES = ("scripted", "random", "random-keep-lane", "oracle", "oracle-keep-lane")
+POLICIES = ("scripted", "random", "random-keep-lane", "oracle", "oracle-keep-lane", "learned")
 CLASSES = ("crossing", "lane change (CAV)", "lane change (other)", "into leader", "rear-ended")
 NEAR_CROSSING = 10.0
 """A vehicle within this many metres of a crossing point [m] is at the crossing."""
@@ -91,7 +95,12 @@ class KeepLane(TensorDictModuleBase):
 
 
 def oracle_planner(
-    env, lane_change_gap: float, seed: int, headway: float = 0.0, **cem: bool
+    env,
+    lane_change_gap: float,
+    seed: int,
+    headway: float = 0.0,
+    lane_change_time: float = 0.0,
+    **cem: bool,
 ) -> TrajectorySamplingCEM:
     """The cpu-preset CEM over the kinematic model (one particle: the model is deterministic);
     ``cem``: planner options (``anchor_candidates``, ``keep_best``)."""
@@ -103,6 +112,7 @@ def oracle_planner(
         "crossing_gap": 6.0,
         "lane_change_gap": lane_change_gap,
         "headway": headway,
+        "lane_change_time": lane_change_time,
     }
     kwargs = CPU_PRESET.planner.planner_kwargs()
     kwargs.update(particles=1, propagation="expectation", **cem)
@@ -117,9 +127,30 @@ def oracle_planner(
     )
 
 
+@functools.cache
+def learned_planner(run_dir: str, overrides: tuple[str, ...] = ()) -> TensorDictModuleBase:
+    """The planner of MA-PETS run ``run_dir`` at its last checkpoint (loaded once), with
+    ``overrides`` of its config (e.g. ``lane_change_time=1``)."""
+    from recipes.mapets import MAPETS
+
+    exp = MAPETS.from_run_dir(run_dir, overrides=list(overrides))
+    exp.close()  # only its planner is used: release the run directory
+    return exp.planner
+
+
 def make_policy(
-    name: str, env, seed: int, lane_change_gap: float, **cem: Any
+    name: str,
+    env,
+    seed: int,
+    lane_change_gap: float,
+    run: str | None = None,
+    run_overrides: tuple[str, ...] = (),
+    **cem: Any,
 ) -> TensorDictModuleBase:
+    if name == "learned":
+        planner = learned_planner(run, run_overrides)
+        planner.generator.manual_seed(seed)
+        return planner
     if name == "scripted":
         return ScriptedCAVPolicy(env)
     if name.startswith("random"):
@@ -174,11 +205,13 @@ def run_episode(
     horizon: int,
     lane_change_gap: float,
     scenario: str = SCENARIO,
+    run: str | None = None,
+    run_overrides: tuple[str, ...] = (),
     **cem: Any,
 ) -> dict:
     env = make_env(scenario, seed=seed, horizon=horizon)
     raw = traffic_env(env)
-    policy = make_policy(name, env, seed, lane_change_gap, **cem)
+    policy = make_policy(name, env, seed, lane_change_gap, run, run_overrides, **cem)
     if hasattr(policy, "reset"):
         policy.reset()
     td = env.reset()
@@ -229,8 +262,26 @@ def main(argv: list[str] | None = None) -> list[dict]:
     )
     parser.add_argument("--keep-best", action="store_true", help="oracle: best sequence")
     parser.add_argument("--headway", type=float, default=0.0, help="oracle: margin [s]")
+    parser.add_argument(
+        "--lane-change-time",
+        type=float,
+        default=0.0,
+        help="oracle: seconds of closing speed added to the lane-change margins",
+    )
+    parser.add_argument("--run", default=None, help="learned: a MA-PETS run directory")
+    parser.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="key=value",
+        help="learned: overrides of the run's config, e.g. lane_change_time=1",
+    )
     parser.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
     args = parser.parse_args(argv)
+    if "learned" in args.policies and (
+        args.run is None or not (Path(args.run) / "config.yaml").is_file()
+    ):
+        parser.error(f"--policies learned needs --run RUN_DIR of a MA-PETS run, got {args.run}")
     torch.set_num_threads(1)
     print(
         f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, "
@@ -245,9 +296,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
                 args.horizon,
                 args.lane_change_gap,
                 args.scenario,
+                args.run,
+                tuple(args.set),
                 anchor_candidates=args.anchor_candidates,
                 keep_best=args.keep_best,
                 headway=args.headway,
+                lane_change_time=args.lane_change_time,
             )
             rows.append(row)
             print(json.dumps(row), flush=True)

@@ -115,6 +115,26 @@ def test_planning_termination_refuses_a_lane_change_into_a_short_gap() -> None:
     assert figure_eight_collision(rows, change, rows).tolist() == [False, False, False, False]
 
 
+def test_lane_change_margin_grows_with_the_closing_speed() -> None:
+    """``lane_change_time``: the other lane's gaps must also cover what they close while the
+    CAV moves over (the CAV at 8 m/s; features 11/12 the other lane's leader/follower speeds)."""
+    base = [8.0, 0, 0, 8, 8, 30, 30, 60, 60, 0, 0.0, 8, 8, 12, 12]
+    rows = torch.tensor(
+        [
+            base,  # other lane at the CAV's speed, 12 m gaps both ways
+            base[:11] + [4.0, 8, 12, 12],  # a leader 4 m/s slower: 12 < 8 + 1 * 4? no; 2 s: yes
+            base[:11] + [8.0, 14, 12, 12],  # a follower 6 m/s faster: 12 < 8 + 6
+            base[:11] + [12.0, 4, 12, 12],  # faster leader, slower follower: opening gaps
+        ]
+    )
+    change = torch.tensor([[8.0, 0.9]]).expand(4, 2)
+    assert figure_eight_collision(rows, change, rows).tolist() == [False] * 4
+    one = figure_eight_collision(rows, change, rows, lane_change_time=1.0)
+    assert one.tolist() == [False, False, True, False]
+    two = figure_eight_collision(rows, change, rows, lane_change_time=2.0)
+    assert two.tolist() == [False, True, True, False]
+
+
 def test_observation_bounds_on_two_lanes_cover_an_episode() -> None:
     low, high = figure_eight_observation_bounds({"lanes": 2})
     assert low.shape == high.shape == (TWO_LANE_OBS_DIM,)

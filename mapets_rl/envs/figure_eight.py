@@ -595,6 +595,7 @@ def figure_eight_collision(
     crossing_gap: float = 6.0,
     lane_change_gap: float = 8.0,
     headway: float = 0.0,
+    lane_change_time: float = 0.0,
 ) -> torch.Tensor:
     """Predicted collision of a figure-eight CAV, vectorised (the planner's termination).
 
@@ -605,11 +606,12 @@ def figure_eight_collision(
     conflicting vehicle of the other branch are both within ``crossing_gap`` metres of the
     crossing point and neither has cleared it (``> -5`` m), or, with the two-lane features (15),
     when the action requests a lane change (flag ``> 0.5``) while the gap ahead or behind in the
-    other lane is below ``lane_change_gap`` metres (a lane change takes about 2 s, in which the
-    CAV shares both lanes; tested only while the CAV is settled in its lane, the only time a
-    request starts a change). The gap behind in the own lane is not tested: a CAV cannot avoid a
-    follower by speeding into its leader. The margins let a 0.1 s step resolve an approach (a
-    CAV at 13.89 m/s covers 1.4 m per step).
+    other lane is below ``lane_change_gap`` metres plus what that gap closes in
+    ``lane_change_time`` seconds at the current speed difference (a lane change takes about
+    2 s, in which the CAV shares both lanes; tested only while the CAV is settled in its lane,
+    the only time a request starts a change). The gap behind in the own lane is not tested: a
+    CAV cannot avoid a follower by speeding into its leader. The margins let a 0.1 s step
+    resolve an approach (a CAV at 13.89 m/s covers 1.4 m per step).
 
     Args:
         obs: ``[..., 7, 10 or 15]`` current observation (read for the lane-change test only).
@@ -620,6 +622,8 @@ def figure_eight_collision(
         crossing_gap: half-width of the conflict zone around the crossing point [m].
         lane_change_gap: margin on the other lane's gaps ahead and behind for a lane change [m].
         headway: time headway added to the margin ahead [s] (0: a fixed margin).
+        lane_change_time: seconds of closing speed added to the lane-change margins (0: a
+            fixed margin): ``max(0, v - v_ahead)`` ahead, ``max(0, v_behind - v)`` behind.
 
     Returns:
         ``[...]`` bool.
@@ -634,7 +638,9 @@ def figure_eight_collision(
     if obs.shape[-1] == TWO_LANE_OBS_DIM and action is not None and action.shape[-1] == 2:
         settled = (obs[..., 10] - obs[..., 10].round()).abs() <= SETTLED_LANE_POSITION
         changing = (action[..., 1] > LANE_CHANGE_THRESHOLD) & settled
-        short = obs[..., 13:15].amin(-1) < lane_change_gap
+        closing = torch.stack([obs[..., 0] - obs[..., 11], obs[..., 12] - obs[..., 0]], -1)
+        margin = lane_change_gap + lane_change_time * closing.clamp_min(0.0)
+        short = (obs[..., 13:15] < margin).any(-1)
         collided = collided | (changing & short)
     return collided
 
@@ -648,6 +654,7 @@ def figure_eight_reward(
     collision_reward: float = COLLISION_REWARD,
     lane_change_gap: float = 8.0,
     headway: float = 0.0,
+    lane_change_time: float = 0.0,
 ) -> torch.Tensor:
     """Known figure-eight reward for planning (paper eq. 26), vectorised.
 
@@ -660,7 +667,7 @@ def figure_eight_reward(
         obs: ``[..., 7, 10 or 15]`` current observation (for the lane-change test).
         action: ``[..., act_dim]`` action (its lane-change flag, for the lane-change test).
         next_obs: ``[..., 7, 10 or 15]`` (predicted) next observation.
-        collision_gap, crossing_gap, lane_change_gap, headway: see
+        collision_gap, crossing_gap, lane_change_gap, headway, lane_change_time: see
             :func:`figure_eight_collision`.
         collision_reward: ``beta`` of a predicted collision (paper: -10).
 
@@ -669,6 +676,13 @@ def figure_eight_reward(
     """
     speed_terms = next_obs[..., 0] + next_obs[..., 3] + next_obs[..., 4]
     collided = figure_eight_collision(
-        obs, action, next_obs, collision_gap, crossing_gap, lane_change_gap, headway
+        obs,
+        action,
+        next_obs,
+        collision_gap,
+        crossing_gap,
+        lane_change_gap,
+        headway,
+        lane_change_time,
     )
     return speed_terms + collision_reward * collided.to(speed_terms.dtype)
