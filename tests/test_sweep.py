@@ -327,27 +327,30 @@ def _alive(pid: int) -> bool:
     return stat.rpartition(")")[2].split()[0] != "Z"
 
 
-def _sweep_process(out: Path, slow: float) -> subprocess.Popen:
+def _sweep_process(out: Path, slow: float, log: Path) -> subprocess.Popen:
+    """``mapets-rl sweep slowtoy`` (2 trials) in a subprocess writing to ``log`` (not to pipes:
+    an orphaned worker would keep them open)."""
     argv = ["sweep", "slowtoy", "--env", "toy", "--seeds", "0", "1", *TINY, "--out", str(out)]
     tests = Path(__file__).resolve().parent
     script = _SWEEP_SCRIPT.format(
         tests=str(tests), extending=str(tests.parent / "examples" / "extending"), argv=argv
     )
     env = {**os.environ, "PYTHONPATH": str(tests.parent), SLOW_ENV: str(slow)}
-    return subprocess.Popen(
-        [sys.executable, "-c", script],
-        cwd=tests.parent,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    with open(log, "w") as fh:
+        return subprocess.Popen(
+            [sys.executable, "-c", script],
+            cwd=tests.parent,
+            env=env,
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+        )
 
 
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to find the workers")
 def test_killed_sweep_leaves_no_worker_and_a_rerun_finishes_every_trial(tmp_path):
     out = tmp_path / "sweep"
-    proc = _sweep_process(out, slow=4.0)  # a training step takes 4 s: trials run a while
+    log = tmp_path / "sweep.log"
+    proc = _sweep_process(out, 4.0, log)  # a training step takes 4 s: trials run a while
     records = [out / "trials" / f"seed={seed}" / "trial.json" for seed in (0, 1)]
     workers: list[int] = []
     deadline = time.monotonic() + 120
@@ -360,9 +363,9 @@ def test_killed_sweep_leaves_no_worker_and_a_rerun_finishes_every_trial(tmp_path
                 continue
             if record.get("state") == "running":
                 workers.append(int(record["pid"]))
-    assert workers, f"no trial started: {proc.communicate()}"
+    assert workers, f"no trial started: {log.read_text()}"
     os.kill(proc.pid, signal.SIGKILL)
-    proc.communicate()
+    proc.wait()
     deadline = time.monotonic() + 3.0  # a trial would run on for 8 s
     while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
         time.sleep(0.1)
@@ -373,9 +376,8 @@ def test_killed_sweep_leaves_no_worker_and_a_rerun_finishes_every_trial(tmp_path
     assert {t["state"] for t in json.loads((out / "sweep.json").read_text())["trials"]} == {
         "pending"
     }
-    rerun = _sweep_process(out, slow=0.0)
-    stdout, stderr = rerun.communicate(timeout=300)
-    assert rerun.returncode == 0, stderr
+    rerun = _sweep_process(out, 0.0, log)
+    assert rerun.wait(timeout=300) == 0, log.read_text()
     manifest = json.loads((out / "sweep.json").read_text())
     assert [t["state"] for t in manifest["trials"]] == ["done", "done"]
     for t in manifest["trials"]:
