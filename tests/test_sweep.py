@@ -6,12 +6,25 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 from cli_run import run_cli
+from sweep_helpers import SLOW_ENV
 from toy_recipe import ToyConfig, ToyLearner
 
-from mapets_rl.experiment import ConfigError, read_results
+from mapets_rl.experiment import (
+    ConfigError,
+    list_checkpoints,
+    read_results,
+    verified_checkpoints,
+)
+from mapets_rl.experiment.files import RunDirLock
 from mapets_rl.experiment.sweep import SweepSpec, parse_grid, plan_trials, trial_id
 
 TINY = ["total_frames=20", "frames_per_batch=10", "eval_interval=10", "checkpoint_interval=10"]
@@ -278,3 +291,116 @@ def test_overrides_after_seeds_are_overrides(toy_recipe, tmp_path):
     args.seeds = ["1", "x"]
     with pytest.raises(ConfigError, match="seeds must be integers >= 0, got 'x'"):
         spec_from_args(args)
+
+
+# --------------------------------------------------------------- a sweep killed with kill -9
+_SWEEP_SCRIPT = """
+import sys
+sys.path[:0] = [{tests!r}, {extending!r}]
+from importlib import metadata
+_installed = metadata.entry_points
+def _entry_points(**params):
+    found = _installed(**params)
+    if params.get("group") == "mapets_rl.recipes":
+        slow = metadata.EntryPoint("slowtoy", "sweep_helpers:SlowToy", "mapets_rl.recipes")
+        return metadata.EntryPoints([*found, slow])
+    return found
+metadata.entry_points = _entry_points
+from mapets_rl.experiment import register_env
+from toy_scenario import ToyAgentsEnv
+register_env("toy", ToyAgentsEnv)
+from mapets_rl.experiment.cli import main
+sys.exit(main({argv!r}))
+"""
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie (via /proc, psutil-free)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return True  # no /proc: kill(pid, 0) succeeded
+    return stat.rpartition(")")[2].split()[0] != "Z"
+
+
+def _sweep_process(out: Path, slow: float, log: Path) -> subprocess.Popen:
+    """``mapets-rl sweep slowtoy`` (2 trials) in a subprocess writing to ``log`` (not to pipes:
+    an orphaned worker would keep them open)."""
+    argv = ["sweep", "slowtoy", "--env", "toy", "--seeds", "0", "1", *TINY, "--out", str(out)]
+    tests = Path(__file__).resolve().parent
+    script = _SWEEP_SCRIPT.format(
+        tests=str(tests), extending=str(tests.parent / "examples" / "extending"), argv=argv
+    )
+    env = {**os.environ, "PYTHONPATH": str(tests.parent), SLOW_ENV: str(slow)}
+    with open(log, "w") as fh:
+        return subprocess.Popen(
+            [sys.executable, "-c", script],
+            cwd=tests.parent,
+            env=env,
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+        )
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to find the workers")
+def test_killed_sweep_leaves_no_worker_and_a_rerun_finishes_every_trial(tmp_path):
+    out = tmp_path / "sweep"
+    log = tmp_path / "sweep.log"
+    proc = _sweep_process(out, 4.0, log)  # a training step takes 4 s: trials run a while
+    records = [out / "trials" / f"seed={seed}" / "trial.json" for seed in (0, 1)]
+    workers: list[int] = []
+    deadline = time.monotonic() + 120
+    while not workers and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+        for path in records:
+            try:
+                record = json.loads(path.read_text())
+            except (OSError, ValueError):
+                continue
+            if record.get("state") == "running":
+                workers.append(int(record["pid"]))
+    assert workers, f"no trial started: {log.read_text()}"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    deadline = time.monotonic() + 3.0  # a trial would run on for 8 s
+    while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    orphans = [pid for pid in workers if _alive(pid)]
+    for pid in orphans:  # do not leave them behind when the assertion fails
+        os.kill(pid, signal.SIGKILL)
+    assert not orphans, "pool workers outlived the killed sweep"
+    assert {t["state"] for t in json.loads((out / "sweep.json").read_text())["trials"]} == {
+        "pending"
+    }
+    rerun = _sweep_process(out, 0.0, log)
+    assert rerun.wait(timeout=300) == 0, log.read_text()
+    manifest = json.loads((out / "sweep.json").read_text())
+    assert [t["state"] for t in manifest["trials"]] == ["done", "done"]
+    for t in manifest["trials"]:
+        run = out / t["run_dir"]
+        assert [e["frames"] for e in read_results(run)["evaluations"]] == [10, 20]
+        assert verified_checkpoints(run) == list_checkpoints(run)
+        assert json.loads((run / "trial.json").read_text())["state"] == "done"
+
+
+def test_a_trial_whose_run_dir_another_writer_holds_is_left_alone(toy_recipe, tmp_path, capsys):
+    out = tmp_path / "sweep"
+    argv = ["sweep", "toy", "--env", "toy", "--seeds", "0", "1", *TINY, "--out", str(out)]
+    held = out / "trials" / "seed=1"
+    held.mkdir(parents=True)
+    (held / "trial.json").write_text('{"state": "running", "pid": 1}')
+    with RunDirLock.acquire(held):  # e.g. a worker of a killed sweep, still running it
+        before = {p.name: p.read_bytes() for p in held.iterdir()}
+        code, _, err = run_cli([*argv], capsys)
+        assert code == 1 and "in use by another writer" in err
+        assert {p.name: p.read_bytes() for p in held.iterdir()} == before  # nothing written
+        manifest = {t["id"]: t for t in json.loads((out / "sweep.json").read_text())["trials"]}
+        assert manifest["seed=0"]["state"] == "done"
+        assert manifest["seed=1"]["state"] == "failed"
+    code, _, err = run_cli([*argv], capsys)  # the writer is gone: the re-run finishes it
+    assert code == 0, err
+    assert [e["frames"] for e in read_results(held)["evaluations"]] == [10, 20]

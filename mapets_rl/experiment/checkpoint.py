@@ -27,6 +27,7 @@ RNG states of python, numpy and torch are stored as tensors (:func:`rng_state`).
 from __future__ import annotations
 
 import hashlib
+import io
 import logging
 import os
 import pickle
@@ -141,15 +142,23 @@ def _fsync_dir(directory: Path) -> None:
 def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:
     """``torch.save(obj)`` to ``path`` atomically, with its digest written first.
 
-    Order: temp file (``torch.save``, fsync) -> ``<path>.sha256`` (atomic) -> rename of the temp
-    file to ``path`` -> fsync of the directory. Files get the permissions of any other file
-    the run writes (see :func:`~mapets_rl.experiment.files.atomic_write`).
+    Order: temp file (``torch.save`` to memory, written, fsync) -> ``<path>.sha256`` (atomic)
+    -> rename of the temp file to ``path`` -> fsync of the directory. Files get the
+    permissions of any other file the run writes (see
+    :func:`~mapets_rl.experiment.files.atomic_write`). A write that fails (disk full, file
+    size limit) raises :class:`~mapets_rl.experiment.files.WriteFailed`
+    naming the file and leaves ``path``, its digest and every other checkpoint as they were.
     """
     path = Path(path)
 
     def write(tmp: str) -> None:
         with open(tmp, "wb") as fh:
-            torch.save(obj, fh)
+            # serialised in memory first: a write that fails (disk full, file size limit) is
+            # then an OSError of a plain file write (WriteFailed naming the file), not torch's
+            # archive writer's "unexpected pos" RuntimeError
+            buffer = io.BytesIO()
+            torch.save(obj, buffer)
+            fh.write(buffer.getbuffer())
             fh.flush()
             os.fsync(fh.fileno())
         atomic_write_text(digest_path(path), f"{file_sha256(tmp)}  {path.name}\n")

@@ -28,7 +28,7 @@ import json
 import logging
 import sys
 from collections.abc import Sequence
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from mapets_rl import quiet_dependencies
 from mapets_rl.experiment.threads import prepare_process
@@ -339,7 +339,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         exp = cls(config, run_dir)
     except ValueError as err:
         _fail(str(err))
-    exp.train()
+    _train(exp)
     print(
         json.dumps(
             {
@@ -360,6 +360,17 @@ def _metric_units(names: Sequence[str]) -> dict[str, str]:
     return units(names)
 
 
+def _train(exp: Any) -> None:
+    """``exp.train()``; a file that cannot be written (disk full, file size limit) is one line
+    naming it (exit 2); the checkpoints written before it stay valid."""
+    from mapets_rl.experiment.files import WriteFailed
+
+    try:
+        exp.train()
+    except WriteFailed as err:
+        _fail(f"{err}; the run stopped, its earlier checkpoints are kept (resume it later)")
+
+
 def _load_run(run_dir: str, overrides: Sequence[str] = ()):
     from mapets_rl.experiment.runner import run_recipe_name
 
@@ -372,7 +383,7 @@ def _load_run(run_dir: str, overrides: Sequence[str] = ()):
 
 def _cmd_resume(args: argparse.Namespace) -> int:
     exp = _load_run(args.run_dir, _overrides(args.overrides))
-    exp.train()
+    _train(exp)
     print(
         json.dumps(
             {
@@ -395,7 +406,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         metrics = exp.evaluate(episodes=episodes, video=args.video)
     except ValueError as err:
         _fail(str(err))
-    exp.write_evaluation(metrics, episodes)
+    try:
+        exp.write_evaluation(metrics, episodes)
+    except ValueError as err:  # WriteFailed: the disk is full
+        _fail(str(err))
     print(
         json.dumps(
             {

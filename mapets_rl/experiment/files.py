@@ -28,12 +28,38 @@ __all__ = [
     "LOCK_FILE",
     "RunDirLock",
     "RunDirLocked",
+    "WriteFailed",
     "atomic_savefig",
     "atomic_write",
     "atomic_write_text",
     "check_writable_dir",
     "make_writable_dir",
+    "write_failed",
 ]
+
+
+class WriteFailed(ValueError, OSError):
+    """A file of a run could not be written (disk full, file size limit, I/O error): one line
+    naming the file and the reason. The file's previous version (an atomic write never
+    replaces it with a partial one), and every earlier checkpoint, are left as they were.
+
+    A ValueError (the CLI reports it as ``mapets-rl: error: ...``, exit status 2) and an
+    OSError (with the errno of the failed write)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else "a file could not be written"
+
+
+def write_failed(path: str | os.PathLike, err: OSError) -> WriteFailed:
+    """The :class:`WriteFailed` of a write of ``path`` that raised ``err``."""
+    if isinstance(err, WriteFailed):
+        return err
+    reason = err.strerror or str(err) or type(err).__name__
+    if err.errno == errno.EFBIG:
+        reason += " (the file size limit, ulimit -f, was reached)"
+    failed = WriteFailed(f"cannot write {str(path)!r}: {reason}")
+    failed.errno, failed.strerror, failed.filename = err.errno, err.strerror, str(path)
+    return failed
 
 
 def check_writable_dir(path: str | os.PathLike, what: str = "run_dir") -> None:
@@ -88,7 +114,8 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
     (``mkstemp`` makes it private): every file a run writes, checkpoints included, is created
     ``0666 & ~umask``. It is removed if ``write`` fails, and ``path`` is then left as it was; a
     process killed mid-write leaves it behind for
-    :func:`~mapets_rl.experiment.checkpoint.remove_stale_files`.
+    :func:`~mapets_rl.experiment.checkpoint.remove_stale_files`. A write that fails with an
+    OSError (disk full, file size limit) raises :class:`WriteFailed` naming ``path``.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -102,9 +129,11 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
         os.chmod(tmp, 0o666 & ~umask)
         write(tmp)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as err:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(err, OSError):
+            raise write_failed(path, err) from None
         raise
 
 

@@ -12,7 +12,7 @@ from typing import Any
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLogger
 
 from mapets_rl.experiment.config import LOGGERS, check_logger_package
-from mapets_rl.experiment.files import atomic_write_text
+from mapets_rl.experiment.files import atomic_write_text, write_failed
 from mapets_rl.metrics import METRIC_UNITS, metric_unit
 
 RESULTS_FILE = "results.json"
@@ -20,7 +20,9 @@ UNITS_FILE = "units.json"
 """Written beside the logger's files (``RUN_DIR/logs/units.json``): metric name -> unit."""
 
 
-def make_logger(kind: str, run_dir: str | os.PathLike, exp_name: str) -> Logger | None:
+def make_logger(
+    kind: str, run_dir: str | os.PathLike, exp_name: str, purge_step: int | None = None
+) -> Logger | None:
     """A torchrl logger writing under ``run_dir/logs``.
 
     Args:
@@ -30,6 +32,9 @@ def make_logger(kind: str, run_dir: str | os.PathLike, exp_name: str) -> Logger 
             metric (:data:`mapets_rl.metrics.METRIC_UNITS`).
         run_dir: the run directory.
         exp_name: experiment name (a sub-directory of ``logs``).
+        purge_step: TensorBoard only: the new event file starts with a restart marker at this
+            step, so that TensorBoard hides the events of earlier event files at this step and
+            later (see :class:`RunLogger`).
     """
     if kind not in LOGGERS:
         raise ValueError(f"logger must be one of {list(LOGGERS)}, got {kind!r}")
@@ -42,6 +47,8 @@ def make_logger(kind: str, run_dir: str | os.PathLike, exp_name: str) -> Logger 
     if kind == "csv":
         return CSVLogger(exp_name=exp_name, log_dir=log_dir)
     if kind == "tensorboard":
+        if purge_step is not None:
+            return _PurgingTensorboardLogger(exp_name, log_dir, purge_step)
         return TensorboardLogger(exp_name=exp_name, log_dir=log_dir)
     return WandbLogger(
         exp_name=exp_name,
@@ -50,7 +57,143 @@ def make_logger(kind: str, run_dir: str | os.PathLike, exp_name: str) -> Logger 
     )
 
 
-def log_scalars(logger: Logger | None, prefix: str, values: Mapping[str, float], step: int) -> None:
+class _PurgingTensorboardLogger(TensorboardLogger):
+    """torchrl's TensorBoard logger whose ``SummaryWriter`` gets ``purge_step``."""
+
+    def __init__(self, exp_name: str, log_dir: str, purge_step: int) -> None:
+        self._purge_step = purge_step
+        super().__init__(exp_name=exp_name, log_dir=log_dir)
+
+    def _create_experiment(self) -> Any:
+        from torch.utils.tensorboard import SummaryWriter
+
+        log_dir = str(Path(self.log_dir) / self.exp_name)
+        return SummaryWriter(log_dir=log_dir, purge_step=self._purge_step)
+
+
+def truncate_csv_scalars(log_dir: str | os.PathLike, keep: Mapping[str, int]) -> list[Path]:
+    """Cut the CSV scalar files of a torchrl ``CSVLogger`` experiment directory ``log_dir``
+    (``scalars/<name>.csv``, rows ``step,value``) back to what a checkpoint saw: the rows of
+    ``name`` whose step is at most ``keep[name]``; a file whose name ``keep`` lacks (logged
+    only after the checkpoint) is deleted, and so is an unreadable or partly written row (a
+    process killed mid-write). Files are rewritten atomically, only when they change. Returns
+    the files changed."""
+    scalars = Path(log_dir) / "scalars"
+    if not scalars.is_dir():
+        return []
+    changed = []
+    for path in sorted(scalars.rglob("*.csv")):
+        name = path.relative_to(scalars).with_suffix("").as_posix()
+        last = keep.get(name)
+        text = path.read_text(errors="replace")
+        rows = []
+        for line in text.splitlines(keepends=True):
+            step, _, value = line.rstrip("\n").partition(",")
+            try:
+                ok = line.endswith("\n") and last is not None and int(step) <= last
+                float(value)
+            except ValueError:
+                ok = False
+            if ok:
+                rows.append(line)
+        if "".join(rows) == text:
+            continue
+        if rows:
+            atomic_write_text(path, "".join(rows))
+        else:
+            path.unlink()
+        changed.append(path)
+    return changed
+
+
+class RunLogger:
+    """The run's scalar logger: the torchrl logger of :func:`make_logger` plus, for every
+    scalar name, the last step logged under it (:meth:`state_dict`, saved in checkpoints).
+
+    Logs after a resume hold each step once, in order: a resumed run's logger is created
+    ``deferred`` (nothing under ``logs/`` is touched and the scalars logged meanwhile are kept
+    in memory) until :meth:`open` is called with the steps of the checkpoint restored, once the
+    resumed run's first iteration has succeeded. :meth:`open` then
+
+    - truncates the CSV logs (``logs/<exp>/scalars/<group>/<name>.csv``) to the rows of each
+      name at or before the checkpoint's step of that name (:func:`truncate_csv_scalars`),
+      dropping the rows that a run killed after its checkpoint had logged (the resumed run logs
+      those steps again). A fresh run (no checkpoint) in a directory with logs of an attempt
+      that never checkpointed starts from empty CSV logs;
+    - for TensorBoard, whose event files cannot be truncated, starts a new event file (as every
+      ``SummaryWriter`` does) whose first event is a restart marker at ``purge_step`` (the
+      checkpoint's frames + 1): TensorBoard hides the events of the older event files at that
+      step and later, so it shows each step once. (TensorBoard purges by one step axis; a
+      scalar logged on another axis, MA-PETS's ``model/nll`` by training epoch, may show the
+      redone steps twice.) wandb runs are left as they are.
+
+    A checkpoint written before checkpoints held these steps leaves the logs as they are.
+    """
+
+    def __init__(
+        self, kind: str, run_dir: str | os.PathLike, exp_name: str, deferred: bool = False
+    ) -> None:
+        if kind not in LOGGERS:
+            raise ValueError(f"logger must be one of {list(LOGGERS)}, got {kind!r}")
+        check_logger_package(kind)
+        self.kind = kind
+        self.run_dir = Path(run_dir)
+        self.exp_name = exp_name
+        self.steps: dict[str, int] = {}
+        """Scalar name -> the last step logged under it, over the whole run."""
+        self.logger: Logger | None = None
+        """The torchrl logger (``None`` until :meth:`open`)."""
+        self._pending: list[tuple[str, float, int]] | None = []
+        if not deferred:
+            self.open({})
+
+    @property
+    def is_open(self) -> bool:
+        return self._pending is None
+
+    @property
+    def log_dir(self) -> Path:
+        """The torchrl logger's experiment directory, ``run_dir/logs/<exp_name>``."""
+        return self.run_dir / "logs" / self.exp_name
+
+    def open(self, keep: Mapping[str, int] | None, purge_step: int | None = None) -> None:
+        """Cut the logs back to ``keep`` (scalar name -> last step to keep; ``None``: leave
+        them as they are), create the torchrl logger and write what was logged meanwhile."""
+        if self.is_open:
+            return
+        if keep is not None and self.kind == "csv":
+            truncate_csv_scalars(self.log_dir, keep)
+        self.logger = make_logger(self.kind, self.run_dir, self.exp_name, purge_step)
+        pending, self._pending = self._pending or [], None
+        for name, value, step in pending:
+            self._write(name, value, step)
+
+    def log_scalar(self, name: str, value: float, step: int) -> None:
+        """Log ``value`` under ``name`` at ``step`` (kept in memory until :meth:`open`)."""
+        self.steps[name] = int(step)
+        if self._pending is not None:
+            self._pending.append((name, float(value), int(step)))
+        else:
+            self._write(name, float(value), int(step))
+
+    def _write(self, name: str, value: float, step: int) -> None:
+        try:
+            self.logger.log_scalar(name, value, step=step)
+        except OSError as err:
+            path = self.log_dir / "scalars" / f"{name}.csv" if self.kind == "csv" else self.log_dir
+            raise write_failed(path, err) from None
+
+    def state_dict(self) -> dict[str, int]:
+        """Scalar name -> last step logged (for checkpoints)."""
+        return dict(self.steps)
+
+    def load_state_dict(self, steps: Mapping[str, int]) -> None:
+        self.steps = {str(k): int(v) for k, v in steps.items()}
+
+
+def log_scalars(
+    logger: Logger | RunLogger | None, prefix: str, values: Mapping[str, float], step: int
+) -> None:
     """Log ``{prefix}/{name}`` for every finite scalar of ``values`` at ``step`` (frames)."""
     if logger is None:
         return

@@ -52,8 +52,8 @@ from mapets_rl.experiment.files import (
 from mapets_rl.experiment.plugins import SCENARIO_GROUP, entry_points, load_entry_point
 from mapets_rl.experiment.results import (
     ResultsWriter,
+    RunLogger,
     log_scalars,
-    make_logger,
     mean_metrics,
     read_json_object,
 )
@@ -180,8 +180,12 @@ class Experiment:
     whose actions are of one of these kinds."""
     progress_unit: ClassVar[str] = "frame"
     # set by from_run_dir on the instance before __init__ runs: the run directory's checkpoints
-    # are the ones being restored, and config.yaml is rewritten once they are
+    # are the ones being restored; the run directory is written to only once the resumed run
+    # has started (see _start_writing)
     _resuming: bool = False
+    # what a resumed run writes once its first iteration has succeeded (see _start_writing):
+    # None when there is nothing left to write
+    _deferred: dict[str, Any] | None = None
     # the run directory's lock while this experiment may write there (see close)
     _lock: RunDirLock | None = None
 
@@ -250,8 +254,9 @@ class Experiment:
 
     def _init_run_dir(self, restoring: bool) -> None:
         """Lock the (existing) run directory, then prepare it: stale temp files removed,
-        ``config.yaml`` and ``run.json`` written (unless ``restoring``: from_run_dir writes
-        the config once the checkpoint is restored), logger and results writer opened."""
+        ``config.yaml`` and ``run.json`` written, logger and results writer opened (unless
+        ``restoring``: a resumed run writes its config, results and logs only once its first
+        iteration has succeeded, see :meth:`_start_writing`)."""
         self._hold_lock()
         config = self.config
         if not restoring:  # again under the lock: a writer that held it may have finished
@@ -263,7 +268,13 @@ class Experiment:
                 self.run_dir / RUN_FILE,
                 json.dumps({"recipe": self.name, "env": config.env, "seed": config.seed}),
             )
-        self.logger = make_logger(config.logger, self.run_dir, f"{self.name}_{config.env}")
+        self.logger: RunLogger | None = None
+        if config.logger != "none":
+            self.logger = RunLogger(
+                config.logger, self.run_dir, f"{self.name}_{config.env}", deferred=restoring
+            )
+        if restoring:
+            self._deferred = {"config": False, "results": False, "frames": 0, "log_steps": {}}
         self.results = ResultsWriter(
             self.run_dir, self.name, config.env, config.seed, config.to_dict()
         )
@@ -416,6 +427,7 @@ class Experiment:
         while done < total:
             prev_frames = self.frames
             metrics = self.run_iteration()
+            self._start_writing()
             fps = (self.frames - start_frames) / max(time.perf_counter() - start, 1e-9)
             log_scalars(self.logger, "train", metrics, self.frames)
             log_scalars(self.logger, "timers", {"fps": fps}, self.frames)
@@ -426,6 +438,7 @@ class Experiment:
             bar.update(done - prev)
             bar.set_postfix(self.progress_postfix(metrics, fps))
         bar.close()
+        self._start_writing()  # a resumed run that had nothing left to do
         return self.finish_training()
 
     def progress(self) -> tuple[int, int]:
@@ -588,9 +601,28 @@ class Experiment:
             "batches": self.batches,
             "boundaries": self.boundaries,
             **self.results.state_dict(),
+            **self._collector_state(),
+            "log_steps": {} if self.logger is None else self.logger.state_dict(),
             "rng": rng_state(),
             "components": {k: v.state_dict() for k, v in self.stateful_components().items()},
         }
+
+    def _traj_pool(self) -> Any:
+        """The collector's trajectory-id counter (torchrl's ``_TrajectoryPool``, which numbers
+        the ``("collector", "traj_ids")`` of the collected steps), ``None`` when there is no
+        collector or it keeps none (a Ray collector's are remote)."""
+        if self.collector is None or not getattr(self.collector, "track_traj_ids", True):
+            return None
+        return getattr(self.collector, "_traj_pool", None)
+
+    def _collector_state(self) -> dict[str, Any]:
+        """``{"collector": {"traj_id": next id}}`` of the collector's trajectory-id counter (so
+        that a resumed run numbers its trajectories, and the replay buffers that store them,
+        like an uninterrupted one), ``{}`` when it has none."""
+        pool = self._traj_pool()
+        if pool is None:
+            return {}
+        return {"collector": {"traj_id": pool.state_dict()["traj_id"].clone()}}
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         if state.get("recipe") != self.name:
@@ -606,19 +638,52 @@ class Experiment:
         self.boundaries = int(state["boundaries"])
         self.results.load_state_dict(state)
         self.latest_metrics = self.results.latest_metrics()
+        if self._deferred is not None:
+            # the logs are cut back to these steps when the resumed run starts writing; a
+            # checkpoint from before checkpoints held them leaves the logs as they are
+            self._deferred["log_steps"] = state.get("log_steps")
+            self._deferred["frames"] = self.frames
+        if self.logger is not None:
+            self.logger.load_state_dict(state.get("log_steps") or {})
         if self._collector_args is not None and self._collector_args[1] > 0:
             # the random-action warm-up is counted over the run: rebuild for what is left
             self.collector.shutdown()
             policy, init_random, kwargs = self._collector_args
             self.collector = self.make_collector(policy, init_random, **kwargs)
+        pool = self._traj_pool()
+        if pool is not None and "collector" in state:
+            # the next trajectory id of the run; the collector's reset at the start of train()
+            # numbers its new trajectories from it, as the uninterrupted run's did
+            pool.load_state_dict({"traj_id": state["collector"]["traj_id"]})
         set_rng_state(state["rng"])
 
     def save_checkpoint(self) -> Path:
         """Write the training state as ``checkpoints/ckpt_<frames>.pt`` (see
         :func:`~mapets_rl.experiment.checkpoint.save_checkpoint`), under the run directory's
-        lock."""
+        lock (a resumed run first writes what it deferred, see :meth:`_start_writing`)."""
         self._hold_lock()
+        self._start_writing()
         return save_checkpoint(self.state_dict(), self.run_dir, self.frames, self.config.keep_last)
+
+    def _start_writing(self) -> None:
+        """Write what a resumed run deferred until it has started (its first iteration
+        succeeded, or it had nothing left to do, or a checkpoint is saved): ``config.yaml``
+        when overrides changed it, ``results.json`` as the restored checkpoint has it, and
+        the logs cut back to the checkpoint's steps (see
+        :class:`~mapets_rl.experiment.results.RunLogger`) with the scalars logged meanwhile.
+        Until then a resume that fails (an override that runs out of memory in the first
+        iteration) leaves the run directory as it was, and a plain resume starts from the
+        same state. No-op for a run that is not a resume, and after the first call."""
+        deferred, self._deferred = self._deferred, None
+        if deferred is None:
+            return
+        if deferred["config"]:
+            self.config.to_yaml(self.run_dir / CONFIG_FILE)
+        if deferred["results"]:
+            self.results.write()
+        if self.logger is not None:
+            frames = int(deferred["frames"])
+            self.logger.open(deferred["log_steps"], purge_step=frames + 1 if frames else None)
 
     @classmethod
     def from_run_dir(
@@ -627,10 +692,15 @@ class Experiment:
         """Rebuild from ``run_dir/config.yaml`` (+ overrides) and load the newest checkpoint
         that verifies (newer ones that do not are skipped with a logged warning).
 
-        Nothing in ``run_dir`` changes unless the restore succeeds: overrides are validated
+        Nothing in ``run_dir`` changes unless the resumed run starts: overrides are validated
         first, overrides that change the shape of the saved state (scenario, agent count,
-        network sizes) are refused naming the key, and ``config.yaml`` is rewritten (atomically)
-        only after the checkpoint is loaded. Every failure is a one-line ValueError.
+        network sizes) are refused naming the key, and the new ``config.yaml`` (with the
+        overrides), ``results.json`` (as the checkpoint has it) and the logs (cut back to the
+        checkpoint) are written only once the first iteration of :meth:`train` has succeeded
+        (or a checkpoint is saved): a resume whose override fails then (out of memory) leaves
+        the run directory byte for byte as it was, and a plain resume still works. (A
+        ``config.yaml`` in an older layout is rewritten in today's at once, with the same
+        values.) Every failure is a one-line ValueError.
 
         The run directory's lock is taken before anything is read: a run directory that
         another experiment (or process) writes to is refused with
@@ -669,10 +739,11 @@ class Experiment:
         exp.__init__(config, run_dir)
         if state is not None:
             exp._restore(state, ckpt, _changed_keys(saved.to_dict(), config.to_dict()))
-        if config.to_dict() != on_disk:
-            config.to_yaml(run_dir / CONFIG_FILE)
-        if state is not None:
-            exp.results.write()
+        if saved.to_dict() != on_disk:  # an older layout of the same config
+            saved.to_yaml(run_dir / CONFIG_FILE)
+        if exp._deferred is not None:
+            exp._deferred["config"] = config.to_dict() != saved.to_dict()
+            exp._deferred["results"] = state is not None
         return exp
 
     @classmethod

@@ -27,6 +27,12 @@ trial's overrides) and starts the ones without checkpoints. A trial that raises 
 failed (the traceback in its ``error.txt``, the last line in the manifest); the other trials
 still run, and :func:`run_sweep` reports the failed ones (the command then exits with 1).
 
+One writer per trial: the local backend's workers die with the sweep process (kill -9
+included), and a trial whose run directory another writer still holds (its lock, see
+:class:`~mapets_rl.experiment.files.RunDirLock`: an orphaned Ray task, a ``mapets-rl resume``)
+is reported as failed, naming the holder's pid, without a byte written there; a later re-run
+resumes it.
+
 Backends (neither schedules by hand):
 
 - ``local``: a ``concurrent.futures.ProcessPoolExecutor`` of ``cpu_count // cpus_per_trial``
@@ -59,6 +65,7 @@ import math
 import multiprocessing
 import os
 import re
+import signal
 import sys
 import time
 import traceback
@@ -385,6 +392,15 @@ def run_trial(payload: Mapping[str, Any]) -> dict[str, Any]:
     """
     run_dir = Path(payload["run_dir"])
     start = time.perf_counter()
+    from mapets_rl.experiment.files import RunDirLock, RunDirLocked
+
+    # another writer (a worker of a sweep killed with kill -9 that is still running this trial,
+    # a `mapets-rl resume`) has the run directory: leave it alone, write nothing there
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        RunDirLock.acquire(run_dir).release()
+    except RunDirLocked as err:
+        return _locked(err, time.perf_counter() - start)
     record: dict[str, Any] = {
         "state": "running",
         "started": _now(),
@@ -414,6 +430,8 @@ def run_trial(payload: Mapping[str, Any]) -> dict[str, Any]:
         exp.train()
         (run_dir / ERROR_FILE).unlink(missing_ok=True)
         result = {"state": "done", "frames": int(exp.frames), "error": None}
+    except RunDirLocked as err:  # taken by another writer since the check above
+        return _locked(err, time.perf_counter() - start)
     except Exception:
         lines = traceback.format_exc().rstrip().splitlines()
         atomic_write_text(run_dir / ERROR_FILE, "\n".join(lines[-ERROR_TAIL_LINES:]) + "\n")
@@ -426,6 +444,51 @@ def run_trial(payload: Mapping[str, Any]) -> dict[str, Any]:
 # ------------------------------------------------------------------------------- backends
 Outcome = Iterator[tuple[int, dict[str, Any]]]
 """``(index of the payload, run_trial's result)`` in the order the trials finish."""
+
+
+def _locked(err: BaseException, seconds: float) -> dict[str, Any]:
+    """The result of a trial whose run directory another writer holds (nothing written)."""
+    return {
+        "state": "failed",
+        "frames": None,
+        "error": str(err),
+        "resumed": False,
+        "seconds": seconds,
+        "locked": True,
+    }
+
+
+PR_SET_PDEATHSIG = 1
+"""``prctl`` option (Linux ``<sys/prctl.h>``): the signal a process gets when its parent dies."""
+
+
+def _die_with_parent(parent: int) -> None:
+    """Initializer of the local backend's workers: a worker dies with the sweep process that
+    started it (kill -9 included), so no trial goes on writing its run directory while
+    ``sweep.json`` says "pending" and a re-run resumes it. On Linux the kernel sends the worker
+    SIGKILL when its parent dies (``prctl(PR_SET_PDEATHSIG)``); elsewhere, or when prctl is
+    refused, a daemon thread polls the parent's pid every second. A worker whose parent died
+    before this ran exits at once."""
+    watched = False
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            watched = libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
+        except (OSError, AttributeError):
+            watched = False
+    if os.getppid() != parent:
+        os._exit(1)
+    if not watched:
+        import threading
+
+        def watch() -> None:
+            while os.getppid() == parent:
+                time.sleep(1.0)
+            os._exit(1)
+
+        threading.Thread(target=watch, name="sweep-parent-watch", daemon=True).start()
 
 
 def _died(err: BaseException) -> dict[str, Any]:
@@ -445,10 +508,14 @@ def local_workers(cpus_per_trial: float) -> int:
 
 def run_local(payloads: Sequence[Mapping[str, Any]], cpus_per_trial: float) -> Outcome:
     """The trials in a pool of spawned processes (a worker runs one trial at a time and
-    imports torch once for all the trials it runs)."""
+    imports torch once for all the trials it runs); the workers die with this process (see
+    :func:`_die_with_parent`)."""
     workers = min(local_workers(cpus_per_trial), len(payloads))
     with concurrent.futures.ProcessPoolExecutor(
-        max_workers=workers, mp_context=multiprocessing.get_context("spawn")
+        max_workers=workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_die_with_parent,
+        initargs=(os.getpid(),),
     ) as pool:
         futures = {pool.submit(run_trial, p): i for i, p in enumerate(payloads)}
         for future in concurrent.futures.as_completed(futures):
@@ -658,7 +725,11 @@ def run_sweep(spec: SweepSpec, echo: Callable[[str], None] = print) -> SweepResu
         )
         for index, result in outcomes:
             trial = todo[index]
-            if result["state"] == "failed" and not (trial.run_dir / ERROR_FILE).is_file():
+            if (
+                result["state"] == "failed"
+                and not result.get("locked")  # another writer's directory: not ours to write
+                and not (trial.run_dir / ERROR_FILE).is_file()
+            ):
                 # the worker died before it could record why
                 atomic_write_text(trial.run_dir / ERROR_FILE, str(result["error"]) + "\n")
             records[trial.id] = {"ran": True, **result}
