@@ -83,7 +83,8 @@ class CooperativeMerge(TensorDictModuleBase):
     A CAV in the rightmost lane (``lanes - 1``) between ``approach`` metres before the
     acceleration lane and the merge point changes left when a ramp vehicle is beside it (the
     nearest ramp vehicle ahead within ``ramp_ahead`` metres or behind within ``ramp_behind``
-    metres) and the left lane has room (front gap > ``front_gap``, rear gap > ``rear_gap``);
+    metres) and the left lane has room (front gap > ``front_gap``, rear gap > ``rear_gap`` +
+    ``closing_time`` x the speed at which the left rear vehicle comes up);
     every other CAV keeps its lane (a CAV on the ramp merges by MOBIL under KL)."""
 
     in_keys = [OBS]
@@ -97,10 +98,12 @@ class CooperativeMerge(TensorDictModuleBase):
         ramp_behind: float,
         front_gap: float,
         rear_gap: float,
+        closing_time: float,
         dtype: torch.dtype,
     ) -> None:
         super().__init__()
         self.lanes, self.approach, self.dtype = lanes, approach, dtype
+        self.closing_time = closing_time
         self.ramp_ahead, self.ramp_behind = ramp_ahead, ramp_behind
         self.front_gap, self.rear_gap = front_gap, rear_gap
 
@@ -117,7 +120,10 @@ class CooperativeMerge(TensorDictModuleBase):
         near = (lane == self.lanes - 1) & (to_start <= self.approach) & (to_end > 0)
         ramp_front = (nb[..., 2, 0, 0] > 0) & (nb[..., 2, 0, 1] <= self.ramp_ahead)
         ramp_rear = (nb[..., 2, 1, 0] > 0) & (-nb[..., 2, 1, 1] <= self.ramp_behind)
-        room = (nb[..., 0, 0, 1] > self.front_gap) & (-nb[..., 0, 1, 1] > self.rear_gap)
+        closing = nb[..., 0, 1, 2].clamp(min=0.0)  # how fast the left rear vehicle comes up
+        room = (nb[..., 0, 0, 1] > self.front_gap) & (
+            -nb[..., 0, 1, 1] > self.rear_gap + self.closing_time * closing
+        )
         yield_left = near & (ramp_front | ramp_rear) & room
         index = torch.where(yield_left, CL, KL).long()
         tensordict.set(ACTION, torch.nn.functional.one_hot(index, 4).to(self.dtype))
@@ -140,6 +146,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--ramp-ahead", type=float, default=30.0, help="m (merge)")
     parser.add_argument("--ramp-behind", type=float, default=60.0, help="m (merge)")
     parser.add_argument("--yield-front-gap", type=float, default=15.0, help="m (merge)")
+    parser.add_argument("--yield-rear-gap", type=float, default=15.0, help="m (merge)")
+    parser.add_argument("--closing-time", type=float, default=1.5, help="s (merge)")
     parser.add_argument("--env-override", nargs="*", default=[], metavar="KEY=VALUE")
     args = parser.parse_args(argv)
     if not all(0.0 < r <= 1.0 for r in args.ratios):
@@ -165,7 +173,8 @@ def main(argv: list[str] | None = None) -> None:
             args.ramp_ahead,
             args.ramp_behind,
             args.yield_front_gap,
-            args.rear_gap,
+            args.yield_rear_gap,
+            args.closing_time,
             spec.dtype,
         )
 
