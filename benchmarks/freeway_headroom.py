@@ -143,8 +143,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--approach", type=float, default=100.0, help="m before the acceleration lane (merge)"
     )
-    parser.add_argument("--ramp-ahead", type=float, default=30.0, help="m (merge)")
-    parser.add_argument("--ramp-behind", type=float, default=60.0, help="m (merge)")
+    parser.add_argument("--ramp-ahead", type=float, default=60.0, help="m (merge)")
+    parser.add_argument("--ramp-behind", type=float, default=30.0, help="m (merge)")
     parser.add_argument("--yield-front-gap", type=float, default=15.0, help="m (merge)")
     parser.add_argument("--yield-rear-gap", type=float, default=15.0, help="m (merge)")
     parser.add_argument("--closing-time", type=float, default=1.5, help="s (merge)")

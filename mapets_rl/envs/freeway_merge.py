@@ -124,12 +124,12 @@ class FreewayMergeEnv(FreewayEnv):
         config.update(
             {
                 "target_speed": (25.0, 31.0),
-                "merge_start": 800.0,
-                "merge_length": 100.0,
-                "ramp_length": 400.0,
+                "merge_start": 450.0,
+                "merge_length": 45.0,
+                "ramp_length": 500.0,
                 "ramp_offset": 15.0,
-                "ramp_fraction": 0.2,
-                "ramp_speed": (15.0, 20.0),
+                "ramp_fraction": 0.5,
+                "ramp_speed": (25.0, 30.0),
             }
         )
         return config
