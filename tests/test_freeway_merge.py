@@ -51,7 +51,7 @@ def _scene(**config) -> FreewayMergeEnv:
 
 def _place(env: FreewayMergeEnv, vehicle, lane_index: tuple, x: float, speed: float) -> None:
     lane = env.road.network.get_lane(lane_index)
-    s = x - lane.start[0]
+    s = (x - lane.start[0]) / lane.direction[0]  # the ramp lane slants: x is not s
     vehicle.position = lane.position(s, 0.0)
     vehicle.heading = lane.heading_at(s)
     vehicle.lane_index = vehicle.target_lane_index = lane_index
@@ -115,39 +115,41 @@ def _ramp_vehicles(env: FreewayMergeEnv) -> list:
 
 
 @pytest.mark.parametrize("cav_ratio", [0.0, 1.0])
-def test_ramp_vehicles_merge_in_light_traffic(cav_ratio: float) -> None:
-    """Humans (MOBIL) and CAVs playing KL on the ramp (MOBIL) join the rightmost lane."""
-    env = FreewayMergeEnv(
-        {"n_vehicles": 8, "cav_ratio": cav_ratio, "ramp_fraction": 0.5, "spawn_length": 600.0}
-    )
+def test_ramp_vehicles_merge_into_a_free_rightmost_lane(cav_ratio: float) -> None:
+    """Humans (MOBIL) and CAVs playing KL on the ramp (MOBIL) join the rightmost lane when
+    nobody drives there: every vehicle starts on the ramp."""
+    env = FreewayMergeEnv({"n_vehicles": 6, "cav_ratio": cav_ratio, "ramp_fraction": 1.0})
     env.reset(seed=0)
     ramp = _ramp_vehicles(env)
-    assert len(ramp) == 4
+    assert len(ramp) == 6
     for _ in range(40):
         _, _, terminated, truncated, info = env.step(np.full(len(env.cavs), KL))
     assert truncated and not terminated and int((~env.alive).sum()) == 0
     assert info["episode"]["ramp_stuck"] == 0 and not _ramp_vehicles(env)
     for vehicle in ramp:
         assert vehicle in env.road.vehicles and not vehicle.crashed
-        assert vehicle.lane_index[:2] == ("0", "1") and vehicle.lane_index[2] < 3
+        assert vehicle.lane_index[:2] == ("0", "1") and vehicle.lane_index[2] in (0, 1, 2)
         assert vehicle.position[0] > env.merge_end
 
 
 def test_a_ramp_vehicle_without_a_gap_stops_before_the_merge_point() -> None:
-    """A slow ramp vehicle beside a dense rightmost lane cannot merge (MOBIL refuses the gap)
-    and stops before the obstacle at the end of the acceleration lane."""
-    env = _scene(merge_length=60.0)
-    cav, (a, b) = env.cavs[0], _others(env)
-    _place(env, a, ("0", "1", 3), 810.0, 8.0)
-    _place(env, cav, ("0", "1", 2), 800.0, 25.0)
-    _place(env, b, ("0", "1", 2), 775.0, 25.0)
-    for vehicle in (cav, b):
-        vehicle.target_speed = 8.0  # the rightmost lane crawls beside the ramp vehicle
+    """A slow ramp vehicle beside a platoon in the rightmost lane cannot merge (MOBIL refuses
+    the gaps: too much braking for the new follower), stops before the obstacle at the end of
+    the acceleration lane and, standing, stays there after the platoon has passed."""
+    env = _scene(n_vehicles=6, cav_ratio=1 / 6, ramp_fraction=1 / 6, merge_length=45.0)
+    cav, others = env.cavs[0], _others(env)
+    ramp_vehicle, platoon = others[0], [cav, *others[1:]]
+    _place(env, ramp_vehicle, ("0", "1", 3), 825.0, 6.0)  # 20 m before the obstacle (x = 845)
+    for k, vehicle in enumerate(platoon):
+        _place(env, vehicle, ("0", "1", 2), 700.0 + 25.0 * k, 25.0)
+        vehicle.target_speed = 25.0
     env.road.refresh()
     for _ in range(15):
         env.step(np.array([KL]))
-    assert env.on_ramp(a) and a.speed < 1.0
-    assert 800.0 < a.position[0] < env.merge_end and not a.crashed
+    assert env.on_ramp(ramp_vehicle) and ramp_vehicle.speed < 1.0 and not ramp_vehicle.crashed
+    assert 825.0 < ramp_vehicle.position[0] < env.merge_end
+    assert all(v.position[0] > env.merge_end + 100 for v in platoon)  # the platoon is gone
+    assert env.episode_metrics()["ramp_stuck"] == 1
 
 
 def test_lane_actions_on_the_ramp_and_beside_it() -> None:
@@ -202,7 +204,7 @@ def test_rendering_shows_the_ramp() -> None:
         ({"ramp_fraction": "half"}, "ramp_fraction must be a number in"),
         ({"merge_length": 5.0}, "merge_length must be a finite number >= 10"),
         ({"merge_start": -1.0}, "merge_start must be a finite number > 0"),
-        ({"merge_start": 2950.0}, "merge_start must be a finite number > 0 and <= 2900"),
+        ({"merge_start": 2960.0}, "merge_start must be a finite number > 0 and <= 2955"),
         ({"ramp_length": 10.0}, "ramp_length must be a finite number >= 20"),
         ({"ramp_speed": (20.0, 10.0)}, "ramp_speed must be a range"),
         ({"target_speed": (25.0, 40.0)}, "target_speed must be a range"),

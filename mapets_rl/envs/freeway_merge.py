@@ -124,12 +124,12 @@ class FreewayMergeEnv(FreewayEnv):
         config.update(
             {
                 "target_speed": (25.0, 31.0),
-                "merge_start": 450.0,
+                "merge_start": 500.0,
                 "merge_length": 45.0,
-                "ramp_length": 500.0,
+                "ramp_length": 300.0,
                 "ramp_offset": 15.0,
                 "ramp_fraction": 0.5,
-                "ramp_speed": (25.0, 30.0),
+                "ramp_speed": (15.0, 20.0),
             }
         )
         return config
