@@ -219,3 +219,37 @@ def test_bad_config_is_refused(config: dict, message: str) -> None:
         FreewayMergeEnv(config)
     with pytest.raises(ValueError, match=message):
         make_env("freeway-merge", **config)
+
+
+@pytest.mark.parametrize("recipe", ["shapley_ac", "coma", "maddpg", "mappo"])
+def test_freeway_recipes_train_on_freeway_merge(recipe: str, tmp_path) -> None:
+    """The recipes that run on ``freeway`` accept ``env="freeway-merge"``: a tiny run trains
+    and evaluates, and the evaluation reports the scenario's metrics."""
+    from recipes.coma import COMA, COMAConfig
+    from recipes.maddpg import MADDPG, MADDPGConfig
+    from recipes.mappo import MAPPO, MAPPOConfig
+    from recipes.shapley_ac import ShapleyAC, ShapleyACConfig
+
+    cls, config_cls, extra = {
+        "shapley_ac": (ShapleyAC, ShapleyACConfig, {"batch_size": 8, "updates_per_batch": 1}),
+        "coma": (COMA, COMAConfig, {"minibatch_size": 5}),
+        "maddpg": (MADDPG, MADDPGConfig, {"batch_size": 8, "updates_per_batch": 1}),
+        "mappo": (MAPPO, MAPPOConfig, {"minibatch_size": 5}),
+    }[recipe]
+    config = config_cls(
+        env="freeway-merge",
+        env_config={"n_vehicles": 4, "cav_ratio": 0.5, "horizon": 5},
+        total_frames=20,
+        frames_per_batch=10,
+        eval_interval=20,
+        checkpoint_interval=0,
+        eval_episodes=1,
+        logger="none",
+        progress=False,
+        **extra,
+    )
+    evals = cls(config, tmp_path / recipe).train()
+    assert evals[-1]["frames"] == 20
+    metrics = evals[-1]["metrics"]
+    assert {"return", "average_velocity", "ramp_stuck"} <= set(metrics)
+    assert np.isfinite(metrics["return"]) and 0 <= metrics["ramp_stuck"] <= 2
