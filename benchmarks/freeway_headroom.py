@@ -80,8 +80,9 @@ class CooperativeMerge(TensorDictModuleBase):
     rightmost lane; then the distances to the acceleration lane's start and to the merge
     point) -> one-hot action ``[*, n, 4]``.
 
-    A CAV in the rightmost lane (``lanes - 1``) between ``approach`` metres before the
-    acceleration lane and the merge point changes left when a ramp vehicle is beside it (the
+    A CAV in the rightmost lane (``lanes - 1``) less than ``approach`` metres before the
+    acceleration lane (the distance is clipped at the perception range, so ``approach`` should
+    not exceed it) and before the merge point changes left when a ramp vehicle is beside it (the
     nearest ramp vehicle ahead within ``ramp_ahead`` metres or behind within ``ramp_behind``
     metres) and the left lane has room (front gap > ``front_gap``, rear gap > ``rear_gap`` +
     ``closing_time`` x the speed at which the left rear vehicle comes up);
@@ -117,7 +118,7 @@ class CooperativeMerge(TensorDictModuleBase):
         lane = obs[..., 1]
         nb = obs[..., 4:OBS_DIM].unflatten(-1, (3, 2, 3))  # [*, n, lane (L, own, R), front/rear, 3]
         to_start, to_end = obs[..., OBS_DIM], obs[..., OBS_DIM + 1]
-        near = (lane == self.lanes - 1) & (to_start <= self.approach) & (to_end > 0)
+        near = (lane == self.lanes - 1) & (to_start < self.approach) & (to_end > 0)
         ramp_front = (nb[..., 2, 0, 0] > 0) & (nb[..., 2, 0, 1] <= self.ramp_ahead)
         ramp_rear = (nb[..., 2, 1, 0] > 0) & (-nb[..., 2, 1, 1] <= self.ramp_behind)
         closing = nb[..., 0, 1, 2].clamp(min=0.0)  # how fast the left rear vehicle comes up
