@@ -10,8 +10,9 @@ keeps its lane. Speeds stay under IDM in both policies. If the rule beats keep-l
 has headroom the learners did not find; if not, keep-lane is hard to beat on this reward.
 
 On ``--env freeway-merge`` (the freeway with an on-ramp, issue 21) a third, cooperative rule
-joins them (``CooperativeMerge``): a CAV in the rightmost lane near the merge moves left when a
-ramp vehicle is beside it and the left lane has room; otherwise it keeps its lane.
+joins them (``CooperativeMerge``): a CAV in the rightmost lane before the merge point moves
+left when a ramp vehicle is beside it (60 m ahead to 30 m behind) and the left lane has room;
+otherwise it keeps its lane.
 
 Run:  python benchmarks/freeway_headroom.py [--env freeway-merge] [--ratios 0.5 1]
           [--seeds 0 1 2] [--eval-episodes 5] [--env-override velocity_weight=1.0]
@@ -142,7 +143,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--gain-gap", type=float, default=15.0, help="m")
     parser.add_argument("--rear-gap", type=float, default=15.0, help="m")
     parser.add_argument(
-        "--approach", type=float, default=100.0, help="m before the acceleration lane (merge)"
+        "--approach",
+        type=float,
+        default=float("inf"),
+        help="m before the acceleration lane (merge); default: anywhere before the merge point",
     )
     parser.add_argument("--ramp-ahead", type=float, default=60.0, help="m (merge)")
     parser.add_argument("--ramp-behind", type=float, default=30.0, help="m (merge)")
