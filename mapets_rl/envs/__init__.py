@@ -16,6 +16,7 @@ from mapets_rl.envs.figure_eight import (
     figure_eight_reward,
 )
 from mapets_rl.envs.freeway import ACTION_NAMES, FreewayEnv
+from mapets_rl.envs.freeway_merge import FreewayMergeEnv, FreewayMergeParallelEnv
 from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, TrafficParallelEnv
 from mapets_rl.envs.scripted import ScriptedCAVPolicy, traffic_env
 from mapets_rl.envs.traffic import MultiAgentTrafficEnv
@@ -28,6 +29,8 @@ __all__ = [
     "FigureEightEnv",
     "FigureEightParallelEnv",
     "FreewayEnv",
+    "FreewayMergeEnv",
+    "FreewayMergeParallelEnv",
     "FreewayParallelEnv",
     "MultiAgentTrafficEnv",
     "TrafficParallelEnv",
@@ -45,6 +48,7 @@ GYM_IDS = {
     "figure-eight": "mapets_rl/FigureEight-v0",
     "figure-eight-multilane": "mapets_rl/FigureEightMultiLane-v0",
     "freeway": "mapets_rl/Freeway-v0",
+    "freeway-merge": "mapets_rl/FreewayMerge-v0",
 }
 """Scenario name -> gymnasium id of its raw (array-valued) highway-env environment."""
 

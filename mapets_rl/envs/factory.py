@@ -26,12 +26,14 @@ from torchrl.data import OneHot
 from torchrl.envs import EnvBase
 from torchrl.envs.libs.pettingzoo import PettingZooWrapper
 
+from mapets_rl.envs.freeway_merge import FreewayMergeParallelEnv
 from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, TrafficParallelEnv
 
 SCENARIOS: dict[str, tuple[type[TrafficParallelEnv], dict[str, Any]]] = {
     "figure-eight": (FigureEightParallelEnv, {}),
     "figure-eight-multilane": (FigureEightParallelEnv, {"lanes": 2, "n_cavs": 22, "horizon": 400}),
     "freeway": (FreewayParallelEnv, {}),
+    "freeway-merge": (FreewayMergeParallelEnv, {}),
 }
 """Scenario name -> (PettingZoo env class, what the scenario changes from the env class's
 defaults). The one place a scenario's defaults are declared: ``make_env``, the recipes, the CLI
@@ -173,8 +175,8 @@ def make_env(
     categorical_actions: bool = False,
     **config: Any,
 ) -> EnvBase:
-    """A TorchRL env of scenario ``name``: ``"figure-eight"``, ``"figure-eight-multilane"``
-    or ``"freeway"``.
+    """A TorchRL env of scenario ``name``: ``"figure-eight"``, ``"figure-eight-multilane"``,
+    ``"freeway"`` or ``"freeway-merge"`` (the freeway with an on-ramp).
 
     Keys (group ``"agents"``, ``I`` CAVs): ``("agents","observation")`` ``[*, I, obs]``,
     ``("agents","action")`` ``[*, I, act]`` (figure-eight: target speed [+ lane flag];

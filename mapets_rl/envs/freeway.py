@@ -183,7 +183,6 @@ class FreewayEnv(MultiAgentTrafficEnv):
         )
         positive = {
             "speed_limit": "m/s",
-            "cav_target_speed": "m/s",
             "road_length": "m",
             "spawn_length": "m",
             "perception": "m",
@@ -194,7 +193,7 @@ class FreewayEnv(MultiAgentTrafficEnv):
         require_number(config, "min_spacing", low=7.0, unit="m")
         require_number(config, "velocity_weight")
         require_range(config, "initial_speed", low=0.0, high=config["speed_limit"], unit="m/s")
-        require_range(config, "hv_target_speed", low=0.0, unit="m/s")
+        cls.validate_target_speeds(config)
         capacity = cls.capacity(config)
         require(
             config["n_vehicles"] <= capacity,
@@ -212,13 +211,19 @@ class FreewayEnv(MultiAgentTrafficEnv):
             f"{config['horizon']} steps at {config['speed_limit']} m/s: must be >= {needed:.0f}",
         )
 
+    @classmethod
+    def validate_target_speeds(cls, config: dict) -> None:
+        """CAVs drive towards ``cav_target_speed``, humans draw theirs from ``hv_target_speed``."""
+        require_number(config, "cav_target_speed", low=0.0, low_open=True, unit="m/s")
+        require_range(config, "hv_target_speed", low=0.0, unit="m/s")
+
     @staticmethod
     def capacity(config: dict) -> int:
         """Number of vehicles that fit in the spawn region at ``min_spacing``."""
         return int(config["spawn_length"] // config["min_spacing"]) * config["lanes"]
 
     def define_spaces(self) -> None:
-        self.observation_type = AgentObservation(self, OBS_DIM)
+        self.observation_type = AgentObservation(self, self.obs_dim)
         self.action_type = LaneDecisionAction(self)
         self.observation_space = self.observation_type.space()
         self.action_space = self.action_type.space()
@@ -258,6 +263,26 @@ class FreewayEnv(MultiAgentTrafficEnv):
         self.crash_sites.clear()
 
     def _make_road(self) -> SortedNeighbourRoad:
+        return SortedNeighbourRoad(
+            self._make_network(),
+            coordinate=lambda lane_index, position: float(position[0]),
+            period=None,
+            n_lanes=self.lane_tables,
+            stock_neighbour_search=self.config["stock_neighbour_search"],
+            np_random=self.np_random,
+            lane_id=self.lane_id,
+        )
+
+    @property
+    def lane_tables(self) -> int:
+        """Lanes of the road's neighbour search (:class:`SortedNeighbourRoad`)."""
+        return self.config["lanes"]
+
+    lane_id = None
+    """Lane index -> lane id of the neighbour search (``None``: the index's last element)."""
+
+    def _make_network(self) -> RoadNetwork:
+        """The lanes: ``("0", "1", k)`` for ``k = 0 .. lanes - 1`` (0 the leftmost)."""
         cfg = self.config
         width = StraightLane.DEFAULT_WIDTH
         net = RoadNetwork()
@@ -276,45 +301,54 @@ class FreewayEnv(MultiAgentTrafficEnv):
                     speed_limit=cfg["speed_limit"],
                 ),
             )
-        return SortedNeighbourRoad(
-            net,
-            coordinate=lambda lane_index, position: float(position[0]),
-            period=None,
-            n_lanes=cfg["lanes"],
-            stock_neighbour_search=cfg["stock_neighbour_search"],
-            np_random=self.np_random,
-        )
+        return net
+
+    cav_class: type[LaneDecisionVehicle] = LaneDecisionVehicle
+    """The vehicle class of the CAVs."""
+
+    def _spawn_slots(self, n: int | None = None) -> list[tuple[tuple, float]]:
+        """``(lane index, longitudinal position [m])`` of ``n`` vehicles (default
+        ``n_vehicles``) at the start: random distinct slots ``min_spacing`` apart over
+        ``spawn_length`` metres of every lane."""
+        cfg = self.config
+        per_lane = int(cfg["spawn_length"] // cfg["min_spacing"])
+        n = cfg["n_vehicles"] if n is None else n
+        slots = self.np_random.choice(per_lane * cfg["lanes"], size=n, replace=False)
+        return [
+            (("0", "1", int(slot // per_lane)), float((slot % per_lane) * cfg["min_spacing"]))
+            for slot in slots
+        ]
+
+    def _initial_speed(self, lane_index: tuple) -> float:
+        """A start speed [m/s] for a vehicle on ``lane_index``, from ``initial_speed``."""
+        return float(self.np_random.uniform(*self.config["initial_speed"]))
+
+    def _target_speed(self, cav: bool) -> float:
+        """A target speed [m/s]: ``cav_target_speed`` for a CAV, a draw from
+        ``hv_target_speed`` for a human driver."""
+        if cav:
+            return float(self.config["cav_target_speed"])
+        return float(self.np_random.uniform(*self.config["hv_target_speed"]))
 
     def _spawn_vehicles(self) -> list[Vehicle]:
-        cfg, rng = self.config, self.np_random
-        per_lane = int(cfg["spawn_length"] // cfg["min_spacing"])
-        slots = rng.choice(per_lane * cfg["lanes"], size=cfg["n_vehicles"], replace=False)
-        is_cav = self._draw_cavs(cfg["n_vehicles"])
+        cfg = self.config
+        slots = self._spawn_slots()
+        is_cav = self._draw_cavs(len(slots))
         cavs = []
-        for k, slot in enumerate(slots):
-            lane_index = ("0", "1", int(slot // per_lane))
-            x = (slot % per_lane) * cfg["min_spacing"]
-            speed = float(rng.uniform(*cfg["initial_speed"]))
+        for k, (lane_index, x) in enumerate(slots):
+            speed = self._initial_speed(lane_index)
+            vehicle = self._place_vehicle(
+                self.cav_class if is_cav[k] else HumanVehicle,
+                lane_index,
+                x,
+                speed,
+                cfg["speed_limit"],
+                target_speed=self._target_speed(bool(is_cav[k])),
+            )
             if is_cav[k]:
-                cavs.append(
-                    self._place_vehicle(
-                        LaneDecisionVehicle,
-                        lane_index,
-                        x,
-                        speed,
-                        cfg["speed_limit"],
-                        target_speed=cfg["cav_target_speed"],
-                    )
-                )
+                cavs.append(vehicle)
             else:
-                self._place_vehicle(
-                    HumanVehicle,
-                    lane_index,
-                    x,
-                    speed,
-                    cfg["speed_limit"],
-                    target_speed=float(rng.uniform(*cfg["hv_target_speed"])),
-                ).randomize_behavior()
+                vehicle.randomize_behavior()
         # CAVs in a fixed order along the road, so agent ids are reproducible and meaningful.
         cavs.sort(key=lambda v: (v.position[0], v.lane_index[2]))
         self.vehicles_all = list(self.road.vehicles)
@@ -361,15 +395,16 @@ class FreewayEnv(MultiAgentTrafficEnv):
     def _neighbours(self, cav: Vehicle) -> np.ndarray:
         rng_ = self.config["perception"]
         feats = np.zeros((6, 3), dtype=np.float32)
-        _from, _to, own = cav.lane_index
-        for k, lane in enumerate((own - 1, own, own + 1)):
+        for k, lane_index in enumerate(self._observed_lanes(cav)):
             front, rear = (
-                self.road.neighbour_vehicles(cav, (_from, _to, lane))
-                if 0 <= lane < self.config["lanes"]
+                self.road.neighbour_vehicles(cav, lane_index)
+                if lane_index is not None
                 else (None, None)
             )
             for j, (other, sign) in enumerate(((front, 1.0), (rear, -1.0))):
                 row = feats[2 * k + j]
+                if not isinstance(other, Vehicle):  # none, or a road object (not a neighbour)
+                    other = None
                 dx = self.road.longitudinal_distance(cav, other) if other is not None else None
                 if dx is None or abs(dx) > rng_:
                     row[:] = (0.0, sign * rng_, 0.0)
@@ -377,8 +412,17 @@ class FreewayEnv(MultiAgentTrafficEnv):
                     row[:] = (1.0, dx, other.speed - cav.speed)
         return feats.ravel()
 
+    def _observed_lanes(self, cav: Vehicle) -> tuple[tuple | None, tuple | None, tuple | None]:
+        """The lanes of the left / own / right neighbour blocks of ``cav``'s observation
+        (``None`` where there is no such lane)."""
+        _from, _to, own = cav.lane_index
+        return tuple(
+            (_from, _to, lane) if 0 <= lane < self.config["lanes"] else None
+            for lane in (own - 1, own, own + 1)
+        )
+
     def observe_agents(self) -> np.ndarray:
-        obs = np.zeros((len(self.cavs), OBS_DIM), dtype=np.float32)
+        obs = np.zeros((len(self.cavs), self.obs_dim), dtype=np.float32)
         for i, cav in enumerate(self.cavs):
             if not self.alive[i]:
                 continue
@@ -386,7 +430,7 @@ class FreewayEnv(MultiAgentTrafficEnv):
             lateral = lane.local_coordinates(cav.position)[1]
             own = (cav.speed, cav.lane_index[2], lateral, cav.action["acceleration"])
             obs[i, :4] = own
-            obs[i, 4:] = self._neighbours(cav)
+            obs[i, 4:OBS_DIM] = self._neighbours(cav)
         return obs
 
     def agent_rewards(self, obs: np.ndarray, action: Any) -> np.ndarray:

@@ -222,7 +222,7 @@ class FreewayParallelEnv(TrafficParallelEnv):
         render_mode: str | None = None,
         **config: Any,
     ) -> None:
-        env = FreewayEnv(
+        env = self.env_class(
             {"n_vehicles": n_vehicles, "cav_ratio": cav_ratio, **config}, render_mode=render_mode
         )
         require(

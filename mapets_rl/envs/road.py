@@ -26,6 +26,9 @@ class SortedNeighbourRoad(Road):
         period: length of a closed route (coordinates wrap modulo ``period``), ``None`` for an
             open road.
         n_lanes: number of parallel lanes (lane ids ``0 .. n_lanes - 1``).
+        lane_id: maps a lane index to its lane id in ``0 .. n_lanes - 1`` (default: the
+            index's last element); lanes of different road segments that share an id are
+            searched as one lane (e.g. an on-ramp and the acceleration lane it leads to).
         stock_neighbour_search: use highway-env's stock searches for who is near whom:
             ``Road.neighbour_vehicles`` (leaders/followers), ``get_closest_lane_index`` over
             every lane (lane assignment) and the all-pairs collision loop of ``Road.step``.
@@ -41,25 +44,33 @@ class SortedNeighbourRoad(Road):
         n_lanes: int,
         stock_neighbour_search: bool = False,
         np_random: np.random.Generator | None = None,
+        lane_id: Callable[[LaneIndex], int] | None = None,
     ) -> None:
         super().__init__(network=network, np_random=np_random)
         self.coordinate = coordinate
         self.period = period
         self.n_lanes = n_lanes
         self.stock_neighbour_search = stock_neighbour_search
+        self.lane_id = lane_id or (lambda lane_index: lane_index[2])
         self._coord: dict[int, float] = {}
         self._lane_coords: list[np.ndarray] = []
         self._lane_vehicles: list[list[Vehicle]] = []
 
     def refresh(self) -> None:
-        """Recompute every vehicle's route coordinate and the sorted per-lane tables."""
-        vehicles = self.vehicles
+        """Recompute every vehicle's route coordinate and the sorted per-lane tables.
+
+        Road objects (e.g. the obstacle that ends an acceleration lane) are in the tables too,
+        so that IDM and MOBIL see them as standing leaders, as in highway-env's stock search."""
+        vehicles = self.vehicles + self.objects if self.objects else self.vehicles
+        lane_id = self.lane_id
         coords = np.fromiter(
             (self.coordinate(v.lane_index, v.position) for v in vehicles),
             dtype=float,
             count=len(vehicles),
         )
-        lanes = np.fromiter((v.lane_index[2] for v in vehicles), dtype=int, count=len(vehicles))
+        lanes = np.fromiter(
+            (lane_id(v.lane_index) for v in vehicles), dtype=int, count=len(vehicles)
+        )
         self._coord = {id(v): c for v, c in zip(vehicles, coords, strict=True)}
         self._lane_coords, self._lane_vehicles = [], []
         for lane in range(self.n_lanes):
@@ -99,15 +110,16 @@ class SortedNeighbourRoad(Road):
             return
         for vehicle in self.vehicles:
             vehicle.step(dt)
-        n = len(self.vehicles)
+        bodies = self.vehicles + self.objects if self.objects else self.vehicles
+        n = len(bodies)
         if n < 2:
             return
-        pos = np.array([v.position for v in self.vehicles])
-        reach = np.array([v.diagonal / 2 + abs(v.speed) * dt for v in self.vehicles])
+        pos = np.array([v.position for v in bodies])
+        reach = np.array([v.diagonal / 2 + abs(v.speed) * dt for v in bodies])
         dist = np.linalg.norm(pos[:, None, :] - pos[None, :, :], axis=-1)
         close = dist <= reach[:, None] + reach[None, :]
         for i, j in zip(*np.nonzero(np.triu(close, k=1)), strict=True):
-            self.vehicles[i].handle_collisions(self.vehicles[j], dt)
+            bodies[i].handle_collisions(bodies[j], dt)  # i < j: a vehicle meets any body
 
     def neighbour_vehicles(
         self, vehicle: Vehicle, lane_index: LaneIndex | None = None
@@ -118,8 +130,9 @@ class SortedNeighbourRoad(Road):
         lane_index = lane_index or vehicle.lane_index
         if not lane_index:
             return None, None
-        coords = self._lane_coords[lane_index[2]]
-        lane_vehicles = self._lane_vehicles[lane_index[2]]
+        table = self.lane_id(lane_index)
+        coords = self._lane_coords[table]
+        lane_vehicles = self._lane_vehicles[table]
         n = len(lane_vehicles)
         pos = int(coords.searchsorted(self.route_coordinate(vehicle), side="right"))
         ahead, behind = pos, pos - 1

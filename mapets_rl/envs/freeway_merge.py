@@ -1,0 +1,293 @@
+"""Freeway with an on-ramp (issue 21): a social dilemma on the 3-lane freeway.
+
+The freeway of :mod:`mapets_rl.envs.freeway` (same lanes, discrete actions ``KL, CL, CR, ES``,
+reward eq. 10 ``w * velocity + comfort`` with collisions, CAV ratio and vehicle count) gains an
+on-ramp on its right, built as highway-env's ``merge-v0`` builds its own: a ramp lane
+(``ramp_length`` metres, slanting in from ``ramp_offset`` metres to the right of the rightmost
+lane) leads to an acceleration lane parallel to the rightmost lane from ``merge_start`` for
+``merge_length`` metres, which ends at an :class:`~highway_env.vehicle.objects.Obstacle` (the
+*merge point*, ``merge_end = merge_start + merge_length``). Both ramp lanes are ``forbidden``
+(mainline vehicles never change into them). A share ``ramp_fraction`` of the ``n_vehicles``
+vehicles starts on the ramp (random slots ``min_spacing`` apart, speeds drawn from
+``ramp_speed``), the rest on the mainline as on the freeway; CAVs are drawn at random among
+all of them. Every vehicle, CAV or human, draws its target speed from the one range
+``target_speed``, so that a trend over the CAV ratio cannot come from target speeds.
+
+Merging. Human drivers merge as highway-env's do: MOBIL on the acceleration lane, whose
+obstacle is a standing leader, so a ramp vehicle merges when MOBIL finds the gap safe for the
+new follower (imposed braking <= 2 m/s^2) and otherwise stops before the obstacle; like
+highway-env's IDM vehicles it never starts a lane change below 1 m/s, so a ramp vehicle that
+has come to a stop stays there. A CAV on the ramp merges the same way (MOBIL) whatever it
+plays, and on the acceleration lane ``CL`` merges at once; ``CL``/``CR`` on the slanted ramp
+lane have no lane to go to and count as ``KL``. On the mainline a CAV's actions are the
+freeway's (``CR`` from the rightmost lane stays refused: the acceleration lane is not a lane
+to drive in).
+
+The dilemma: a mainline CAV in the rightmost lane near the merge point gives up little when
+it moves left to leave a ramp vehicle a gap (one step of comfort 1 instead of 3), but the
+ramp vehicle that finds no gap stops at the end of the acceleration lane and earns
+``w * 0 + comfort`` for the rest of the episode; a selfish CAV keeps its lane (or overtakes).
+
+Observation (``OBS_DIM = 24``): the freeway's 22 entries, where for a CAV in the rightmost
+lane the *right* neighbour block reads the ramp (the nearest ramp vehicle ahead and behind,
+on the slanted ramp or the acceleration lane) and for a CAV on the ramp the *own* block reads
+the ramp and the *left* block the rightmost lane; then ``(merge_start - x, merge_end - x)``,
+the distances [m] along the road to the start of the acceleration lane and to the merge
+point, clipped to ``+-perception``.
+
+Why an on-ramp rather than a lane drop. With a lane drop every CAV in the dropped lane must
+change lanes or stop, so "keep lane" is not a policy but a crash into the lane's end, and the
+scripted reference every learner is compared with would be meaningless. With an on-ramp
+keep-lane stays a safe, sensible policy whose cost falls on the ramp vehicles: exactly the
+situation in which a selfish CAV's best reply differs from the system's (measured in
+``benchmarks/RESULTS.md``, section "freeway-merge: a social dilemma (issue 21)"). A lane drop
+was not measured.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from highway_env.road.lane import LineType, StraightLane
+from highway_env.road.road import RoadNetwork
+from highway_env.vehicle.kinematics import Vehicle
+from highway_env.vehicle.objects import Obstacle
+
+from mapets_rl.envs.freeway import (
+    CL,
+    CR,
+    KL,
+    FreewayEnv,
+    LaneDecisionAction,
+    LaneDecisionVehicle,
+)
+from mapets_rl.envs.freeway import (
+    OBS_DIM as FREEWAY_OBS_DIM,
+)
+from mapets_rl.envs.lanes import FastStraightLane
+from mapets_rl.envs.parallel import FreewayParallelEnv
+from mapets_rl.envs.road import SortedNeighbourRoad
+from mapets_rl.envs.traffic import require
+from mapets_rl.envs.validation import is_real, require_number, require_range
+
+OBS_DIM = FREEWAY_OBS_DIM + 2
+RAMP_ROAD = ("r", "0")
+"""Road segment (from, to) of the slanted ramp lane ``("r", "0", 0)``; the acceleration lane
+is ``("0", "1", lanes)``, beside the mainline lanes ``("0", "1", 0 .. lanes - 1)``."""
+
+
+def ramp_vehicle_count(config: dict) -> int:
+    """How many of ``n_vehicles`` start on the ramp: ``round(ramp_fraction * n_vehicles)``."""
+    return int(round(config["ramp_fraction"] * config["n_vehicles"]))
+
+
+class MergeCAV(LaneDecisionVehicle):
+    """A CAV of ``freeway-merge``: on the ramp it merges by MOBIL as a human driver does."""
+
+    def act(self, action: dict | str | None = None) -> None:
+        self.enable_lane_change = self.road.lane_id(self.lane_index) == self.road.n_lanes - 1
+        super().act(action)
+
+
+class MergeDecisionAction(LaneDecisionAction):
+    """``LaneDecisionAction`` where ``CL``/``CR`` on the slanted ramp lane count as ``KL``."""
+
+    @property
+    def vehicle_class(self) -> type:
+        return MergeCAV
+
+    def act(self, action: np.ndarray) -> None:
+        action = np.array(action, dtype=np.int64)
+        for i, cav in enumerate(self.env.cavs):
+            if cav.lane_index[:2] == RAMP_ROAD and action[i] in (CL, CR):
+                action[i] = KL
+        super().act(action)
+
+
+class FreewayMergeEnv(FreewayEnv):
+    """The freeway with an on-ramp (see module docstring).
+
+    Config keys: the freeway's (:class:`FreewayEnv`) except ``cav_target_speed`` and
+    ``hv_target_speed``, replaced by ``target_speed`` (one range for CAVs and humans), plus
+    ``merge_start`` (x of the acceleration lane's start [m]), ``merge_length`` [m],
+    ``ramp_length`` [m], ``ramp_offset`` (lateral distance of the ramp's far end from the
+    acceleration lane [m]), ``ramp_fraction`` (share of the vehicles that start on the ramp)
+    and ``ramp_speed`` (their start speeds [m/s]); defaults in :meth:`default_config`.
+    """
+
+    obs_dim = OBS_DIM
+    cav_class = MergeCAV
+
+    @classmethod
+    def default_config(cls) -> dict:
+        config = super().default_config()
+        del config["cav_target_speed"], config["hv_target_speed"]
+        config.update(
+            {
+                "target_speed": (25.0, 31.0),
+                "merge_start": 500.0,
+                "merge_length": 45.0,
+                "ramp_length": 300.0,
+                "ramp_offset": 15.0,
+                "ramp_fraction": 0.5,
+                "ramp_speed": (15.0, 20.0),
+            }
+        )
+        return config
+
+    @classmethod
+    def validate_target_speeds(cls, config: dict) -> None:
+        """Every vehicle draws its target speed from ``target_speed``."""
+        require_range(config, "target_speed", low=0.0, high=config["speed_limit"], unit="m/s")
+        require(config["target_speed"][0] > 0.0, "target_speed must be a range with lo > 0 "
+                f"[m/s], got {config['target_speed']!r}")  # fmt: skip
+
+    @classmethod
+    def validate_config(cls, config: dict) -> None:
+        require(
+            is_real(config["ramp_fraction"]) and 0.0 <= config["ramp_fraction"] <= 1.0,
+            f"ramp_fraction must be a number in [0, 1], got {config['ramp_fraction']!r}",
+        )
+        super().validate_config(config)
+        require_number(config, "merge_length", low=10.0, unit="m")
+        require_number(
+            config,
+            "merge_start",
+            low=0.0,
+            low_open=True,
+            high=config["road_length"] - config["merge_length"],
+            unit="m",
+        )
+        require_number(config, "ramp_length", low=config["min_spacing"], unit="m")
+        require_number(config, "ramp_offset", low=0.0, unit="m")
+        require_range(config, "ramp_speed", low=0.0, high=config["speed_limit"], unit="m/s")
+        n_ramp = ramp_vehicle_count(config)
+        ramp_slots = int(config["ramp_length"] // config["min_spacing"])
+        require(
+            n_ramp <= ramp_slots,
+            f"ramp_fraction={config['ramp_fraction']} puts {n_ramp} of n_vehicles="
+            f"{config['n_vehicles']} on a ramp of ramp_length={config['ramp_length']} m, which "
+            f"holds {ramp_slots} at min_spacing={config['min_spacing']} m: ramp_fraction must "
+            f"be <= {ramp_slots / config['n_vehicles']:.3g}",
+        )
+        main_slots = FreewayEnv.capacity(config)
+        require(
+            config["n_vehicles"] - n_ramp <= main_slots,
+            f"n_vehicles={config['n_vehicles']} leave {config['n_vehicles'] - n_ramp} on the "
+            f"mainline, which holds {main_slots} (spawn_length={config['spawn_length']} m x "
+            f"{config['lanes']} lanes at min_spacing={config['min_spacing']} m): n_vehicles "
+            f"must be <= {main_slots + n_ramp}",
+        )
+
+    @staticmethod
+    def capacity(config: dict) -> int:
+        """Vehicles that fit in the spawn region and on the ramp at ``min_spacing``."""
+        return FreewayEnv.capacity(config) + int(config["ramp_length"] // config["min_spacing"])
+
+    # --- road --------------------------------------------------------------------------------
+    @property
+    def merge_end(self) -> float:
+        """x of the merge point, the end of the acceleration lane [m]."""
+        return float(self.config["merge_start"] + self.config["merge_length"])
+
+    @property
+    def lane_tables(self) -> int:
+        """The mainline lanes and the ramp (slanted lane and acceleration lane as one)."""
+        return self.config["lanes"] + 1
+
+    def lane_id(self, lane_index: tuple) -> int:
+        """Neighbour-search lane of ``lane_index``: the ramp is lane ``lanes``."""
+        return self.config["lanes"] if lane_index[:2] == RAMP_ROAD else lane_index[2]
+
+    def _make_network(self) -> RoadNetwork:
+        cfg = self.config
+        net = super()._make_network()
+        y = cfg["lanes"] * StraightLane.DEFAULT_WIDTH
+        start, end = cfg["merge_start"], self.merge_end
+        c, s = LineType.CONTINUOUS_LINE, LineType.STRIPED
+        ramp = FastStraightLane(
+            [start - cfg["ramp_length"], y + cfg["ramp_offset"]],
+            [start, y],
+            line_types=(c, c),
+            forbidden=True,
+            speed_limit=cfg["speed_limit"],
+        )
+        net.add_lane(*RAMP_ROAD, ramp)
+        acceleration = FastStraightLane(
+            [start, y], [end, y], line_types=(s, c), forbidden=True, speed_limit=cfg["speed_limit"]
+        )
+        net.add_lane("0", "1", acceleration)
+        return net
+
+    def _make_road(self) -> SortedNeighbourRoad:
+        road = super()._make_road()
+        lane_index = ("0", "1", self.config["lanes"])
+        end = Obstacle(
+            road, road.network.get_lane(lane_index).position(self.config["merge_length"], 0)
+        )
+        end.lane_index, end.lane = lane_index, road.network.get_lane(lane_index)
+        road.objects.append(end)
+        return road
+
+    # --- vehicles ----------------------------------------------------------------------------
+    def _spawn_slots(self, n: int | None = None) -> list[tuple[tuple, float]]:
+        """The freeway's mainline slots for all but the ramp vehicles, then random distinct
+        slots ``min_spacing`` apart on the slanted ramp lane."""
+        cfg = self.config
+        n_ramp = ramp_vehicle_count(cfg)
+        slots = super()._spawn_slots(cfg["n_vehicles"] - n_ramp)
+        ramp_slots = int(cfg["ramp_length"] // cfg["min_spacing"])
+        for slot in self.np_random.choice(ramp_slots, size=n_ramp, replace=False):
+            slots.append(((*RAMP_ROAD, 0), float(slot * cfg["min_spacing"])))
+        return slots
+
+    def _initial_speed(self, lane_index: tuple) -> float:
+        key = "ramp_speed" if lane_index[:2] == RAMP_ROAD else "initial_speed"
+        return float(self.np_random.uniform(*self.config[key]))
+
+    def _target_speed(self, cav: bool) -> float:
+        """A draw from ``target_speed``, for CAVs and human drivers alike."""
+        return float(self.np_random.uniform(*self.config["target_speed"]))
+
+    def on_ramp(self, vehicle: Vehicle) -> bool:
+        """Whether ``vehicle`` is on the ramp (slanted lane or acceleration lane)."""
+        return self.lane_id(vehicle.lane_index) == self.config["lanes"]
+
+    # --- observations ------------------------------------------------------------------------
+    def define_spaces(self) -> None:
+        super().define_spaces()
+        self.action_type = MergeDecisionAction(self)
+        self.action_space = self.action_type.space()
+
+    def _observed_lanes(self, cav: Vehicle) -> tuple[tuple | None, tuple | None, tuple | None]:
+        """Left / own / right lanes by neighbour-search lane: the ramp is right of the
+        rightmost lane."""
+        own = self.lane_id(cav.lane_index)
+        return tuple(
+            ("0", "1", lane) if 0 <= lane <= self.config["lanes"] else None
+            for lane in (own - 1, own, own + 1)
+        )
+
+    def observe_agents(self) -> np.ndarray:
+        obs = super().observe_agents()
+        perception = self.config["perception"]
+        for i, cav in enumerate(self.cavs):
+            if self.alive[i]:
+                x = float(cav.position[0])
+                obs[i, FREEWAY_OBS_DIM:] = np.clip(
+                    (self.config["merge_start"] - x, self.merge_end - x), -perception, perception
+                )
+        return obs
+
+    def episode_metrics(self) -> dict[str, float]:
+        """The freeway's, plus ``ramp_stuck``: vehicles still on the ramp at the end."""
+        metrics = super().episode_metrics()
+        metrics["ramp_stuck"] = sum(self.on_ramp(v) for v in self.road.vehicles)
+        return metrics
+
+
+class FreewayMergeParallelEnv(FreewayParallelEnv):
+    """``freeway-merge`` as a PettingZoo ``ParallelEnv`` (args as ``FreewayParallelEnv``;
+    ``**config``: further ``FreewayMergeEnv`` keys)."""
+
+    metadata = {**FreewayParallelEnv.metadata, "name": "freeway_merge_v0"}
+    env_class = FreewayMergeEnv
