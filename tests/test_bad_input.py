@@ -319,6 +319,42 @@ def test_read_only_run_dir_is_refused_before_anything_starts(tmp_path: Path, mon
 
 # ------------------------------------------------------------------- scenario constructors
 ENV_CASES = [
+    (
+        "highway-env's other_vehicles_type",
+        lambda: FigureEightEnv({"other_vehicles_type": "x.IDMVehicle"}),
+        r"unknown config key\(s\) \['other_vehicles_type'\]",
+    ),
+    (
+        "highway-env's action dict",
+        lambda: FreewayEnv({"action": {"type": "ContinuousAction"}}),
+        r"unknown config key\(s\) \['action'\]",
+    ),
+    (
+        "highway-env's observation dict on the freeway",
+        lambda: FreewayEnv({"observation": {"type": "Kinematics"}}),
+        r"unknown config key\(s\) \['observation'\]",
+    ),
+    (
+        "the freeway's derived n_cavs",
+        lambda: FreewayEnv({"n_cavs": 3}),
+        r"unknown config key\(s\) \['n_cavs'\]",
+    ),
+    ("max_speed=1e9", lambda: FigureEightEnv({"max_speed": 1e9}), "max_speed must be .* <= 60"),
+    (
+        "hv_target_speed above max_speed",
+        lambda: FigureEightEnv({"hv_target_speed": (10.0, 1e9)}),
+        r"hv_target_speed must be a range .* hi <= 13.89",
+    ),
+    (
+        "freeway speed_limit=1e9",
+        lambda: FreewayEnv({"speed_limit": 1e9}),
+        "speed_limit must be .* <= 60",
+    ),
+    (
+        "freeway hv_target_speed above the limit",
+        lambda: FreewayEnv({"hv_target_speed": (10.0, 1e9)}),
+        r"hv_target_speed must be a range .* hi <= 31.3",
+    ),
     ("length=inf", lambda: FigureEightEnv({"length": INF}), "length must be a finite number > 0"),
     ("length=-1", lambda: FigureEightEnv({"length": -1.0}), "length must be a finite number > 0"),
     (

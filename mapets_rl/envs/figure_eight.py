@@ -54,7 +54,12 @@ from mapets_rl.envs.figure_eight_road import FigureEightGeometry
 from mapets_rl.envs.rendering import CrashSites, decorate_frame, paint_vehicles
 from mapets_rl.envs.road import SortedNeighbourRoad
 from mapets_rl.envs.traffic import AgentObservation, MultiAgentTrafficEnv, require
-from mapets_rl.envs.validation import is_integer, require_number, require_range
+from mapets_rl.envs.validation import (
+    PHYSICAL_MAX_SPEED,
+    is_integer,
+    require_number,
+    require_range,
+)
 from mapets_rl.envs.vehicles import HumanVehicle, TargetSpeedVehicle, clip, idm_acceleration
 from mapets_rl.metrics import agility, safety
 
@@ -262,9 +267,11 @@ class FigureEightEnv(MultiAgentTrafficEnv):
             f"observation must be one of {sorted(OBSERVATIONS)}, got {config['observation']!r}",
         )
         require_number(config, "length", low=0.0, low_open=True, unit="m")
-        require_number(config, "max_speed", low=0.0, low_open=True, unit="m/s")
+        require_number(
+            config, "max_speed", low=0.0, low_open=True, high=PHYSICAL_MAX_SPEED, unit="m/s"
+        )
         require_range(config, "initial_speed", low=0.0, high=config["max_speed"], unit="m/s")
-        require_range(config, "hv_target_speed", low=0.0, unit="m/s")
+        require_range(config, "hv_target_speed", low=0.0, high=config["max_speed"], unit="m/s")
         require_number(config, "min_spacing", low=7.0, unit="m")
         n_hvs = config["n_hvs"]
         require(

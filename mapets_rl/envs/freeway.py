@@ -36,7 +36,13 @@ from mapets_rl.envs.lanes import FastStraightLane
 from mapets_rl.envs.rendering import CrashSites, decorate_frame, paint_vehicles
 from mapets_rl.envs.road import SortedNeighbourRoad
 from mapets_rl.envs.traffic import AgentObservation, MultiAgentTrafficEnv, require
-from mapets_rl.envs.validation import is_integer, is_real, require_number, require_range
+from mapets_rl.envs.validation import (
+    PHYSICAL_MAX_SPEED,
+    is_integer,
+    is_real,
+    require_number,
+    require_range,
+)
 from mapets_rl.envs.vehicles import ACC_MIN, FastIDMVehicle, HumanVehicle, clip
 from mapets_rl.metrics import average_comfort, average_velocity
 
@@ -130,19 +136,18 @@ class FreewayEnv(MultiAgentTrafficEnv):
     obs_dim = OBS_DIM
     min_cavs = 0
 
-    def __init__(self, config: dict | None = None, render_mode: str | None = None) -> None:
-        config = dict(config or {})
-        merged = {**self.default_config(), **config}
+    @classmethod
+    def derived_config(cls, config: dict) -> dict:
+        """``n_cavs = round(cav_ratio * n_vehicles)`` (not set by a user)."""
         require(
-            is_real(merged["cav_ratio"]) and 0.0 <= merged["cav_ratio"] <= 1.0,
-            f"cav_ratio must be a number in [0, 1], got {merged['cav_ratio']!r}",
+            is_real(config["cav_ratio"]) and 0.0 <= config["cav_ratio"] <= 1.0,
+            f"cav_ratio must be a number in [0, 1], got {config['cav_ratio']!r}",
         )
         require(
-            is_integer(merged["n_vehicles"]) and merged["n_vehicles"] >= 1,
-            f"n_vehicles must be an integer >= 1, got {merged['n_vehicles']!r}",
+            is_integer(config["n_vehicles"]) and config["n_vehicles"] >= 1,
+            f"n_vehicles must be an integer >= 1, got {config['n_vehicles']!r}",
         )
-        config["n_cavs"] = int(round(merged["cav_ratio"] * merged["n_vehicles"]))
-        super().__init__(config, render_mode)
+        return {"n_cavs": int(round(config["cav_ratio"] * config["n_vehicles"]))}
 
     @classmethod
     def default_config(cls) -> dict:
@@ -190,6 +195,7 @@ class FreewayEnv(MultiAgentTrafficEnv):
         }
         for key, unit in positive.items():
             require_number(config, key, low=0.0, low_open=True, unit=unit)
+        require_number(config, "speed_limit", high=PHYSICAL_MAX_SPEED, unit="m/s")
         require_number(config, "min_spacing", low=7.0, unit="m")
         require_number(config, "velocity_weight")
         require_range(config, "initial_speed", low=0.0, high=config["speed_limit"], unit="m/s")
@@ -214,8 +220,9 @@ class FreewayEnv(MultiAgentTrafficEnv):
     @classmethod
     def validate_target_speeds(cls, config: dict) -> None:
         """CAVs drive towards ``cav_target_speed``, humans draw theirs from ``hv_target_speed``."""
-        require_number(config, "cav_target_speed", low=0.0, low_open=True, unit="m/s")
-        require_range(config, "hv_target_speed", low=0.0, unit="m/s")
+        limit = config["speed_limit"]
+        require_number(config, "cav_target_speed", low=0.0, low_open=True, high=limit, unit="m/s")
+        require_range(config, "hv_target_speed", low=0.0, high=limit, unit="m/s")
 
     @staticmethod
     def capacity(config: dict) -> int:

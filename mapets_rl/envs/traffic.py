@@ -56,6 +56,14 @@ class _Origin:
         self.position = position
 
 
+SCENARIO_SET_KEYS = frozenset(
+    {"action", "observation", "other_vehicles_type", "manual_control"}
+    | {"neighbour_vehicles_connected_lanes"}
+)
+"""highway-env config keys our scenarios set themselves (their action and observation types,
+their vehicle classes): accepted from a user they were silently ignored."""
+
+
 class MultiAgentTrafficEnv(AbstractEnv):
     """Base class: per-CAV rewards, terminations, distances and episode bookkeeping.
 
@@ -68,18 +76,38 @@ class MultiAgentTrafficEnv(AbstractEnv):
     view_centre = np.zeros(2)
 
     def __init__(self, config: dict | None = None, render_mode: str | None = None) -> None:
-        merged = self.default_config()
-        unknown = sorted(set(config or {}) - set(merged))
+        config = dict(config or {})
+        accepted = self.user_keys()
+        unknown = sorted(set(config) - set(accepted))
         require(
             not unknown,
-            f"unknown config key(s) {unknown} for {type(self).__name__}; accepted keys: "
-            f"{sorted(merged)}",
+            f"unknown config key(s) {unknown} for {type(self).__name__}; accepted keys: {accepted}",
         )
-        merged.update(config or {})
+        merged = {**self.default_config(), **config}
+        config.update(self.derived_config(merged))
+        merged.update(config)
         self.validate_config(merged)
         self.cavs: list[Vehicle] = []
         self.alive = np.zeros(0, dtype=bool)
         super().__init__(config, render_mode)
+
+    @classmethod
+    def user_keys(cls) -> list[str]:
+        """The config keys a user may set: the scenario's own and highway-env's rendering and
+        timing keys; not highway-env's action, observation and vehicle-class keys that the
+        scenario sets itself (:data:`SCENARIO_SET_KEYS`, unless the scenario redefines one,
+        as the figure-eight does ``observation``), nor what :meth:`derived_config` computes."""
+        own = cls.default_config()
+        stock = AbstractEnv.default_config()
+        fixed = {k for k in SCENARIO_SET_KEYS if own.get(k) == stock.get(k)}
+        derived = cls.derived_config(own)
+        return sorted(set(own) - fixed - set(derived))
+
+    @classmethod
+    def derived_config(cls, config: dict) -> dict:
+        """Keys the scenario computes from others of ``config`` (the full config); a user may
+        not set them. None by default."""
+        return {}
 
     @classmethod
     def default_config(cls) -> dict:

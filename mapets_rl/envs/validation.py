@@ -8,6 +8,9 @@ from typing import Any
 
 import numpy as np
 
+PHYSICAL_MAX_SPEED = 60.0
+"""The highest speed limit a scenario accepts [m/s] (216 km/h): anything above is a typo."""
+
 
 def is_real(value: Any) -> bool:
     """True for a finite int or float (numpy scalars included), False for bools and others."""
