@@ -12,6 +12,11 @@ is the exploration; the Gaussian noise applies to continuous actions only) and t
 one-hot with the straight-through softmax gradient in the actor update and evaluation. This is
 the discrete variant of the MADDPG paper (Gumbel-softmax), chosen because it keeps the
 deterministic policy gradient through the centralised critic unchanged.
+
+M3DDPG (Li et al. 2019, the ``m3ddpg`` recipe, :class:`M3DDPG` below) is MADDPG whose critic
+target and actor objective read each agent's critic at a one-gradient-step worst case of the
+other agents' actions (:class:`~mapets_rl.objectives.M3DDPGLoss`, whose docstring gives the
+equations); everything else is MADDPG's.
 """
 
 from __future__ import annotations
@@ -44,6 +49,7 @@ from mapets_rl.modules import (
     sync_target_statistics,
 )
 from mapets_rl.objectives.ddpg import PreactivationRegularisedDDPGLoss
+from mapets_rl.objectives.m3ddpg import M3DDPGLoss
 from mapets_rl.objectives.n_step import STEPS_TO_NEXT_OBS, n_step_transitions
 
 PREACTIVATION = (GROUP, "param")
@@ -244,3 +250,47 @@ class MADDPG(Experiment):
         if self.exploration is not None:
             parts["exploration"] = self.exploration
         return parts
+
+
+@dataclasses.dataclass
+class M3DDPGConfig(MADDPGConfig):
+    """MADDPG's hyper-parameters (:class:`~recipes.maddpg.MADDPGConfig`) and the sizes of the
+    adversarial steps, in the units of the actions (one-hot vectors on discrete scenarios).
+
+    Attributes:
+        epsilon_critic: step (finite, >= 0) that perturbs the other agents' target actions in
+            the critic's target; 0 gives MADDPG's target.
+        epsilon_actor: step (finite, >= 0) that perturbs the other agents' actions in the
+            actor's objective; 0 gives MADDPG's actor loss.
+
+    The defaults are those of the authors' code for cooperating agents (``--adv-eps 1e-3`` in
+    the critic target; ``--adv-eps-s 1e-5`` for teammates in the actor).
+    """
+
+    epsilon_critic: float = 1e-3
+    epsilon_actor: float = 1e-5
+
+    def __post_init__(self) -> None:
+        super().__post_init__()  # rejects non-finite numbers
+        check(
+            self.epsilon_critic >= 0, "epsilon_critic", "a finite number >= 0", self.epsilon_critic
+        )
+        check(self.epsilon_actor >= 0, "epsilon_actor", "a finite number >= 0", self.epsilon_actor)
+
+
+class M3DDPG(MADDPG):
+    """M3DDPG with a centralised critic on any scenario (continuous or one-hot actions)."""
+
+    name = "m3ddpg"
+    Config = M3DDPGConfig
+
+    def make_loss(self, config: M3DDPGConfig) -> M3DDPGLoss:  # type: ignore[override]
+        """MADDPG's loss with the minimax target and actor objective."""
+        return super().make_loss(
+            config,
+            M3DDPGLoss,
+            action_key=ACTION,
+            value_key=Q_VALUE,
+            epsilon_critic=config.epsilon_critic,
+            epsilon_actor=config.epsilon_actor,
+        )

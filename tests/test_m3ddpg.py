@@ -26,7 +26,7 @@ from mapets_rl.objectives import (
     PreactivationRegularisedDDPGLoss,
     minimax_action_perturbation,
 )
-from recipes.m3ddpg import M3DDPG, M3DDPGConfig
+from recipes.maddpg import M3DDPG, M3DDPGConfig
 
 B, N, OBS_DIM, D = 6, 3, 4, 2
 OBS, ACTION, Q = ("agents", "observation"), ("agents", "action"), ("agents", "q")
