@@ -80,18 +80,21 @@ def run_one(algo: str, seed: int, args: argparse.Namespace) -> Path:
         evaluations = read_results(run_dir)["evaluations"] if has_results else []
         if evaluations and evaluations[-1]["frames"] >= args.frames:
             return run_dir  # finished: nothing is rebuilt or rewritten
+        # a finished run's train() only rewrites what is missing (results.json)
         exp = cls.from_run_dir(run_dir, overrides=overrides)
-        if exp.frames >= args.frames:
-            return run_dir
     else:
+        batch = args.frames_per_batch
+        sizes = {}
+        if algo == "mappo":  # a longer on-policy batch, within the budget
+            batch = min(ON_POLICY_FRAMES_PER_BATCH, args.frames)
+            sizes["minibatch_size"] = min(cls.Config.minibatch_size, batch)
         config = cls.Config(
             env="freeway",
             env_config={"n_vehicles": args.n_vehicles, "cav_ratio": args.cav_ratio},
             seed=seed,
             total_frames=args.frames,
-            frames_per_batch=(
-                ON_POLICY_FRAMES_PER_BATCH if algo == "mappo" else args.frames_per_batch
-            ),
+            frames_per_batch=batch,
+            **sizes,
             eval_interval=args.eval_interval,
             eval_episodes=args.eval_episodes,
             checkpoint_interval=args.eval_interval,

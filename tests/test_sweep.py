@@ -404,3 +404,24 @@ def test_a_trial_whose_run_dir_another_writer_holds_is_left_alone(toy_recipe, tm
     code, _, err = run_cli([*argv], capsys)  # the writer is gone: the re-run finishes it
     assert code == 0, err
     assert [e["frames"] for e in read_results(held)["evaluations"]] == [10, 20]
+
+
+def test_an_unreachable_ray_address_is_one_line_and_bounded(
+    tmp_path, monkeypatch, toy_recipe, capsys
+):
+    """RAY_ADDRESS naming no cluster: the sweep exits 2 with one line naming the address within
+    the connect timeout, instead of Ray's minutes of retries and its own process exit."""
+    pytest.importorskip("ray", reason="ray is not installed (pip install 'mapets-rl[ray]')")
+    import mapets_rl.experiment.sweep as sweep
+
+    monkeypatch.setattr(sweep, "RAY_CONNECT_TIMEOUT_S", 3)
+    monkeypatch.setenv("RAY_ADDRESS", "127.0.0.1:1")
+    start = time.monotonic()
+    code, _, err = run_cli(
+        ["sweep", "toy", "--env", "toy", "--seeds", "0", "--backend", "ray"]
+        + ["--out", str(tmp_path / "s"), *TINY],
+        capsys,
+    )
+    assert code == 2 and err.count("\n") == 1, err
+    assert "no Ray cluster answered at '127.0.0.1:1' within 3 s" in err
+    assert time.monotonic() - start < 60

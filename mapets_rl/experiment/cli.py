@@ -364,11 +364,14 @@ def _train(exp: Any) -> None:
     """``exp.train()``; a file that cannot be written (disk full, file size limit) is one line
     naming it (exit 2); the checkpoints written before it stay valid."""
     from mapets_rl.experiment.files import WriteFailed
+    from mapets_rl.experiment.sweep import RayUnreachable
 
     try:
         exp.train()
     except WriteFailed as err:
         _fail(f"{err}; the run stopped, its earlier checkpoints are kept (resume it later)")
+    except RayUnreachable as err:
+        _fail(str(err))
 
 
 def _load_run(run_dir: str, overrides: Sequence[str] = ()):

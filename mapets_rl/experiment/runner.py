@@ -854,9 +854,14 @@ def _ray_collector(
     """torchrl's ``RayCollector`` with ``cfg.num_envs`` remote ``Collector`` actors (1 CPU
     each), synchronous, on the Ray instance of this process, else the cluster of
     ``RAY_ADDRESS``, else a local instance started for it (and stopped at its ``shutdown``)."""
+    import ray
     from torchrl.collectors.distributed import RayCollector
 
-    from mapets_rl.experiment.sweep import ray_init_kwargs
+    from mapets_rl.experiment.sweep import check_ray_address, ray_init_kwargs
+
+    init = ray_init_kwargs()
+    if not ray.is_initialized():
+        check_ray_address(init["address"])
 
     class _Collector(RayCollector):
         def reset(self) -> None:
@@ -876,7 +881,7 @@ def _ray_collector(
         collector_class=Collector,
         collector_kwargs={"auto_register_policy_transforms": False, **kwargs},
         sync=True,
-        ray_init_config=ray_init_kwargs(),
+        ray_init_config=init,
         remote_configs={"num_cpus": 1},
     )
 

@@ -66,6 +66,7 @@ import multiprocessing
 import os
 import re
 import signal
+import subprocess
 import sys
 import time
 import traceback
@@ -538,6 +539,43 @@ def import_ray() -> Any:
     return ray
 
 
+RAY_CONNECT_TIMEOUT_S = 20
+"""Seconds a Ray cluster named by an address has to answer before a run refuses it."""
+
+
+class RayUnreachable(ValueError):
+    """No Ray cluster answered at the given address (one line, names it)."""
+
+
+def check_ray_address(address: str, timeout_s: int | None = None) -> None:
+    """:class:`RayUnreachable` unless a Ray cluster answers at ``address`` within about
+    ``timeout_s`` seconds. A throwaway interpreter joins and leaves it: ``ray.init`` on an
+    unreachable address retries for minutes and then ends the process from Ray's C++ core,
+    which no ``except`` can turn into one line. ``"local"`` (start a new instance) passes.
+    ``timeout_s`` defaults to :data:`RAY_CONNECT_TIMEOUT_S`."""
+    if address == "local":
+        return
+    timeout_s = RAY_CONNECT_TIMEOUT_S if timeout_s is None else timeout_s
+    code = "import ray, sys; ray.init(address=sys.argv[1], log_to_driver=False); ray.shutdown()"
+    env = {**os.environ, "RAY_gcs_rpc_server_reconnect_timeout_s": str(int(timeout_s))}
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", code, address],
+            env=env,
+            capture_output=True,
+            timeout=timeout_s + 30,
+        )
+        ok = done.returncode == 0
+    except subprocess.TimeoutExpired:
+        ok = False
+    if not ok:
+        raise RayUnreachable(
+            f"no Ray cluster answered at {address!r} within {timeout_s} s (RAY_ADDRESS or "
+            "the address given): start one there (ray start --head) or leave the address "
+            "unset to run a local instance"
+        )
+
+
 def ray_init_kwargs(address: str | None = None) -> dict[str, Any]:
     """``ray.init`` keywords: join ``address`` (else ``RAY_ADDRESS``) when one is given, else
     start a new local instance whose workers see this process's ``sys.path`` (so that they
@@ -565,7 +603,9 @@ def run_ray(
     ray = import_ray()
     started = False
     if not ray.is_initialized():
-        ray.init(**ray_init_kwargs(address))
+        kwargs = ray_init_kwargs(address)
+        check_ray_address(kwargs["address"])
+        ray.init(**kwargs)
         started = True
     try:
         task = ray.remote(run_trial).options(
