@@ -51,7 +51,6 @@ from gymnasium import spaces
 from highway_env.envs.common.action import ActionType
 
 from mapets_rl.envs.figure_eight_road import FigureEightGeometry
-from mapets_rl.envs.rendering import CrashSites, decorate_frame, paint_vehicles
 from mapets_rl.envs.road import SortedNeighbourRoad
 from mapets_rl.envs.traffic import AgentObservation, MultiAgentTrafficEnv, require
 from mapets_rl.envs.validation import (
@@ -376,34 +375,6 @@ class FigureEightEnv(MultiAgentTrafficEnv):
         super()._reset()
         self._observed_ids = None
         self._previous_ids = None
-        self.crash_sites.clear()
-
-    # --- rendering ---------------------------------------------------------------------------
-    def render(self) -> np.ndarray | None:
-        """An RGB frame ``[H, W, 3]`` (``render_mode="rgb_array"``) of the whole track: CAVs
-        green and human drivers blue, every crash of the episode marked where it happened, a
-        legend naming them (:mod:`mapets_rl.envs.rendering`) and ``step k / H``."""
-        if self.render_mode is None:
-            return super().render()
-        paint_vehicles(self.road.vehicles, {id(cav) for cav in self.cavs})
-        frame = super().render()
-        if frame is None:
-            return None
-        cavs = int(self.alive.sum())
-        counts = {"CAVs": cavs, "human drivers": len(self.road.vehicles) - cavs}
-        return decorate_frame(frame, self.viewer.sim_surface, self.crash_sites, counts)
-
-    @property
-    def crash_sites(self) -> CrashSites:
-        """The crashes of the episode so far, recorded while rendering is on."""
-        if "_crash_sites" not in self.__dict__:
-            self._crash_sites = CrashSites()
-        return self._crash_sites
-
-    def _simulate(self, action: Any = None) -> None:
-        super()._simulate(action)
-        if self.render_mode is not None:  # crashed vehicles leave the road after this step
-            self.crash_sites.record(self.road.vehicles, {id(cav) for cav in self.cavs})
 
     def _neighbour_features(
         self, cav: TargetSpeedVehicle, lane_index: tuple | None = None

@@ -33,7 +33,6 @@ from highway_env.road.road import RoadNetwork
 from highway_env.vehicle.kinematics import Vehicle
 
 from mapets_rl.envs.lanes import FastStraightLane
-from mapets_rl.envs.rendering import CrashSites, decorate_frame, paint_vehicles
 from mapets_rl.envs.road import SortedNeighbourRoad
 from mapets_rl.envs.traffic import AgentObservation, MultiAgentTrafficEnv, require
 from mapets_rl.envs.validation import (
@@ -241,34 +240,6 @@ class FreewayEnv(MultiAgentTrafficEnv):
         alive = [cav.position for i, cav in enumerate(self.cavs) if self.alive[i]]
         return np.mean(alive or [v.position for v in self.road.vehicles], axis=0)
 
-    def render(self) -> np.ndarray | None:
-        """An RGB frame ``[H, W, 3]`` (``render_mode="rgb_array"``): the camera follows the
-        CAVs (:attr:`view_centre`), CAVs are green and human drivers blue, every crash of the
-        episode stays marked where it happened, and a legend names them
-        (:mod:`mapets_rl.envs.rendering`)."""
-        if self.render_mode is None:
-            return super().render()
-        paint_vehicles(self.road.vehicles, {id(cav) for cav in self.cavs})
-        if self.viewer is not None:
-            self.viewer.observer_vehicle.position = self.view_centre
-        frame = super().render()
-        if frame is None:
-            return None
-        cavs = int(self.alive.sum())
-        counts = {"CAVs": cavs, "human drivers": len(self.road.vehicles) - cavs}
-        return decorate_frame(frame, self.viewer.sim_surface, self.crash_sites, counts)
-
-    @property
-    def crash_sites(self) -> CrashSites:
-        """The crashes of the episode so far, recorded while rendering is on."""
-        if "_crash_sites" not in self.__dict__:
-            self._crash_sites = CrashSites()
-        return self._crash_sites
-
-    def _reset(self) -> None:
-        super()._reset()
-        self.crash_sites.clear()
-
     def _make_road(self) -> SortedNeighbourRoad:
         return SortedNeighbourRoad(
             self._make_network(),
@@ -369,8 +340,6 @@ class FreewayEnv(MultiAgentTrafficEnv):
         self._abs_acc[:] = 0.0
         self._lane_change[:] = False
         super()._simulate(action)
-        if self.render_mode is not None:  # crashed vehicles leave the road after this step
-            self.crash_sites.record(self.road.vehicles, {id(cav) for cav in self.cavs})
         frames = self.config["simulation_frequency"] // self.config["policy_frequency"]
         self._abs_acc /= frames
         on_road = {id(v) for v in self.road.vehicles}

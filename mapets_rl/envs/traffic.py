@@ -23,7 +23,12 @@ from highway_env.envs.common.graphics import EnvViewer
 from highway_env.envs.common.observation import ObservationType
 from highway_env.vehicle.kinematics import Vehicle
 
-from mapets_rl.envs.rendering import draw_step_counter
+from mapets_rl.envs.rendering import (
+    CrashSites,
+    decorate_frame,
+    draw_step_counter,
+    paint_vehicles,
+)
 from mapets_rl.envs.road import SortedNeighbourRoad
 from mapets_rl.envs.validation import is_integer, require_number
 
@@ -160,6 +165,7 @@ class MultiAgentTrafficEnv(AbstractEnv):
         self._distance_step = np.zeros(n)
         self._crashed_now = np.zeros(n, dtype=bool)
         self._episode_distances: list[np.ndarray] = []
+        self.crash_sites.clear()
         self.road.refresh()
 
     def _make_road(self) -> SortedNeighbourRoad:
@@ -272,6 +278,8 @@ class MultiAgentTrafficEnv(AbstractEnv):
             self.steps += 1
             self._on_substep(dt)
         self.distance_total += self._distance_step
+        if self.render_mode is not None:  # crashed vehicles leave the road after this step
+            self.crash_sites.record(self.road.vehicles, {id(cav) for cav in self.cavs})
 
     def _on_substep(self, dt: float) -> None:
         """Bookkeeping after each simulation sub-step: distances and new collisions."""
@@ -300,13 +308,29 @@ class MultiAgentTrafficEnv(AbstractEnv):
 
     # --- rendering ---------------------------------------------------------------------------
     def render(self) -> np.ndarray | None:
-        """highway-env's frame centred on :attr:`view_centre`, with ``step k / H`` (policy
-        steps taken of the horizon) in its top-right corner
-        (:func:`mapets_rl.envs.rendering.draw_step_counter`)."""
-        if self.viewer is None and self.render_mode is not None:
+        """An RGB frame ``[H, W, 3]`` (``render_mode="rgb_array"``) centred on
+        :attr:`view_centre`: CAVs green and human drivers blue, every crash of the episode
+        marked where it happened, a legend naming them and ``step k / H`` (policy steps taken
+        of the horizon) in the top-right corner (:mod:`mapets_rl.envs.rendering`)."""
+        if self.render_mode is None:
+            return super().render()
+        paint_vehicles(self.road.vehicles, {id(cav) for cav in self.cavs})
+        if self.viewer is None:
             self.viewer = EnvViewer(self)
             self.viewer.observer_vehicle = _Origin(self.view_centre)
+        else:
+            self.viewer.observer_vehicle.position = self.view_centre
         frame = super().render()
-        if frame is None or self.render_mode is None:
-            return frame
-        return draw_step_counter(frame, self.steps_taken, self.config["horizon"])
+        if frame is None:
+            return None
+        frame = draw_step_counter(frame, self.steps_taken, self.config["horizon"])
+        cavs = int(self.alive.sum())
+        counts = {"CAVs": cavs, "human drivers": len(self.road.vehicles) - cavs}
+        return decorate_frame(frame, self.viewer.sim_surface, self.crash_sites, counts)
+
+    @property
+    def crash_sites(self) -> CrashSites:
+        """The crashes of the episode so far, recorded while rendering is on."""
+        if "_crash_sites" not in self.__dict__:
+            self._crash_sites = CrashSites()
+        return self._crash_sites
