@@ -197,4 +197,7 @@ def spread(values: list[float]) -> str:
 
 
 if __name__ == "__main__":
+    from mapets_rl import quiet_dependencies
+
+    quiet_dependencies()
     main()

@@ -235,4 +235,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
+    from mapets_rl import quiet_dependencies
+
+    quiet_dependencies()
     main()

@@ -328,4 +328,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
 
 
 if __name__ == "__main__":
+    from mapets_rl import quiet_dependencies
+
+    quiet_dependencies()
     main()

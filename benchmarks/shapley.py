@@ -246,4 +246,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from mapets_rl import quiet_dependencies
+
+    quiet_dependencies()
     main()

@@ -391,6 +391,9 @@ def run_trial(payload: Mapping[str, Any]) -> dict[str, Any]:
     exception is not raised but recorded: the traceback's last :data:`ERROR_TAIL_LINES` lines
     in ``run_dir/error.txt``, its last line in the result and ``trial.json``.
     """
+    from mapets_rl import quiet_dependencies
+
+    quiet_dependencies()  # a trial's process is an application of its own, as the CLI is
     run_dir = Path(payload["run_dir"])
     start = time.perf_counter()
     from mapets_rl.experiment.files import RunDirLock, RunDirLocked
