@@ -52,7 +52,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mapets_rl.envs import FreewayEnv  # noqa: E402
+from mapets_rl.envs import FreewayEnv, FreewayMergeEnv  # noqa: E402
 from mapets_rl.experiment import (  # noqa: E402
     ExperimentConfig,
     atomic_savefig,
@@ -100,9 +100,15 @@ PAPER_COMA = {
 }
 
 
-def all_human(n_vehicles: int, episodes: int, seed: int) -> dict[str, float]:
-    """Average velocity / comfort / collisions of ``episodes`` all-human freeway episodes."""
-    env = FreewayEnv(config={"n_vehicles": n_vehicles, "cav_ratio": 0.0})
+SCENARIO_ENVS = {"freeway": FreewayEnv, "freeway-merge": FreewayMergeEnv}
+"""``--env`` -> the raw highway-env scenario driven by humans only (ratio 0)."""
+
+
+def all_human(
+    n_vehicles: int, episodes: int, seed: int, scenario: str = "freeway"
+) -> dict[str, float]:
+    """Average velocity / comfort / collisions of ``episodes`` all-human episodes."""
+    env = SCENARIO_ENVS[scenario](config={"n_vehicles": n_vehicles, "cav_ratio": 0.0})
     per_episode = []
     for ep in range(episodes):
         env.reset(seed=1000 * seed + ep)
@@ -119,7 +125,7 @@ def scripted(ratio: float, seed: int, args: argparse.Namespace) -> dict[str, flo
     episodes of ``seed`` (the ones the learned runs of that seed are scored on)."""
     return evaluate_scripted(
         ExperimentConfig(
-            env="freeway",
+            env=args.env,
             env_config={"n_vehicles": args.n_vehicles, "cav_ratio": ratio},
             seed=seed,
             eval_episodes=args.eval_episodes,
@@ -142,6 +148,7 @@ def train_and_evaluate(
             return done[-1]["metrics"]
     recipe, config_cls = METHODS[method]
     config = config_cls(
+        env=args.env,
         env_config={"n_vehicles": args.n_vehicles, "cav_ratio": ratio},
         seed=seed,
         total_frames=args.frames,
@@ -236,6 +243,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--coma-override", nargs="*", default=[], help="extra key=value overrides of coma"
     )
+    parser.add_argument(
+        "--env",
+        default="freeway",
+        choices=sorted(SCENARIO_ENVS),
+        help="freeway-merge: the on-ramp social dilemma (issue 21)",
+    )
     parser.add_argument("--out", default="outputs/mixed_traffic")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
@@ -271,7 +284,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             for seed in args.seeds:
                 print(f"{method}: CAV ratio {ratio:.2f} ({n_cavs} CAVs), seed {seed}", flush=True)
                 if n_cavs == 0:
-                    runs.append(all_human(args.n_vehicles, args.eval_episodes, seed))
+                    runs.append(all_human(args.n_vehicles, args.eval_episodes, seed, args.env))
                 elif method == SCRIPTED:
                     runs.append(scripted(ratio, seed, args))
                 else:

@@ -1,4 +1,4 @@
-"""Shapley actor-critic vs MADDPG, COMA and MAPPO on the freeway (Shapley paper, Fig. 2).
+"""Shapley actor-critic vs MADDPG, M3DDPG, COMA and MAPPO on the freeway (Shapley paper, Fig. 2).
 
 Every algorithm trains on the same freeway configuration for the same number of environment
 frames with ``--seeds`` seeds; each evaluation runs ``--eval-episodes`` deterministic episodes
@@ -9,12 +9,13 @@ quantity is the paper's *mean episode system reward*: the reward summed over all
 40 steps of an episode, i.e. the recipes' per-CAV ``return`` times the number of CAVs.
 
 Paper scale: 30 CAVs, 100k episodes x 5 seeds on a 4-GPU server. Default scale here (CPU, about
-an hour for the 12 runs on a 2-core machine): 8 vehicles of which 4 CAVs, 1600 frames (40
+an hour for the 15 runs on a 2-core machine): 8 vehicles of which 4 CAVs, 1600 frames (40
 episodes) per run, 3 seeds. The paper's setting is ``--n-vehicles 30 --cav-ratio 1``. COMA
 (on-policy) updates once per collected batch of ``--frames-per-batch`` frames. Runs are
 resumable: an interrupted invocation continues from the runs' last checkpoints.
 
 Run:  python examples/shapley_freeway.py [--frames 1600] [--seeds 0 1 2] [--out outputs/...]
+      python examples/shapley_freeway.py --env freeway-merge ...   # the on-ramp dilemma
 Writes ``<out>/system_reward.png`` (mean and 95% band over seeds), ``<out>/system_reward.md``
 and ``<out>/summary.json``; prints the table.
 """
@@ -43,8 +44,14 @@ from mapets_rl.experiment import (  # noqa: E402
     read_results,
 )
 
-ALGORITHMS = ("shapley_ac", "maddpg", "coma", "mappo")
-LABELS = {"shapley_ac": "Shapley AC", "maddpg": "MADDPG", "coma": "COMA", "mappo": "MAPPO"}
+ALGORITHMS = ("shapley_ac", "maddpg", "m3ddpg", "coma", "mappo")
+LABELS = {
+    "shapley_ac": "Shapley AC",
+    "maddpg": "MADDPG",
+    "m3ddpg": "M3DDPG",
+    "coma": "COMA",
+    "mappo": "MAPPO",
+}
 # On-policy MAPPO collects 5 episodes per PPO update (its minibatch is 100 transitions).
 ON_POLICY_FRAMES_PER_BATCH = 200
 
@@ -59,7 +66,7 @@ def keep_lane_reference(seed: int, args: argparse.Namespace) -> tuple[float, flo
     (:func:`~mapets_rl.experiment.evaluate_scripted`) on the evaluation episodes the learned
     runs of ``seed`` are scored on."""
     config = ExperimentConfig(
-        env="freeway",
+        env=args.env,
         env_config={"n_vehicles": args.n_vehicles, "cav_ratio": args.cav_ratio},
         seed=seed,
         eval_episodes=args.eval_episodes,
@@ -89,7 +96,7 @@ def run_one(algo: str, seed: int, args: argparse.Namespace) -> Path:
             batch = min(ON_POLICY_FRAMES_PER_BATCH, args.frames)
             sizes["minibatch_size"] = min(cls.Config.minibatch_size, batch)
         config = cls.Config(
-            env="freeway",
+            env=args.env,
             env_config={"n_vehicles": args.n_vehicles, "cav_ratio": args.cav_ratio},
             seed=seed,
             total_frames=args.frames,
@@ -154,6 +161,12 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
         metavar="KEY=VALUE",
         help="freeway config values for every run and the reference (velocity_weight=1.0)",
     )
+    parser.add_argument(
+        "--env",
+        default="freeway",
+        choices=["freeway", "freeway-merge"],
+        help="freeway-merge: the on-ramp social dilemma (issue 21)",
+    )
     parser.add_argument("--out", default="outputs/shapley_freeway")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
@@ -205,7 +218,7 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
     ax.set_xlabel("training episodes (40 steps)")
     ax.set_ylabel("mean episode system reward")
     ax.set_title(
-        f"freeway, {n_cavs} CAVs / {args.n_vehicles} vehicles {' '.join(args.env_override)}"
+        f"{args.env}, {n_cavs} CAVs / {args.n_vehicles} vehicles {' '.join(args.env_override)}"
     )
     ax.legend()
     fig.tight_layout()

@@ -18,7 +18,7 @@ def test_four_algorithms_tiny(tmp_path: Path, load_script: Callable[[str], Modul
         "--env-override", "velocity_weight=0.5",
     ]  # fmt: skip
     summary = example.main(argv)
-    assert set(summary) == {"shapley_ac", "maddpg", "coma", "mappo", "keep_lane"}
+    assert set(summary) == {"shapley_ac", "maddpg", "m3ddpg", "coma", "mappo", "keep_lane"}
     # the scripted reference is scored on each seed's evaluation episodes, trained on nothing
     keep = summary.pop("keep_lane")
     assert keep["frames"] == 0 and len(keep["final_per_seed"]) == 2
@@ -55,3 +55,18 @@ def test_bad_env_override_fails_before_training(
     with pytest.raises(ValueError, match="velocty_weight"):
         example.main([*argv, "--env-override", "velocty_weight=1.0"])
     assert not (tmp_path / "out").exists()
+
+
+def test_freeway_merge_runs_and_reference_are_on_the_ramp(
+    tmp_path: Path, load_script: Callable[[str], ModuleType]
+) -> None:
+    example = load_script("examples/shapley_freeway.py")
+    argv = [
+        "--env", "freeway-merge", "--algorithms", "maddpg", "--frames", "40",
+        "--eval-interval", "40", "--eval-episodes", "1", "--seeds", "0",
+        "--n-vehicles", "4", "--cav-ratio", "1.0", "--out", str(tmp_path),
+    ]  # fmt: skip
+    summary = example.main(argv)
+    assert set(summary) == {"maddpg", "keep_lane"}
+    config = (tmp_path / "runs" / "maddpg_seed0" / "config.yaml").read_text()
+    assert "env: freeway-merge" in config

@@ -47,3 +47,20 @@ def test_bad_arguments(load_script: Callable[[str], ModuleType]) -> None:
     assert (args.n_vehicles, args.frames) == (30, 400_000)
     cpu = mixed.parse_args(["--scale", "cpu", "--shapley-override", "batch_size=32"])
     assert cpu.override["shapley_ac"][-2:] == ["exact_max_agents=5", "batch_size=32"]
+
+
+def test_table_on_freeway_merge(tmp_path: Path, load_script: Callable[[str], ModuleType]) -> None:
+    """``--env freeway-merge``: the runs, the scripted rows and ratio 0 (humans only) are all
+    on the on-ramp scenario."""
+    mixed = load_script("examples/mixed_traffic.py")
+    tiny = ["env_config.horizon=5", "eval_episodes=1", "num_cells=[8]", "critic_cells=[8]"]
+    argv = [
+        "--env", "freeway-merge", "--scale", "smoke", "--n-vehicles", "4", "--frames", "40",
+        "--ratios", "0", "1", "--seeds", "0", "--out", str(tmp_path),
+        "--shapley-override", *tiny, "init_random_frames=0", "batch_size=8",
+        "--coma-override", *tiny, "minibatch_size=20",
+    ]  # fmt: skip
+    results = mixed.main(argv)
+    assert all(r["average_velocity"] > 0 for r in results["scripted"]["1.00"])
+    config = (tmp_path / "runs" / "shapley_ac" / "ratio1.00" / "seed0" / "config.yaml").read_text()
+    assert "env: freeway-merge" in config
