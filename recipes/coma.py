@@ -32,7 +32,7 @@ from torchrl.objectives import SoftUpdate
 
 from mapets_rl.experiment import Experiment, SystemRewardMetrics, check
 from mapets_rl.experiment.storage import FilledTensorStorage
-from mapets_rl.experiment.training import OnPolicyConfig
+from mapets_rl.experiment.training import OnPolicyConfig, check_layer_sizes
 from mapets_rl.modules import ACTION, ACTION_VALUE, OBS, AgentGroupSpec, make_stochastic_policy
 from mapets_rl.objectives import COMACritic, COMALoss
 
@@ -79,12 +79,7 @@ class COMAConfig(OnPolicyConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         check(self.lr_critic > 0, "lr_critic", "> 0", self.lr_critic)
-        check(
-            len(self.critic_cells) > 0 and all(c >= 1 for c in self.critic_cells),
-            "critic_cells",
-            "a non-empty list of ints >= 1",
-            self.critic_cells,
-        )
+        check_layer_sizes("critic_cells", self.critic_cells, self.device)
         check(self.entropy_coeff >= 0, "entropy_coeff", ">= 0", self.entropy_coeff)
         check(self.reward_scale > 0, "reward_scale", "> 0", self.reward_scale)
         check(0 < self.tau <= 1, "tau", "in (0, 1]", self.tau)

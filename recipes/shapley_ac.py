@@ -32,7 +32,7 @@ from torchrl.objectives import SoftUpdate
 
 from mapets_rl.experiment import Experiment, SystemRewardMetrics, check
 from mapets_rl.experiment.storage import FilledTensorStorage
-from mapets_rl.experiment.training import OffPolicyConfig
+from mapets_rl.experiment.training import OffPolicyConfig, check_layer_sizes
 from mapets_rl.modules import AgentGroupSpec, GumbelSoftmaxHead
 from mapets_rl.objectives import ShapleyActorCriticLoss
 from mapets_rl.shapley import CoalitionCritic, RandomCoalition, make_coalition_actor
@@ -134,12 +134,7 @@ class ShapleyACConfig(OffPolicyConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check(
-            len(self.critic_cells) > 0 and all(c >= 1 for c in self.critic_cells),
-            "critic_cells",
-            "a non-empty list of ints >= 1",
-            self.critic_cells,
-        )
+        check_layer_sizes("critic_cells", self.critic_cells, self.device)
         check(0.0 <= self.join_prob <= 1.0, "join_prob", "in [0, 1]", self.join_prob)
         check(
             self.eval_coalition in ("grand", "empty", "random"),

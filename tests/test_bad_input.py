@@ -227,6 +227,16 @@ CLI_CASES = [
     ),
     ("--config alias bomb", TRAIN + ["--config", "{alias_yaml}"], r"aliases \(\*name\) are not"),
     (
+        "num_cells too large",
+        ["train", "mappo", "--env", "figure-eight", "num_cells=[1000000, 1000000]"],
+        r"num_cells must be layers whose weights fit in memory \(at least 14901.2 GiB",
+    ),
+    (
+        "critic_cells too large",
+        ["train", "coma", "--env", "freeway", "critic_cells=[1000000, 1000000]"],
+        r"critic_cells must be layers whose weights fit in memory",
+    ),
+    (
         "coma on continuous actions",
         ["train", "coma", "--env", "figure-eight", "total_frames=20"],
         "coma needs discrete actions; scenario 'figure-eight' has continuous actions",

@@ -13,6 +13,29 @@ from __future__ import annotations
 import dataclasses
 
 from mapets_rl.experiment.config import ExperimentConfig, check
+from mapets_rl.planning.memory import available_memory
+
+
+def check_layer_sizes(field: str, widths: list[int], device: str = "cpu") -> None:
+    """ConfigError (one line naming ``field``) unless ``widths`` is a non-empty list of ints
+    >= 1 whose hidden-to-hidden weights can fit: ``sum(w_i * w_(i+1))`` parameters, each with a
+    gradient and Adam's two moments (4 x 4 bytes), is a lower bound of any network with these
+    layers, so a refusal never stops a network that would fit."""
+    check(
+        len(widths) >= 1 and min(widths) >= 1,
+        field,
+        "a non-empty list of positive layer sizes",
+        widths,
+    )
+    need = 16 * sum(a * b for a, b in zip(widths[:-1], widths[1:], strict=False))
+    free = available_memory(device)
+    check(
+        free is None or need <= free,
+        field,
+        f"layers whose weights fit in memory (at least {need / 2**30:.1f} GiB with Adam's "
+        f"state; {0 if free is None else free / 2**30:.1f} GiB available on {device})",
+        widths,
+    )
 
 
 @dataclasses.dataclass
@@ -36,12 +59,7 @@ class ModelFreeConfig(ExperimentConfig):
         super().__post_init__()
         check(0 <= self.gamma <= 1, "gamma", "in [0, 1]", self.gamma)
         check(self.max_grad_norm > 0, "max_grad_norm", "> 0", self.max_grad_norm)
-        check(
-            len(self.num_cells) >= 1 and min(self.num_cells) >= 1,
-            "num_cells",
-            "a non-empty list of positive layer sizes",
-            self.num_cells,
-        )
+        check_layer_sizes("num_cells", self.num_cells, self.device)
 
 
 @dataclasses.dataclass
