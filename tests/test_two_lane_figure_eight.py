@@ -133,6 +133,15 @@ def test_lane_change_margin_grows_with_the_closing_speed() -> None:
     assert one.tolist() == [False, False, True, False]
     two = figure_eight_collision(rows, change, rows, lane_change_time=2.0)
     assert two.tolist() == [False, True, True, False]
+    # one lane (10 features): no lane-change test, so the single-lane planner is unchanged
+    one_lane = rows[:, :10]
+    for seconds in (0.0, 1.0, 2.0):
+        assert (
+            figure_eight_collision(
+                one_lane, change[:, :1], one_lane, lane_change_time=seconds
+            ).tolist()
+            == [False] * 4
+        )
 
 
 def test_observation_bounds_on_two_lanes_cover_an_episode() -> None:
