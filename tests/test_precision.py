@@ -5,8 +5,8 @@ import functools
 import pytest
 import torch
 
+from mapets_rl.config import ConfigError
 from mapets_rl.envs import figure_eight_collision, figure_eight_reward, make_env
-from mapets_rl.experiment.config import ConfigError
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.planning import CPU_PRESET, PlannerConfig, TrajectorySamplingCEM, precision
 from mapets_rl.planning.precision import resolve_dtype

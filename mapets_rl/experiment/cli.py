@@ -315,7 +315,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     user_overrides = _overrides(args.overrides)
     _check_flag_conflicts(args, user_overrides)
     _check_action_kind(cls, args.env)
-    from mapets_rl.experiment.config import ConfigError
+    from mapets_rl.config import ConfigError
     from mapets_rl.experiment.files import check_writable_dir
     from mapets_rl.experiment.runner import default_run_dir
 
@@ -537,7 +537,7 @@ def _field_lines(config_cls: type, values: object, prefix: str = "") -> list[str
     import dataclasses
     import typing
 
-    from mapets_rl.experiment.config import ConfigSection
+    from mapets_rl.config import ConfigSection
 
     hints = typing.get_type_hints(config_cls)
     docs = _attribute_docs(config_cls)
@@ -602,7 +602,7 @@ def _recipe_help(name: str) -> str:
     with its type, default, unit and a one-line description (imports the recipe)."""
     import inspect
 
-    from mapets_rl.experiment.config import ConfigError
+    from mapets_rl.config import ConfigError
 
     cls = _recipe_class(name)
     config_cls = cls.Config

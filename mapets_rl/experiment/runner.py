@@ -24,6 +24,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from tqdm import tqdm
 
+from mapets_rl.config import ConfigError, parse_override, read_yaml_mapping
 from mapets_rl.experiment.checkpoint import (
     first_line,
     list_checkpoints,
@@ -34,14 +35,7 @@ from mapets_rl.experiment.checkpoint import (
     seed_everything,
     set_rng_state,
 )
-from mapets_rl.experiment.config import (
-    ConfigError,
-    ExperimentConfig,
-    RunConfig,
-    check_device,
-    parse_override,
-    read_yaml_mapping,
-)
+from mapets_rl.experiment.config import ExperimentConfig, RunConfig, check_device
 from mapets_rl.experiment.files import (
     RunDirLock,
     atomic_write,

@@ -77,13 +77,7 @@ from typing import Any
 
 import yaml
 
-from mapets_rl.experiment.config import (
-    ConfigError,
-    check,
-    load_yaml,
-    parse_override,
-    read_yaml_mapping,
-)
+from mapets_rl.config import ConfigError, check, load_yaml, parse_override, read_yaml_mapping
 from mapets_rl.experiment.files import atomic_write_text, check_writable_dir, make_writable_dir
 
 MANIFEST = "sweep.json"

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import dataclasses
 
-from mapets_rl.experiment.config import ExperimentConfig, check
+from mapets_rl.config import check
+from mapets_rl.experiment.config import ExperimentConfig
 from mapets_rl.planning.memory import available_memory
 
 

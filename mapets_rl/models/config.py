@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from mapets_rl.experiment.config import ConfigSection, check
+from mapets_rl.config import ConfigSection, check
 
 __all__ = ["EnsembleConfig"]
 

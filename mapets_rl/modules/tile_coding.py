@@ -28,7 +28,7 @@ from torch import Tensor, nn
 from torchrl.data import TensorSpec
 from torchrl.envs.transforms import Transform
 
-from mapets_rl.experiment.config import ConfigSection, check
+from mapets_rl.config import ConfigSection, check
 
 
 @dataclasses.dataclass(frozen=True)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from mapets_rl.experiment.config import ConfigSection, check
+from mapets_rl.config import ConfigSection, check
 from mapets_rl.models.config import EnsembleConfig
 from mapets_rl.planning.precision import DTYPE_CHOICES
 from mapets_rl.planning.trajectory_sampling import PROPAGATIONS

@@ -12,7 +12,7 @@ import functools
 
 import torch
 
-from mapets_rl.experiment.config import check
+from mapets_rl.config import check
 
 __all__ = ["DTYPE_CHOICES", "cpu_bf16_flags", "resolve_dtype"]
 
