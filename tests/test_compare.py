@@ -99,10 +99,36 @@ def test_runs_on_different_scenarios_are_refused(tmp_path: Path) -> None:
         compare([a, b, c], tmp_path / "cmp")
     message = str(err.value)
     assert "\n" not in message and "allow_mixed_env" in message
-    assert f"env_config.n_cavs: 4 ({a}) vs 8 ({b}) vs unset ({c})" in message
+    # an unset key is the scenario's default: the freeway's n_cavs is 30
+    assert f"env_config.n_cavs: 4 ({a}) vs 8 ({b}) vs 30 ({c})" in message
     assert f'env: "figure-eight" ({a}, {b}) vs "freeway" ({c})' in message
     assert "horizon" not in message  # the same in every run
     assert not (tmp_path / "cmp").exists()
+
+
+def test_a_key_set_to_its_scenario_default_equals_the_key_left_unset(tmp_path: Path) -> None:
+    """Two-lane runs that spell out the scenario's defaults (22 CAVs, 400 steps) compare
+    with runs that leave them unset; a value that differs from the default is still refused."""
+    unset = fake_run(
+        tmp_path / "a", env="figure-eight-multilane", env_config={}, evaluations=eval_entries(1.0)
+    )
+    spelled = fake_run(
+        tmp_path / "b",
+        seed=1,
+        env="figure-eight-multilane",
+        env_config={"n_cavs": 22, "horizon": 400, "observation": "crossing"},
+        evaluations=eval_entries(2.0),
+    )
+    compare([unset, spelled], tmp_path / "cmp", ["return"])
+    other = fake_run(
+        tmp_path / "c",
+        seed=2,
+        env="figure-eight-multilane",
+        env_config={"n_cavs": 20},
+        evaluations=eval_entries(3.0),
+    )
+    with pytest.raises(ValueError, match=r"env_config.n_cavs: 22 .* vs 20"):
+        compare([unset, other], tmp_path / "cmp2", ["return"])
 
 
 def test_allow_mixed_env_warns_and_labels_groups_with_their_scenario(
