@@ -159,34 +159,40 @@ def unknown_key_error(cls: type, key: str) -> ConfigError:
     return ConfigError(f"unknown config key {key!r} for {cls.__name__} (known: {', '.join(names)})")
 
 
-@dataclasses.dataclass(frozen=True)
-class ConfigSection:
-    """Base of a nested config section: a frozen dataclass whose fields are coerced to their
-    annotated types, checked for NaN / inf (see ``allow_inf``) and validated by the subclass's
-    ``__post_init__`` (call ``super().__post_init__()`` first, raise through :func:`check`).
-    A keyword that is not a field is a ConfigError naming it."""
+class ConfigFields:
+    """What every config dataclass shares: a keyword that is not a field is a ConfigError
+    naming it (the dataclass ``__init__`` would raise a TypeError), in the constructor and in
+    :meth:`from_dict`."""
 
-    def __new__(cls, *args: Any, **kwargs: Any) -> ConfigSection:
+    def __new__(cls, *args: Any, **kwargs: Any) -> Any:
         unknown = sorted(set(kwargs) - set(cls.field_names()))
         if unknown:
             raise unknown_key_error(cls, unknown[0])
         return super().__new__(cls)
-
-    def __post_init__(self) -> None:
-        coerce_fields(self)
-        check_finite(self)
 
     @classmethod
     def field_names(cls) -> list[str]:
         return [f.name for f in dataclasses.fields(cls)]
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> ConfigSection:
+    def from_dict(cls, data: Mapping[str, Any]) -> Any:
         """Build from a mapping of fields; unknown keys raise ConfigError naming them."""
         unknown = sorted(set(data) - set(cls.field_names()))
         if unknown:
             raise unknown_key_error(cls, unknown[0])
         return cls(**dict(data))
+
+
+@dataclasses.dataclass(frozen=True)
+class ConfigSection(ConfigFields):
+    """Base of a nested config section: a frozen dataclass whose fields are coerced to their
+    annotated types, checked for NaN / inf (see ``allow_inf``) and validated by the subclass's
+    ``__post_init__`` (call ``super().__post_init__()`` first, raise through :func:`check`).
+    A keyword that is not a field is a ConfigError naming it."""
+
+    def __post_init__(self) -> None:
+        coerce_fields(self)
+        check_finite(self)
 
     def to_dict(self) -> dict[str, Any]:
         return {f.name: to_plain(getattr(self, f.name)) for f in dataclasses.fields(self)}

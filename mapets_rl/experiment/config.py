@@ -52,6 +52,7 @@ import yaml
 from mapets_rl.config import (
     MAX_SEED,
     ConfigError,
+    ConfigFields,
     check,
     check_finite,
     coerce_fields,
@@ -70,7 +71,7 @@ COLLECTORS = ("auto", "single", "multi_sync", "ray")
 
 
 @dataclasses.dataclass
-class RunConfig:
+class RunConfig(ConfigFields):
     """Fields shared by every recipe; subclasses add algorithm fields (and, for the recipes
     trained on a frame budget, :class:`ExperimentConfig` adds that budget).
 
@@ -107,14 +108,6 @@ class RunConfig:
     # (``from_yaml``, resuming a run) renames them with a one-line warning naming the old key
     renamed_fields: ClassVar[Mapping[str, tuple[str, ...]]] = {}
 
-    def __new__(cls, *args: Any, **kwargs: Any) -> RunConfig:
-        # a keyword that is not a field is a ConfigError naming it, as in from_dict (the
-        # dataclass __init__ would raise a TypeError)
-        unknown = sorted(set(kwargs) - set(cls.field_names()))
-        if unknown:
-            raise unknown_key_error(cls, unknown[0])
-        return super().__new__(cls)
-
     def __post_init__(self) -> None:
         coerce_fields(self)
         check_finite(self)
@@ -128,18 +121,6 @@ class RunConfig:
         check_logger_package(self.logger)
 
     # ----------------------------------------------------------------------------- conversions
-    @classmethod
-    def field_names(cls) -> list[str]:
-        return [f.name for f in dataclasses.fields(cls)]
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> RunConfig:
-        """Build from a mapping; unknown keys raise ConfigError naming them."""
-        unknown = sorted(set(data) - set(cls.field_names()))
-        if unknown:
-            raise unknown_key_error(cls, unknown[0])
-        return cls(**dict(data))
-
     @classmethod
     def rename_old_keys(cls, data: Mapping[str, Any], source: str) -> dict[str, Any]:
         """``data`` with the old keys of :attr:`renamed_fields` renamed to their new names (a
