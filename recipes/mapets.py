@@ -48,6 +48,7 @@ from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
 
 from mapets_rl.comm import CommConfig, CommunicationRange, NeighbourDatasets, clique_cover_number
+from mapets_rl.config import ConfigError
 from mapets_rl.envs import (
     figure_eight_collision,
     figure_eight_observation_bounds,
@@ -75,6 +76,7 @@ from mapets_rl.planning import (
     TrajectorySamplingCEM,
 )
 from mapets_rl.planning.memory import available_memory, ensemble_bytes, planner_bytes
+from mapets_rl.planning.trajectory_sampling import particle_layout_error
 
 OBS = ("agents", "observation")
 ACTION = ("agents", "action")
@@ -239,14 +241,12 @@ class MAPETSConfig(RunConfig):
         super().__post_init__()
         check(self.episodes >= 1, "episodes", ">= 1", self.episodes)
         check(self.random_episodes >= 0, "random_episodes", ">= 0", self.random_episodes)
-        check(
-            self.planner.propagation != "ts_inf"
-            or self.planner.particles % self.model.ensemble_size == 0,
-            "planner.particles",
-            f"a multiple of model.ensemble_size={self.model.ensemble_size} for "
-            "propagation='ts_inf'",
-            self.planner.particles,
+        plan = self.planner
+        layout = particle_layout_error(
+            plan.propagation, plan.particles, plan.population, self.model.ensemble_size
         )
+        if layout is not None:  # before the run directory exists
+            raise ConfigError(f"planner.{layout} (model.ensemble_size)")
         check(self.collision_gap >= 0, "collision_gap", ">= 0 metres", self.collision_gap)
         check(self.crossing_gap >= 0, "crossing_gap", ">= 0 metres", self.crossing_gap)
         check(self.lane_change_gap >= 0, "lane_change_gap", ">= 0 metres", self.lane_change_gap)

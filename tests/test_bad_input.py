@@ -237,6 +237,21 @@ CLI_CASES = [
         r"critic_cells must be layers whose weights fit in memory",
     ),
     (
+        "mapets ts1 particles that do not split over the members",
+        [
+            "train",
+            "mapets",
+            "--env",
+            "figure-eight",
+            "--run-dir",
+            "{tmp_path}/ts1",
+            "preset=cpu",
+            "planner.propagation=ts1",
+            "planner.particles=3",
+        ],
+        r"planner.particles \* population \(96\) must be divisible by the ensemble size \(5\)",
+    ),
+    (
         "coma on continuous actions",
         ["train", "coma", "--env", "figure-eight", "total_frames=20"],
         "coma needs discrete actions; scenario 'figure-eight' has continuous actions",
@@ -309,6 +324,7 @@ def test_cli_exits_2_with_one_line(
     assert err.count("\n") == 1 and err.startswith("mapets-rl: error: "), err
     assert re.search(match, err), err
     assert not (tmp_path / "cmp").exists()
+    assert not (tmp_path / "ts1").exists()  # refused before the run directory exists
 
 
 def test_read_only_run_dir_is_refused_before_anything_starts(tmp_path: Path, monkeypatch) -> None:

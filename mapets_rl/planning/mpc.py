@@ -27,6 +27,7 @@ from mapets_rl.planning.trajectory_sampling import (
     DynamicsModel,
     RewardFn,
     TerminationFn,
+    particle_layout_error,
     trajectory_sampling_returns,
 )
 
@@ -150,17 +151,9 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             )
         if propagation not in PROPAGATIONS:
             raise ValueError(f"propagation must be one of {PROPAGATIONS}, got {propagation!r}.")
-        members = model.ensemble_size
-        if propagation == "ts_inf" and particles % members:
-            raise ValueError(
-                f"particles ({particles}) must be divisible by the ensemble size ({members}) "
-                "for propagation='ts_inf'."
-            )
-        if propagation == "ts1" and (particles * population) % members:
-            raise ValueError(
-                f"particles * population ({particles * population}) must be divisible by the "
-                f"ensemble size ({members}) for propagation='ts1'."
-            )
+        layout = particle_layout_error(propagation, particles, population, model.ensemble_size)
+        if layout is not None:
+            raise ValueError(f"{layout}.")
         if not epsilon > 0:
             raise ValueError(f"epsilon must be > 0, got {epsilon}.")
         if not 0 <= alpha < 1:

@@ -18,10 +18,33 @@ __all__ = [
     "RewardFn",
     "TerminationFn",
     "PROPAGATIONS",
+    "particle_layout_error",
     "trajectory_sampling_returns",
 ]
 
 PROPAGATIONS = ("ts_inf", "ts1", "expectation")
+
+
+def particle_layout_error(
+    propagation: str, particles: int, population: int, members: int
+) -> str | None:
+    """Why ``particles`` particles of ``population`` candidates cannot be split over
+    ``members`` ensemble members under ``propagation`` (one line), or ``None`` when they can:
+    ``ts_inf`` gives particle ``p`` member ``p mod B`` (``particles`` a multiple of ``B``),
+    ``ts1`` re-draws members over all ``particles * population`` rows per agent (a multiple of
+    ``B``)."""
+    if propagation == "ts_inf" and particles % members:
+        return (
+            f"particles ({particles}) must be divisible by the ensemble size ({members}) "
+            "for propagation='ts_inf'"
+        )
+    if propagation == "ts1" and (particles * population) % members:
+        return (
+            f"particles * population ({particles * population}) must be divisible by the "
+            f"ensemble size ({members}) for propagation='ts1'"
+        )
+    return None
+
 
 #: ``reward_fn(obs [..., obs], action [..., act], next_obs [..., obs]) -> reward [...]``.
 RewardFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
