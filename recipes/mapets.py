@@ -78,6 +78,17 @@ from mapets_rl.planning import (
 from mapets_rl.planning.memory import available_memory, ensemble_bytes, planner_bytes
 from mapets_rl.planning.trajectory_sampling import particle_layout_error
 
+FIGURE_EIGHT_REWARD_FIELDS = (
+    "collision_gap",
+    "crossing_gap",
+    "headway",
+    "lane_change_gap",
+    "lane_change_time",
+    "collision_reward",
+)
+"""MAPETSConfig fields that configure the default planner reward and termination
+(:func:`~mapets_rl.envs.figure_eight_reward`); refused when a ``reward_fn`` is given."""
+
 OBS = ("agents", "observation")
 ACTION = ("agents", "action")
 MASK = ("agents", "mask")
@@ -464,14 +475,24 @@ class MAPETS(Experiment):
         config: MAPETSConfig, group: AgentGroupSpec, reward_fn: RewardFn | None
     ) -> None:
         """ValueError (one line) when the scenario's actions, observation or size do not fit
-        MA-PETS with ``config``: discrete actions, no ``reward_fn`` for an observation the
-        figure-eight reward cannot read, or a planner / ensemble larger than the memory the
-        device has available (:mod:`mapets_rl.planning.memory`)."""
+        MA-PETS with ``config``: discrete actions, a ``reward_fn`` given while the figure-eight
+        reward's fields (:data:`FIGURE_EIGHT_REWARD_FIELDS`) are set, no ``reward_fn`` for an
+        observation the figure-eight reward cannot read, or a planner / ensemble larger than
+        the memory the device has available (:mod:`mapets_rl.planning.memory`)."""
         if group.discrete:
             raise ValueError(
                 f"env {config.env!r} must have continuous actions for mapets (the CEM planner "
                 "optimises real-valued action sequences), e.g. figure-eight"
             )
+        if reward_fn is not None:  # the figure-eight reward's knobs would be ignored
+            defaults = {f.name: f.default for f in dataclasses.fields(MAPETSConfig)}
+            ignored = [k for k in FIGURE_EIGHT_REWARD_FIELDS if getattr(config, k) != defaults[k]]
+            if ignored:
+                raise ValueError(
+                    f"{ignored[0]}={getattr(config, ignored[0])!r} configures the figure-eight "
+                    "reward and collision test, which a given reward_fn replaces: leave "
+                    f"{', '.join(FIGURE_EIGHT_REWARD_FIELDS)} at their defaults"
+                )
         if reward_fn is None and group.obs_dim not in OBSERVATION_SIZES:
             raise ValueError(
                 f"reward_fn is required for env {config.env!r}: the default figure_eight_reward "

@@ -1083,3 +1083,17 @@ def test_mapets_refuses_a_scenario_or_size_before_writing_the_run_dir(
     config = MAPETSConfig(env=env, preset="cpu").with_overrides(overrides)
     _refused(lambda: MAPETS(config, tmp_path / "run"), match)
     assert not (tmp_path / "run").exists()
+
+
+def test_mapets_refuses_figure_eight_reward_fields_beside_a_reward_fn(tmp_path: Path) -> None:
+    """collision_gap & co. configure the default figure-eight reward; with a reward_fn of the
+    user's they were silently ignored."""
+    from mapets_rl.envs import figure_eight_reward
+    from recipes.mapets import MAPETS, MAPETSConfig
+
+    config = MAPETSConfig(env="figure-eight", preset="cpu", collision_gap=3.0)
+    _refused(
+        lambda: MAPETS(config, tmp_path / "run", reward_fn=figure_eight_reward),
+        r"collision_gap=3.0 configures the figure-eight reward .* which a given reward_fn",
+    )
+    assert not (tmp_path / "run").exists()
