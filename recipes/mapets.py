@@ -485,7 +485,7 @@ class MAPETS(Experiment):
                 "optimises real-valued action sequences), e.g. figure-eight"
             )
         if reward_fn is not None:  # the figure-eight reward's knobs would be ignored
-            defaults = {f.name: f.default for f in dataclasses.fields(MAPETSConfig)}
+            defaults = {f.name: f.default for f in dataclasses.fields(type(config))}
             ignored = [k for k in FIGURE_EIGHT_REWARD_FIELDS if getattr(config, k) != defaults[k]]
             if ignored:
                 raise ValueError(

@@ -91,21 +91,33 @@ def _check_flag_conflicts(args: argparse.Namespace, overrides: Sequence[str]) ->
         _fail("--run-dir must be a non-empty path, got ''")
 
 
+def _recipe_action_kinds(cls: type) -> tuple[str, ...]:
+    """The action kinds RECIPE ``cls`` takes (``Experiment.action_kinds``)."""
+    return tuple(getattr(cls, "action_kinds", ("continuous", "discrete")))
+
+
+def _scenario_group(env_name: str, env_config: Any) -> tuple[Any, str]:
+    """``(AgentGroupSpec, "discrete" | "continuous")`` of scenario ``env_name`` built with
+    ``env_config`` (the env is closed again)."""
+    from mapets_rl.experiment.runner import build_env
+    from mapets_rl.modules import AgentGroupSpec
+
+    env = build_env(env_name, env_config)
+    try:
+        group = AgentGroupSpec.from_env(env)
+    finally:
+        env.close()
+    return group, "discrete" if group.discrete else "continuous"
+
+
 def _check_action_kind(cls: type, env_name: str) -> None:
     """Refuse (exit 2, one line) a recipe on a scenario whose actions it cannot take, before
     its config is read (a recipe's default ``env_config`` is written for the scenarios it
     supports)."""
-    kinds = tuple(getattr(cls, "action_kinds", ("continuous", "discrete")))
+    kinds = _recipe_action_kinds(cls)
     if {"continuous", "discrete"} <= set(kinds):
         return
-    from mapets_rl.experiment.runner import build_env
-    from mapets_rl.modules import AgentGroupSpec
-
-    env = build_env(env_name, {})
-    try:
-        kind = "discrete" if AgentGroupSpec.from_env(env).discrete else "continuous"
-    finally:
-        env.close()
+    _, kind = _scenario_group(env_name, {})
     if kind not in kinds:
         _fail(
             f"{cls.name} needs {' or '.join(kinds)} actions; scenario {env_name!r} has {kind} "
@@ -571,21 +583,17 @@ def _field_lines(config_cls: type, values: object, prefix: str = "") -> list[str
 def _supported_scenarios(cls: type, config: object) -> list[str]:
     """One line per available scenario: whether RECIPE ``cls`` handles its actions (built with
     its default config; a scenario that cannot be built says why)."""
-    from mapets_rl.experiment.runner import available_envs, build_env
-    from mapets_rl.modules import AgentGroupSpec
+    from mapets_rl.experiment.runner import available_envs
 
-    kinds = tuple(getattr(cls, "action_kinds", ("continuous", "discrete")))
+    kinds = _recipe_action_kinds(cls)
     supported, other = [], []
     for env_name in available_envs():
         env_config = getattr(config, "env_config", {}) if env_name == config.env else {}
         try:
-            env = build_env(env_name, env_config)
-            group = AgentGroupSpec.from_env(env)
-            env.close()
+            group, kind = _scenario_group(env_name, env_config)
         except Exception as err:  # noqa: BLE001 - a broken plug-in must not break --help
             other.append(f"{env_name} (cannot be built: {str(err).splitlines()[0][:80]})")
             continue
-        kind = "discrete" if group.discrete else "continuous"
         detail = f"{env_name} ({group.n_agents} agents, obs {group.obs_dim}, {kind} actions)"
         (supported if kind in kinds else other).append(detail)
     lines = [f"scenarios ({' or '.join(kinds)} actions; --env SCENARIO):"]
