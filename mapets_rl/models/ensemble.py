@@ -29,6 +29,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torch.nn import functional as F
 
+from mapets_rl.modules.arguments import is_positive_int
 from mapets_rl.modules.tensor_checks import (
     as_mask,
     check_finite,
@@ -84,12 +85,10 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
             ("n_agents", n_agents),
             ("ensemble_size", ensemble_size),
         ):
-            if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+            if not is_positive_int(value):
                 raise ValueError(f"{name} must be a positive integer, got {value!r}.")
         hidden = tuple(hidden)
-        if len(hidden) == 0 or any(
-            not isinstance(h, int) or isinstance(h, bool) or h <= 0 for h in hidden
-        ):
+        if len(hidden) == 0 or not all(is_positive_int(h) for h in hidden):
             raise ValueError(f"hidden must be a non-empty sequence of positive ints, got {hidden}.")
         if not init_min_logvar < init_max_logvar:
             raise ValueError(

@@ -19,6 +19,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
+from mapets_rl.modules.arguments import is_positive_int
 from mapets_rl.modules.tensor_checks import as_mask, check_finite, check_real, get_tensor
 from mapets_rl.planning.cem import CEMOptimizer
 from mapets_rl.planning.precision import resolve_dtype
@@ -143,9 +144,9 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             ("iterations", iterations),
             ("particles", particles),
         ):
-            if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+            if not is_positive_int(value):
                 raise ValueError(f"{name} must be a positive integer, got {value!r}.")
-        if not isinstance(elites, int) or isinstance(elites, bool) or not 1 <= elites <= population:
+        if not is_positive_int(elites) or elites > population:
             raise ValueError(
                 f"elites must be an integer in [1, population={population}], got {elites!r}."
             )
