@@ -50,12 +50,13 @@ PAPER_TABLE_IV_MS = {
 counterpart here)."""
 
 
-def _mapets(preset: str) -> Callable[[argparse.Namespace], Any]:
+def _mapets(preset: str, cuda_graph: bool = False) -> Callable[[argparse.Namespace], Any]:
     def build(args: argparse.Namespace) -> Any:
         from recipes.mapets import MAPETS, MAPETSConfig
 
         config = MAPETSConfig(
             preset=preset,
+            planner={"cuda_graph": cuda_graph},
             env=args.loop,
             env_config={"n_cavs": args.agents},
             **_common(args),
@@ -83,12 +84,15 @@ def _model_free(module: str, cls: str, env: str) -> Callable[[argparse.Namespace
 METHODS: dict[str, tuple[str, Callable[[argparse.Namespace], Any]]] = {
     "mapets-cpu": ("mapets", _mapets("cpu")),
     "mapets-paper": ("mapets", _mapets("paper")),
+    "mapets-cpu-graph": ("mapets", _mapets("cpu", cuda_graph=True)),
+    "mapets-paper-graph": ("mapets", _mapets("paper", cuda_graph=True)),
     "maddpg": ("maddpg", _model_free("maddpg", "MADDPG", "loop")),
     "mappo": ("mappo", _model_free("mappo", "MAPPO", "loop")),
     "sac": ("sac", _model_free("sac", "SAC", "loop")),
     "shapley_ac": ("shapley_ac", _model_free("shapley_ac", "ShapleyAC", "freeway")),
 }
-"""Method name -> (paper key, builder of the recipe's Experiment)."""
+"""Method name -> (paper key, builder of the recipe's Experiment). The ``-graph`` methods plan
+with ``planner.cuda_graph`` (CUDA devices only; the first, untimed warm-up decision captures)."""
 
 _TMP: list[tempfile.TemporaryDirectory] = []
 
@@ -163,7 +167,13 @@ def _quantile(values: list[float], q: float) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        default=None,
+        choices=list(METHODS),
+        help="default: all (the -graph ones with a CUDA --device only)",
+    )
     parser.add_argument(
         "--loop",
         default="figure-eight",
@@ -193,6 +203,12 @@ def main() -> None:
         parser.error(f"--paper-decisions must be >= 1, got {args.paper_decisions}")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         parser.error(f"--device {args.device}: no CUDA device on this machine")
+    cuda = args.device.startswith("cuda")
+    if args.methods is None:
+        args.methods = [m for m in METHODS if cuda or not m.endswith("-graph")]
+    graphed = [m for m in args.methods if m.endswith("-graph")]
+    if graphed and not cuda:
+        parser.error(f"--methods {' '.join(graphed)}: CUDA graphs need a CUDA --device")
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     device_name = (
@@ -208,9 +224,11 @@ def main() -> None:
     for name in args.methods:
         paper_key, build = METHODS[name]
         exp = build(args)
-        paper = name == "mapets-paper"
+        paper = name.startswith("mapets-paper")
         decisions = args.paper_decisions if paper else args.decisions
         warmup = args.paper_warmup if paper else args.warmup
+        if name.endswith("-graph"):
+            warmup = max(warmup, 1)  # the capture is not a decision's time
         pool = states(exp, max(min(decisions + warmup, 50), 1))
         times = time_decisions(exp.eval_policy, pool, decisions, warmup, args.device, args.agents)
         ms = [1e3 * t for t in times]

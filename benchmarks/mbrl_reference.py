@@ -114,6 +114,7 @@ def _gaussian_dynamics(
     hidden: tuple[int, ...],
     propagation: str | None,
     learn_logvar_bounds: bool,
+    device: str = "cpu",
 ) -> Any:
     """mbrl-lib's ``GaussianMLP`` ensemble (SiLU, equal hidden sizes) inside a
     ``OneDTransitionRewardModel`` predicting normalised state deltas (no learned reward)."""
@@ -124,7 +125,7 @@ def _gaussian_dynamics(
     net = mbrl.models.GaussianMLP(
         in_size,
         out_size,
-        "cpu",
+        device,
         num_layers=len(hidden),
         ensemble_size=members,
         hid_size=hidden[0],
@@ -163,6 +164,7 @@ def pets_agents(
     high: float,
     reward_fn: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
     seed: int = 0,
+    device: str = "cpu",
 ) -> list:
     """One mbrl-lib PETS agent per agent of ``model`` (a ``ProbabilisticEnsemble``).
 
@@ -175,6 +177,7 @@ def pets_agents(
             sees only ``(action, next_obs)``, so it must not depend on ``obs``
             (``figure_eight_reward`` does not).
         seed: seeds each agent's ``ModelEnv`` generator.
+        device: where mbrl-lib's models, particles and CEM run (``"cpu"``, ``"cuda"``).
 
     Returns:
         ``I`` ``TrajectoryOptimizerAgent`` s; ``agent.act(obs)`` takes a ``[obs]`` float32
@@ -197,7 +200,7 @@ def pets_agents(
         return reward_fn(next_obs, action, next_obs).unsqueeze(-1)
 
     def no_termination(action: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
-        return torch.zeros(next_obs.shape[0], 1, dtype=torch.bool)
+        return torch.zeros(next_obs.shape[0], 1, dtype=torch.bool, device=next_obs.device)
 
     agents = []
     for i in range(model.n_agents):
@@ -209,16 +212,17 @@ def pets_agents(
             tuple(sizes.hidden),
             "fixed_model",
             learn_logvar_bounds=False,
+            device=device,
         )
         _copy_member_weights(dynamics.model, model, i)
-        dynamics.input_normalizer.mean = model.input_mean[i, 0].double().clone()
-        dynamics.input_normalizer.std = model.input_std[i, 0].double().clone()
+        dynamics.input_normalizer.mean = model.input_mean[i, 0].double().to(device)
+        dynamics.input_normalizer.std = model.input_std[i, 0].double().to(device)
         model_env = mbrl.models.ModelEnv(
             _Spaces(),
             dynamics,
             no_termination,
             reward,
-            generator=torch.Generator().manual_seed(seed + i),
+            generator=torch.Generator(device=device).manual_seed(seed + i),
         )
         agent_cfg = OmegaConf.create(
             {
@@ -240,7 +244,7 @@ def pets_agents(
                     "lower_bound": "???",
                     "upper_bound": "???",
                     "return_mean_elites": True,
-                    "device": "cpu",
+                    "device": device,
                     "clipped_normal": False,
                 },
             }

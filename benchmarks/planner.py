@@ -268,15 +268,17 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
     """Time every variant once per repeat, interleaved, and keep each variant's fastest run."""
     obs = make_obs(n_agents).to(DEVICE)
     model = make_model(cfg, n_agents).to(DEVICE)
+    graphs = (False, True) if args.graph else (False,)
     planners = {
-        key: TrajectorySamplingCEM(
+        key + ("+graph" if graph else ""): TrajectorySamplingCEM(
             model,
             figure_eight_reward,
             LOW,
             HIGH,
             seed=0,
-            **{**cfg.planner.planner_kwargs(), "dtype": DTYPES[key]},
+            **{**cfg.planner.planner_kwargs(), "dtype": DTYPES[key], "cuda_graph": graph},
         )
+        for graph in graphs
         for key in args.dtypes
     }
     first: dict[str, torch.Tensor] = {}  # cold-start decisions, to compare dtypes
@@ -305,8 +307,8 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
         gen = torch.Generator().manual_seed(0)
         variants["naive"] = lambda: naive_plan(model, cfg, obs, gen)
     if args.reference == "mbrl-lib":
-        agents = pets_agents(model, cfg, LOW, HIGH, figure_eight_reward, seed=0)
-        obs_np = obs.numpy()
+        agents = pets_agents(model, cfg, LOW, HIGH, figure_eight_reward, seed=0, device=str(DEVICE))
+        obs_np = obs.cpu().numpy()
         variants["mbrl-lib"] = lambda: [
             agent.act(o) for agent, o in zip(agents, obs_np, strict=True)
         ]
@@ -343,6 +345,16 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
             f"peak RSS {peak[key]:6.0f} MiB"
         )
     print(line)
+    for key in args.dtypes:
+        if f"{key}+graph" in planners:
+            eager, graphed = times[key], times[f"{key}+graph"]
+            diff = (first[f"{key}+graph"] - first[key]).abs().max().item() / (HIGH - LOW)
+            print(
+                f"      CUDA graph {key}: eager {spread(eager)}, graphed {spread(graphed)} -> "
+                f"{statistics.median(eager) / statistics.median(graphed):.2f}x (medians); "
+                f"max |a_graph - a_eager| = {diff:.2e} of range; "
+                f"{planners[f'{key}+graph'].graph_captures} capture(s)"
+            )
     gemm = best["gemm"]
     if "fp32" not in planners:
         return
@@ -367,11 +379,11 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
             seed=123,
             **{**cfg.planner.planner_kwargs(), "dtype": "fp32"},
         )
-        spread = (other.plan(obs) - action32).abs().max().item() / (HIGH - LOW)
+        seed_spread = (other.plan(obs) - action32).abs().max().item() / (HIGH - LOW)
         diff = (action16 - action32).abs().max().item() / (HIGH - LOW)
         print(
             f"      bf16 speed-up over fp32: {sec / best['bf16']:.2f}x; max |a_bf16 - a_fp32| = "
-            f"{diff:.2e} of range (fp32 seed-to-seed spread: {spread:.2e})"
+            f"{diff:.2e} of range (fp32 seed-to-seed spread: {seed_spread:.2e})"
         )
     if "separate" in best:
         print(
@@ -443,6 +455,12 @@ def main() -> None:
         action="store_true",
         help="also time torch.compile (inductor) of the MLP as a reference kernel",
     )
+    parser.add_argument(
+        "--graph",
+        action="store_true",
+        help="also time each dtype with cuda_graph=True (the decision captured once and "
+        "replayed; --device cuda only); the capture is the untimed warm-up call",
+    )
     parser.add_argument("--quick", action="store_true", help="cpu preset, I in {1, 8}, 2 repeats")
     parser.add_argument(
         "--reference",
@@ -464,8 +482,8 @@ def main() -> None:
     DEVICE = torch.device(args.device)
     if DEVICE.type == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda: torch.cuda.is_available() is False on this machine")
-    if args.reference is not None and DEVICE.type != "cpu":
-        parser.error("--reference mbrl-lib runs on the CPU only (use --device cpu)")
+    if args.graph and DEVICE.type != "cuda":
+        parser.error("--graph needs --device cuda (CUDA graphs)")
     if DEVICE.type == "cuda":
         print(f"device {torch.cuda.get_device_name(DEVICE)}")
     print(

@@ -258,6 +258,12 @@ class MAPETSConfig(RunConfig):
         )
         if layout is not None:  # before the run directory exists
             raise ConfigError(f"planner.{layout} (model.ensemble_size)")
+        check(
+            not plan.cuda_graph or self.device.startswith("cuda"),
+            "planner.cuda_graph",
+            f"False with device={self.device!r} (CUDA graphs need a CUDA device)",
+            plan.cuda_graph,
+        )
         check(self.collision_gap >= 0, "collision_gap", ">= 0 metres", self.collision_gap)
         check(self.crossing_gap >= 0, "crossing_gap", ">= 0 metres", self.crossing_gap)
         check(self.lane_change_gap >= 0, "lane_change_gap", ">= 0 metres", self.lane_change_gap)

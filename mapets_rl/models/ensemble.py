@@ -259,8 +259,14 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
             self._param_cache = outer
 
     def _workspace(self, rows: int, dtype: torch.dtype, device: torch.device) -> list[torch.Tensor]:
-        """Two flat buffers for ``rows`` x widest hidden layer, reused while the size fits."""
+        """Two flat buffers for ``rows`` x widest hidden layer, reused while the size fits.
+
+        While a CUDA graph is being captured the buffers are the graph's own (allocated in its
+        pool, not cached): a cached buffer that an eager call later replaced would be freed
+        under the graph."""
         size = rows * max(self.hidden)
+        if device.type == "cuda" and torch.cuda.is_current_stream_capturing():
+            return [torch.empty(size, dtype=dtype, device=device) for _ in range(2)]
         ws = self._buffers_cache
         if ws is None or ws[0].numel() < size or ws[0].dtype != dtype or ws[0].device != device:
             ws = [torch.empty(size, dtype=dtype, device=device) for _ in range(2)]

@@ -37,6 +37,8 @@ class PlannerConfig(ConfigSection):
             iteration (iCEM's fallbacks; see :class:`~mapets_rl.planning.TrajectorySamplingCEM`).
         keep_best: execute the best-scoring sequence of all iterations instead of the final CEM
             mean (iCEM).
+        cuda_graph: capture a decision in a CUDA graph and replay it (CUDA devices only; the
+            same decisions as eager planning, fewer kernel launches).
     """
 
     horizon: int = dataclasses.field(default=25, metadata={"unit": "steps"})
@@ -50,6 +52,7 @@ class PlannerConfig(ConfigSection):
     dtype: str = "auto"
     anchor_candidates: bool = False
     keep_best: bool = False
+    cuda_graph: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -22,6 +22,7 @@ from tensordict.utils import NestedKey
 from mapets_rl.modules.arguments import is_positive_int
 from mapets_rl.modules.tensor_checks import as_mask, check_finite, check_real, get_tensor
 from mapets_rl.planning.cem import CEMOptimizer
+from mapets_rl.planning.cuda_graph import GraphedStep
 from mapets_rl.planning.precision import resolve_dtype
 from mapets_rl.planning.trajectory_sampling import (
     PROPAGATIONS,
@@ -100,6 +101,11 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             warm start's first action held (iCEM's mean and constant fallbacks).
         keep_best: execute (and warm-start from) the best-scoring sequence of all
             iterations instead of the final CEM mean (iCEM).
+        cuda_graph: on a CUDA device, capture the whole optimisation of a decision (all CEM
+            iterations and rollouts) in a CUDA graph on the first call and replay it at the
+            next ones (:class:`~mapets_rl.planning.cuda_graph.GraphedStep`; recaptured when the
+            observation's batch shape, a planner setting or the address of a model tensor
+            changes). The same random numbers as eager calls; ``ValueError`` off CUDA.
         seed / generator: reproducible randomness (``generator`` wins if both are given).
         observation_key / action_key / is_init_key: TensorDict keys.
     """
@@ -121,6 +127,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         dtype: str | torch.dtype = "auto",
         anchor_candidates: bool = False,
         keep_best: bool = False,
+        cuda_graph: bool = False,
         *,
         seed: int | None = None,
         generator: torch.Generator | None = None,
@@ -160,6 +167,11 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         if not 0 <= alpha < 1:
             raise ValueError(f"alpha must be in [0, 1), got {alpha}.")
         device = _model_device(model, action_low)
+        if cuda_graph and device.type != "cuda":
+            raise ValueError(
+                f"cuda_graph=True needs the model on a CUDA device, got it on {device} "
+                "(move the model with .cuda() first, or leave cuda_graph False)."
+            )
         resolved_dtype, dtype_reason = resolve_dtype(dtype, device)
         low = torch.as_tensor(action_low, dtype=torch.float32, device=device)
         high = torch.as_tensor(action_high, dtype=torch.float32, device=device)
@@ -194,6 +206,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             generator = torch.Generator(device=device)
             generator.manual_seed(seed)
         self.generator = generator
+        self._graphed = GraphedStep(device, generator) if cuda_graph else None
         self.optimizer = CEMOptimizer(
             population, elites, iterations, float(epsilon), float(alpha), generator
         )
@@ -303,18 +316,92 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         """The last call's optimised mean sequence, ``[*, I, horizon, act]`` (or ``None``)."""
         return self._to_batch_layout(self._solution)
 
-    def _anchors(self, envs: int) -> torch.Tensor:
+    @property
+    def cuda_graph(self) -> bool:
+        """Whether decisions replay a captured CUDA graph."""
+        return self._graphed is not None
+
+    @property
+    def graph_captures(self) -> int:
+        """CUDA-graph captures so far (0 without ``cuda_graph``)."""
+        return 0 if self._graphed is None else self._graphed.captures
+
+    def _anchors(self, mean: torch.Tensor) -> torch.Tensor:
         """``[I, M, 2, H, act]`` the noise-free fallbacks scored in every CEM iteration: the
         constant sequence at ``action_low`` (on the figure-eight: stop, keep the lane) and the
-        warm start's first action held for the whole horizon."""
-        low = self.action_low.expand(-1, envs, self.horizon, -1)
-        hold = self._mean[:, :, :1].expand(-1, -1, self.horizon, -1)
+        warm start ``mean [I, M, H, act]``'s first action held for the whole horizon."""
+        low = self.action_low.expand(-1, mean.shape[1], self.horizon, -1)
+        hold = mean[:, :, :1].expand(-1, -1, self.horizon, -1)
         return torch.stack([low, hold], dim=2)
 
     def _initial_mean(self, envs: int) -> torch.Tensor:
         """``[I, M, H, act]`` centre of the action box."""
         centre = (self.action_low + self.action_high) / 2  # [I, 1, 1, act]
         return centre.expand(-1, envs, self.horizon, -1).clone()
+
+    def _optimize(self, obs: torch.Tensor, mean: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """One decision's CEM from the warm start: a pure tensor function (what a CUDA graph
+        captures).
+
+        Args:
+            obs: ``[I, M, obs]`` start states; mean: ``[I, M, H, act]`` warm start.
+
+        Returns:
+            ``[I, M, H, act]`` the optimised sequences and ``[I]`` the non-finite predicted
+            rewards counted while scoring them.
+        """
+        nonfinite = torch.zeros_like(self.nonfinite_rewards)
+
+        def score(candidates: torch.Tensor) -> torch.Tensor:
+            nonlocal nonfinite
+            scores, counted = trajectory_sampling_returns(
+                self.model,
+                obs,
+                candidates,
+                self.reward_fn,
+                termination_fn=self.termination_fn,
+                propagation=self.propagation,
+                particles=self.particles,
+                dtype=self.dtype,
+                generator=self.generator,
+            )
+            nonfinite = nonfinite + counted
+            return scores
+
+        anchors = self._anchors(mean) if self.anchor_candidates else None
+        frozen = getattr(self.model, "frozen_parameters", None)  # optional (DynamicsModel)
+        with frozen(self.dtype) if frozen is not None else contextlib.nullcontext():
+            mu = self.optimizer.optimize(
+                score,
+                mean,
+                self.action_low,
+                self.action_high,
+                anchors=anchors,
+                keep_best=self.keep_best,
+            )
+        return mu, nonfinite
+
+    def _graph_key(self, obs: torch.Tensor) -> tuple:
+        """What a captured decision depends on beyond its inputs' values: shapes, settings,
+        the score functions and the addresses of every parameter and buffer it reads."""
+        tensors = (*self.parameters(), *self.buffers())
+        return (
+            tuple(obs.shape),
+            self.dtype,
+            self.horizon,
+            self.particles,
+            self.propagation,
+            self.population,
+            self.elites,
+            self.iterations,
+            self.epsilon,
+            self.alpha,
+            self.anchor_candidates,
+            self.keep_best,
+            id(self.reward_fn),
+            id(self.termination_fn),
+            tuple(t.data_ptr() for t in tensors),
+        )
 
     # ------------------------------------------------------------------ TensorDict API
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -364,32 +451,13 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             reset = is_init.reshape(envs).view(1, envs, 1, 1)
             self._mean = torch.where(reset, self._initial_mean(envs), self._mean)
 
-        def score(candidates: torch.Tensor) -> torch.Tensor:
-            scores, nonfinite = trajectory_sampling_returns(
-                model,
-                obs_p,
-                candidates,
-                self.reward_fn,
-                termination_fn=self.termination_fn,
-                propagation=self.propagation,
-                particles=self.particles,
-                dtype=self.dtype,
-                generator=self.generator,
+        if self._graphed is None:
+            mu, nonfinite = self._optimize(obs_p, self._mean)
+        else:
+            mu, nonfinite = self._graphed(
+                self._optimize, self._graph_key(obs_p), (obs_p, self._mean)
             )
-            self.nonfinite_rewards += nonfinite
-            return scores
-
-        anchors = self._anchors(envs) if self.anchor_candidates else None
-        frozen = getattr(model, "frozen_parameters", None)  # optional (DynamicsModel)
-        with frozen(self.dtype) if frozen is not None else contextlib.nullcontext():
-            mu = self.optimizer.optimize(
-                score,
-                self._mean,
-                self.action_low,
-                self.action_high,
-                anchors=anchors,
-                keep_best=self.keep_best,
-            )
+        self.nonfinite_rewards += nonfinite
         self._warn_nonfinite()
         self._solution = mu
         action = torch.clamp(mu[:, :, 0], self.action_low[:, 0], self.action_high[:, 0])

@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# The GPU measurements of benchmarks/RESULTS.md in one command, on a machine with a CUDA device:
+#   bash benchmarks/gpu.sh [OUT_DIR] [PYTHON]
+# Each step has its own time limit and writes OUT_DIR/<step>.log; a failed step does not stop
+# the next. mbrl-lib (the last step) is optional: without it that step prints how to install it.
+set -u
+out=${1:-gpu_results}
+py=${2:-python3}
+mkdir -p "$out"
+export PYTHONUNBUFFERED=1 MAPETS_RL_THREADS=1
+
+step() {  # step NAME SECONDS COMMAND...
+    local name=$1 limit=$2
+    shift 2
+    echo "=== $name (limit ${limit}s): $*"
+    local t0=$SECONDS
+    timeout "$limit" "$@" >"$out/$name.log" 2>&1
+    local rc=$?
+    tail -n 60 "$out/$name.log"
+    echo "=== $name: exit $rc after $((SECONDS - t0)) s"
+}
+
+step machine 60 bash -c "nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm \
+    --format=csv; grep -m1 'model name' /proc/cpuinfo; nproc; $py -c 'import torch; \
+    print(torch.__version__, torch.version.cuda, torch.cuda.get_device_name(), \
+    torch.backends.cpu.get_cpu_capability())'"
+step tests 150 "$py" -m pytest -q -p no:cacheprovider tests/test_cuda_graph.py \
+    tests/test_precision.py -k "cuda or graph"
+step planner 200 "$py" benchmarks/planner.py --device cuda --configs paper cpu \
+    --agents 1 8 22 --dtypes fp32 bf16 --graph --repeats 5 --naive-max-agents 0 --no-separate
+step decision_time 150 "$py" benchmarks/decision_time.py --device cuda --decisions 20 \
+    --paper-decisions 10 --paper-warmup 1 --methods mapets-paper mapets-paper-graph \
+    mapets-cpu mapets-cpu-graph maddpg mappo sac shapley_ac
+step mbrl_reference 100 "$py" benchmarks/planner.py --device cuda --configs paper \
+    --agents 1 8 --dtypes fp32 --repeats 3 --naive-max-agents 0 --no-separate \
+    --reference mbrl-lib
