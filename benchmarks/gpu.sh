@@ -1,17 +1,21 @@
 #!/usr/bin/env bash
 # The GPU measurements of benchmarks/RESULTS.md in one command, on a machine with a CUDA device:
-#   bash benchmarks/gpu.sh [OUT_DIR] [PYTHON]
+#   bash benchmarks/gpu.sh [OUT_DIR] [PYTHON] [STEP ...]
+# (STEPs: machine tests planner decision_time mbrl_reference train_smoke; default: all).
 # Each step has its own time limit and writes OUT_DIR/<step>.log; a failed step does not stop
 # the next. mbrl-lib (the last step) is optional: without it that step prints how to install it.
 set -u
 out=${1:-gpu_results}
 py=${2:-python3}
+shift $(($# < 2 ? $# : 2))
+wanted=" $* "
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1 MAPETS_RL_THREADS=1
 
 step() {  # step NAME SECONDS COMMAND...
     local name=$1 limit=$2
     shift 2
+    [[ "$wanted" == "  " || "$wanted" == *" $name "* ]] || return 0
     echo "=== $name (limit ${limit}s): $*"
     local t0=$SECONDS
     timeout "$limit" "$@" >"$out/$name.log" 2>&1
@@ -34,3 +38,16 @@ step decision_time 150 "$py" benchmarks/decision_time.py --device cuda --decisio
 step mbrl_reference 100 "$py" benchmarks/planner.py --device cuda --configs paper \
     --agents 1 8 --dtypes fp32 --repeats 3 --naive-max-agents 0 --no-separate \
     --reference mbrl-lib
+# Every recipe trains, checkpoints and evaluates on the device (tiny budgets; the envs step on
+# the CPU): MA-PETS with the CUDA-graph planner, the model-free recipes with their networks.
+step train_smoke 200 bash -c "set -e; runs=\$(mktemp -d); \
+    mapets-rl train mapets --env figure-eight --run-dir \$runs/mapets preset=cpu episodes=3 \
+        random_episodes=1 device=cuda planner.cuda_graph=true env_config.n_cavs=4; \
+    mapets-rl evaluate \$runs/mapets; \
+    for r in maddpg m3ddpg mappo sac; do mapets-rl train \$r --env figure-eight \
+        --run-dir \$runs/\$r total_frames=400 frames_per_batch=200 eval_interval=0 \
+        device=cuda env_config.n_cavs=4; done; \
+    mapets-rl train shapley_ac --env freeway --run-dir \$runs/shapley total_frames=200 \
+        frames_per_batch=100 eval_interval=0 device=cuda; \
+    mapets-rl train coma --env freeway --run-dir \$runs/coma total_frames=200 \
+        frames_per_batch=100 eval_interval=0 device=cuda; echo all recipes trained on cuda"

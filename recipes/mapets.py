@@ -565,7 +565,9 @@ class MAPETS(Experiment):
         if random_actions:
             policy = None if self.action_coder is None else self._random_on_grid
         with torch.no_grad():
-            return self.env.rollout(MAX_STEPS, policy=policy, break_when_any_done=True)
+            return self.env.rollout(
+                MAX_STEPS, policy=policy, break_when_any_done=True, auto_cast_to_device=True
+            )
 
     def _random_on_grid(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Uniformly random actions snapped to the tile-coded action grid."""

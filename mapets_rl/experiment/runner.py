@@ -308,6 +308,15 @@ class Experiment:
         """A fresh environment of ``config.env`` with ``config.env_config``."""
         return build_env(self.config.env, self.config.env_config)
 
+    def modules_to_device(self) -> None:
+        """Move every torch module this experiment holds (policies, critics, normalisers,
+        exploration modules; not the environments, which step on the CPU) to
+        ``config.device``. :meth:`make_collector` calls it, so the collector's policy, the
+        losses and optimisers a recipe builds after it, and ``eval_policy`` share one device."""
+        for value in vars(self).values():
+            if isinstance(value, torch.nn.Module) and not isinstance(value, EnvBase):
+                value.to(self.device)
+
     def make_collector(
         self, policy: TensorDictModuleBase, init_random_frames: int = 0, **kwargs: Any
     ) -> BaseCollector:
@@ -321,6 +330,7 @@ class Experiment:
         the collector (to each remote collector with ``"ray"``)."""
         if init_random_frames < 0:
             raise ValueError(f"init_random_frames must be >= 0, got {init_random_frames}")
+        self.modules_to_device()
         self._collector_args = (policy, init_random_frames, kwargs)
         cfg = self.config
         remaining = max(init_random_frames - self.frames, 0)
@@ -545,7 +555,7 @@ class Experiment:
         td = self.env.reset()
         steps = []
         while True:
-            td = self.eval_policy(td)
+            td = self.eval_policy(td.to(self.device)).to(self.env.device)
             td = self.env.step(td)
             steps.append(td.clone())
             if frames is not None:
