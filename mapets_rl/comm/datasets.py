@@ -390,7 +390,7 @@ class NeighbourDatasets:
         self.total_transitions_sent = int(state_dict["total_transitions_sent"])
         self.total_bytes_sent = int(state_dict["total_bytes_sent"])
         self.n_exchanges = int(state_dict["n_exchanges"])
-        self.generator.set_state(state_dict["generator"])
+        self.generator.set_state(state_dict["generator"].cpu())  # map_location may move it
 
     def _storage_state(self) -> dict[str, Any]:
         """The written slots of the storage and their transitions (see :meth:`state_dict`)."""

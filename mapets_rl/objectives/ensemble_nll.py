@@ -312,8 +312,9 @@ def train_ensemble(
     if not custom:
         x, y, weight = loss_module.normalized_data(*batch)
     history = []
+    device = next(model.parameters()).device  # a TensorDict built without one has device None
     for _ in range(epochs):
-        order = torch.randperm(rows, generator=generator, device=data.device)
+        order = torch.randperm(rows, generator=generator, device=device)
         per_member = []
         for start in range(0, rows, batch_size):
             index = order[start : start + batch_size]
