@@ -175,7 +175,8 @@ class MADDPG(Experiment):
 
         # buffer
         self.buffer = TensorDictReplayBuffer(
-            storage=FilledTensorStorage(config.buffer_size), batch_size=config.batch_size
+            storage=FilledTensorStorage(config.buffer_size, device=self.device),
+            batch_size=config.batch_size,
         )
 
         # loss: DDPG with per-agent TD(0) targets through target actor and critic

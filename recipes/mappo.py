@@ -105,7 +105,7 @@ class MAPPO(Experiment):
 
         # buffer: the latest batch, minibatches without replacement
         self.buffer = TensorDictReplayBuffer(
-            storage=FilledTensorStorage(config.frames_per_batch),
+            storage=FilledTensorStorage(config.frames_per_batch, device=self.device),
             sampler=SamplerWithoutReplacement(),
             batch_size=config.minibatch_size,
         )

@@ -130,7 +130,8 @@ class SAC(Experiment):
 
         # buffer
         self.buffer = TensorDictReplayBuffer(
-            storage=FilledTensorStorage(config.buffer_size), batch_size=config.batch_size
+            storage=FilledTensorStorage(config.buffer_size, device=self.device),
+            batch_size=config.batch_size,
         )
 
         # loss: twin-Q soft Bellman targets, learned temperature (target entropy per agent)

@@ -6,8 +6,10 @@ The environments step on the CPU; policies, models, datasets and generators live
 import pytest
 import torch
 
-from recipes.maddpg import MADDPG, MADDPGConfig
+from recipes.maddpg import MADDPG
 from recipes.mapets import MAPETS
+from recipes.mappo import MAPPO
+from recipes.sac import SAC
 from tests.test_recipe_mapets import tiny
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
@@ -27,19 +29,30 @@ def test_mapets_trains_resumes_and_evaluates_on_cuda(tmp_path, cuda_graph):
     assert 0.0 <= metrics["safety"] <= 1.0
 
 
-def test_maddpg_trains_and_evaluates_on_cuda(tmp_path):
-    config = MADDPGConfig(
+@pytest.mark.parametrize(
+    ("recipe", "sizes"),
+    [
+        (MADDPG, {"batch_size": 16, "init_random_frames": 0}),
+        (SAC, {"batch_size": 16, "init_random_frames": 0}),
+        (MAPPO, {"minibatch_size": 20}),
+    ],
+)
+def test_model_free_recipes_train_and_evaluate_on_cuda(tmp_path, recipe, sizes):
+    """Collector, replay buffer, observation normaliser, losses and evaluation on the GPU:
+    every learned parameter moves in training."""
+    config = recipe.Config(
         env_config={"n_cavs": 3, "n_hvs": 2, "horizon": 20},
         total_frames=80,
         frames_per_batch=40,
-        init_random_frames=0,
         eval_interval=0,
         device="cuda",
         progress=False,
+        **sizes,
     )
-    exp = MADDPG(config, tmp_path / "run")
+    exp = recipe(config, tmp_path / "run")
+    params = dict(exp.loss.named_parameters())
+    assert all(p.device.type == "cuda" for p in params.values())
+    before = {k: p.detach().clone() for k, p in params.items()}
     exp.train()
-    assert next(exp.actor.parameters()).device.type == "cuda"
-    assert next(exp.loss.parameters()).device.type == "cuda"
-    metrics = exp.evaluate(episodes=1)
-    assert metrics["length"] > 0
+    assert any(not torch.equal(before[k], p) for k, p in exp.loss.named_parameters())
+    assert exp.evaluate(episodes=1)["length"] > 0
