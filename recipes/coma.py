@@ -138,7 +138,7 @@ class COMA(SystemRewardMetrics, Experiment):
             lmbda=config.lmbda,
             entropy_coeff=config.entropy_coeff,
             reward_scale=config.reward_scale,
-        )
+        ).to(self.device)
         self.updater = SoftUpdate(self.loss, tau=config.tau)
         self.actor_optim = torch.optim.Adam(
             self.loss.actor_network_params.values(True, True), lr=config.lr

@@ -224,7 +224,7 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
             chunk_states=config.shapley_chunk_states,
             autocast_bf16=config.shapley_bf16,
             reward_scale=config.reward_scale,
-        )
+        ).to(device)  # its coalition tables are buffers built on the CPU
         self.updater = SoftUpdate(self.loss, tau=config.tau)
         self.actor_optim = torch.optim.Adam(
             self.loss.actor_network_params.values(True, True), lr=config.lr_actor

@@ -6,10 +6,12 @@ The environments step on the CPU; policies, models, datasets and generators live
 import pytest
 import torch
 
+from recipes.coma import COMA
 from recipes.maddpg import MADDPG
 from recipes.mapets import MAPETS
 from recipes.mappo import MAPPO
 from recipes.sac import SAC
+from recipes.shapley_ac import ShapleyAC
 from tests.test_recipe_mapets import tiny
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
@@ -35,13 +37,20 @@ def test_mapets_trains_resumes_and_evaluates_on_cuda(tmp_path, cuda_graph):
         (MADDPG, {"batch_size": 16, "init_random_frames": 0}),
         (SAC, {"batch_size": 16, "init_random_frames": 0}),
         (MAPPO, {"minibatch_size": 20}),
+        (ShapleyAC, {"env": "freeway", "batch_size": 16, "init_random_frames": 0}),
+        (COMA, {"env": "freeway", "minibatch_size": 20}),
     ],
 )
 def test_model_free_recipes_train_and_evaluate_on_cuda(tmp_path, recipe, sizes):
     """Collector, replay buffer, observation normaliser, losses and evaluation on the GPU:
     every learned parameter moves in training."""
+    env_config = (
+        {"n_vehicles": 6, "cav_ratio": 0.5}
+        if sizes.get("env") == "freeway"
+        else {"n_cavs": 3, "n_hvs": 2, "horizon": 20}
+    )
     config = recipe.Config(
-        env_config={"n_cavs": 3, "n_hvs": 2, "horizon": 20},
+        env_config=env_config,
         total_frames=80,
         frames_per_batch=40,
         eval_interval=0,
