@@ -114,16 +114,17 @@ def oracle_planner(
         "headway": headway,
         "lane_change_time": lane_change_time,
     }
-    kwargs = CPU_PRESET.planner.planner_kwargs()
-    kwargs.update(particles=1, propagation="expectation", **cem)
     return TrajectorySamplingCEM(
         FigureEightKinematicModel(n_agents, obs_dim, action_dim),
         functools.partial(figure_eight_reward, **gaps),
         spec.space.low,
         spec.space.high,
+        CPU_PRESET.planner,
         termination_fn=functools.partial(figure_eight_collision, **gaps),
         seed=seed,
-        **kwargs,
+        particles=1,
+        propagation="expectation",
+        **cem,
     )
 
 

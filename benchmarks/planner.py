@@ -276,7 +276,9 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
             LOW,
             HIGH,
             seed=0,
-            **{**cfg.planner.planner_kwargs(), "dtype": DTYPES[key], "cuda_graph": graph},
+            config=cfg.planner,
+            dtype=DTYPES[key],
+            cuda_graph=graph,
         )
         for graph in graphs
         for key in args.dtypes
@@ -298,7 +300,8 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
                 LOW,
                 HIGH,
                 seed=0,
-                **{**cfg.planner.planner_kwargs(), "dtype": "fp32"},
+                config=cfg.planner,
+                dtype="fp32",
             )
             for i in range(n_agents)
         ]
@@ -377,7 +380,8 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
             LOW,
             HIGH,
             seed=123,
-            **{**cfg.planner.planner_kwargs(), "dtype": "fp32"},
+            config=cfg.planner,
+            dtype="fp32",
         )
         seed_spread = (other.plan(obs) - action32).abs().max().item() / (HIGH - LOW)
         diff = (action16 - action32).abs().max().item() / (HIGH - LOW)

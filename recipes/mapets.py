@@ -423,9 +423,9 @@ class MAPETS(Experiment):
             self.reward_fn,
             bounds.low.to(device),
             bounds.high.to(device),
+            config.planner,
             generator=self.plan_generator,
             termination_fn=self.termination_fn,
-            **config.planner.planner_kwargs(),
         )
         log.info("planner compute dtype: %s", self.planner.dtype_reason)
         self.policy = (

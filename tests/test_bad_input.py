@@ -879,7 +879,7 @@ NON_FINITE_CASES = [
 
 BOOL_AND_MASK_CASES = [
     ("ensemble obs_dim=True", lambda: ProbabilisticEnsemble(True, 1, 1), "obs_dim must be a"),
-    ("planner horizon=True", lambda: _planner(horizon=True), "horizon must be a positive"),
+    ("planner horizon=True", lambda: _planner(horizon=True), "horizon must be an integer"),
     (
         "CommunicationRange(True)",
         lambda: CommunicationRange(True),

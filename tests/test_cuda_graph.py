@@ -41,16 +41,17 @@ def figure_eight_planners(dtype: str, n_agents: int = 3, seed: int = 0):
     """An eager and a graphed cpu-preset planner over one random-weight CUDA ensemble."""
     torch.manual_seed(seed)
     model = ProbabilisticEnsemble(7, 1, n_agents, ensemble_size=5, hidden=[32, 32]).cuda()
-    kwargs = {**CPU_PRESET.planner.planner_kwargs(), "dtype": dtype}
     planners = [
         TrajectorySamplingCEM(
             model,
             figure_eight_reward,
             0.0,
             13.89,
+            CPU_PRESET.planner,
             seed=1,
             termination_fn=figure_eight_collision,
-            **{**kwargs, "cuda_graph": graph},
+            dtype=dtype,
+            cuda_graph=graph,
         )
         for graph in (False, True)
     ]

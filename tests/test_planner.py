@@ -226,9 +226,7 @@ def test_bad_input():
 def test_presets_build_planner_and_model():
     for preset in (PAPER_PRESET, CPU_PRESET):
         model = ProbabilisticEnsemble(7, 1, 2, **preset.model.model_kwargs())
-        planner = TrajectorySamplingCEM(
-            model, quadratic_reward, 0.0, 13.89, **preset.planner.planner_kwargs()
-        )
+        planner = TrajectorySamplingCEM(model, quadratic_reward, 0.0, 13.89, preset.planner)
         assert planner.horizon == preset.planner.horizon
         assert model.hidden == tuple(preset.model.hidden)
 

@@ -59,7 +59,7 @@ def test_planner_and_config_default_to_auto(cpu_flags):
     assert planner.dtype == torch.bfloat16 and "avx512_bf16" in planner.dtype_reason
     cpu_flags()
     planner = TrajectorySamplingCEM(
-        model, quadratic_reward, -20.0, 20.0, **PlannerConfig(particles=5).planner_kwargs()
+        model, quadratic_reward, -20.0, 20.0, PlannerConfig(particles=5)
     )
     assert PlannerConfig().dtype == "auto"
     assert planner.dtype == torch.float32 and "no AVX512-BF16/AMX" in planner.dtype_reason
@@ -141,18 +141,14 @@ def test_bf16_and_fp32_choose_the_same_figure_eight_actions():
     model.fit_normalizer(obs, action, next_obs)
     model.requires_grad_(False)
     low, high = 0.0, 13.89
-    kwargs = {
-        **CPU_PRESET.planner.planner_kwargs(),
-        "reward_fn": figure_eight_reward,
-        "termination_fn": figure_eight_collision,
-    }
+    kwargs = {"reward_fn": figure_eight_reward, "termination_fn": figure_eight_collision}
     states = obs[::6]
 
     def plan(dtype: str, seed: int) -> torch.Tensor:
         """First actions ``[5 * I]`` (fraction of the range) planned from each state."""
         kwargs["dtype"] = dtype
         planner = TrajectorySamplingCEM(
-            model, action_low=low, action_high=high, seed=seed, **kwargs
+            model, action_low=low, action_high=high, config=CPU_PRESET.planner, seed=seed, **kwargs
         )
         plans = [(planner.reset(), planner.plan(s))[1] for s in states]
         return torch.stack(plans).flatten() / (high - low)

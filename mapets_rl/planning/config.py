@@ -37,8 +37,12 @@ class PlannerConfig(ConfigSection):
             iteration (iCEM's fallbacks; see :class:`~mapets_rl.planning.TrajectorySamplingCEM`).
         keep_best: execute the best-scoring sequence of all iterations instead of the final CEM
             mean (iCEM).
-        cuda_graph: capture a decision in a CUDA graph and replay it (CUDA devices only; the
-            same decisions as eager planning, fewer kernel launches).
+        cuda_graph: capture the whole optimisation of a decision (all CEM iterations and
+            rollouts) in a CUDA graph on the first call and replay it at the next ones
+            (:class:`~mapets_rl.planning.cuda_graph.GraphedStep`; recaptured when the
+            observation's batch shape, a planner setting or the address of a model tensor
+            changes). CUDA devices only; the same random numbers and decisions as eager
+            planning, fewer kernel launches.
     """
 
     horizon: int = dataclasses.field(default=25, metadata={"unit": "steps"})
@@ -73,10 +77,6 @@ class PlannerConfig(ConfigSection):
         check(self.epsilon > 0, "epsilon", "> 0", self.epsilon)
         check(0.0 <= self.alpha < 1.0, "alpha", "in [0, 1)", self.alpha)
         check(self.dtype in DTYPE_CHOICES, "dtype", f"one of {list(DTYPE_CHOICES)}", self.dtype)
-
-    def planner_kwargs(self) -> dict:
-        """Keyword arguments for :class:`~mapets_rl.planning.TrajectorySamplingCEM`."""
-        return dataclasses.asdict(self)
 
 
 @dataclasses.dataclass(frozen=True)

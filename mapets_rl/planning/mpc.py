@@ -13,19 +13,19 @@ from __future__ import annotations
 import contextlib
 import warnings
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
-from mapets_rl.modules.arguments import is_positive_int
 from mapets_rl.modules.tensor_checks import as_mask, check_finite, check_real, get_tensor
 from mapets_rl.planning.cem import CEMOptimizer
+from mapets_rl.planning.config import PlannerConfig
 from mapets_rl.planning.cuda_graph import GraphedStep
 from mapets_rl.planning.precision import resolve_dtype
 from mapets_rl.planning.trajectory_sampling import (
-    PROPAGATIONS,
     DynamicsModel,
     RewardFn,
     TerminationFn,
@@ -34,6 +34,28 @@ from mapets_rl.planning.trajectory_sampling import (
 )
 
 __all__ = ["TrajectorySamplingCEM"]
+
+
+_TORCH_DTYPES = {torch.float32: "fp32", torch.bfloat16: "bf16"}
+
+
+def _planner_config(config: PlannerConfig | None, settings: dict[str, Any]) -> PlannerConfig:
+    """``config`` (default: ``PlannerConfig()``) with ``settings`` replacing its fields,
+    validated by :class:`PlannerConfig`; a torch ``dtype`` is read as its name."""
+    known = PlannerConfig.field_names()
+    unknown = sorted(set(settings) - set(known))
+    if unknown:
+        raise TypeError(
+            f"TrajectorySamplingCEM got unknown planner setting(s) {unknown}; the settings "
+            f"are the PlannerConfig fields {list(known)}."
+        )
+    dtype = settings.get("dtype")
+    if isinstance(dtype, torch.dtype):
+        if dtype not in _TORCH_DTYPES:
+            raise ValueError(f"dtype must be torch.float32 or torch.bfloat16, got {dtype}.")
+        settings = {**settings, "dtype": _TORCH_DTYPES[dtype]}
+    config = PlannerConfig() if config is None else config
+    return config.replace(**settings) if settings else config
 
 
 def _model_device(model: DynamicsModel, bounds: object) -> torch.device:
@@ -88,24 +110,14 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             shape raises ``ValueError`` before any planning.
         action_low / action_high: bounds, scalars or ``[act]`` / ``[I, act]`` tensors,
             ``low < high`` elementwise.
-        horizon, population, elites, iterations, particles, propagation, epsilon, alpha: see
-            :class:`~mapets_rl.planning.PlannerConfig` (Table II names ``w, Q, X, Y, P``).
-        dtype: compute dtype of the ensemble forward: ``"auto"`` (bf16 where the hardware
-            runs it natively, fp32 elsewhere; see
-            :func:`~mapets_rl.planning.precision.resolve_dtype`), ``"fp32"``, ``"bf16"`` or a
-            torch dtype. States, rewards and CEM statistics stay float32. The choice and its
-            reason are kept in ``dtype`` / ``dtype_reason``.
-        anchor_candidates: score, in every CEM iteration and beside the ``population``
-            sampled candidates, three noise-free sequences: the current mean, the constant
-            sequence at ``action_low`` (on the figure-eight: stop and keep the lane) and the
-            warm start's first action held (iCEM's mean and constant fallbacks).
-        keep_best: execute (and warm-start from) the best-scoring sequence of all
-            iterations instead of the final CEM mean (iCEM).
-        cuda_graph: on a CUDA device, capture the whole optimisation of a decision (all CEM
-            iterations and rollouts) in a CUDA graph on the first call and replay it at the
-            next ones (:class:`~mapets_rl.planning.cuda_graph.GraphedStep`; recaptured when the
-            observation's batch shape, a planner setting or the address of a model tensor
-            changes). The same random numbers as eager calls; ``ValueError`` off CUDA.
+        config: the planner's settings (:class:`~mapets_rl.planning.PlannerConfig`, Table II
+            names ``w, Q, X, Y, P``; default: its defaults, the paper's sizes). Every setting
+            is declared, defaulted and validated there, once.
+        **settings: :class:`~mapets_rl.planning.PlannerConfig` fields that replace the
+            config's (``horizon=3, population=8``); ``dtype`` may also be ``torch.float32`` /
+            ``torch.bfloat16``. The planner keeps the resolved compute dtype and the reason
+            for it in ``dtype`` / ``dtype_reason`` (states, rewards and CEM statistics stay
+            float32).
         seed / generator: reproducible randomness (``generator`` wins if both are given).
         observation_key / action_key / is_init_key: TensorDict keys.
     """
@@ -116,18 +128,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         reward_fn: RewardFn,
         action_low: float | Sequence[float] | torch.Tensor,
         action_high: float | Sequence[float] | torch.Tensor,
-        horizon: int = 25,
-        population: int = 400,
-        elites: int = 40,
-        iterations: int = 5,
-        particles: int = 20,
-        propagation: str = "ts_inf",
-        epsilon: float = 1e-3,
-        alpha: float = 0.1,
-        dtype: str | torch.dtype = "auto",
-        anchor_candidates: bool = False,
-        keep_best: bool = False,
-        cuda_graph: bool = False,
+        config: PlannerConfig | None = None,
         *,
         seed: int | None = None,
         generator: torch.Generator | None = None,
@@ -135,6 +136,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         observation_key: NestedKey = ("agents", "observation"),
         action_key: NestedKey = ("agents", "action"),
         is_init_key: NestedKey = "is_init",
+        **settings: Any,
     ) -> None:
         if not isinstance(model, DynamicsModel):
             raise ValueError(
@@ -145,34 +147,19 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             raise ValueError("reward_fn must be callable (obs, action, next_obs) -> reward.")
         if termination_fn is not None and not callable(termination_fn):
             raise ValueError("termination_fn must be callable (obs, action, next_obs) -> done.")
-        for name, value in (
-            ("horizon", horizon),
-            ("population", population),
-            ("iterations", iterations),
-            ("particles", particles),
-        ):
-            if not is_positive_int(value):
-                raise ValueError(f"{name} must be a positive integer, got {value!r}.")
-        if not is_positive_int(elites) or elites > population:
-            raise ValueError(
-                f"elites must be an integer in [1, population={population}], got {elites!r}."
-            )
-        if propagation not in PROPAGATIONS:
-            raise ValueError(f"propagation must be one of {PROPAGATIONS}, got {propagation!r}.")
-        layout = particle_layout_error(propagation, particles, population, model.ensemble_size)
+        config = _planner_config(config, settings)
+        layout = particle_layout_error(
+            config.propagation, config.particles, config.population, model.ensemble_size
+        )
         if layout is not None:
             raise ValueError(f"{layout}.")
-        if not epsilon > 0:
-            raise ValueError(f"epsilon must be > 0, got {epsilon}.")
-        if not 0 <= alpha < 1:
-            raise ValueError(f"alpha must be in [0, 1), got {alpha}.")
         device = _model_device(model, action_low)
-        if cuda_graph and device.type != "cuda":
+        if config.cuda_graph and device.type != "cuda":
             raise ValueError(
                 f"cuda_graph=True needs the model on a CUDA device, got it on {device} "
                 "(move the model with .cuda() first, or leave cuda_graph False)."
             )
-        resolved_dtype, dtype_reason = resolve_dtype(dtype, device)
+        resolved_dtype, dtype_reason = resolve_dtype(config.dtype, device)
         low = torch.as_tensor(action_low, dtype=torch.float32, device=device)
         high = torch.as_tensor(action_high, dtype=torch.float32, device=device)
         for name, bound in (("action_low", low), ("action_high", high)):
@@ -195,20 +182,25 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         self.model = model
         self.reward_fn = reward_fn
         self.termination_fn = termination_fn
-        self.horizon = horizon
-        self.particles = particles
-        self.propagation = propagation
+        self.horizon = config.horizon
+        self.particles = config.particles
+        self.propagation = config.propagation
         self.dtype = resolved_dtype
         self.dtype_reason = dtype_reason
-        self.anchor_candidates = bool(anchor_candidates)
-        self.keep_best = bool(keep_best)
+        self.anchor_candidates = config.anchor_candidates
+        self.keep_best = config.keep_best
         if generator is None and seed is not None:
             generator = torch.Generator(device=device)
             generator.manual_seed(seed)
         self.generator = generator
-        self._graphed = GraphedStep(device, generator) if cuda_graph else None
+        self._graphed = GraphedStep(device, generator) if config.cuda_graph else None
         self.optimizer = CEMOptimizer(
-            population, elites, iterations, float(epsilon), float(alpha), generator
+            config.population,
+            config.elites,
+            config.iterations,
+            config.epsilon,
+            config.alpha,
+            generator,
         )
         self.in_keys = [observation_key]
         self.out_keys = [action_key]
