@@ -547,6 +547,56 @@ class MAPETS(Experiment):
         }
 
     # ------------------------------------------------------------------ the loop
+    def train(
+        self, on_episode_end: Callable[[dict[str, float]], None] | None = None
+    ) -> list[dict[str, Any]]:
+        """Algorithm 1: train (or continue) up to ``config.episodes`` episodes.
+
+        Each episode is drawn from its own seeds (so a resumed run continues as an
+        uninterrupted one), driven by the planner (or with random actions for the first
+        ``random_episodes``), stored in every CAV's ``D(i)+`` and shared within ``d``; then
+        every CAV's ensemble is refitted for the next episode. The episode's metrics go to
+        ``results.json`` (training entries), the logger and ``on_episode_end``, and a
+        checkpoint is written after each episode.
+
+        Returns:
+            the run's per-episode entries ``{"frames", "metrics"}`` (as in ``results.json``).
+        """
+        cfg = self.config
+        self._hold_lock()
+        try:
+            with self.training_loop(
+                on_episode_end,
+                progress=lambda: (self.episode, cfg.episodes),
+                label=f"{self.name} {cfg.env} d={cfg.comm.comm_range:g} seed {cfg.seed}",
+                postfix=lambda m, fps: {k: f"{m[k]:.3g}" for k in ("agility", "safety") if k in m},
+            ) as loop:
+                while not loop.finished:
+                    episode = self.episode + 1
+                    self._seed_episode(episode)
+                    random_actions = episode <= cfg.random_episodes
+                    start = time.perf_counter()
+                    rollout = self.run_episode(random_actions)  # lines 5-15: act, observe
+                    act_time = time.perf_counter() - start
+                    metrics = {"episode": float(episode), "random": float(random_actions)}
+                    metrics.update(self.episode_metrics(rollout))
+                    metrics["nonfinite_rewards"] = float(self.planner.nonfinite_rewards.sum())
+                    metrics.update(self.store_and_share(rollout))  # lines 16-17: D(i)+, share
+                    start = time.perf_counter()
+                    metrics.update(self.train_models())  # line 4: refit every ensemble
+                    metrics["train_time"] = time.perf_counter() - start
+                    metrics["step_time"] = act_time / rollout.shape[0]
+                    self.frames += rollout.shape[0]
+                    self.counters.episode = episode
+                    loop.record(metrics)
+                    self.results.add_train(self.frames, metrics)
+                    self.latest_metrics = dict(metrics)
+                    self.save_checkpoint()
+                    loop.end_iteration(metrics)
+            return self.results.train
+        finally:
+            self.close()
+
     def _seed_episode(self, episode: int) -> None:
         """Seed the env and every private random stream from ``(seed, episode)``."""
         # reduced below 2**62 so that every stream's seed fits a signed 64-bit integer
@@ -654,63 +704,6 @@ class MAPETS(Experiment):
         out = super().episode_metrics(rollout)
         out["reward"] = masked_mean(rollout.get(NEXT_REWARD), rollout.get(MASK))
         return out
-
-    def train(
-        self, on_episode_end: Callable[[dict[str, float]], None] | None = None
-    ) -> list[dict[str, Any]]:
-        """Train (or continue) up to ``config.episodes`` episodes.
-
-        Args:
-            on_episode_end: optional callback receiving each episode's metrics.
-
-        Returns:
-            the run's per-episode entries ``{"frames", "metrics"}`` (as in ``results.json``).
-        """
-        return super().train(on_iteration_end=on_episode_end)
-
-    def progress(self) -> tuple[int, int]:
-        return self.episode, self.config.episodes
-
-    def progress_label(self) -> str:
-        cfg = self.config
-        return f"{self.name} {cfg.env} d={cfg.comm.comm_range:g} seed {cfg.seed}"
-
-    def progress_postfix(self, metrics: Mapping[str, float], fps: float) -> dict[str, str]:
-        return {k: f"{metrics[k]:.3g}" for k in ("agility", "safety") if k in metrics}
-
-    def start_training(self) -> None:
-        """Nothing to prepare: every episode seeds its own random streams."""
-
-    def run_iteration(self) -> dict[str, float]:
-        """The next episode: seed it, drive it (random or planned actions), store and share its
-        transitions, refit the models; returns its metrics."""
-        episode = self.episode + 1
-        self._seed_episode(episode)
-        random_actions = episode <= self.config.random_episodes
-        start = time.perf_counter()
-        rollout = self.run_episode(random_actions)
-        act_time = time.perf_counter() - start
-        metrics = {"episode": float(episode), "random": float(random_actions)}
-        metrics.update(self.episode_metrics(rollout))
-        metrics["nonfinite_rewards"] = float(self.planner.nonfinite_rewards.sum())
-        metrics.update(self.store_and_share(rollout))
-        start = time.perf_counter()
-        metrics.update(self.train_models())
-        metrics["train_time"] = time.perf_counter() - start
-        metrics["step_time"] = act_time / rollout.shape[0]
-        self.frames += rollout.shape[0]
-        self.counters.episode = episode
-        return metrics
-
-    def end_iteration(self, metrics: Mapping[str, float], prev_frames: int, last: bool) -> None:
-        """Record the episode in ``results.json`` and checkpoint after every episode."""
-        self.results.add_train(self.frames, metrics)
-        self.latest_metrics = dict(metrics)
-        self.save_checkpoint()
-
-    def finish_training(self) -> list[dict[str, Any]]:
-        """Returns the training entries (one per episode)."""
-        return self.results.train
 
     # ------------------------------------------------------------------ evaluation
     def _render_env(self) -> EnvBase:

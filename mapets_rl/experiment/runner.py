@@ -7,11 +7,12 @@ A recipe subclasses :class:`Experiment`; see the package docstring of
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, ClassVar
@@ -139,6 +140,52 @@ def default_run_dir(recipe: str, env: str, seed: int, root: str | os.PathLike = 
     """``runs/<recipe>_<env>_seed<seed>_<UTC timestamp>``."""
     stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S-%f")
     return Path(root) / f"{recipe}_{env}_seed{seed}_{stamp}"
+
+
+class TrainingLoop:
+    """The per-iteration bookkeeping of a training loop (see :meth:`Experiment.training_loop`):
+    ``finished`` is whether ``progress()`` (``(done, total)``) has reached its total."""
+
+    def __init__(
+        self,
+        experiment: Experiment,
+        bar: tqdm,
+        progress: Callable[[], tuple[int, int]],
+        on_iteration_end: Callable[[dict[str, float]], None] | None,
+        postfix: Callable[[Mapping[str, float], float], dict[str, str]],
+    ) -> None:
+        self.experiment = experiment
+        self.bar = bar
+        self.progress = progress
+        self.on_iteration_end = on_iteration_end
+        self.postfix = postfix
+        self.done, self.total = progress()
+        self.previous = self.done
+        self.start, self.start_frames = time.perf_counter(), experiment.frames
+        self.fps = 0.0
+
+    @property
+    def finished(self) -> bool:
+        return self.done >= self.total
+
+    def record(self, metrics: Mapping[str, float]) -> None:
+        """After an iteration: write what a resumed run deferred, log ``metrics`` under
+        ``train`` and the frames per second under ``timers``, read the progress."""
+        exp = self.experiment
+        exp._start_writing()
+        elapsed = max(time.perf_counter() - self.start, 1e-9)
+        self.fps = (exp.frames - self.start_frames) / elapsed
+        log_scalars(exp.logger, "train", metrics, exp.frames)
+        log_scalars(exp.logger, "timers", {"fps": self.fps}, exp.frames)
+        self.previous = self.done
+        self.done, self.total = self.progress()
+
+    def end_iteration(self, metrics: dict[str, float]) -> None:
+        """Call ``on_iteration_end(metrics)`` and advance the progress bar."""
+        if self.on_iteration_end is not None:
+            self.on_iteration_end(metrics)
+        self.bar.update(self.done - self.previous)
+        self.bar.set_postfix(self.postfix(metrics, self.fps))
 
 
 class Experiment:
@@ -417,33 +464,57 @@ class Experiment:
         self, on_iteration_end: Callable[[dict[str, float]], None] | None
     ) -> list[dict[str, Any]]:
         """The loop of :meth:`train`, under the run directory's lock."""
-        cfg = self.config
         self.start_training()
-        done, total = self.progress()
+        with self.training_loop(on_iteration_end) as loop:
+            while not loop.finished:
+                prev_frames = self.frames
+                metrics = self.run_iteration()
+                loop.record(metrics)
+                self.end_iteration(metrics, prev_frames, last=loop.finished)
+                loop.end_iteration(metrics)
+        return self.finish_training()
+
+    @contextlib.contextmanager
+    def training_loop(
+        self,
+        on_iteration_end: Callable[[dict[str, float]], None] | None = None,
+        *,
+        progress: Callable[[], tuple[int, int]] | None = None,
+        label: str | None = None,
+        unit: str | None = None,
+        postfix: Callable[[Mapping[str, float], float], dict[str, str]] | None = None,
+    ) -> Iterator[TrainingLoop]:
+        """The bookkeeping every training loop shares, for a loop written in the recipe (MA-PETS
+        writes Algorithm 1 this way; :meth:`train`'s own loop uses it too)::
+
+            with self.training_loop(on_iteration_end) as loop:
+                while not loop.finished:
+                    metrics = ...            # one iteration; it advances self.progress()
+                    loop.record(metrics)     # log under "train" and "timers"
+                    ...                      # results, evaluation, checkpoint
+                    loop.end_iteration(metrics)  # the callback, the progress bar
+
+        ``progress()`` returns ``(done, total)`` in ``unit`` s (default :meth:`progress`, frames);
+        ``label`` and ``postfix(metrics, fps)`` are the progress bar's description and what it
+        shows after an iteration (default :meth:`progress_label`, :meth:`progress_postfix`).
+        What a resumed run deferred is written after its first iteration (and at the end, when
+        nothing was left to do)."""
+        progress = progress or self.progress
+        done, total = progress()
         bar = tqdm(
             total=total,
             initial=done,
-            disable=not cfg.progress,
-            desc=self.progress_label(),
-            unit=self.progress_unit,
+            disable=not self.config.progress,
+            desc=label or self.progress_label(),
+            unit=unit or self.progress_unit,
         )
-        start, start_frames = time.perf_counter(), self.frames
-        while done < total:
-            prev_frames = self.frames
-            metrics = self.run_iteration()
-            self._start_writing()
-            fps = (self.frames - start_frames) / max(time.perf_counter() - start, 1e-9)
-            log_scalars(self.logger, "train", metrics, self.frames)
-            log_scalars(self.logger, "timers", {"fps": fps}, self.frames)
-            prev, (done, total) = done, self.progress()
-            self.end_iteration(metrics, prev_frames, last=done >= total)
-            if on_iteration_end is not None:
-                on_iteration_end(metrics)
-            bar.update(done - prev)
-            bar.set_postfix(self.progress_postfix(metrics, fps))
-        bar.close()
-        self._start_writing()  # a resumed run that had nothing left to do
-        return self.finish_training()
+        postfix = postfix or self.progress_postfix
+        loop = TrainingLoop(self, bar, progress, on_iteration_end, postfix)
+        try:
+            yield loop
+        finally:
+            bar.close()
+        self._start_writing()
 
     def progress(self) -> tuple[int, int]:
         """``(done, total)`` in :attr:`progress_unit`: the loop of :meth:`train` runs while
