@@ -54,10 +54,9 @@ from mapets_rl.envs import (
     figure_eight_observation_bounds,
     figure_eight_reward,
 )
-from mapets_rl.envs.factory import SCENARIOS
 from mapets_rl.envs.figure_eight import OBSERVATION_SIZES
+from mapets_rl.envs.registry import build_env, scenario_defaults
 from mapets_rl.experiment import Experiment, RunConfig, check, log_scalars
-from mapets_rl.experiment.runner import build_env
 from mapets_rl.models import EnsembleConfig, ProbabilisticEnsemble
 from mapets_rl.modules import (
     AgentGroupSpec,
@@ -454,7 +453,7 @@ class MAPETS(Experiment):
             low, high = tc.obs_low, tc.obs_high
         elif group.obs_dim in OBSERVATION_SIZES:
             # the scenario's own defaults (two lanes for figure-eight-multilane), then the user's
-            scenario = SCENARIOS.get(self.config.env, (None, {}))[1]
+            scenario = scenario_defaults(self.config.env)
             low, high = figure_eight_observation_bounds({**scenario, **self.config.env_config})
         else:
             raise ValueError(

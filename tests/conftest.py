@@ -14,7 +14,8 @@ from types import ModuleType
 
 import pytest
 
-from mapets_rl.experiment import register_env, runner
+from mapets_rl.envs import registry
+from mapets_rl.experiment import register_env
 
 ROOT = Path(__file__).resolve().parents[1]
 EXTENDING = ROOT / "examples" / "extending"
@@ -49,7 +50,7 @@ def toy_scenario(monkeypatch) -> str:
     ``toy`` for this test only (in a copy of the scenario registry)."""
     from toy_scenario import ToyAgentsEnv
 
-    monkeypatch.setattr(runner, "_ENV_REGISTRY", dict(runner._ENV_REGISTRY))
+    monkeypatch.setattr(registry, "_SCENARIOS", dict(registry._SCENARIOS))
     register_env("toy", ToyAgentsEnv)
     return "toy"
 

@@ -22,8 +22,8 @@ from toy_recipe import ToyConfig, ToyLearner
 from toy_scenario import ToyAgentsEnv
 
 from mapets_rl.comm import CommunicationRange, communication_graph
-from mapets_rl.envs import FigureEightEnv, FreewayEnv, make_env
-from mapets_rl.experiment import register_env, runner
+from mapets_rl.envs import FigureEightEnv, FreewayEnv, make_env, registry
+from mapets_rl.experiment import register_env
 from mapets_rl.experiment.cli import main
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.objectives import COMACritic, COMALoss, EnsembleNLLLoss, ShapleyActorCriticLoss
@@ -546,17 +546,17 @@ def test_raw_env_refuses_a_step_after_the_episode_ended() -> None:
 # ------------------------------------------------------------------------------ registry
 def test_register_env_refuses_a_non_callable_factory() -> None:
     _refused(lambda: register_env("x", 42), "factory must be callable")
-    assert "x" not in runner._ENV_REGISTRY
+    assert "x" not in registry._SCENARIOS
 
 
 def test_register_env_does_not_silently_replace_a_scenario(monkeypatch) -> None:
-    monkeypatch.setattr(runner, "_ENV_REGISTRY", dict(runner._ENV_REGISTRY))
+    monkeypatch.setattr(registry, "_SCENARIOS", dict(registry._SCENARIOS))
     _refused(lambda: register_env("freeway", ToyAgentsEnv), "'freeway' is a built-in scenario")
     _refused(lambda: register_env("toy", lambda: None), "'toy' is already registered")
     _refused(lambda: register_env("", ToyAgentsEnv), "name must be a non-empty scenario name")
     register_env("toy", ToyAgentsEnv)  # the same factory again: a no-op
     register_env("freeway", ToyAgentsEnv, overwrite=True)
-    assert runner._ENV_REGISTRY["freeway"] is ToyAgentsEnv
+    assert registry._SCENARIOS["freeway"].factory is ToyAgentsEnv
 
 
 # ------------------------------------------------------------------------------- Shapley

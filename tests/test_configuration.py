@@ -8,7 +8,7 @@ from pathlib import Path
 import gymnasium as gym
 import pytest
 
-from mapets_rl.envs import GYM_IDS, SCENARIOS, make_env, make_parallel_env
+from mapets_rl.envs import GYM_IDS, builtin_envs, make_env, make_parallel_env
 from mapets_rl.experiment.cli import main
 from recipes.mapets import MAPETS, MAPETSConfig
 
@@ -28,7 +28,7 @@ def test_a_recipe_trains_the_scenario_s_own_agent_count(tmp_path: Path) -> None:
     assert single.n_agents == 8
 
 
-@pytest.mark.parametrize("name", sorted(SCENARIOS))
+@pytest.mark.parametrize("name", builtin_envs())
 def test_unknown_scenario_keys_are_refused_with_the_accepted_ones(name: str) -> None:
     # the freeways derive n_cavs from n_vehicles x cav_ratio: n_vehicles is what a user sets
     size_key = "n_vehicles" if name.startswith("freeway") else "n_cavs"

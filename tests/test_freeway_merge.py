@@ -9,7 +9,13 @@ import pytest
 from pettingzoo.test import parallel_api_test
 from torchrl.envs.utils import check_env_specs
 
-from mapets_rl.envs import GYM_IDS, SCENARIOS, FreewayMergeEnv, FreewayMergeParallelEnv, make_env
+from mapets_rl.envs import (
+    GYM_IDS,
+    FreewayMergeEnv,
+    FreewayMergeParallelEnv,
+    make_env,
+    registered_scenario,
+)
 from mapets_rl.envs.freeway import CL, CR, KL
 from mapets_rl.envs.freeway_merge import OBS_DIM, RAMP_ROAD
 
@@ -19,7 +25,7 @@ x = 900 (y = 12), ramp lane id 3."""
 
 
 def test_registered_like_the_other_scenarios() -> None:
-    assert SCENARIOS["freeway-merge"][0] is FreewayMergeParallelEnv
+    assert registered_scenario("freeway-merge").parallel_env is FreewayMergeParallelEnv
     env = gym.make(GYM_IDS["freeway-merge"])
     assert isinstance(env.unwrapped, FreewayMergeEnv)
     obs, _ = env.reset(seed=0)

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 from cli_run import run_cli
 
+from mapets_rl.envs.registry import SCENARIO_GROUP
 from mapets_rl.experiment import (
     Experiment,
     available_envs,
@@ -25,7 +26,7 @@ from mapets_rl.experiment import (
     read_results,
     register_env,
 )
-from mapets_rl.experiment.plugins import RECIPE_GROUP, SCENARIO_GROUP, entry_points
+from mapets_rl.experiment.plugins import RECIPE_GROUP, entry_points
 
 ROOT = Path(__file__).resolve().parents[1]
 

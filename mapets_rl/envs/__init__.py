@@ -1,9 +1,12 @@
-"""Traffic scenarios of the papers, as gymnasium, PettingZoo and TorchRL environments."""
+"""Traffic scenarios of the papers, as gymnasium, PettingZoo and TorchRL environments, and the
+scenario registry (:mod:`mapets_rl.envs.registry`) that every part of the library looks
+scenarios up in."""
 
-from gymnasium.envs.registration import register, registry
+from types import MappingProxyType
+
+from gymnasium.envs import registration
 
 from mapets_rl.envs.factory import (
-    SCENARIOS,
     TrafficPettingZooWrapper,
     make_env,
     make_parallel_env,
@@ -18,13 +21,22 @@ from mapets_rl.envs.figure_eight import (
 from mapets_rl.envs.freeway import ACTION_NAMES, FreewayEnv
 from mapets_rl.envs.freeway_merge import FreewayMergeEnv, FreewayMergeParallelEnv
 from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, TrafficParallelEnv
+from mapets_rl.envs.registry import (
+    Scenario,
+    available_envs,
+    build_env,
+    builtin_envs,
+    register_env,
+    registered_scenario,
+    scenario_defaults,
+)
 from mapets_rl.envs.scripted import ScriptedCAVPolicy, traffic_env
 from mapets_rl.envs.traffic import MultiAgentTrafficEnv
 
 __all__ = [
     "ACTION_NAMES",
     "GYM_IDS",
-    "SCENARIOS",
+    "Scenario",
     "ScriptedCAVPolicy",
     "FigureEightEnv",
     "FigureEightParallelEnv",
@@ -35,28 +47,31 @@ __all__ = [
     "MultiAgentTrafficEnv",
     "TrafficParallelEnv",
     "TrafficPettingZooWrapper",
+    "available_envs",
+    "build_env",
+    "builtin_envs",
     "figure_eight_collision",
     "figure_eight_observation_bounds",
     "figure_eight_reward",
     "make_env",
     "make_parallel_env",
+    "register_env",
+    "registered_scenario",
+    "scenario_defaults",
     "traffic_env",
     "wrap_parallel_env",
 ]
 
-GYM_IDS = {
-    "figure-eight": "mapets_rl/FigureEight-v0",
-    "figure-eight-multilane": "mapets_rl/FigureEightMultiLane-v0",
-    "freeway": "mapets_rl/Freeway-v0",
-    "freeway-merge": "mapets_rl/FreewayMerge-v0",
-}
-"""Scenario name -> gymnasium id of its raw (array-valued) highway-env environment."""
+GYM_IDS = MappingProxyType({name: registered_scenario(name).gym_id for name in builtin_envs()})
+"""Built-in scenario name -> gymnasium id of its raw (array-valued) highway-env environment
+(derived from the scenario registry when ``mapets_rl.envs`` is imported)."""
 
 for _name, _id in GYM_IDS.items():
-    if _id not in registry:
-        _cls = SCENARIOS[_name][0].env_class
-        register(
+    if _id not in registration.registry:
+        _scenario = registered_scenario(_name)
+        _cls = _scenario.parallel_env.env_class
+        registration.register(
             id=_id,
             entry_point=f"{_cls.__module__}:{_cls.__name__}",
-            kwargs={"config": dict(SCENARIOS[_name][1])},
+            kwargs={"config": dict(_scenario.changes)},
         )

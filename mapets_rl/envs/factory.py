@@ -1,4 +1,8 @@
-"""TorchRL environments of the scenarios: ``make_env(name, **config)``.
+"""TorchRL environments of the built-in scenarios: ``make_env(name, **config)``.
+
+The built-in scenarios are declared at the end of this module, where they register themselves
+in the scenario registry (:mod:`mapets_rl.envs.registry`) with their PettingZoo env class, what
+they change from its defaults and their gymnasium id.
 
 The PettingZoo envs are wrapped by torchrl's ``PettingZooWrapper`` (specs, seeding, group map)
 with one group ``"agents"`` and ``use_mask=True``: crashed CAVs stay in the batch with
@@ -17,6 +21,7 @@ except the position,
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -28,16 +33,7 @@ from torchrl.envs.libs.pettingzoo import PettingZooWrapper
 
 from mapets_rl.envs.freeway_merge import FreewayMergeParallelEnv
 from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, TrafficParallelEnv
-
-SCENARIOS: dict[str, tuple[type[TrafficParallelEnv], dict[str, Any]]] = {
-    "figure-eight": (FigureEightParallelEnv, {}),
-    "figure-eight-multilane": (FigureEightParallelEnv, {"lanes": 2, "n_cavs": 22, "horizon": 400}),
-    "freeway": (FreewayParallelEnv, {}),
-    "freeway-merge": (FreewayMergeParallelEnv, {}),
-}
-"""Scenario name -> (PettingZoo env class, what the scenario changes from the env class's
-defaults). The one place a scenario's defaults are declared: ``make_env``, the recipes, the CLI
-and the gymnasium ids (``mapets_rl.envs.GYM_IDS``) all read them from here."""
+from mapets_rl.envs.registry import builtin_envs, register_builtin, registered_scenario
 
 
 class TrafficPettingZooWrapper(PettingZooWrapper):
@@ -161,11 +157,12 @@ class TrafficPettingZooWrapper(PettingZooWrapper):
 
 
 def make_parallel_env(name: str, **config: Any) -> TrafficParallelEnv:
-    """The PettingZoo ``ParallelEnv`` of scenario ``name`` (see ``SCENARIOS``)."""
-    if name not in SCENARIOS:
-        raise ValueError(f"unknown scenario name {name!r}; choose one of {sorted(SCENARIOS)}")
-    cls, defaults = SCENARIOS[name]
-    return cls(**{**defaults, **config})
+    """The PettingZoo ``ParallelEnv`` of built-in scenario ``name`` (its env class built with
+    the scenario's changes, then ``config``; see :mod:`mapets_rl.envs.registry`)."""
+    scenario = registered_scenario(name)
+    if scenario is None or scenario.parallel_env is None:
+        raise ValueError(f"unknown scenario name {name!r}; choose one of {builtin_envs()}")
+    return scenario.parallel_env(**{**scenario.changes, **config})
 
 
 def make_env(
@@ -236,3 +233,27 @@ def wrap_parallel_env(
         seed=seed,
         device=device,
     )
+
+
+def _register_builtin(
+    name: str, parallel_env: type[TrafficParallelEnv], gym_id: str, **changes: Any
+) -> None:
+    """Register built-in scenario ``name``: ``parallel_env`` with ``changes`` to its defaults,
+    built by :func:`make_env`, raw env registered with gymnasium as ``gym_id``."""
+    register_builtin(name, functools.partial(make_env, name), parallel_env, gym_id, changes)
+
+
+# The one place the built-in scenarios and their defaults are declared: make_env, build_env,
+# the recipes, the CLI, compare and the gymnasium ids (mapets_rl.envs.GYM_IDS) read them from
+# the registry.
+_register_builtin("figure-eight", FigureEightParallelEnv, "mapets_rl/FigureEight-v0")
+_register_builtin(
+    "figure-eight-multilane",
+    FigureEightParallelEnv,
+    "mapets_rl/FigureEightMultiLane-v0",
+    lanes=2,
+    n_cavs=22,
+    horizon=400,
+)
+_register_builtin("freeway", FreewayParallelEnv, "mapets_rl/Freeway-v0")
+_register_builtin("freeway-merge", FreewayMergeParallelEnv, "mapets_rl/FreewayMerge-v0")

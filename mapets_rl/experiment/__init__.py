@@ -73,7 +73,9 @@ Custom scenarios: ``register_env("name", factory)`` makes ``factory(**env_config
 to every recipe and to ``--env name`` in this process (replacing an existing scenario needs
 ``overwrite=True``); an entry point ``name = "mypackage.roads:factory"`` in the group
 ``mapets_rl.scenarios`` makes it available to every process, ``mapets-rl`` and ``resume``
-included (see :mod:`mapets_rl.experiment.plugins`).
+included. Both go to the one scenario registry, :mod:`mapets_rl.envs.registry`, where the
+built-in scenarios are registered too: ``register_env``, :func:`available_envs` and
+:func:`build_env` here are that registry's.
 
 The building blocks recipes share (keys of the ``"agents"`` group, ``AgentGroupSpec``,
 observation normalisation, one-hot action heads, ...) live in :mod:`mapets_rl.modules`; recipes
@@ -86,6 +88,7 @@ from typing import TYPE_CHECKING, Any
 from mapets_rl.config import ConfigError, ConfigSection, check
 
 if TYPE_CHECKING:
+    from mapets_rl.envs.registry import available_envs, build_env, register_env
     from mapets_rl.experiment.checkpoint import (
         CheckpointError,
         atomic_torch_save,
@@ -119,10 +122,7 @@ if TYPE_CHECKING:
     from mapets_rl.experiment.runner import (
         Experiment,
         SystemRewardMetrics,
-        available_envs,
-        build_env,
         default_run_dir,
-        register_env,
         run_recipe_name,
     )
     from mapets_rl.experiment.training import ModelFreeConfig, OffPolicyConfig, OnPolicyConfig
@@ -132,6 +132,9 @@ if TYPE_CHECKING:
 # training, comparison and reference import them: about 3 s). No import circle needs this any
 # more: the layers below (`mapets_rl.config`, imported above, envs, comm, models, planning, ...)
 # never import `mapets_rl.experiment`, and tests/test_architecture.py keeps it so.
+# Name -> the module defining it: a submodule of this package, or the scenario registry of the
+# envs floor (`available_envs`, `build_env`, `register_env` are re-exports of that one registry).
+_REGISTRY = "mapets_rl.envs.registry"
 _EXPORTS = {
     "CheckpointError": "checkpoint",
     "Experiment": "runner",
@@ -146,9 +149,9 @@ _EXPORTS = {
     "atomic_savefig": "files",
     "atomic_write": "files",
     "atomic_write_text": "files",
-    "available_envs": "runner",
+    "available_envs": _REGISTRY,
     "available_recipes": "plugins",
-    "build_env": "runner",
+    "build_env": _REGISTRY,
     "checkpoint_problem": "checkpoint",
     "compare": "comparison",
     "default_run_dir": "runner",
@@ -165,7 +168,7 @@ _EXPORTS = {
     "mean_ci95": "comparison",
     "mean_metrics": "results",
     "read_results": "results",
-    "register_env": "runner",
+    "register_env": _REGISTRY,
     "remove_stale_files": "checkpoint",
     "rng_state": "checkpoint",
     "run_recipe_name": "runner",
@@ -181,7 +184,10 @@ _EXPORTS = {
 def __getattr__(name: str) -> Any:
     if name not in _EXPORTS:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    module = _EXPORTS[name]
+    if module != _REGISTRY:
+        module = f"{__name__}.{module}"
+    value = getattr(importlib.import_module(module), name)
     globals()[name] = value
     return value
 

@@ -99,7 +99,7 @@ def _recipe_action_kinds(cls: type) -> tuple[str, ...]:
 def _scenario_group(env_name: str, env_config: Any) -> tuple[Any, str]:
     """``(AgentGroupSpec, "discrete" | "continuous")`` of scenario ``env_name`` built with
     ``env_config`` (the env is closed again)."""
-    from mapets_rl.experiment.runner import build_env
+    from mapets_rl.envs.registry import build_env
     from mapets_rl.modules import AgentGroupSpec
 
     env = build_env(env_name, env_config)
@@ -314,7 +314,7 @@ def _recipe_class(name: str) -> type:
 
 
 def _check_env(name: str) -> None:
-    from mapets_rl.experiment.runner import available_envs
+    from mapets_rl.envs.registry import available_envs
 
     known = available_envs()
     if name not in known:
@@ -583,7 +583,7 @@ def _field_lines(config_cls: type, values: object, prefix: str = "") -> list[str
 def _supported_scenarios(cls: type, config: object) -> list[str]:
     """One line per available scenario: whether RECIPE ``cls`` handles its actions (built with
     its default config; a scenario that cannot be built says why)."""
-    from mapets_rl.experiment.runner import available_envs
+    from mapets_rl.envs.registry import available_envs
 
     kinds = _recipe_action_kinds(cls)
     supported, other = [], []

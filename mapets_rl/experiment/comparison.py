@@ -152,23 +152,14 @@ def _group_values(
     return [{f: v for f, v in vals.items() if v is not _MISSING} for vals in values]
 
 
-def _scenario_defaults(name: str) -> dict[str, Any]:
-    """The config a built-in scenario runs with when ``env_config`` leaves a key unset (its
-    env class's defaults with the scenario's own changes); ``{}`` for other scenarios."""
-    from mapets_rl.envs.factory import SCENARIOS
-
-    if name not in SCENARIOS:
-        return {}
-    parallel_class, changes = SCENARIOS[name]
-    return {**parallel_class.env_class.default_config(), **changes}
-
-
 def _scenario(res: Mapping[str, Any]) -> dict[str, str]:
     """``{"env": name, "env_config.<key>": value as JSON}`` of a run: the keys its
     ``env_config`` sets, and every other key of a built-in scenario at its default (so that a
     key set to its default value and a key left unset compare equal)."""
+    from mapets_rl.envs.registry import scenario_defaults
+
     env_config = {
-        **_scenario_defaults(res["env"]),
+        **scenario_defaults(res["env"]),
         **(res.get("config", {}).get("env_config") or {}),
     }
     out = {"env": json.dumps(res["env"])}

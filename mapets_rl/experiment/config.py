@@ -282,7 +282,7 @@ class ExperimentConfig(RunConfig):
 
 def check_env_name(env: str) -> None:
     """ConfigError unless ``env`` is a registered scenario (see ``register_env``)."""
-    from mapets_rl.experiment.runner import available_envs
+    from mapets_rl.envs.registry import available_envs
 
     known = available_envs()
     check(env in known, "env", f"one of the registered scenarios {known}", env)

@@ -26,6 +26,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from tqdm import tqdm
 
 from mapets_rl.config import ConfigError, parse_override, read_yaml_mapping
+from mapets_rl.envs.registry import build_env
 from mapets_rl.experiment.checkpoint import (
     first_line,
     list_checkpoints,
@@ -44,7 +45,6 @@ from mapets_rl.experiment.files import (
     check_writable_dir,
     make_writable_dir,
 )
-from mapets_rl.experiment.plugins import SCENARIO_GROUP, entry_points, load_entry_point
 from mapets_rl.experiment.results import (
     ResultsWriter,
     RunLogger,
@@ -59,81 +59,6 @@ CONFIG_FILE = "config.yaml"
 RUN_FILE = "run.json"
 EVAL_SEED_OFFSET = 1_000_003
 BOUNDARY_SEED_STRIDE = 7_919
-
-_ENV_REGISTRY: dict[str, Callable[..., EnvBase]] = {}
-
-
-def register_env(name: str, factory: Callable[..., EnvBase], overwrite: bool = False) -> None:
-    """Make scenario ``name`` available to every recipe and the CLI in this process:
-    ``factory(**env_config)`` returns a torchrl EnvBase with the multi-agent ``"agents"``
-    layout. (A package makes a scenario available to every process, ``mapets-rl resume``
-    included, with an entry point in the group ``mapets_rl.scenarios``; see
-    :mod:`mapets_rl.experiment.plugins`.)
-
-    Registering a name that already exists (a built-in scenario, an installed one, or another
-    factory under the same name) raises ValueError unless ``overwrite=True``; registering the
-    same factory again is a no-op.
-    """
-    if not isinstance(name, str) or not name:
-        raise ValueError(f"name must be a non-empty scenario name, got {name!r}")
-    if not callable(factory):
-        raise ValueError(
-            f"factory must be callable (factory(**env_config) -> EnvBase), got "
-            f"{type(factory).__name__} {factory!r}"
-        )
-    existing = _ENV_REGISTRY.get(name)
-    if existing is factory:
-        return
-    if not overwrite:
-        kind = (
-            "already registered"
-            if existing is not None
-            else "a built-in scenario"
-            if name in _builtin_envs()
-            else "an installed scenario (entry point)"
-            if name in _installed_envs()
-            else None
-        )
-        if kind is not None:
-            raise ValueError(
-                f"scenario {name!r} is {kind}; pass overwrite=True to replace it "
-                "or choose another name"
-            )
-    _ENV_REGISTRY[name] = factory
-
-
-def _builtin_envs() -> tuple[str, ...]:
-    try:
-        from mapets_rl import envs
-    except ImportError:
-        return ()
-    return tuple(getattr(envs, "SCENARIOS", ()))
-
-
-def _installed_envs() -> tuple[str, ...]:
-    """Scenario names of the entry-point group ``mapets_rl.scenarios``."""
-    return tuple(entry_points(SCENARIO_GROUP))
-
-
-def available_envs() -> list[str]:
-    """Scenario names: those registered in this process, those of ``mapets_rl.envs`` and those
-    installed packages declare in the entry-point group ``mapets_rl.scenarios``."""
-    return sorted(set(_ENV_REGISTRY) | set(_builtin_envs()) | set(_installed_envs()))
-
-
-def build_env(name: str, env_config: Mapping[str, Any] | None = None) -> EnvBase:
-    """``factory(**env_config)`` of scenario ``name``: a factory registered in this process
-    first, then a built-in scenario (``mapets_rl.envs.make_env``), then an installed one (entry
-    point of the group ``mapets_rl.scenarios``)."""
-    env_config = dict(env_config or {})
-    if name in _ENV_REGISTRY:
-        return _ENV_REGISTRY[name](**env_config)
-    if name not in _builtin_envs() and name in _installed_envs():
-        factory = load_entry_point(SCENARIO_GROUP, name, "scenario")
-        return factory(**env_config)
-    from mapets_rl.envs import make_env
-
-    return make_env(name, **env_config)
 
 
 def default_run_dir(recipe: str, env: str, seed: int, root: str | os.PathLike = "runs") -> Path:
@@ -1027,10 +952,7 @@ def _crossed(prev: int, now: int, interval: int) -> bool:
 __all__ = [
     "ConfigError",
     "Experiment",
-    "available_envs",
-    "build_env",
     "default_run_dir",
-    "register_env",
     "run_recipe_name",
 ]
 

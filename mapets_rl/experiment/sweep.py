@@ -296,6 +296,19 @@ def _import_path(obj: Any, what: str) -> str:
     return f"{module}:{qualname}"
 
 
+def trial_scenarios(env: str) -> dict[str, str]:
+    """``{env: "module:qualname"}`` of the factory that scenario ``env`` was registered with in
+    this process (:func:`~mapets_rl.envs.registry.register_env`), which every trial registers
+    before it starts; ``{}`` for a built-in or installed scenario, which every process knows.
+    ValueError when the factory is not importable by the trial processes."""
+    from mapets_rl.envs.registry import registered_scenario
+
+    scenario = registered_scenario(env)
+    if scenario is None or scenario.builtin:
+        return {}
+    return {env: _import_path(scenario.factory, f"scenario {env!r}")}
+
+
 def _load_import_path(target: str) -> Any:
     module, _, qualname = target.partition(":")
     obj: Any = importlib.import_module(module)
@@ -313,8 +326,8 @@ def plan_trials(spec: SweepSpec) -> tuple[type, list[Trial]]:
             scenario, a bad grid key or value, a bad override or config file, or two trials
             whose directory names collide.
     """
+    from mapets_rl.envs.registry import available_envs, build_env
     from mapets_rl.experiment.plugins import load_recipe
-    from mapets_rl.experiment.runner import available_envs, build_env
 
     cls = load_recipe(spec.recipe)
     known = available_envs()
@@ -412,8 +425,8 @@ def run_trial(payload: Mapping[str, Any]) -> dict[str, Any]:
         _write_record(run_dir, record)
         import torch
 
+        from mapets_rl.envs.registry import register_env
         from mapets_rl.experiment.checkpoint import latest_checkpoint
-        from mapets_rl.experiment.runner import register_env
 
         torch.set_num_threads(max(1, int(payload["threads"])))
         cls = _load_import_path(payload["recipe"])
@@ -715,12 +728,8 @@ def run_sweep(spec: SweepSpec, echo: Callable[[str], None] = print) -> SweepResu
     if spec.backend == "ray":
         import_ray()
     _check_manifest(spec)
-    from mapets_rl.experiment import runner
-
     recipe = _import_path(cls, f"recipe {spec.recipe!r}")
-    scenarios = {}
-    if spec.env in runner._ENV_REGISTRY:
-        scenarios[spec.env] = _import_path(runner._ENV_REGISTRY[spec.env], f"scenario {spec.env!r}")
+    scenarios = trial_scenarios(spec.env)
     make_writable_dir(spec.out, "out")
     records: dict[str, dict[str, Any]] = {}
     todo: list[Trial] = []
