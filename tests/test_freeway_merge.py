@@ -120,6 +120,30 @@ def _ramp_vehicles(env: FreewayMergeEnv) -> list:
     return [v for v in env.road.vehicles if env.on_ramp(v)]
 
 
+def test_team_reward_pays_every_cav_the_mean_and_keeps_the_system_reward() -> None:
+    """``team_reward=True``: on the same episode (same seed, same actions, a crash included)
+    every driving CAV is paid the mean of the CAVs' own rewards, so the system reward (the sum
+    over CAVs) of every step is unchanged and the CAVs' rewards are equal."""
+    per_step = {}
+    for team in (False, True):
+        env = FreewayMergeEnv({"n_vehicles": 12, "cav_ratio": 1.0, "team_reward": team})
+        env.reset(seed=4)
+        rewards = []
+        for t in range(15):
+            actions = np.where(np.arange(len(env.cavs)) % 3 == t % 3, CL, KL)
+            _, _, terminated, truncated, info = env.step(actions)
+            rewards.append(np.asarray(info["agent_rewards"], dtype=np.float64).copy())
+            if terminated or truncated:
+                break
+        per_step[team] = rewards
+    own, team = per_step[False], per_step[True]
+    assert len(own) == len(team) and any(np.ptp(r) > 0 for r in own)
+    for r_own, r_team in zip(own, team, strict=True):
+        assert r_team.sum() == pytest.approx(r_own.sum(), rel=1e-5)
+        paid = r_team != 0
+        assert np.allclose(r_team[paid], r_team[paid][0])
+
+
 @pytest.mark.parametrize("cav_ratio", [0.0, 1.0])
 def test_ramp_vehicles_merge_into_a_free_rightmost_lane(cav_ratio: float) -> None:
     """Humans (MOBIL) and CAVs playing KL on the ramp (MOBIL) join the rightmost lane when
@@ -218,6 +242,7 @@ def test_rendering_shows_the_ramp() -> None:
         ({"ramp_fraction": 0.9, "ramp_length": 100.0}, "ramp_fraction=0.9 puts 27"),
         ({"ramp_fraction": 0.0, "n_vehicles": 95}, "n_vehicles=95 leave 95 on the mainline"),
         ({"cav_target_speed": 31.0}, "unknown config key"),
+        ({"team_reward": 1}, "team_reward must be True or False"),
     ],
 )
 def test_bad_config_is_refused(config: dict, message: str) -> None:

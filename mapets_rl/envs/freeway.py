@@ -129,7 +129,9 @@ class FreewayEnv(MultiAgentTrafficEnv):
     ``spawn_length=600`` m, ``min_spacing=20`` m, ``initial_speed=(22, 28)`` m/s,
     ``hv_target_speed=(25, 30)`` m/s, ``cav_target_speed=31.0`` m/s, ``speed_limit=31.3`` m/s
     (70 mph), ``velocity_weight=0.1`` (w), ``comfort_threshold=1.5`` m/s^2 (Theta),
-    ``collision_reward=-10``, ``perception=100`` m.
+    ``collision_reward=-10``, ``perception=100`` m, ``team_reward=False`` (True: every CAV is
+    paid the mean reward of the CAVs driving that step instead of its own, the fully cooperative
+    reward; the system reward, the sum over CAVs, is the same).
     """
 
     obs_dim = OBS_DIM
@@ -168,6 +170,7 @@ class FreewayEnv(MultiAgentTrafficEnv):
                 "cav_target_speed": 31.0,
                 "speed_limit": 31.3,
                 "velocity_weight": 0.1,
+                "team_reward": False,
                 "comfort_threshold": 1.5,
                 "perception": 100.0,
                 "screen_width": 900,
@@ -197,6 +200,10 @@ class FreewayEnv(MultiAgentTrafficEnv):
         require_number(config, "speed_limit", high=PHYSICAL_MAX_SPEED, unit="m/s")
         require_number(config, "min_spacing", low=7.0, unit="m")
         require_number(config, "velocity_weight")
+        require(
+            isinstance(config["team_reward"], bool),
+            f"team_reward must be True or False, got {config['team_reward']!r}",
+        )
         require_range(config, "initial_speed", low=0.0, high=config["speed_limit"], unit="m/s")
         cls.validate_target_speeds(config)
         capacity = cls.capacity(config)
@@ -418,7 +425,10 @@ class FreewayEnv(MultiAgentTrafficEnv):
         speed = np.array([cav.speed for cav in self.cavs])
         rewards = self.config["velocity_weight"] * speed + np.nan_to_num(comfort)
         rewards = np.where(self._crashed_now, self.config["collision_reward"], rewards)
-        return (rewards * (self.alive | self._crashed_now)).astype(np.float32)
+        paid = self.alive | self._crashed_now
+        if self.config["team_reward"] and paid.any():
+            rewards = np.full_like(rewards, rewards[paid].mean())
+        return (rewards * paid).astype(np.float32)
 
     def _info(self, obs: np.ndarray, action: Any = None) -> dict:
         info = super()._info(obs, action)

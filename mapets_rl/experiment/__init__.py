@@ -31,13 +31,14 @@ How a recipe plugs in
    counters + results entries + python/numpy/torch RNG states), ``from_run_dir(run_dir)``
    (resume / evaluate a saved run). Override ``episode_metrics`` / ``batch_metrics`` only to
    add metrics.
-   A recipe whose unit of training is not a collected batch (MA-PETS: one episode) keeps the
-   loop of ``train()`` (progress bar, logging, checkpoints, results, stop condition, the
-   ``on_iteration_end`` callback) and overrides its steps: ``progress()`` (done, total),
-   ``run_iteration()`` (one unit; returns its metrics), ``end_iteration()`` (here
-   ``self.results.add_train(frames, metrics)`` and a checkpoint), ``start_training()`` /
-   ``finish_training()``. Training entries (``add_train``) and deterministic evaluations
-   (``add_evaluation``) are kept apart; ``compare`` never mixes the two.
+   A recipe whose unit of training is not a collected batch (MA-PETS: one episode of its
+   Algorithm 1) writes its own ``train()`` as one loop on ``self.training_loop(...)``, the
+   bookkeeping every loop shares (progress bar, ``train``/``timers`` logging, deferred writes
+   of a resumed run, the ``on_iteration_end`` callback): ``loop.record(metrics)`` after each
+   iteration, then its results (``self.results.add_train(frames, metrics)``) and checkpoint,
+   then ``loop.end_iteration(metrics)`` (see ``recipes/mapets.py``). Training entries
+   (``add_train``) and deterministic evaluations (``add_evaluation``) are kept apart;
+   ``compare`` never mixes the two.
 4. Register it for the CLI with an entry point in the ``pyproject.toml`` of the package that
    holds it (then reinstall it, ``pip install -e .``)::
 

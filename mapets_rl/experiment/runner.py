@@ -122,13 +122,13 @@ class Experiment:
     ``super().__init__`` and set ``self.collector = self.make_collector(policy)`` and
     ``self.eval_policy``.
 
-    :meth:`train` is a loop over iterations that any recipe shares (progress bar, logging,
-    evaluation, checkpoints, results, stop condition); by default an iteration collects one
-    batch and passes it to :meth:`train_step`, on the frame budget of an
-    :class:`ExperimentConfig`. A recipe with another unit of work (MA-PETS: one episode per
-    iteration, on a :class:`RunConfig` without a frame budget) overrides the loop's steps
-    (:meth:`progress`, :meth:`run_iteration`, :meth:`end_iteration`, :meth:`start_training`,
-    :meth:`finish_training`, the progress bar's label and postfix) instead of the loop.
+    :meth:`train` is the model-free loop: an iteration collects one batch and passes it to
+    :meth:`train_step`, on the frame budget of an :class:`ExperimentConfig`, then evaluates
+    every ``eval_interval`` and checkpoints every ``checkpoint_interval`` frames. A recipe
+    with another unit of work (MA-PETS: one episode of its Algorithm 1 per iteration, on a
+    :class:`RunConfig` without a frame budget) writes its own ``train`` as one loop on
+    :meth:`training_loop`, the bookkeeping both loops share (progress bar, logging, deferred
+    writes of a resumed run, the ``on_iteration_end`` callback).
 
     An experiment is the only writer of its run directory: it takes the directory's
     :class:`~mapets_rl.experiment.files.RunDirLock` before it writes anything there (a second
