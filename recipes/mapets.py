@@ -49,11 +49,7 @@ from torchrl.objectives import LossModule
 
 from mapets_rl.comm import CommConfig, CommunicationRange, NeighbourDatasets, clique_cover_number
 from mapets_rl.config import ConfigError
-from mapets_rl.envs import (
-    figure_eight_collision,
-    figure_eight_observation_bounds,
-    figure_eight_reward,
-)
+from mapets_rl.envs import figure_eight_observation_bounds, registered_scenario
 from mapets_rl.envs.figure_eight import OBSERVATION_SIZES
 from mapets_rl.envs.registry import build_env, scenario_defaults
 from mapets_rl.experiment import Experiment, RunConfig, check, log_scalars
@@ -334,14 +330,16 @@ class MAPETS(Experiment):
         config: a :class:`MAPETSConfig`.
         run_dir: run directory (default ``runs/mapets_<env>_seed<N>_<time>``).
         reward_fn: the known reward the planner maximises, ``(obs [..., S], action [..., A],
-            next_obs [..., S]) -> [...]``; default :func:`mapets_rl.envs.figure_eight_reward`
-            (paper eq. 26 with a predicted-collision penalty, ``config.collision_gap``,
-            ``config.crossing_gap``, ``config.lane_change_gap``, ``config.headway`` and
-            ``config.collision_reward``),
-            which needs a figure-eight observation (7, 10 or 15 features).
+            next_obs [..., S]) -> [...]``; default: the scenario's planner reward (registry;
+            the figure-eight scenarios': :func:`mapets_rl.envs.figure_eight_reward`, paper
+            eq. 26 with a predicted-collision penalty, called with ``config.collision_gap``,
+            ``config.crossing_gap``, ``config.lane_change_gap``, ``config.headway``,
+            ``config.lane_change_time`` and ``config.collision_reward``); a scenario without
+            one (the freeways, a ``register_env`` scenario) needs ``reward_fn``.
         termination_fn: the known termination of a planned trajectory, ``(obs, action,
-            next_obs) -> [...]`` bool; default (with the default ``reward_fn`` only)
-            :func:`mapets_rl.envs.figure_eight_collision`; ``None`` with a custom ``reward_fn``
+            next_obs) -> [...]`` bool; default (with the default ``reward_fn`` only) the
+            scenario's (the figure-eight's: :func:`mapets_rl.envs.figure_eight_collision`);
+            ``None`` with a custom ``reward_fn``
             means trajectories never terminate.
 
     Attributes:
@@ -385,7 +383,8 @@ class MAPETS(Experiment):
         self.obs_coder, self.action_coder = self._tile_coders(group, bounds.low, bounds.high)
         if self.obs_coder is not None:
             self.env.append_transform(TileCodedObservation(self.obs_coder, in_keys=[OBS]))
-        if reward_fn is None:
+        if reward_fn is None:  # the scenario's own (checked above), with the config's fields
+            scenario = registered_scenario(config.env)
             gaps = {
                 "collision_gap": config.collision_gap,
                 "crossing_gap": config.crossing_gap,
@@ -394,10 +393,10 @@ class MAPETS(Experiment):
                 "lane_change_time": config.lane_change_time,
             }
             reward_fn = functools.partial(
-                figure_eight_reward, collision_reward=config.collision_reward, **gaps
+                scenario.planner_reward, collision_reward=config.collision_reward, **gaps
             )
-            if termination_fn is None:
-                termination_fn = functools.partial(figure_eight_collision, **gaps)
+            if termination_fn is None and scenario.planner_termination is not None:
+                termination_fn = functools.partial(scenario.planner_termination, **gaps)
         self.reward_fn = reward_fn
         self.termination_fn = termination_fn
         self.n_agents = n = group.n_agents
@@ -498,11 +497,12 @@ class MAPETS(Experiment):
                     "reward and collision test, which a given reward_fn replaces: leave "
                     f"{', '.join(FIGURE_EIGHT_REWARD_FIELDS)} at their defaults"
                 )
-        if reward_fn is None and group.obs_dim not in OBSERVATION_SIZES:
+        scenario = registered_scenario(config.env)
+        if reward_fn is None and (scenario is None or scenario.planner_reward is None):
             raise ValueError(
-                f"reward_fn is required for env {config.env!r}: the default figure_eight_reward "
-                f"needs the figure-eight's observation (sizes {list(OBSERVATION_SIZES)}), "
-                f"got {group.obs_dim}"
+                f"reward_fn is required for env {config.env!r}: the scenario supplies no "
+                "planner reward (the figure-eight scenarios supply theirs; pass "
+                "MAPETS(config, reward_fn=..., termination_fn=...) for another scenario)"
             )
         planner, model = config.planner, config.model
         dims = (group.n_agents, group.obs_dim, group.action_dim)

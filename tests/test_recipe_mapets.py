@@ -351,3 +351,25 @@ def test_readme_loss_snippet_trains_mapets(tmp_path):
     (_, second) = [e["metrics"] for e in exp.train()]
     assert all(not torch.equal(a, b) for a, b in zip(before, exp.model.weights, strict=True))
     assert second["model_nll"] < second["model_nll_first_epoch"]  # the squared error fell
+
+
+def test_a_scenario_without_a_planner_reward_needs_reward_fn(tmp_path, monkeypatch):
+    """The figure-eight's reward is the figure-eight scenarios' own: a scenario registered
+    without one (here the figure-eight itself under another name, so its observations would
+    fit) is refused before the run directory exists unless ``reward_fn`` is given."""
+    import functools
+
+    from mapets_rl.envs import make_env, registry
+    from mapets_rl.envs.figure_eight import figure_eight_reward
+
+    monkeypatch.setattr(registry, "_SCENARIOS", dict(registry._SCENARIOS))
+    registry.register_env("my-loop", functools.partial(make_env, "figure-eight"))
+    config = tiny(env="my-loop")
+    run_dir = tmp_path / "run"
+    with pytest.raises(ValueError, match="reward_fn is required for env 'my-loop'"):
+        MAPETS(config, run_dir)
+    assert not run_dir.exists()
+    exp = MAPETS(config, run_dir, reward_fn=figure_eight_reward)
+    assert exp.reward_fn is figure_eight_reward and exp.termination_fn is None
+    exp.close()
+    assert registry.registered_scenario("figure-eight").planner_reward is figure_eight_reward

@@ -31,6 +31,7 @@ from torchrl.data import OneHot
 from torchrl.envs import EnvBase
 from torchrl.envs.libs.pettingzoo import PettingZooWrapper
 
+from mapets_rl.envs.figure_eight import figure_eight_collision, figure_eight_reward
 from mapets_rl.envs.freeway_merge import FreewayMergeParallelEnv
 from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, TrafficParallelEnv
 from mapets_rl.envs.registry import builtin_envs, register_builtin, registered_scenario
@@ -239,8 +240,17 @@ def _register_builtin(
     name: str, parallel_env: type[TrafficParallelEnv], gym_id: str, **changes: Any
 ) -> None:
     """Register built-in scenario ``name``: ``parallel_env`` with ``changes`` to its defaults,
-    built by :func:`make_env`, raw env registered with gymnasium as ``gym_id``."""
-    register_builtin(name, functools.partial(make_env, name), parallel_env, gym_id, changes)
+    built by :func:`make_env`, raw env registered with gymnasium as ``gym_id``; the
+    figure-eight scenarios with their planner reward and crash test."""
+    planning = {}
+    if parallel_env is FigureEightParallelEnv:
+        planning = {
+            "planner_reward": figure_eight_reward,
+            "planner_termination": figure_eight_collision,
+        }
+    register_builtin(
+        name, functools.partial(make_env, name), parallel_env, gym_id, changes, **planning
+    )
 
 
 # The one place the built-in scenarios and their defaults are declared: make_env, build_env,

@@ -45,12 +45,20 @@ class Scenario:
             scenario registered with :func:`register_env`.
         changes: what a built-in scenario changes from its env class's defaults.
         gym_id: gymnasium id of a built-in scenario's raw (array-valued) highway-env env.
+        planner_reward / planner_termination: the known reward and crash test a model-based
+            planner (MA-PETS) uses on the scenario's observations, ``(obs [..., S], action
+            [..., A], next_obs [..., S]) -> [...]`` (the figure-eight's:
+            :func:`~mapets_rl.envs.figure_eight_reward`,
+            :func:`~mapets_rl.envs.figure_eight_collision`); None where the scenario has
+            none (MA-PETS then needs a ``reward_fn``).
     """
 
     factory: Callable[..., EnvBase]
     parallel_env: type[TrafficParallelEnv] | None = None
     changes: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
     gym_id: str | None = None
+    planner_reward: Callable[..., Any] | None = None
+    planner_termination: Callable[..., Any] | None = None
 
     @property
     def builtin(self) -> bool:
@@ -69,15 +77,23 @@ def register_builtin(
     parallel_env: type[TrafficParallelEnv],
     gym_id: str,
     changes: Mapping[str, Any] | None = None,
+    planner_reward: Callable[..., Any] | None = None,
+    planner_termination: Callable[..., Any] | None = None,
 ) -> None:
     """Register one of the package's own traffic scenarios (``mapets_rl.envs.factory`` does on
     import): ``factory(**env_config)`` builds it, ``parallel_env`` is its PettingZoo env class,
-    ``changes`` what the scenario changes from that class's defaults and ``gym_id`` its
-    gymnasium id. A name registered before raises ValueError."""
+    ``changes`` what the scenario changes from that class's defaults, ``gym_id`` its
+    gymnasium id and ``planner_reward`` / ``planner_termination`` what a planner scores its
+    trajectories with (see :class:`Scenario`). A name registered before raises ValueError."""
     if name in _SCENARIOS:
         raise ValueError(f"scenario {name!r} is already registered")
     _SCENARIOS[name] = Scenario(
-        factory, parallel_env, MappingProxyType(dict(changes or {})), gym_id
+        factory,
+        parallel_env,
+        MappingProxyType(dict(changes or {})),
+        gym_id,
+        planner_reward,
+        planner_termination,
     )
 
 
