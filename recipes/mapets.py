@@ -44,7 +44,6 @@ from typing import Any, ClassVar
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictSequential
-from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
 
 from mapets_rl.comm import CommConfig, CommunicationRange, NeighbourDatasets, clique_cover_number
@@ -381,8 +380,8 @@ class MAPETS(Experiment):
         super().__init__(config, run_dir, env)
         bounds = group.action_spec.space
         self.obs_coder, self.action_coder = self._tile_coders(group, bounds.low, bounds.high)
-        if self.obs_coder is not None:
-            self.env.append_transform(TileCodedObservation(self.obs_coder, in_keys=[OBS]))
+        for transform in self.observation_transforms():
+            self.env.append_transform(transform)
         if reward_fn is None:  # the scenario's own (checked above), with the config's fields
             scenario = registered_scenario(config.env)
             gaps = {
@@ -705,15 +704,12 @@ class MAPETS(Experiment):
         return out
 
     # ------------------------------------------------------------------ evaluation
-    def _render_env(self) -> EnvBase:
-        """The video env, observing tile-coded observations when the variant is on."""
-        fresh = self._video_env is None
-        env = super()._render_env()
-        if fresh and self.obs_coder is not None:
-            env = env.append_transform(TileCodedObservation(self.obs_coder, in_keys=[OBS]))
-            self._video_env = env
-        return env
+    def observation_transforms(self) -> list[Any]:
+        """The tile-coded observation of the discretised variant (also on the video env)."""
+        if self.obs_coder is None:
+            return []
+        return [TileCodedObservation(self.obs_coder, in_keys=[OBS])]
 
-    def _eval_episode(self, frames: list[Any] | None) -> TensorDictBase:
+    def on_evaluation_episode_start(self) -> None:
+        """Each evaluation episode plans from a cold start."""
         self.planner.reset()
-        return super()._eval_episode(frames)

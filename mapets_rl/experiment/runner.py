@@ -544,10 +544,23 @@ class Experiment:
                     f"video needs scenario {self.config.env!r} to accept "
                     f"render_mode='rgb_array' ({err})"
                 ) from err
+            for transform in self.observation_transforms():
+                self._video_env = self._video_env.append_transform(transform)
         return self._video_env
+
+    def observation_transforms(self) -> list[Any]:
+        """Named callback: torchrl transforms the recipe appends to its environment, appended
+        to the video environment of :meth:`evaluate` too (MA-PETS: the tile-coded
+        observation of its discretised variant). Default: none."""
+        return []
+
+    def on_evaluation_episode_start(self) -> None:
+        """Named callback: called before each evaluation episode (MA-PETS forgets its
+        planner's warm start). Default: nothing."""
 
     def _eval_episode(self, frames: list[Any] | None) -> TensorDictBase:
         """One episode until the root ``done``; returns the stacked steps [T]."""
+        self.on_evaluation_episode_start()
         td = self.env.reset()
         steps = []
         while True:
