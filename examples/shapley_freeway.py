@@ -61,10 +61,10 @@ def env_overrides(args: argparse.Namespace) -> list[str]:
     return [f"env_config.{item}" for item in args.env_override]
 
 
-def keep_lane_reference(seed: int, args: argparse.Namespace) -> tuple[float, float]:
-    """System reward and collisions per episode of the scripted keep-lane policy
-    (:func:`~mapets_rl.experiment.evaluate_scripted`) on the evaluation episodes the learned
-    runs of ``seed`` are scored on."""
+def keep_lane_reference(seed: int, args: argparse.Namespace) -> tuple[float, float, float]:
+    """System reward, collisions and ramp vehicles stuck (freeway-merge; 0 elsewhere) per
+    episode of the scripted keep-lane policy (:func:`~mapets_rl.experiment.evaluate_scripted`)
+    on the evaluation episodes the learned runs of ``seed`` are scored on."""
     config = ExperimentConfig(
         env=args.env,
         env_config={"n_vehicles": args.n_vehicles, "cav_ratio": args.cav_ratio},
@@ -73,7 +73,11 @@ def keep_lane_reference(seed: int, args: argparse.Namespace) -> tuple[float, flo
     ).with_overrides(env_overrides(args))
     metrics = evaluate_scripted(config)
     n_cavs = int(round(args.cav_ratio * args.n_vehicles))
-    return metrics["return"] * n_cavs, float(metrics.get("collisions", 0.0))
+    return (
+        metrics["return"] * n_cavs,
+        float(metrics.get("collisions", 0.0)),
+        float(metrics.get("ramp_stuck", 0.0)),
+    )
 
 
 def run_one(algo: str, seed: int, args: argparse.Namespace) -> Path:
@@ -113,18 +117,31 @@ def run_one(algo: str, seed: int, args: argparse.Namespace) -> Path:
     return run_dir
 
 
-def system_curves(run_dir: Path, n_cavs: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """Evaluation frames ``[E]``, mean episode system reward ``[E]`` (per-CAV return x CAVs)
-    and the final evaluation's collisions per episode."""
+def system_curves(run_dir: Path, n_cavs: int) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Evaluation frames ``[E]``, mean episode system reward ``[E]`` (per-CAV return x CAVs),
+    and the final evaluation's collisions and ramp vehicles stuck (freeway-merge) per
+    episode."""
     evals = read_results(run_dir)["evaluations"]
     frames = np.array([e["frames"] for e in evals])
     system = np.array([e["metrics"]["return"] * n_cavs for e in evals])
-    return frames, system, float(evals[-1]["metrics"].get("collisions", 0.0))
+    final = evals[-1]["metrics"]
+    return frames, system, float(final.get("collisions", 0.0)), float(final.get("ramp_stuck", 0))
 
 
-def final_columns(finals: np.ndarray, collisions: list[float]) -> tuple[dict[str, Any], str]:
+def trained(run_dir: Path, frames: int) -> bool:
+    """Whether ``run_dir`` holds a run evaluated at ``frames`` frames or later."""
+    if not (run_dir / "results.json").is_file():
+        return False
+    evaluations = read_results(run_dir)["evaluations"]
+    return bool(evaluations) and evaluations[-1]["frames"] >= frames
+
+
+def final_columns(
+    finals: np.ndarray, collisions: list[float], stuck: list[float]
+) -> tuple[dict[str, Any], str]:
     """Summary fields and table cells of the final evaluation of each seed: system reward
-    ``finals [seeds]`` (mean ± 95% CI, per seed, spread) and collisions per episode."""
+    ``finals [seeds]`` (mean ± 95% CI, per seed, spread), collisions and ramp vehicles stuck
+    per episode."""
     mean, half = mean_ci95(finals.tolist())
     spread = float(finals.max() - finals.min())
     fields = {
@@ -133,11 +150,12 @@ def final_columns(finals: np.ndarray, collisions: list[float]) -> tuple[dict[str
         "final_per_seed": finals.tolist(),
         "final_spread": spread,
         "final_collisions_per_seed": collisions,
+        "final_ramp_stuck_per_seed": stuck,
         "seeds": len(finals),
     }
     cells = (
         f"{mean:.1f} ± {half:.1f} | {', '.join(f'{v:.1f}' for v in finals)} | {spread:.1f} "
-        f"| {', '.join(f'{c:g}' for c in collisions)}"
+        f"| {', '.join(f'{c:g}' for c in collisions)} | {', '.join(f'{c:g}' for c in stuck)}"
     )
     return fields, cells
 
@@ -169,6 +187,12 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
     )
     parser.add_argument("--out", default="outputs/shapley_freeway")
     parser.add_argument("--progress", action="store_true")
+    parser.add_argument(
+        "--report-only",
+        action="store_true",
+        help="train nothing: plot and tabulate the runs under --out that reached --frames "
+        "(the others are listed as skipped)",
+    )
     args = parser.parse_args(argv)
     for name, val in (("frames", args.frames), ("eval_interval", args.eval_interval)):
         if val < 1:
@@ -185,8 +209,15 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
     curves: dict[str, list[tuple[np.ndarray, np.ndarray, float]]] = {}
     for algo in args.algorithms:
         for seed in args.seeds:
-            print(f"training {algo} seed {seed} ...", flush=True)
-            curves.setdefault(algo, []).append(system_curves(run_one(algo, seed, args), n_cavs))
+            run_dir = out / "runs" / f"{algo}_seed{seed}"
+            if args.report_only:
+                if not trained(run_dir, args.frames):
+                    print(f"skipped {algo} seed {seed}: not trained to {args.frames} frames")
+                    continue
+            else:
+                print(f"training {algo} seed {seed} ...", flush=True)
+                run_dir = run_one(algo, seed, args)
+            curves.setdefault(algo, []).append(system_curves(run_dir, n_cavs))
 
     fig, ax = plt.subplots(figsize=(6, 4))
     summary: dict[str, dict[str, Any]] = {}
@@ -202,7 +233,7 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
         ax.plot(episodes, mean, label=LABELS[algo])
         ax.fill_between(episodes, mean - half, mean + half, alpha=0.2)
         first = stats[0]
-        fields, cells = final_columns(values[:, -1], [r[2] for r in runs])
+        fields, cells = final_columns(values[:, -1], [r[2] for r in runs], [r[3] for r in runs])
         summary[algo] = {
             "first_mean": first[0],
             "first_ci95": first[1],
@@ -210,7 +241,9 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
             "frames": int(frames[length - 1]),
         }
         rows.append(f"| {LABELS[algo]} | {first[0]:.1f} ± {first[1]:.1f} | {cells} |")
-    fields, cells = final_columns(np.array([r[0] for r in reference]), [r[1] for r in reference])
+    fields, cells = final_columns(
+        np.array([r[0] for r in reference]), [r[1] for r in reference], [r[2] for r in reference]
+    )
     summary["keep_lane"] = {**fields, "frames": 0}
     rows.append(f"| keep lane (scripted, untrained) | - | {cells} |")
     reference_line = {"color": "black", "linestyle": "--", "linewidth": 1}
@@ -232,8 +265,9 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
             "(speed under IDM) is scored on the same evaluation episodes per seed.",
             "",
             "| algorithm | first evaluation | final evaluation | final, per seed "
-            "| spread (max - min) | collisions / episode (final, per seed) |",
-            "|---|---|---|---|---|---|",
+            "| spread (max - min) | collisions / episode (final, per seed) "
+            "| ramp vehicles stuck / episode (final, per seed) |",
+            "|---|---|---|---|---|---|---|",
             *rows,
         ]
     )

@@ -45,6 +45,13 @@ def test_four_algorithms_tiny(tmp_path: Path, load_script: Callable[[str], Modul
     # a finished run without its results.json is restored from its checkpoint, not retrained
     (tmp_path / "runs" / "coma_seed0" / "results.json").unlink()
     assert example.main(argv) == {**summary, "keep_lane": keep}
+    # --report-only trains nothing: the untrained seed 2 is skipped, the others reported
+    seeds = argv.index("--seeds")
+    report = [*argv[: seeds + 1], "0", "1", "2", *argv[seeds + 3 :], "--report-only"]
+    reported = example.main(report)
+    assert not (tmp_path / "runs" / "coma_seed2").exists()
+    assert {k: v for k, v in reported.items() if k != "keep_lane"} == summary
+    assert len(reported["keep_lane"]["final_per_seed"]) == 3
 
 
 def test_bad_env_override_fails_before_training(
