@@ -87,9 +87,7 @@ def run_one(algo: str, seed: int, args: argparse.Namespace) -> Path:
     overrides = [f"total_frames={args.frames}"]
     if latest_checkpoint(run_dir) is not None:
         # a run whose results.json is gone is still resumed (its checkpoint holds the results)
-        has_results = (run_dir / "results.json").is_file()
-        evaluations = read_results(run_dir)["evaluations"] if has_results else []
-        if evaluations and evaluations[-1]["frames"] >= args.frames:
+        if trained(run_dir, args.frames):
             return run_dir  # finished: nothing is rebuilt or rewritten
         # a finished run's train() only rewrites what is missing (results.json)
         exp = cls.from_run_dir(run_dir, overrides=overrides)

@@ -561,39 +561,35 @@ class MAPETS(Experiment):
             the run's per-episode entries ``{"frames", "metrics"}`` (as in ``results.json``).
         """
         cfg = self.config
-        self._hold_lock()
-        try:
-            with self.training_loop(
-                on_episode_end,
-                progress=lambda: (self.episode, cfg.episodes),
-                label=f"{self.name} {cfg.env} d={cfg.comm.comm_range:g} seed {cfg.seed}",
-                postfix=lambda m, fps: {k: f"{m[k]:.3g}" for k in ("agility", "safety") if k in m},
-            ) as loop:
-                while not loop.finished:
-                    episode = self.episode + 1
-                    self._seed_episode(episode)
-                    random_actions = episode <= cfg.random_episodes
-                    start = time.perf_counter()
-                    rollout = self.run_episode(random_actions)  # lines 5-15: act, observe
-                    act_time = time.perf_counter() - start
-                    metrics = {"episode": float(episode), "random": float(random_actions)}
-                    metrics.update(self.episode_metrics(rollout))
-                    metrics["nonfinite_rewards"] = float(self.planner.nonfinite_rewards.sum())
-                    metrics.update(self.store_and_share(rollout))  # lines 16-17: D(i)+, share
-                    start = time.perf_counter()
-                    metrics.update(self.train_models())  # line 4: refit every ensemble
-                    metrics["train_time"] = time.perf_counter() - start
-                    metrics["step_time"] = act_time / rollout.shape[0]
-                    self.frames += rollout.shape[0]
-                    self.counters.episode = episode
-                    loop.record(metrics)
-                    self.results.add_train(self.frames, metrics)
-                    self.latest_metrics = dict(metrics)
-                    self.save_checkpoint()
-                    loop.end_iteration(metrics)
-            return self.results.train
-        finally:
-            self.close()
+        with self.training_loop(
+            on_episode_end,
+            progress=lambda: (self.episode, cfg.episodes),
+            label=f"{self.name} {cfg.env} d={cfg.comm.comm_range:g} seed {cfg.seed}",
+            postfix=lambda m, fps: {k: f"{m[k]:.3g}" for k in ("agility", "safety") if k in m},
+        ) as loop:
+            while not loop.finished:
+                episode = self.episode + 1
+                self._seed_episode(episode)
+                random_actions = episode <= cfg.random_episodes
+                start = time.perf_counter()
+                rollout = self.run_episode(random_actions)  # lines 5-15: act, observe
+                act_time = time.perf_counter() - start
+                metrics = {"episode": float(episode), "random": float(random_actions)}
+                metrics.update(self.episode_metrics(rollout))
+                metrics["nonfinite_rewards"] = float(self.planner.nonfinite_rewards.sum())
+                metrics.update(self.store_and_share(rollout))  # lines 16-17: D(i)+, share
+                start = time.perf_counter()
+                metrics.update(self.train_models())  # line 4: refit every ensemble
+                metrics["train_time"] = time.perf_counter() - start
+                metrics["step_time"] = act_time / rollout.shape[0]
+                self.frames += rollout.shape[0]
+                self.counters.episode = episode
+                loop.record(metrics)
+                self.results.add_train(self.frames, metrics)
+                self.latest_metrics = dict(metrics)
+                self.save_checkpoint()
+                loop.end_iteration(metrics)
+        return self.results.train
 
     def _seed_episode(self, episode: int) -> None:
         """Seed the env and every private random stream from ``(seed, episode)``."""

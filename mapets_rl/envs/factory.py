@@ -236,34 +236,41 @@ def wrap_parallel_env(
     )
 
 
+_FIGURE_EIGHT_PLANNER = {
+    "planner_reward": figure_eight_reward,
+    "planner_termination": figure_eight_collision,
+}
+"""What a model-based planner scores figure-eight trajectories with (the registry's
+``planner_reward`` / ``planner_termination``)."""
+
+
 def _register_builtin(
-    name: str, parallel_env: type[TrafficParallelEnv], gym_id: str, **changes: Any
+    name: str,
+    parallel_env: type[TrafficParallelEnv],
+    gym_id: str,
+    changes: dict[str, Any] | None = None,
+    **planner: Any,
 ) -> None:
     """Register built-in scenario ``name``: ``parallel_env`` with ``changes`` to its defaults,
-    built by :func:`make_env`, raw env registered with gymnasium as ``gym_id``; the
-    figure-eight scenarios with their planner reward and crash test."""
-    planning = {}
-    if parallel_env is FigureEightParallelEnv:
-        planning = {
-            "planner_reward": figure_eight_reward,
-            "planner_termination": figure_eight_collision,
-        }
+    built by :func:`make_env`, raw env registered with gymnasium as ``gym_id``, and the
+    ``planner_reward`` / ``planner_termination`` it brings (if any)."""
     register_builtin(
-        name, functools.partial(make_env, name), parallel_env, gym_id, changes, **planning
+        name, functools.partial(make_env, name), parallel_env, gym_id, changes, **planner
     )
 
 
 # The one place the built-in scenarios and their defaults are declared: make_env, build_env,
 # the recipes, the CLI, compare and the gymnasium ids (mapets_rl.envs.GYM_IDS) read them from
 # the registry.
-_register_builtin("figure-eight", FigureEightParallelEnv, "mapets_rl/FigureEight-v0")
+_register_builtin(
+    "figure-eight", FigureEightParallelEnv, "mapets_rl/FigureEight-v0", **_FIGURE_EIGHT_PLANNER
+)
 _register_builtin(
     "figure-eight-multilane",
     FigureEightParallelEnv,
     "mapets_rl/FigureEightMultiLane-v0",
-    lanes=2,
-    n_cavs=22,
-    horizon=400,
+    {"lanes": 2, "n_cavs": 22, "horizon": 400},
+    **_FIGURE_EIGHT_PLANNER,
 )
 _register_builtin("freeway", FreewayParallelEnv, "mapets_rl/Freeway-v0")
 _register_builtin("freeway-merge", FreewayMergeParallelEnv, "mapets_rl/FreewayMerge-v0")

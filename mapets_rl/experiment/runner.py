@@ -378,19 +378,9 @@ class Experiment:
         evaluations).
 
         The run directory's lock is held for the whole loop and released when it ends,
-        normally or not (see :meth:`close`)."""
-        self._hold_lock()
-        try:
-            return self._train(on_iteration_end)
-        finally:
-            self.close()
-
-    def _train(
-        self, on_iteration_end: Callable[[dict[str, float]], None] | None
-    ) -> list[dict[str, Any]]:
-        """The loop of :meth:`train`, under the run directory's lock."""
-        self.start_training()
+        normally or not (see :meth:`training_loop`)."""
         with self.training_loop(on_iteration_end) as loop:
+            self.start_training()
             while not loop.finished:
                 prev_frames = self.frames
                 metrics = self.run_iteration()
@@ -423,23 +413,28 @@ class Experiment:
         ``label`` and ``postfix(metrics, fps)`` are the progress bar's description and what it
         shows after an iteration (default :meth:`progress_label`, :meth:`progress_postfix`).
         What a resumed run deferred is written after its first iteration (and at the end, when
-        nothing was left to do)."""
-        progress = progress or self.progress
-        done, total = progress()
-        bar = tqdm(
-            total=total,
-            initial=done,
-            disable=not self.config.progress,
-            desc=label or self.progress_label(),
-            unit=unit or self.progress_unit,
-        )
-        postfix = postfix or self.progress_postfix
-        loop = TrainingLoop(self, bar, progress, on_iteration_end, postfix)
+        nothing was left to do). The run directory's lock is taken on entry (another writer is
+        refused before anything runs) and released on exit, normally or not (see
+        :meth:`close`)."""
+        self._hold_lock()
         try:
-            yield loop
+            progress = progress or self.progress
+            done, total = progress()
+            bar = tqdm(
+                total=total,
+                initial=done,
+                disable=not self.config.progress,
+                desc=label or self.progress_label(),
+                unit=unit or self.progress_unit,
+            )
+            postfix = postfix or self.progress_postfix
+            try:
+                yield TrainingLoop(self, bar, progress, on_iteration_end, postfix)
+            finally:
+                bar.close()
+            self._start_writing()
         finally:
-            bar.close()
-        self._start_writing()
+            self.close()
 
     def progress(self) -> tuple[int, int]:
         """``(done, total)`` in :attr:`progress_unit`: the loop of :meth:`train` runs while
