@@ -297,7 +297,8 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
         else:
             h = x.reshape(n_agents * members, rows, in_dim).to(dtype)
         last = len(flat) - 1
-        if torch.is_grad_enabled():
+        if torch.is_grad_enabled() or torch.compiler.is_compiling():
+            # (a compiled graph plans its own buffers and fuses bias + SiLU)
             for layer, (weight, bias) in enumerate(flat):
                 h = torch.baddbmm(bias, h, weight)
                 if layer < last:

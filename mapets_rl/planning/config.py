@@ -43,6 +43,11 @@ class PlannerConfig(ConfigSection):
             observation's batch shape, a planner setting or the address of a model tensor
             changes). CUDA devices only; the same random numbers and decisions as eager
             planning, fewer kernel launches.
+        compile: run each rollout step through ``torch.compile`` (inductor), which fuses its
+            elementwise ops into a few loops around the GEMMs
+            (:class:`~mapets_rl.planning.compiled.CompiledStep`): compiled once per run at its
+            first decision (seconds), equal to eager planning up to floating-point
+            reassociation; eager, with a warning, where no C++ compiler is found.
     """
 
     horizon: int = dataclasses.field(default=25, metadata={"unit": "steps"})
@@ -57,6 +62,7 @@ class PlannerConfig(ConfigSection):
     anchor_candidates: bool = False
     keep_best: bool = False
     cuda_graph: bool = False
+    compile: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -22,14 +22,17 @@ from tensordict.utils import NestedKey
 
 from mapets_rl.modules.tensor_checks import as_mask, check_finite, check_real, get_tensor
 from mapets_rl.planning.cem import CEMOptimizer
+from mapets_rl.planning.compiled import CompiledStep
 from mapets_rl.planning.config import PlannerConfig
 from mapets_rl.planning.cuda_graph import GraphedStep
 from mapets_rl.planning.precision import resolve_dtype
 from mapets_rl.planning.trajectory_sampling import (
     DynamicsModel,
     RewardFn,
+    StepFn,
     TerminationFn,
     particle_layout_error,
+    propagate_step,
     trajectory_sampling_returns,
 )
 
@@ -194,6 +197,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             generator.manual_seed(seed)
         self.generator = generator
         self._graphed = GraphedStep(device, generator) if config.cuda_graph else None
+        self._step: StepFn = CompiledStep() if config.compile else propagate_step
         self.optimizer = CEMOptimizer(
             config.population,
             config.elites,
@@ -314,6 +318,12 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         return self._graphed is not None
 
     @property
+    def compiled_step(self) -> CompiledStep | None:
+        """The compiled rollout step (``compile=True``; its ``compiles``, ``compile_seconds``
+        and ``fallback_reason``), else ``None``."""
+        return self._step if isinstance(self._step, CompiledStep) else None
+
+    @property
     def graph_captures(self) -> int:
         """CUDA-graph captures so far (0 without ``cuda_graph``)."""
         return 0 if self._graphed is None else self._graphed.captures
@@ -356,6 +366,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
                 particles=self.particles,
                 dtype=self.dtype,
                 generator=self.generator,
+                step=self._step,
             )
             nonfinite = nonfinite + counted
             return scores

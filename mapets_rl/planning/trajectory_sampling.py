@@ -18,7 +18,9 @@ __all__ = [
     "RewardFn",
     "TerminationFn",
     "PROPAGATIONS",
+    "StepFn",
     "particle_layout_error",
+    "propagate_step",
     "trajectory_sampling_returns",
 ]
 
@@ -78,6 +80,82 @@ class DynamicsModel(Protocol):
         ...
 
 
+#: ``step(model, state, action, eps, perm, returns, alive, finite_steps, reward_fn,
+#: termination_fn, propagation, dtype) -> (next_state, returns, alive, finite_steps)``: one
+#: model step of every particle (:func:`propagate_step` or a compiled version of it).
+StepFn = Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]
+
+
+def propagate_step(
+    model: DynamicsModel,
+    state: torch.Tensor,
+    action: torch.Tensor,
+    eps: torch.Tensor,
+    perm: torch.Tensor | None,
+    returns: torch.Tensor,
+    alive: torch.Tensor,
+    finite_steps: torch.Tensor,
+    reward_fn: RewardFn,
+    termination_fn: TerminationFn | None,
+    propagation: str,
+    dtype: torch.dtype,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One model step of every particle and its reward: a pure tensor function (no random
+    draws, no host syncs), what :class:`~mapets_rl.planning.compiled.CompiledStep` compiles.
+
+    Args:
+        model: the agents' dynamics (:class:`DynamicsModel`, ``B`` members).
+        state: ``[I, R, S]`` particle states in the particle-major layout (``R = P * C`` rows,
+            ``C`` candidates; row block ``p`` is particle ``p``, member ``p mod B``).
+        action: ``[I, R, A]`` this step's actions.
+        eps: ``[P, 1, S]`` standard-normal noise of the step (common to the candidates);
+            unused by ``expectation``.
+        perm: ``[R]`` the rows' member re-draw of ``ts1`` (``None`` otherwise).
+        returns: ``[I, R]`` summed rewards so far; alive: ``[I, R]`` bool, particles not yet
+            terminated; finite_steps: ``[I, R]`` long, steps with a finite counted reward.
+        reward_fn / termination_fn: the known reward and termination.
+        propagation: ``ts_inf``, ``ts1`` or ``expectation``; dtype: the MLP's compute dtype.
+
+    Returns:
+        ``next_state [I, R, S]``, ``returns``, ``alive`` and ``finite_steps`` after the step.
+    """
+    n_agents, rows, obs_dim = state.shape
+    members = model.ensemble_size
+    if propagation == "expectation":
+        mean, _ = model.predict(state.unsqueeze(1), action.unsqueeze(1), dtype=dtype)
+        next_state = state + mean.mean(1)  # [I, B, R, S] -> members' mean
+    else:
+        particles = eps.shape[0]
+        if perm is not None:
+            inv = torch.argsort(perm)
+            s_in, a_in = state[:, perm], action[:, perm]
+        else:
+            s_in, a_in = state, action
+        s_in = s_in.reshape(n_agents, members, rows // members, -1)
+        a_in = a_in.reshape(n_agents, members, rows // members, -1)
+        mean, logvar = model.predict(s_in, a_in, dtype=dtype)
+        mean = mean.reshape(n_agents, rows, obs_dim)
+        std = torch.exp(logvar.mul(0.5)).reshape(n_agents, rows, obs_dim)
+        if perm is not None:
+            mean, std = mean[:, inv], std[:, inv]
+        shape = (n_agents, particles, rows // particles, obs_dim)
+        # Common random numbers: one draw per particle [P, 1, S], shared by all candidates.
+        next_state = torch.addcmul(state.view(shape) + mean.view(shape), std.view(shape), eps)
+        next_state = next_state.reshape(n_agents, rows, obs_dim)
+    reward = reward_fn(state, action, next_state)
+    if reward.shape != returns.shape:
+        raise ValueError(
+            f"reward_fn must return shape {tuple(returns.shape)} for inputs shaped "
+            f"{tuple(state.shape)}, got {tuple(reward.shape)}."
+        )
+    counted = torch.where(alive, reward, 0.0)  # finite wherever the particle has ended
+    returns = returns + counted
+    finite_steps = finite_steps + torch.isfinite(counted)
+    if termination_fn is not None:
+        alive = alive & ~termination_fn(state, action, next_state)
+    return next_state, returns, alive, finite_steps
+
+
 def trajectory_sampling_returns(
     model: DynamicsModel,
     obs: torch.Tensor,
@@ -89,6 +167,7 @@ def trajectory_sampling_returns(
     particles: int = 20,
     dtype: torch.dtype = torch.float32,
     generator: torch.Generator | None = None,
+    step: StepFn = propagate_step,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean over particles of the summed predicted reward of every candidate (eq. 10).
 
@@ -100,6 +179,10 @@ def trajectory_sampling_returns(
     the step at which it predicts a termination (that step's reward counts, later ones do not,
     as in mbrl-lib's ``ModelEnv``).
 
+    Every random number of the rollout is drawn before its first step (per step, in the order
+    the steps use them), so each step is a pure function (:func:`propagate_step`, or a
+    compiled version of it passed as ``step``).
+
     Args:
         model: the agents' dynamics (:class:`DynamicsModel`).
         obs: ``[I, M, S]`` start states (``M`` envs).
@@ -107,17 +190,15 @@ def trajectory_sampling_returns(
         reward_fn / termination_fn: known reward and termination, vectorised.
         propagation, particles, dtype, generator: see above and
             :class:`~mapets_rl.planning.PlannerConfig` (trusted here).
+        step: the step function (default :func:`propagate_step`).
 
     Returns:
         ``[I, M, Q]`` scores (``-inf`` where a rollout produced NaN) and ``[I]`` long, the
         number of non-finite rewards of particles still alive, per agent.
     """
     n_agents, envs, pop, horizon = candidates.shape[:4]
-    members = model.ensemble_size
     cands = envs * pop
     device = obs.device
-    # Per-step actions [H, I, 1, M*Q, act]; particles broadcast over dim 2.
-    actions = candidates.reshape(n_agents, cands, horizon, -1).permute(2, 0, 1, 3).unsqueeze(2)
     if propagation == "expectation":
         particles = 1
     # Particle-major layout [I, P, M*Q, obs] == [I, B, P/B * M*Q, obs] (member per block).
@@ -126,47 +207,37 @@ def trajectory_sampling_returns(
     state = obs.repeat_interleave(pop, dim=1).unsqueeze(1).expand(-1, particles, -1, -1)
     state = state.reshape(n_agents, rows, obs_dim)
     # Every step's model-input actions [H, I, rows, act], built once (not once per step).
+    actions = candidates.reshape(n_agents, cands, horizon, -1).permute(2, 0, 1, 3).unsqueeze(2)
     step_actions = actions.expand(-1, -1, particles, -1, -1).reshape(horizon, n_agents, rows, -1)
+    noise: list[tuple[torch.Tensor | None, torch.Tensor]] = []
+    for _ in range(horizon):
+        perm = None
+        if propagation == "ts1":
+            perm = torch.randperm(rows, generator=generator, device=device)
+        if propagation == "expectation":
+            eps = torch.zeros((1, 1, obs_dim), device=device)
+        else:
+            eps = torch.randn((particles, 1, obs_dim), generator=generator, device=device)
+        noise.append((perm, eps))
     returns = torch.zeros(n_agents, rows, device=device)
     alive = torch.ones(n_agents, rows, dtype=torch.bool, device=device)
     finite_steps = torch.zeros(n_agents, rows, dtype=torch.long, device=device)
     for t in range(horizon):
-        action = step_actions[t]
-        if propagation == "expectation":
-            mean, _ = model.predict(state.unsqueeze(1), action.unsqueeze(1), dtype=dtype)
-            next_state = state + mean.mean(1)  # [I, B, rows, obs] -> members' mean
-        else:
-            if propagation == "ts1":
-                perm = torch.randperm(rows, generator=generator, device=device)
-                inv = torch.argsort(perm)
-                s_in, a_in = state[:, perm], action[:, perm]
-            else:
-                s_in, a_in = state, action
-            s_in = s_in.view(n_agents, members, rows // members, -1)
-            a_in = a_in.view(n_agents, members, rows // members, -1)
-            mean, logvar = model.predict(s_in, a_in, dtype=dtype)
-            mean = mean.reshape(n_agents, particles, cands, obs_dim)
-            std = torch.exp(logvar.mul(0.5)).reshape(n_agents, particles, cands, obs_dim)
-            if propagation == "ts1":
-                mean = mean.view(n_agents, rows, obs_dim)[:, inv].view_as(std)
-                std = std.view(n_agents, rows, obs_dim)[:, inv].view_as(mean)
-            # Common random numbers: one draw per particle [P, 1, obs], shared by all
-            # candidates (broadcast over the M*Q candidates of the particle-major layout).
-            eps = torch.randn((particles, 1, obs_dim), generator=generator, device=device)
-            next_state = torch.addcmul(state.view_as(mean) + mean, std, eps)
-            next_state = next_state.reshape(n_agents, rows, obs_dim)
-        reward = reward_fn(state, action, next_state)
-        if reward.shape != returns.shape:
-            raise ValueError(
-                f"reward_fn must return shape {tuple(returns.shape)} for inputs shaped "
-                f"{tuple(state.shape)}, got {tuple(reward.shape)}."
-            )
-        counted = torch.where(alive, reward, 0.0)  # finite wherever the particle has ended
-        returns.add_(counted)
-        finite_steps.add_(torch.isfinite(counted))
-        if termination_fn is not None:
-            alive &= ~termination_fn(state, action, next_state)
-        state = next_state
+        perm, eps = noise[t]
+        state, returns, alive, finite_steps = step(
+            model,
+            state,
+            step_actions[t],
+            eps,
+            perm,
+            returns,
+            alive,
+            finite_steps,
+            reward_fn,
+            termination_fn,
+            propagation,
+            dtype,
+        )
     nonfinite = (horizon - finite_steps).sum(-1)
     scores = returns.reshape(n_agents, particles, envs, pop).mean(1)
     return torch.where(torch.isnan(scores), float("-inf"), scores), nonfinite
