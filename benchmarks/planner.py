@@ -27,6 +27,7 @@ Examples::
     python benchmarks/planner.py --quick
     python benchmarks/planner.py --configs paper --agents 1 8 22 --dtypes fp32 --repeats 1
     python benchmarks/planner.py --configs cpu --agents 1 8 22 --dtypes fp32 bf16 --repeats 5
+    python benchmarks/planner.py --quick --agents 8 --set noise_beta=2 keep_elites=0.3
     python benchmarks/planner.py --device cuda --configs paper --agents 1 8 22 --dtypes fp32 bf16
     PYTHONPATH=. /work/mbrl-venv/bin/python benchmarks/planner.py --reference mbrl-lib \
         --configs paper --agents 1 --dtypes fp32 --threads 1 --repeats 2 --naive-max-agents 0
@@ -44,6 +45,7 @@ import torch
 from mbrl_reference import REFERENCES, pets_agents, require_mbrl
 from torch.nn import functional as F
 
+from mapets_rl.config import parse_override
 from mapets_rl.envs import figure_eight_reward
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.planning import PRESETS, Preset, TrajectorySamplingCEM
@@ -455,6 +457,14 @@ def main() -> None:
         help="override the presets' CEM iterations (time per decision scales linearly)",
     )
     parser.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="key=value",
+        help="override PlannerConfig fields of the presets, e.g. noise_beta=2 keep_elites=0.3 "
+        "(the FLOP counts keep assuming Q candidates per iteration)",
+    )
+    parser.add_argument(
         "--compile",
         action="store_true",
         help="also time torch.compile (inductor) of the MLP as a reference kernel",
@@ -498,6 +508,8 @@ def main() -> None:
         cfg = PRESETS[name]
         if args.iterations is not None:
             cfg = replace(cfg, planner=replace(cfg.planner, iterations=args.iterations))
+        if args.set:
+            cfg = replace(cfg, planner=cfg.planner.replace(**dict(map(parse_override, args.set))))
         print(f"\n[{name}] {cfg}  ({macs_per_row(cfg)} MACs per model row)")
         for n_agents in args.agents:
             bench(name, cfg, n_agents, args)

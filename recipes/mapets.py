@@ -70,7 +70,6 @@ from mapets_rl.planning import (
     TrajectorySamplingCEM,
 )
 from mapets_rl.planning.memory import available_memory, ensemble_bytes, planner_bytes
-from mapets_rl.planning.trajectory_sampling import particle_layout_error
 
 FIGURE_EIGHT_REWARD_FIELDS = (
     "collision_gap",
@@ -247,9 +246,7 @@ class MAPETSConfig(RunConfig):
         check(self.episodes >= 1, "episodes", ">= 1", self.episodes)
         check(self.random_episodes >= 0, "random_episodes", ">= 0", self.random_episodes)
         plan = self.planner
-        layout = particle_layout_error(
-            plan.propagation, plan.particles, plan.population, self.model.ensemble_size
-        )
+        layout = plan.layout_error(self.model.ensemble_size)
         if layout is not None:  # before the run directory exists
             raise ConfigError(f"planner.{layout} (model.ensemble_size)")
         check(

@@ -3,18 +3,73 @@
 A pure optimiser: it knows nothing of models, rewards or TensorDicts. Every planning problem
 (agent ``i`` of env ``m``) keeps a Gaussian ``N(mu, sigma)`` over sequences ``[H, act]``; all
 problems are iterated together, ``[I, M, Q, H, act]`` candidates per iteration.
+
+Options from iCEM (Pinneri et al. 2020, "Sample-efficient cross-entropy method for real-time
+planning"), all off by default (the plain CEM of the MA-PETS paper): noise-free anchor
+candidates, keep-best, colored (temporally correlated) candidate noise, elites kept across
+iterations (and handed to the next decision by the planner) and a decaying population.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
 
-__all__ = ["CEMOptimizer", "ScoreFn"]
+__all__ = ["CEMOptimizer", "ScoreFn", "colored_noise", "kept_elite_count", "sample_sizes"]
 
 #: ``score_fn(candidates [I, M, Q, H, act]) -> scores [I, M, Q]`` (higher is better).
 ScoreFn = Callable[[torch.Tensor], torch.Tensor]
+
+
+def colored_noise(
+    shape: tuple[int, int, int],
+    beta: float,
+    generator: torch.Generator | None = None,
+    device: torch.device | str | None = None,
+) -> torch.Tensor:
+    """Standard Gaussian noise ``[N, H, act]`` whose power spectrum along ``H`` is ``~1/f^beta``.
+
+    ``beta = 0`` is white noise, exactly ``torch.randn(shape)``; ``beta = 2`` is Brownian-like
+    ("red"), larger is smoother (iCEM uses 2-4 for a horizon of 25-30 steps). For ``beta > 0``
+    white Gaussian Fourier coefficients ``[N, act, H // 2 + 1]`` (one draw of ``[2, N, act,
+    H // 2 + 1]`` from ``generator``: real and imaginary parts) are scaled by ``k^(-beta/2)``
+    at frequency index ``k`` (``k = 0`` scaled as ``k = 1``, iCEM's / ``colorednoise``'s low
+    cutoff ``1/H``), transformed back with ``irfft`` and divided by the process's exact
+    standard deviation: every step has unit variance (the process is stationary and periodic
+    over ``H``).
+    """
+    if beta == 0:
+        return torch.randn(shape, generator=generator, device=device)
+    n, horizon, act = shape
+    bins = horizon // 2 + 1
+    k = torch.arange(bins, device=device, dtype=torch.float32).clamp_(min=1.0)
+    scale = k.pow(-beta / 2)  # <= 1: no overflow for any beta
+    imag = scale.clone()
+    imag[0] = 0.0  # the mean (DC) and, for even H, the Nyquist bin are real
+    if horizon % 2 == 0:
+        imag[-1] = 0.0
+    # Var x_t = (|DC|^2 + 2 sum_{0<k<H/2} (re_k^2 + im_k^2) + [H even] |Nyquist|^2) / H^2.
+    twice = torch.ones(bins, device=device)
+    twice[1 : (horizon + 1) // 2] = 2.0
+    std = (twice * (scale.square() + imag.square())).sum().sqrt() / horizon
+    coeffs = torch.randn((2, n, act, bins), generator=generator, device=device)
+    spectrum = torch.complex(coeffs[0] * (scale / std), coeffs[1] * (imag / std))
+    return torch.fft.irfft(spectrum, n=horizon, dim=-1).transpose(-1, -2)  # [N, H, act]
+
+
+def kept_elite_count(keep_elites: float, elites: int) -> int:
+    """Elites kept per iteration for the fraction ``keep_elites`` of ``elites``:
+    ``max(1, round(keep_elites * elites))`` if the fraction is positive, else 0."""
+    return max(1, round(keep_elites * elites)) if keep_elites > 0 else 0
+
+
+def sample_sizes(population: int, elites: int, iterations: int, decay: float) -> list[int]:
+    """Sampled candidates per iteration ``k``: ``max(min(2 X, Q), floor(Q / decay^k))`` (iCEM's
+    population decay; ``decay = 1``: ``Q`` at every iteration). Fixed per ``k``: shape-static."""
+    floor = min(2 * elites, population)
+    return [max(floor, math.floor(population / decay**k)) for k in range(iterations)]
 
 
 class CEMOptimizer:
@@ -35,6 +90,16 @@ class CEMOptimizer:
         host_sync: read the early-stop test on the host each iteration (``None``: on the CPU
             only). Without it every iteration runs and mu / sigma freeze once every sigma is
             below epsilon: the same result, no device sync (for accelerators).
+        noise_beta: exponent of the candidate noise's power spectrum along the horizon,
+            ``~1/f^beta`` (:func:`colored_noise`; 0: white noise).
+        keep_elites: fraction of the ``X`` elites of iteration ``k`` (the best first) added to
+            iteration ``k + 1``'s candidates, ``K = max(1, round(keep_elites * X))`` of them
+            (0: none). They are scored again with the new candidates: the particle noise is
+            redrawn every iteration and candidates are compared under common random numbers,
+            so an old score would not be comparable (this is also what iCEM does). The last
+            iteration's ``K`` best are left in :attr:`last_elites`.
+        population_decay: iteration ``k`` samples ``max(min(2 X, Q), floor(Q / decay^k))``
+            candidates (:func:`sample_sizes`; 1: ``Q`` every iteration).
     """
 
     def __init__(
@@ -46,6 +111,9 @@ class CEMOptimizer:
         alpha: float,
         generator: torch.Generator | None = None,
         host_sync: bool | None = None,
+        noise_beta: float = 0.0,
+        keep_elites: float = 0.0,
+        population_decay: float = 1.0,
     ) -> None:
         self.population = population
         self.elites = elites
@@ -54,7 +122,21 @@ class CEMOptimizer:
         self.alpha = alpha
         self.generator = generator
         self.host_sync = host_sync
+        self.noise_beta = noise_beta
+        self.keep_elites = keep_elites
+        self.population_decay = population_decay
         self._last_iterations: int | torch.Tensor = 0
+        self.last_elites: torch.Tensor | None = None
+
+    @property
+    def kept_elites(self) -> int:
+        """``K``: elites carried from one iteration to the next (0 without ``keep_elites``)."""
+        return kept_elite_count(self.keep_elites, self.elites)
+
+    @property
+    def sample_sizes(self) -> list[int]:
+        """Sampled candidates per iteration (``population`` each without a decay)."""
+        return sample_sizes(self.population, self.elites, self.iterations, self.population_decay)
 
     def optimize(
         self,
@@ -64,29 +146,42 @@ class CEMOptimizer:
         action_high: torch.Tensor,
         anchors: torch.Tensor | None = None,
         keep_best: bool = False,
+        initial_elites: torch.Tensor | None = None,
+        initial_valid: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Run the CEM from ``initial_mean`` with sigma a quarter of the action range.
 
+        Iteration ``k`` scores ``[I, M, N_k (+ K_a + 1) (+ K), H, act]`` candidates: ``N_k``
+        sampled ones (:attr:`sample_sizes`), then the anchors and the mean, then the elites
+        kept from iteration ``k - 1`` (or, at ``k = 0``, ``initial_elites``).
+
         Args:
-            score_fn: maps candidates ``[I, M, Q, H, act]`` to scores ``[I, M, Q]``.
+            score_fn: maps candidates ``[I, M, C, H, act]`` to scores ``[I, M, C]``.
             initial_mean: ``[I, M, H, act]`` starting mean (e.g. the warm start).
             action_low / action_high: ``[I, 1, 1, act]`` bounds.
-            anchors: optional ``[I, M, K, H, act]`` noise-free sequences scored in every
+            anchors: optional ``[I, M, K_a, H, act]`` noise-free sequences scored in every
                 iteration beside the sampled ones (and eligible as elites), plus the current
                 mean itself (iCEM, Pinneri et al. 2020, adds the mean; a planner can add safe
                 fallbacks such as "brake"). Within the bounds.
             keep_best: return the best-scoring sequence of all iterations instead of the final
                 mean (iCEM's executed action).
+            initial_elites: optional ``[I, M, K0, H, act]`` sequences within the bounds that
+                join the first iteration's candidates (e.g. the previous decision's kept
+                elites shifted by one step).
+            initial_valid: optional bool, broadcastable to ``[I, M, K0]``: ``False`` marks an
+                initial elite as absent (it scores ``-inf``; a fixed shape for CUDA graphs).
 
         Returns:
             ``[I, M, H, act]`` the optimised mean (or best sequence). ``last_iterations`` holds
-            the rounds run.
+            the rounds run, ``last_elites`` the ``[I, M, K, H, act]`` best candidates of the
+            last round run, best first (``None`` without ``keep_elites``).
         """
         mu = initial_mean
         std = ((action_high - action_low) / 4).expand_as(mu).clone()
         low = action_low.unsqueeze(1)  # [I, 1, 1, 1, act]
         high = action_high.unsqueeze(1)
-        shape = (self.population, *mu.shape[-2:])
+        seq = mu.shape[-2:]  # (H, act)
+        kept_count = self.kept_elites
         # On the CPU the early stop reads ``std.max()`` on the host each iteration. On an
         # accelerator that would be a device sync per iteration: there every iteration runs and
         # once every sigma is below epsilon mu and sigma are frozen, which gives the same mean.
@@ -94,17 +189,26 @@ class CEMOptimizer:
         iterations: int | torch.Tensor = 0
         stopped = torch.zeros((), dtype=torch.bool, device=mu.device)
         best = best_score = None
-        for _ in range(self.iterations):
-            noise = torch.randn(shape, generator=self.generator, device=mu.device)
+        kept = initial_elites  # joins the next iteration's candidates
+        valid = initial_valid
+        for samples in self.sample_sizes:
+            noise = colored_noise((samples, *seq), self.noise_beta, self.generator, mu.device)
             candidates = torch.clamp(mu.unsqueeze(2) + std.unsqueeze(2) * noise, low, high)
             if anchors is not None:
                 mean = torch.clamp(mu, action_low, action_high).unsqueeze(2)
                 candidates = torch.cat([candidates, anchors, mean], dim=2)
-            scores = score_fn(candidates)  # [I, M, Q (+ K + 1)]
+            if kept is not None:
+                candidates = torch.cat([candidates, kept], dim=2)
+            scores = score_fn(candidates)  # [I, M, C]
+            if valid is not None:
+                extra = kept.shape[2]
+                head, tail = scores[..., :-extra], scores[..., -extra:]
+                scores = torch.cat([head, tail.masked_fill(~valid, float("-inf"))], dim=-1)
+                valid = None
             if keep_best:
                 top, where = scores.max(dim=-1)  # [I, M]
                 found = torch.gather(
-                    candidates, 2, where[:, :, None, None, None].expand(-1, -1, 1, *shape[1:])
+                    candidates, 2, where[:, :, None, None, None].expand(-1, -1, 1, *seq)
                 ).squeeze(2)
                 if best is None:
                     best, best_score = found, top
@@ -112,23 +216,30 @@ class CEMOptimizer:
                     better = top > best_score
                     best = torch.where(better[:, :, None, None], found, best)
                     best_score = torch.maximum(top, best_score)
-            elite_idx = scores.topk(self.elites, dim=-1).indices  # [I, M, X]
+            elite_idx = scores.topk(self.elites, dim=-1).indices  # [I, M, X], best first
             elites = torch.gather(
-                candidates, 2, elite_idx[..., None, None].expand(-1, -1, -1, *shape[1:])
+                candidates, 2, elite_idx[..., None, None].expand(-1, -1, -1, *seq)
             )
             new_mu = self.alpha * mu + (1 - self.alpha) * elites.mean(2)
             new_std = self.alpha * std + (1 - self.alpha) * elites.std(2, unbiased=False)
+            new_kept = elites[:, :, :kept_count] if kept_count else None
             if host_check:
                 iterations += 1
-                mu, std = new_mu, new_std
+                mu, std, kept = new_mu, new_std, new_kept
                 if bool(std.max() < self.epsilon):
                     break
             else:
                 iterations = iterations + (~stopped).long()
                 mu = torch.where(stopped, mu, new_mu)
                 std = torch.where(stopped, std, new_std)
+                if new_kept is not None:  # frozen with mu: the same last_elites as a break
+                    frozen = kept is not None and kept.shape == new_kept.shape
+                    kept = torch.where(stopped, kept, new_kept) if frozen else new_kept
+                else:
+                    kept = None
                 stopped = stopped | (std.max() < self.epsilon)
         self._last_iterations = iterations
+        self.last_elites = kept if kept_count else None
         return best if keep_best else mu
 
     @property

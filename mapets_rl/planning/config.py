@@ -6,8 +6,9 @@ import dataclasses
 
 from mapets_rl.config import ConfigSection, check
 from mapets_rl.models.config import EnsembleConfig
+from mapets_rl.planning.cem import kept_elite_count, sample_sizes
 from mapets_rl.planning.precision import DTYPE_CHOICES
-from mapets_rl.planning.trajectory_sampling import PROPAGATIONS
+from mapets_rl.planning.trajectory_sampling import PROPAGATIONS, particle_layout_error
 
 __all__ = ["PlannerConfig", "Preset", "PAPER_PRESET", "CPU_PRESET", "PRESETS", "PROPAGATIONS"]
 
@@ -37,6 +38,19 @@ class PlannerConfig(ConfigSection):
             iteration (iCEM's fallbacks; see :class:`~mapets_rl.planning.TrajectorySamplingCEM`).
         keep_best: execute the best-scoring sequence of all iterations instead of the final CEM
             mean (iCEM).
+        noise_beta: colored candidate noise (iCEM): the noise along the horizon has a power
+            spectrum ``~1/f^noise_beta`` and unit variance per step (>= 0; 0: white noise, the
+            paper's CEM; iCEM uses 2-4 for horizons of 25-30 steps, larger is smoother).
+        keep_elites: fraction (in [0, 1]) of the ``X`` elites that iteration ``k`` hands to
+            iteration ``k + 1``: ``K = max(1, round(keep_elites * X))`` best sequences join
+            its candidates and are scored again under its particle noise (0: none). With
+            ``shift_elites`` the last iteration's ``K`` also reach the next decision (iCEM).
+        shift_elites: with ``keep_elites``, the last decision's kept elites, shifted by one step
+            (their last action repeated), join the next decision's first iteration; reset like
+            the warm start (:meth:`~mapets_rl.planning.TrajectorySamplingCEM.reset`,
+            ``is_init``).
+        population_decay: iteration ``k`` samples ``max(min(2 X, Q), floor(Q / decay^k))``
+            candidates (iCEM's decay; >= 1; 1: ``Q`` at every iteration).
         cuda_graph: capture the whole optimisation of a decision (all CEM iterations and
             rollouts) in a CUDA graph on the first call and replay it at the next ones
             (:class:`~mapets_rl.planning.cuda_graph.GraphedStep`; recaptured when the
@@ -61,6 +75,10 @@ class PlannerConfig(ConfigSection):
     dtype: str = "auto"
     anchor_candidates: bool = False
     keep_best: bool = False
+    noise_beta: float = 0.0
+    keep_elites: float = 0.0
+    shift_elites: bool = True
+    population_decay: float = 1.0
     cuda_graph: bool = False
     compile: bool = False
 
@@ -82,7 +100,37 @@ class PlannerConfig(ConfigSection):
         )
         check(self.epsilon > 0, "epsilon", "> 0", self.epsilon)
         check(0.0 <= self.alpha < 1.0, "alpha", "in [0, 1)", self.alpha)
+        check(self.noise_beta >= 0.0, "noise_beta", ">= 0 (0: white noise)", self.noise_beta)
+        check(0.0 <= self.keep_elites <= 1.0, "keep_elites", "in [0, 1]", self.keep_elites)
+        check(self.population_decay >= 1.0, "population_decay", ">= 1", self.population_decay)
         check(self.dtype in DTYPE_CHOICES, "dtype", f"one of {list(DTYPE_CHOICES)}", self.dtype)
+
+    def candidates_per_iteration(self) -> list[int]:
+        """Candidates one CEM iteration scores, per iteration: the sampled ones (decaying with
+        ``population_decay``), the anchors and the mean (3 with ``anchor_candidates``) and the
+        kept elites (at the first iteration the previous decision's, with ``shift_elites``)."""
+        extra = 3 if self.anchor_candidates else 0
+        kept = kept_elite_count(self.keep_elites, self.elites)
+        first = kept if self.shift_elites else 0
+        sizes = sample_sizes(self.population, self.elites, self.iterations, self.population_decay)
+        return [n + extra + (kept if k else first) for k, n in enumerate(sizes)]
+
+    def layout_error(self, members: int) -> str | None:
+        """Why the particles cannot be split over ``members`` ensemble members (one line), or
+        ``None``: :func:`~mapets_rl.planning.trajectory_sampling.particle_layout_error` for the
+        ``population`` and for every iteration's number of scored candidates
+        (:meth:`candidates_per_iteration`, which ``ts1`` splits too)."""
+        error = particle_layout_error(self.propagation, self.particles, self.population, members)
+        if error is not None:
+            return error
+        for candidates in sorted(set(self.candidates_per_iteration())):
+            error = particle_layout_error(self.propagation, self.particles, candidates, members)
+            if error is not None:
+                return (
+                    f"{error} (population {self.population} plus the anchors and kept elites: "
+                    f"{candidates} candidates scored in a CEM iteration)"
+                )
+        return None
 
 
 @dataclasses.dataclass(frozen=True)

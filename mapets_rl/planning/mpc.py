@@ -31,7 +31,6 @@ from mapets_rl.planning.trajectory_sampling import (
     RewardFn,
     StepFn,
     TerminationFn,
-    particle_layout_error,
     propagate_step,
     trajectory_sampling_returns,
 )
@@ -94,6 +93,15 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
     the next call. Call :meth:`reset` at episode start (an ``"is_init"`` entry ``[*, 1]`` in the
     input, as written by torchrl's ``InitTracker``, resets the matching envs automatically).
 
+    iCEM's options (Pinneri et al. 2020; all off by default, see
+    :class:`~mapets_rl.planning.PlannerConfig`): anchor candidates and keep-best; colored
+    candidate noise (``noise_beta``); ``K`` elites kept from each iteration for the next
+    (``keep_elites``) and the last iteration's ``K``, shifted by one step, added to the next
+    decision's first iteration (``shift_elites``; state ``warm_start_elites``
+    ``[*, I, K, w, act]``, reset with the warm start); a decaying population
+    (``population_decay``). The warm start (mean and elites) lives in memory only: it is not
+    part of ``state_dict`` or any checkpoint.
+
     Random numbers are common to all agents and envs of a call (every planning problem sees
     the same candidate noise and particle noise), so agent ``i``'s decision in a batched call
     equals a single-agent call with the same seed; problems are independent, so this changes
@@ -151,9 +159,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         if termination_fn is not None and not callable(termination_fn):
             raise ValueError("termination_fn must be callable (obs, action, next_obs) -> done.")
         config = _planner_config(config, settings)
-        layout = particle_layout_error(
-            config.propagation, config.particles, config.population, model.ensemble_size
-        )
+        layout = config.layout_error(model.ensemble_size)
         if layout is not None:
             raise ValueError(f"{layout}.")
         device = _model_device(model, action_low)
@@ -192,6 +198,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         self.dtype_reason = dtype_reason
         self.anchor_candidates = config.anchor_candidates
         self.keep_best = config.keep_best
+        self.shift_elites = config.shift_elites
         if generator is None and seed is not None:
             generator = torch.Generator(device=device)
             generator.manual_seed(seed)
@@ -205,6 +212,9 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             config.epsilon,
             config.alpha,
             generator,
+            noise_beta=config.noise_beta,
+            keep_elites=config.keep_elites,
+            population_decay=config.population_decay,
         )
         self.in_keys = [observation_key]
         self.out_keys = [action_key]
@@ -214,6 +224,9 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         self.register_buffer("action_high", high[:, None, None, :])
         self._mean: torch.Tensor | None = None  # [I, M, H, act] warm start
         self._solution: torch.Tensor | None = None  # [I, M, H, act] last optimised mean
+        # With keep_elites and shift_elites: the last decision's kept elites shifted by one
+        # step [I, M, K, H, act] (the next call ignores those of envs it resets).
+        self._elites: torch.Tensor | None = None
         self._batch_shape: torch.Size | None = None
         self._warned_nonfinite = False
         self.register_buffer(
@@ -261,6 +274,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         """Forget the warm start (call at episode start)."""
         self._mean = None
         self._solution = None
+        self._elites = None
         self._batch_shape = None
 
     def _to_batch_layout(self, plan: torch.Tensor | None) -> torch.Tensor | None:
@@ -301,11 +315,38 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         lambda self, value: setattr(self.optimizer, "alpha", value),
         doc="Momentum of the CEM update.",
     )
+    noise_beta = property(
+        lambda self: self.optimizer.noise_beta,
+        lambda self, value: setattr(self.optimizer, "noise_beta", value),
+        doc="Spectral exponent of the candidate noise along the horizon (0: white).",
+    )
+    keep_elites = property(
+        lambda self: self.optimizer.keep_elites,
+        lambda self, value: setattr(self.optimizer, "keep_elites", value),
+        doc="Fraction of the elites kept for the next iteration (and decision).",
+    )
+    population_decay = property(
+        lambda self: self.optimizer.population_decay,
+        lambda self, value: setattr(self.optimizer, "population_decay", value),
+        doc="Population decay factor per CEM iteration (1: none).",
+    )
 
     @property
     def warm_start_mean(self) -> torch.Tensor | None:
         """The shifted plan that seeds the next call, ``[*, I, horizon, act]`` (or ``None``)."""
         return self._to_batch_layout(self._mean)
+
+    @property
+    def warm_start_elites(self) -> torch.Tensor | None:
+        """The last decision's kept elites shifted by one step, which join the next call's
+        first CEM iteration (except in envs it resets by ``is_init``): ``[*, I, K, horizon,
+        act]``; ``None`` before the first call, after :meth:`reset` and without ``keep_elites``
+        / ``shift_elites``."""
+        if self._elites is None:
+            return None
+        return self._elites.transpose(0, 1).reshape(
+            *self._batch_shape, *self._elites.shape[:1], *self._elites.shape[2:]
+        )
 
     @property
     def last_solution(self) -> torch.Tensor | None:
@@ -341,16 +382,39 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         centre = (self.action_low + self.action_high) / 2  # [I, 1, 1, act]
         return centre.expand(-1, envs, self.horizon, -1).clone()
 
-    def _optimize(self, obs: torch.Tensor, mean: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _shifted_elites(self, envs: int, reset: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
+        """The previous decision's shifted elites ``[I, M, K, H, act]`` and whether each env
+        has them, bool ``[1, M, 1]`` (not those ``reset [1, M, 1, 1]`` restarts); ``()``
+        without ``keep_elites`` / ``shift_elites``. Before the first decision (or after a change
+        of ``K``) placeholders of the same shape, all absent: the shapes stay fixed."""
+        kept = self.optimizer.kept_elites if self.shift_elites else 0
+        if not kept:
+            self._elites = None
+            return ()
+        device = self._mean.device
+        if self._elites is None or self._elites.shape[2] != kept:
+            self._elites = self._mean.unsqueeze(2).expand(-1, -1, kept, -1, -1).clone()
+            return self._elites, torch.zeros(1, envs, 1, dtype=torch.bool, device=device)
+        if reset is None:
+            return self._elites, torch.ones(1, envs, 1, dtype=torch.bool, device=device)
+        return self._elites, ~reset.view(1, envs, 1)
+
+    def _optimize(
+        self, obs: torch.Tensor, mean: torch.Tensor, *shifted: torch.Tensor
+    ) -> tuple[torch.Tensor, ...]:
         """One decision's CEM from the warm start: a pure tensor function (what a CUDA graph
         captures).
 
         Args:
             obs: ``[I, M, obs]`` start states; mean: ``[I, M, H, act]`` warm start.
+            shifted: with ``keep_elites`` (and ``shift_elites``), the previous decision's kept
+                elites shifted by one step ``[I, M, K, H, act]`` and which envs have them
+                (bool ``[1, M, 1]``); they join the first CEM iteration.
 
         Returns:
-            ``[I, M, H, act]`` the optimised sequences and ``[I]`` the non-finite predicted
-            rewards counted while scoring them.
+            ``[I, M, H, act]`` the optimised sequences, ``[I]`` the non-finite predicted
+            rewards counted while scoring them and, with ``keep_elites``, the last iteration's
+            kept elites ``[I, M, K, H, act]``.
         """
         nonfinite = torch.zeros_like(self.nonfinite_rewards)
 
@@ -381,8 +445,11 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
                 self.action_high,
                 anchors=anchors,
                 keep_best=self.keep_best,
+                initial_elites=shifted[0] if shifted else None,
+                initial_valid=shifted[1] if shifted else None,
             )
-        return mu, nonfinite
+        kept = self.optimizer.last_elites
+        return (mu, nonfinite) if kept is None else (mu, nonfinite, kept)
 
     def _graph_key(self, obs: torch.Tensor) -> tuple:
         """What a captured decision depends on beyond its inputs' values: shapes, settings,
@@ -401,6 +468,10 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             self.alpha,
             self.anchor_candidates,
             self.keep_best,
+            self.noise_beta,
+            self.keep_elites,
+            self.population_decay,
+            self.shift_elites,
             id(self.reward_fn),
             id(self.termination_fn),
             tuple(t.data_ptr() for t in tensors),
@@ -447,18 +518,21 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             is_init = as_mask("is_init", is_init, f"{[*batch_shape, 1]}")
         obs_p = obs.reshape(-1, n_agents, obs_dim).transpose(0, 1).float()  # [I, M, obs]
         envs = obs_p.shape[1]
+        reset = None
         if self._mean is None or self._batch_shape != batch_shape:
             self._mean = self._initial_mean(envs)
+            self._elites = None
             self._batch_shape = batch_shape
         elif is_init is not None:
             reset = is_init.reshape(envs).view(1, envs, 1, 1)
             self._mean = torch.where(reset, self._initial_mean(envs), self._mean)
+        shifted = self._shifted_elites(envs, reset)
 
         if self._graphed is None:
-            mu, nonfinite = self._optimize(obs_p, self._mean)
+            mu, nonfinite, *elites = self._optimize(obs_p, self._mean, *shifted)
         else:
-            mu, nonfinite = self._graphed(
-                self._optimize, self._graph_key(obs_p), (obs_p, self._mean)
+            mu, nonfinite, *elites = self._graphed(
+                self._optimize, self._graph_key(obs_p), (obs_p, self._mean, *shifted)
             )
         self.nonfinite_rewards += nonfinite
         self._warn_nonfinite()
@@ -466,4 +540,12 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         action = torch.clamp(mu[:, :, 0], self.action_low[:, 0], self.action_high[:, 0])
         # Warm start: shift the plan by one step, pad with the centre of the box.
         self._mean = torch.cat([mu[:, :, 1:], self._initial_mean(envs)[:, :, :1]], dim=2)
+        if shifted:
+            # The kept elites shifted by one step, padded by repeating their last action: a
+            # whole sequence that was good stays one (holding its final action is its most
+            # plausible continuation, and the centre is already the shifted mean's pad).
+            (last,) = elites
+            self._elites = torch.cat([last[:, :, :, 1:], last[:, :, :, -1:]], dim=3)
+        else:
+            self._elites = None
         return action.transpose(0, 1).reshape(*batch_shape, n_agents, model.action_dim)
