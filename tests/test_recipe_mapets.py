@@ -316,8 +316,9 @@ def test_run_with_flat_field_names_resumes_with_nested_sections(tmp_path, caplog
     flat = {k: v for k, v in nested.items() if k not in ("planner", "model", "comm")}
     flat.update(nested["planner"], **nested["model"], **nested["comm"])
     flat["cem_momentum"] = flat.pop("alpha")
-    for newer in ("dtype", "anchor_candidates", "keep_best", "cuda_graph"):
-        del flat[newer]  # flat config.yaml files predate these planner fields
+    planner_fields = ("dtype", "anchor_candidates", "keep_best", "cuda_graph")
+    for newer in (*planner_fields, "holdout", "patience", "min_improvement"):
+        del flat[newer]  # flat config.yaml files predate these planner and model fields
     path.write_text(yaml.safe_dump(flat, sort_keys=False))
     with caplog.at_level("WARNING", logger="mapets_rl"):
         resumed = MAPETS.from_run_dir(run_dir, overrides=["episodes=2"])
