@@ -15,6 +15,19 @@ filters them), so the gap changes here are dynamics.
 
     python benchmarks/model_epochs.py RUN_DIR [--epochs 60] [--seed 0]
 
+``--compare`` instead weighs early stopping (``model.holdout``, ``model.patience``,
+``model.min_improvement``) against fixed epochs. On the same 80% of the transitions, each
+setting trains the same ensemble (a fresh one: ``cold``; or, as MA-PETS refits after every
+episode, one first trained ``--epochs`` epochs on half of those rows: ``warm``) and reports the
+training seconds, the epochs run, and on the 20% that no setting trains or stops on: the NLL
+and the gap-ahead RMSE over all rows and over rows faster than 8 m/s. Then it times
+``MAPETS.train_models`` itself on the run's datasets (warm, from the checkpoint's model and
+optimiser, which already fitted these very datasets: a lower bound on the epochs) for each
+setting:
+
+    python benchmarks/model_epochs.py RUN_DIR --compare [--epochs 30] [--holdout 0.2]
+        [--patience 2 3 5] [--min-improvement 0.01] [--seeds 0 1]
+
 ``RUN_DIR`` e.g. ``outputs/mapets_figure_eight/crossing/d100_seed0`` (from
 ``examples/mapets_figure_eight.py``). The run directory is only read.
 """
@@ -22,15 +35,17 @@ filters them), so the gap changes here are dynamics.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import shutil
 import tempfile
+import time
 from pathlib import Path
 
 import torch
 from tensordict import TensorDict
 
 from mapets_rl.models import ProbabilisticEnsemble
-from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, train_ensemble
+from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, fit_ensemble, train_ensemble
 from recipes.mapets import MAPETS
 
 GAP_AHEAD = 5
@@ -81,15 +96,174 @@ def gap_errors(model: ProbabilisticEnsemble, data: TensorDict) -> dict[str, floa
     return out
 
 
+def split(data: TensorDict, seed: int) -> tuple[TensorDict, TensorDict]:
+    """(train, test): 20% of the rows (the same for every agent) masked out of ``train`` and
+    only those in ``test``."""
+    gen = torch.Generator().manual_seed(seed)
+    holdout = torch.rand(data.batch_size, generator=gen) < 0.2
+    train = data.clone()
+    train.set("mask", data.get("mask") & ~holdout[:, None])
+    test = data.clone()
+    test.set("mask", data.get("mask") & holdout[:, None])
+    return train, test
+
+
+def new_loss(exp: MAPETS, seed: int, bootstrap: bool = True) -> EnsembleNLLLoss:
+    """A fresh ensemble of the run's size (initialised from ``seed``) in the recipe's loss,
+    reading the flat dataset keys."""
+    cfg = exp.config.model
+    torch.manual_seed(seed)
+    model = ProbabilisticEnsemble(
+        exp.model.obs_dim,
+        exp.model.action_dim,
+        exp.n_agents,
+        ensemble_size=cfg.ensemble_size,
+        hidden=tuple(cfg.hidden),
+    )
+    loss = EnsembleNLLLoss(
+        model,
+        bootstrap=bootstrap,
+        logvar_bound_coef=cfg.logvar_bound_coef,
+        generator=torch.Generator().manual_seed(seed + 1),
+    )
+    loss.set_keys(
+        observation="observation", action="action", next_observation="next_observation", mask="mask"
+    )
+    return loss
+
+
+def compare(args: argparse.Namespace) -> None:
+    """``--compare``: fixed epochs against early stopping (see the module docstring)."""
+    exp, data = load_data(args.run_dir)
+    cfg = exp.config.model
+    settings = [("fixed", 0.0, 1)] + [(f"p={p}", args.holdout, p) for p in args.patience]
+    print(
+        f"run {args.run_dir}: {exp.n_agents} agents, |D(i)+| = "
+        f"{data.get('mask').sum(0).tolist()}, hidden {cfg.hidden}, B = {cfg.ensemble_size}, "
+        f"batch {cfg.batch_size}, lr {cfg.lr}; at most {args.epochs} epochs, early stopping "
+        f"holdout {args.holdout}, min_improvement {args.min_improvement}; torch "
+        f"{torch.__version__}, {torch.backends.cpu.get_cpu_capability()}, "
+        f"{torch.get_num_threads()} threads"
+    )
+    print(
+        "\n| start | seed | setting | epochs run | train s | CPU s | test NLL | gap RMSE all "
+        "| gap RMSE v>8 |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for seed in args.seeds:
+        train, test = split(data, seed)
+        for start in ("cold", "warm"):
+            init = new_loss(exp, seed)
+            if start == "warm":  # the previous episode's model: trained on half of the rows
+                half = train.clone()
+                keep = torch.rand(data.batch_size, generator=torch.Generator().manual_seed(seed))
+                half.set("mask", train.get("mask") & (keep < 0.5)[:, None])
+                optim = torch.optim.Adam(init.parameters(), lr=cfg.lr)
+                train_ensemble(
+                    init,
+                    optim,
+                    half,
+                    epochs=args.epochs,
+                    batch_size=cfg.batch_size,
+                    generator=torch.Generator().manual_seed(seed + 2),
+                )
+                optim_state = optim.state_dict()
+            state = {k: v.clone() for k, v in init.model.state_dict().items()}
+            for name, holdout, patience in settings:
+                loss = new_loss(exp, seed)
+                loss.model.load_state_dict(state)
+                optim = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
+                if start == "warm":
+                    optim.load_state_dict(optim_state)
+                begin, cpu = time.perf_counter(), time.process_time()
+                fit = fit_ensemble(
+                    loss,
+                    optim,
+                    train,
+                    epochs=args.epochs,
+                    batch_size=cfg.batch_size,
+                    generator=torch.Generator().manual_seed(seed + 3),
+                    holdout=holdout,
+                    patience=patience,
+                    min_improvement=args.min_improvement,
+                )
+                seconds, cpu = time.perf_counter() - begin, time.process_time() - cpu
+                with torch.no_grad():
+                    check = new_loss(exp, seed, bootstrap=False)
+                    check.model.load_state_dict(loss.model.state_dict())
+                    test_nll = check(test)["nll_per_member"].mean().item()
+                e = gap_errors(loss.model, test)
+                print(
+                    f"| {start} | {seed} | {name} | {fit.epochs} | {seconds:.2f} | {cpu:.2f} | "
+                    f"{test_nll:.2f} | {e['rmse_all']:.4f} | {e['rmse_fast']:.4f} |",
+                    flush=True,
+                )
+    time_train_models(args, settings)
+
+
+def time_train_models(args: argparse.Namespace, settings: list) -> None:
+    """``MAPETS.train_models`` on the run's datasets, from its checkpoint, per setting."""
+    print(
+        "\n| MAPETS.train_models | epochs run | seconds | CPU s | model_nll | model_holdout_nll |"
+    )
+    print("|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        copy = Path(tmp) / "run"
+        shutil.copytree(args.run_dir, copy)
+        exp = MAPETS.from_run_dir(copy)
+        model_state = {k: v.clone() for k, v in exp.model.state_dict().items()}
+        optim_state = exp.optimizer.state_dict()
+        optim_state = {
+            "state": {
+                k: {n: t.clone() for n, t in v.items()} for k, v in optim_state["state"].items()
+            },
+            "param_groups": optim_state["param_groups"],
+        }
+        base = exp.config.model
+        for name, holdout, patience in settings:
+            exp.model.load_state_dict(model_state)
+            exp.optimizer.load_state_dict(optim_state)
+            exp.config.model = dataclasses.replace(
+                base,
+                epochs=args.epochs,
+                holdout=holdout,
+                patience=patience,
+                min_improvement=args.min_improvement,
+            )
+            torch.manual_seed(0)
+            exp.shuffle_generator.manual_seed(1)
+            exp.bootstrap_generator.manual_seed(2)
+            begin, cpu = time.perf_counter(), time.process_time()
+            m = exp.train_models()
+            seconds, cpu = time.perf_counter() - begin, time.process_time() - cpu
+            print(
+                f"| {name} | {m['model_epochs']:.0f} | {seconds:.2f} | {cpu:.2f} | "
+                f"{m['model_nll']:.2f} | "
+                f"{m.get('model_holdout_nll', float('nan')):.2f} |",
+                flush=True,
+            )
+        exp.close()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("run_dir", type=Path)
-    parser.add_argument("--epochs", type=int, default=60)
+    parser.add_argument("--epochs", type=int, default=None, help="default 60, 30 with --compare")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--report", type=int, nargs="+", default=[1, 2, 5, 10, 15, 20, 30, 40, 60])
+    parser.add_argument("--compare", action="store_true", help="fixed epochs vs early stopping")
+    parser.add_argument("--holdout", type=float, default=0.2)
+    parser.add_argument("--patience", type=int, nargs="+", default=[2, 3, 5])
+    parser.add_argument("--min-improvement", type=float, default=0.01)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     args = parser.parse_args()
+    if args.epochs is None:
+        args.epochs = 30 if args.compare else 60
     if args.epochs < 1:
         parser.error(f"--epochs must be >= 1, got {args.epochs}")
+    if args.compare:
+        compare(args)
+        return
     torch.manual_seed(args.seed)
     exp, data = load_data(args.run_dir)
     cfg = exp.config.model

@@ -61,7 +61,7 @@ from mapets_rl.modules import (
     action_quantiser,
     masked_mean,
 )
-from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, ensemble_optimizer, train_ensemble
+from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, ensemble_optimizer, fit_ensemble
 from mapets_rl.planning import (
     PRESETS,
     PlannerConfig,
@@ -658,7 +658,10 @@ class MAPETS(Experiment):
 
         The datasets are laid out as one padded batch ``[N, I]`` (``N`` = the largest
         ``|D(i)+|``; ``mask`` is ``False`` on the padding of smaller datasets), so each
-        minibatch trains all ``I x B`` members in one forward/backward.
+        minibatch trains all ``I x B`` members in one forward/backward. With
+        ``model.holdout > 0`` the refit stops early on the held-out NLL
+        (:func:`~mapets_rl.objectives.fit_ensemble`); ``model_epochs`` is how many epochs ran
+        and ``model_holdout_nll`` the held-out NLL of the kept weights.
         """
         sizes = self.datasets.sizes
         if bool((sizes == 0).any()):
@@ -676,19 +679,30 @@ class MAPETS(Experiment):
             },
             batch_size=[rows],
         )
-        history = train_ensemble(
+        model = self.config.model
+        fit = fit_ensemble(
             self.loss,
             self.optimizer,
             data,
-            epochs=self.config.model.epochs,
-            batch_size=self.config.model.batch_size,
+            epochs=model.epochs,
+            batch_size=model.batch_size,
             generator=self.shuffle_generator,
-        )  # [epochs, I, B]
-        curve = history.mean(dim=(1, 2))  # [epochs]
-        first = self.episode * self.config.model.epochs
+            holdout=model.holdout,
+            patience=model.patience,
+            min_improvement=model.min_improvement,
+        )
+        curve = fit.train_nll.mean(dim=(1, 2))  # [epochs run]
+        first = self.episode * model.epochs  # the episode's epoch steps (fewer when stopped)
         for epoch, nll in enumerate(curve.tolist()):
             log_scalars(self.logger, "model", {"nll": nll}, first + epoch + 1)
-        return {"model_nll_first_epoch": curve[0].item(), "model_nll": curve[-1].item()}
+        metrics = {
+            "model_nll_first_epoch": curve[0].item(),
+            "model_nll": curve[-1].item(),
+            "model_epochs": float(fit.epochs),
+        }
+        if fit.final_holdout_nll is not None:  # early stopping: the kept weights' held-out NLL
+            metrics["model_holdout_nll"] = fit.final_holdout_nll.nanmean().item()
+        return metrics
 
     def episode_metrics(self, rollout: TensorDictBase) -> dict[str, float]:
         """Runner metrics (reward, return, length, agility, safety, collisions, mean speed)."""

@@ -3,8 +3,11 @@
 from mapets_rl.objectives.coma import COMACritic, COMALoss, counterfactual_advantage
 from mapets_rl.objectives.ddpg import PreactivationRegularisedDDPGLoss
 from mapets_rl.objectives.ensemble_nll import (
+    EnsembleFit,
     EnsembleNLLLoss,
     ensemble_optimizer,
+    fit_ensemble,
+    holdout_split,
     read_transitions,
     train_ensemble,
 )
@@ -16,6 +19,7 @@ __all__ = [
     "STEPS_TO_NEXT_OBS",
     "COMACritic",
     "COMALoss",
+    "EnsembleFit",
     "EnsembleNLLLoss",
     "M3DDPGLoss",
     "MinimaxCritic",
@@ -23,6 +27,8 @@ __all__ = [
     "ShapleyActorCriticLoss",
     "counterfactual_advantage",
     "ensemble_optimizer",
+    "fit_ensemble",
+    "holdout_split",
     "minimax_action_perturbation",
     "n_step_transitions",
     "read_transitions",

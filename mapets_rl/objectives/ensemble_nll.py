@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -14,7 +15,15 @@ from mapets_rl.models.ensemble import ProbabilisticEnsemble
 from mapets_rl.modules.arguments import finite_number
 from mapets_rl.modules.tensor_checks import as_mask, get_tensor
 
-__all__ = ["EnsembleNLLLoss", "ensemble_optimizer", "read_transitions", "train_ensemble"]
+__all__ = [
+    "EnsembleFit",
+    "EnsembleNLLLoss",
+    "ensemble_optimizer",
+    "fit_ensemble",
+    "holdout_split",
+    "read_transitions",
+    "train_ensemble",
+]
 
 
 class EnsembleNLLLoss(LossModule):
@@ -112,14 +121,7 @@ class EnsembleNLLLoss(LossModule):
         """Agent-major normalised inputs ``[I, N, obs + act]``, targets ``[I, N, obs]`` and
         row weights ``[I, N]`` (``0`` for masked rows) of ``[N, I, *]`` tensors as returned by
         :meth:`read_batch`."""
-        model = self.model
-        x = model.normalize_inputs(obs.transpose(0, 1), action.transpose(0, 1))
-        y = ((next_obs - obs).transpose(0, 1) - model.output_mean[:, 0]) / model.output_std[:, 0]
-        if mask is None:
-            weight = torch.ones(x.shape[:2], dtype=x.dtype, device=x.device)
-        else:
-            weight = mask.transpose(0, 1).to(x.dtype)
-        return x, y, weight
+        return _normalized_data(self.model, obs, action, next_obs, mask)
 
     def member_losses(
         self,
@@ -245,6 +247,89 @@ def read_transitions(
     return obs, action, next_obs, mask
 
 
+def _normalized_data(
+    model: ProbabilisticEnsemble,
+    obs: torch.Tensor,
+    action: torch.Tensor,
+    next_obs: torch.Tensor,
+    mask: torch.Tensor | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """See :meth:`EnsembleNLLLoss.normalized_data`."""
+    x = model.normalize_inputs(obs.transpose(0, 1), action.transpose(0, 1))
+    y = ((next_obs - obs).transpose(0, 1) - model.output_mean[:, 0]) / model.output_std[:, 0]
+    if mask is None:
+        weight = torch.ones(x.shape[:2], dtype=x.dtype, device=x.device)
+    else:
+        weight = mask.transpose(0, 1).to(x.dtype)
+    return x, y, weight
+
+
+class EnsembleFit(NamedTuple):
+    """What :func:`fit_ensemble` did.
+
+    Attributes:
+        train_nll: ``[E, I, B]`` mean per-member training NLL of each epoch that ran (``E`` <=
+            ``epochs``; fewer when it stopped early).
+        epochs: ``E``, the epochs that ran.
+        holdout_nll: ``[E + 1, I, B]`` held-out NLL of every member on its agent's held-out
+            rows, before training (row 0) and after each epoch; ``NaN`` for agents without
+            held-out rows. ``None`` without a hold-out.
+        best_epoch: ``[G, B]`` the epoch whose weights each member kept (``0``: the weights
+            it started with; ``E``: the last epoch's), ``G`` = the model's weight groups
+            (``I``, or 1 with ``share_across_agents``). ``None`` without a hold-out.
+        final_holdout_nll: ``[I, B]`` held-out NLL of the returned weights (each member's
+            score, below, is at most the last epoch's). ``None`` without a hold-out.
+    """
+
+    train_nll: torch.Tensor
+    epochs: int
+    holdout_nll: torch.Tensor | None = None
+    best_epoch: torch.Tensor | None = None
+    final_holdout_nll: torch.Tensor | None = None
+
+
+def holdout_split(
+    mask: torch.Tensor | None,
+    rows: int,
+    n_agents: int,
+    fraction: float,
+    generator: torch.Generator | None = None,
+    device: torch.device | str | None = None,
+) -> torch.Tensor:
+    """Which rows each agent holds out: ``[I, N]`` bool (agent-major).
+
+    Agent ``i`` holds out ``floor(fraction * n_i)`` of its ``n_i`` valid rows (``mask[:, i]``;
+    all ``N`` without a mask), drawn uniformly without replacement from one ``[I, N]``
+    ``torch.rand`` draw of ``generator``; padding rows are never held out and, as
+    ``fraction < 0.5``, every agent keeps at least half of its rows for training.
+    """
+    valid = (
+        torch.ones(n_agents, rows, dtype=torch.bool, device=device)
+        if mask is None
+        else mask.transpose(0, 1).to(device=device, dtype=torch.bool)
+    )
+    keys = torch.rand(n_agents, rows, generator=generator, device=device)
+    keys = torch.where(valid, keys, torch.full_like(keys, 2.0))  # padding sorts last
+    order = keys.argsort(dim=1, stable=True)
+    rank = torch.empty_like(order).scatter_(
+        1, order, torch.arange(rows, device=order.device).expand(n_agents, -1)
+    )
+    count = torch.floor(valid.sum(1) * fraction).long()  # [I]
+    return valid & (rank < count[:, None])
+
+
+def _compact(
+    select: torch.Tensor, *tensors: torch.Tensor
+) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """The rows ``select`` ``[I, N]`` picks of each agent-major ``[I, N, *]`` tensor, moved to
+    the front (original order) and cut to the largest count: ``(weight [I, M], tensors)``
+    (``weight`` 0 on the padding of agents with fewer picked rows)."""
+    width = int(select.sum(1).max())
+    index = (~select).to(torch.uint8).argsort(dim=1, stable=True)[:, :width]  # [I, M]
+    out = [t.gather(1, index.unsqueeze(-1).expand(-1, -1, t.shape[-1])) for t in tensors]
+    return select.gather(1, index).to(tensors[0].dtype), out
+
+
 def train_ensemble(
     loss_module: LossModule,
     optimizer: torch.optim.Optimizer,
@@ -254,8 +339,41 @@ def train_ensemble(
     batch_size: int = 128,
     fit_normalizer: bool = True,
     generator: torch.Generator | None = None,
+    holdout: float = 0.0,
+    patience: int = 5,
+    min_improvement: float = 0.01,
 ) -> torch.Tensor:
-    """Train every agent's ensemble for ``epochs`` passes over ``data`` (paper: 5 x 128, Adam).
+    """Train every agent's ensemble on ``data`` (paper: 5 x 128, Adam): :func:`fit_ensemble`,
+    returning its ``[E, I, B]`` per-epoch training NLL (``E = epochs`` without a hold-out)."""
+    return fit_ensemble(
+        loss_module,
+        optimizer,
+        data,
+        epochs=epochs,
+        batch_size=batch_size,
+        fit_normalizer=fit_normalizer,
+        generator=generator,
+        holdout=holdout,
+        patience=patience,
+        min_improvement=min_improvement,
+    ).train_nll
+
+
+def fit_ensemble(
+    loss_module: LossModule,
+    optimizer: torch.optim.Optimizer,
+    data: TensorDictBase,
+    *,
+    epochs: int = 5,
+    batch_size: int = 128,
+    fit_normalizer: bool = True,
+    generator: torch.Generator | None = None,
+    holdout: float = 0.0,
+    patience: int = 5,
+    min_improvement: float = 0.01,
+) -> EnsembleFit:
+    """Train every agent's ensemble for up to ``epochs`` passes over ``data``, optionally
+    stopping early on a held-out NLL.
 
     All ``I * B`` members take each optimisation step together (one batched forward/backward);
     with :class:`~mapets_rl.objectives.EnsembleNLLLoss` each member sees its own bootstrap
@@ -267,24 +385,53 @@ def train_ensemble(
     ``nll_per_member`` ``[I, B]`` output is what the returned history records (without it,
     the summed loss over ``I * B``, for every member).
 
+    Early stopping (``holdout > 0``): each agent holds out ``floor(holdout * n_i)`` of its
+    ``n_i`` valid rows (:func:`holdout_split`, drawn from ``generator`` before any shuffle) and
+    trains on the rest. The Gaussian NLL of eq. 9 (no bootstrap) of every member on its agent's
+    held-out rows is evaluated before training and after each epoch, all members in one batched
+    forward. Each member remembers the weights of its lowest held-out NLL so far; training
+    stops once ``patience`` epochs in a row brought no member an improvement of more than
+    ``min_improvement`` relative to its best (``(best - nll) > min_improvement * |best|``),
+    or after ``epochs``. Each member then gets its best weights back (one ``torch.where`` per
+    stacked parameter) unless they are worse than the last epoch's under the final
+    log-variance bounds (the bounds are shared by the members of a group and are not
+    restored), so every member's held-out NLL is at most the last epoch's. With
+    ``share_across_agents`` a member's score is its NLL over every agent's held-out rows.
+    Agents with no held-out row (fewer than ``1 / holdout`` rows) do not vote; when no agent
+    has one the training runs all ``epochs``, as without a hold-out.
+
     Args:
         loss_module: an ``EnsembleNLLLoss`` (keys as set on it), or any ``LossModule`` with
             the ensemble as ``.model`` that reads the ``"agents"`` keys.
         optimizer: optimiser over ``loss_module.parameters()`` (paper: Adam, lr 1e-3).
         data: transitions with batch shape ``[N]`` and the loss's keys shaped ``[N, I, *]``
             (agents with fewer transitions pad with ``mask=False`` rows).
-        epochs: passes over the data (> 0).
+        epochs: passes over the data (> 0), the most that run with a hold-out.
         batch_size: rows per optimisation step (> 0).
-        fit_normalizer: refit the per-agent input/output normalisation on ``data`` first.
-        generator: optional generator for the shuffling.
+        fit_normalizer: refit the per-agent input/output normalisation on ``data`` first (on
+            all of it, the held-out rows included).
+        generator: optional generator for the hold-out split and the shuffling.
+        holdout: fraction of each agent's rows held out, in ``[0, 0.5)``; ``0`` (default)
+            trains exactly ``epochs`` passes over all rows, without evaluation.
+        patience: epochs without improvement before stopping (>= 1).
+        min_improvement: relative held-out NLL improvement that counts, in ``[0, 1)``.
 
     Returns:
-        ``[epochs, I, B]`` mean per-member NLL of each epoch.
+        an :class:`EnsembleFit`: the ``[E, I, B]`` mean per-member training NLL of each epoch
+        run, ``E``, and with a hold-out the held-out NLL curve and each member's kept epoch.
     """
     if not isinstance(epochs, int) or epochs <= 0:
         raise ValueError(f"epochs must be a positive integer, got {epochs!r}.")
     if not isinstance(batch_size, int) or batch_size <= 0:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}.")
+    holdout = finite_number("holdout", holdout, minimum=0)
+    if not holdout < 0.5:
+        raise ValueError(f"holdout must be in [0, 0.5), got {holdout!r}.")
+    if not isinstance(patience, int) or isinstance(patience, bool) or patience <= 0:
+        raise ValueError(f"patience must be a positive integer, got {patience!r}.")
+    min_improvement = finite_number("min_improvement", min_improvement, minimum=0)
+    if not min_improvement < 1:
+        raise ValueError(f"min_improvement must be in [0, 1), got {min_improvement!r}.")
     if data.batch_dims != 1 or data.batch_size[0] == 0:
         raise ValueError(
             f"data must have a non-empty batch shape [N], got {tuple(data.batch_size)}."
@@ -309,10 +456,25 @@ def train_ensemble(
     # validation or host sync per step).
     custom = type(loss_module).forward is not EnsembleNLLLoss.forward
     members = (model.n_agents, model.ensemble_size)
-    if not custom:
+    device = next(model.parameters()).device  # a TensorDict built without one has device None
+    stopper = None
+    if holdout > 0:
+        held = holdout_split(batch[3], rows, model.n_agents, holdout, generator, device)
+        if bool(held.any()):
+            x, y, weight = _normalized_data(model, *batch)
+            val_weight, (x_val, y_val) = _compact(held, x, y)
+            stopper = _EarlyStopping(model, x_val, y_val, val_weight, patience, min_improvement)
+            train_rows = (weight > 0) & ~held  # [I, N]
+            if custom:
+                # the loss reads the rows it trains on from the "agents" mask
+                data = data.clone()
+                data.set(EnsembleNLLLoss.default_keys.mask, train_rows.transpose(0, 1))
+            else:
+                weight, (x, y) = _compact(train_rows, x, y)
+                rows = x.shape[1]
+    if not custom and stopper is None:
         x, y, weight = loss_module.normalized_data(*batch)
     history = []
-    device = next(model.parameters()).device  # a TensorDict built without one has device None
     for _ in range(epochs):
         order = torch.randperm(rows, generator=generator, device=device)
         per_member = []
@@ -332,4 +494,95 @@ def train_ensemble(
             optimizer.step()
             per_member.append(member)
         history.append(torch.stack(per_member).mean(0))
-    return torch.stack(history)
+        if stopper is not None and stopper.after_epoch(len(history)):
+            break
+    train_nll = torch.stack(history)
+    if stopper is None:
+        return EnsembleFit(train_nll, len(history))
+    final = stopper.restore_best()
+    return EnsembleFit(
+        train_nll, len(history), torch.stack(stopper.curve), stopper.best_epoch, final
+    )
+
+
+class _EarlyStopping:
+    """Held-out evaluation, per-member best weights and the stopping rule of
+    :func:`fit_ensemble` (see there). ``x`` / ``y`` / ``weight``: the agent-major normalised
+    held-out rows ``[I, M, *]`` and their ``[I, M]`` weights (0 on padding)."""
+
+    def __init__(
+        self,
+        model: ProbabilisticEnsemble,
+        x: torch.Tensor,
+        y: torch.Tensor,
+        weight: torch.Tensor,
+        patience: int,
+        min_improvement: float,
+    ) -> None:
+        self.model, self.y, self.weight = model, y, weight
+        self.x = x.unsqueeze(1).expand(-1, model.ensemble_size, -1, -1)  # [I, B, M, in]
+        self.count = weight.sum(1)  # [I]
+        self.patience, self.min_improvement = patience, min_improvement
+        # the stacked member parameters, [G, B, ...] (the log-variance bounds are per group)
+        self.params = [*model.weights, *model.biases]
+        groups = model.weights[0].shape[0]
+        counts = self.count.sum(0, keepdim=True) if groups == 1 else self.count
+        self.voting = counts > 0  # [G]: groups with held-out rows
+        self.curve: list[torch.Tensor] = []
+        self.stale = 0
+        self.best_score, self.last_score = self.evaluate()
+        self.best_epoch = torch.zeros_like(self.best_score, dtype=torch.long)
+        self.best = [p.detach().clone() for p in self.params]
+
+    @torch.no_grad()
+    def evaluate(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Appends the ``[I, B]`` held-out NLL to ``curve``; returns the ``[G, B]`` member
+        scores twice (``+inf`` for groups without held-out rows)."""
+        mean, logvar = self.model.normalized_forward(self.x)  # one batched forward
+        rows = ((mean - self.y.unsqueeze(1)).pow(2) * torch.exp(-logvar) + logvar).sum(-1)
+        total = (rows * self.weight.unsqueeze(1)).sum(-1)  # [I, B]
+        count = self.count.unsqueeze(1)
+        self.curve.append(torch.where(count > 0, total / count.clamp_min(1.0), math.nan))
+        if self.model.weights[0].shape[0] == 1:  # one set of members for all agents
+            total, count = total.sum(0, keepdim=True), count.sum(0, keepdim=True)
+        score = torch.where(count > 0, total / count.clamp_min(1.0), math.inf)
+        return score, score
+
+    @torch.no_grad()
+    def after_epoch(self, epoch: int) -> bool:
+        """Evaluates the members after ``epoch``, keeps the better ones; ``True``: stop."""
+        score, self.last_score = self.evaluate()
+        better = score < self.best_score  # [G, B]
+        gain = (self.best_score - score) > self.min_improvement * self.best_score.abs()
+        improved = bool((gain & self.voting[:, None]).any())  # the epoch's only host sync
+        view = (*better.shape, 1, 1)
+        for param, best in zip(self.params, self.best, strict=True):
+            best.copy_(torch.where(better.view(view), param, best))
+        self.best_score = torch.where(better, score, self.best_score)
+        self.best_epoch = torch.where(better, epoch, self.best_epoch)
+        self.stale = 0 if improved else self.stale + 1
+        return self.stale >= self.patience and bool(self.voting.any())
+
+    @torch.no_grad()
+    def restore_best(self) -> torch.Tensor:
+        """Gives every member its best weights back (unless worse than its last epoch's under
+        the final log-variance bounds); returns their ``[I, B]`` held-out NLL."""
+        last_epoch = len(self.curve) - 1
+        restore = self.best_epoch < last_epoch  # [G, B]
+        if not bool(restore.any()):
+            return self.curve[-1]
+        view = (*restore.shape, 1, 1)
+        last = [p.detach().clone() for p in self.params]
+        for param, best in zip(self.params, self.best, strict=True):
+            param.copy_(torch.where(restore.view(view), best, param))
+        score, _ = self.evaluate()
+        restored_curve = self.curve.pop()
+        worse = restore & (score > self.last_score)
+        if bool(worse.any()):
+            for param, kept in zip(self.params, last, strict=True):
+                param.copy_(torch.where(worse.view(view), kept, param))
+            restore = restore & ~worse
+        self.best_epoch = torch.where(restore, self.best_epoch, last_epoch)
+        groups = self.best_epoch.shape[0]
+        keep = restore.expand(self.model.n_agents, -1) if groups == 1 else restore
+        return torch.where(keep, restored_curve, self.curve[-1])
