@@ -45,6 +45,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from mapets_rl.config import ConfigError, parse_override
 from mapets_rl.envs import ScriptedCAVPolicy, make_env, traffic_env
 from mapets_rl.envs.figure_eight import figure_eight_collision, figure_eight_reward
 from mapets_rl.envs.figure_eight_kinematics import FigureEightKinematicModel
@@ -103,7 +104,8 @@ def oracle_planner(
     **cem: bool,
 ) -> TrajectorySamplingCEM:
     """The cpu-preset CEM over the kinematic model (one particle: the model is deterministic);
-    ``cem``: planner options (``anchor_candidates``, ``keep_best``)."""
+    ``cem``: PlannerConfig fields over the preset's (``anchor_candidates``, ``keep_best``,
+    ``population``, ``noise_beta``, ...)."""
     spec = env.full_action_spec["agents", "action"]
     n_agents, action_dim = spec.shape
     obs_dim = env.observation_spec["agents", "observation"].shape[-1]
@@ -277,8 +279,21 @@ def main(argv: list[str] | None = None) -> list[dict]:
         metavar="key=value",
         help="learned: overrides of the run's config, e.g. lane_change_time=1",
     )
+    parser.add_argument(
+        "--planner",
+        nargs="*",
+        default=[],
+        metavar="key=value",
+        help="oracle: PlannerConfig fields over the cpu preset's, e.g. population=16 "
+        "noise_beta=2 keep_elites=0.3 (model rows per decision scale with population)",
+    )
     parser.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
     args = parser.parse_args(argv)
+    try:
+        planner_settings = dict(map(parse_override, args.planner))
+        CPU_PRESET.planner.replace(**planner_settings)
+    except (ConfigError, TypeError) as err:
+        parser.error(f"--planner: {err}")
     if "learned" in args.policies and (
         args.run is None or not (Path(args.run) / "config.yaml").is_file()
     ):
@@ -303,6 +318,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
                 keep_best=args.keep_best,
                 headway=args.headway,
                 lane_change_time=args.lane_change_time,
+                **planner_settings,
             )
             rows.append(row)
             print(json.dumps(row), flush=True)

@@ -28,6 +28,7 @@ Examples::
     python benchmarks/planner.py --configs paper --agents 1 8 22 --dtypes fp32 --repeats 1
     python benchmarks/planner.py --configs cpu --agents 1 8 22 --dtypes fp32 bf16 --repeats 5
     python benchmarks/planner.py --quick --agents 8 --set noise_beta=2 keep_elites=0.3
+    python benchmarks/planner.py --configs cpu --agents 1 8 22 --dtypes fp32 bf16 --compiled
     python benchmarks/planner.py --device cuda --configs paper --agents 1 8 22 --dtypes fp32 bf16
     PYTHONPATH=. /work/mbrl-venv/bin/python benchmarks/planner.py --reference mbrl-lib \
         --configs paper --agents 1 --dtypes fp32 --threads 1 --repeats 2 --naive-max-agents 0
@@ -270,9 +271,13 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
     """Time every variant once per repeat, interleaved, and keep each variant's fastest run."""
     obs = make_obs(n_agents).to(DEVICE)
     model = make_model(cfg, n_agents).to(DEVICE)
-    graphs = (False, True) if args.graph else (False,)
+    modes = {"": {}}
+    if args.graph:
+        modes["+graph"] = {"cuda_graph": True}
+    if args.compiled:
+        modes["+compiled"] = {"compile": True}
     planners = {
-        key + ("+graph" if graph else ""): TrajectorySamplingCEM(
+        key + suffix: TrajectorySamplingCEM(
             model,
             figure_eight_reward,
             LOW,
@@ -280,9 +285,9 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
             seed=0,
             config=cfg.planner,
             dtype=DTYPES[key],
-            cuda_graph=graph,
+            **settings,
         )
-        for graph in graphs
+        for suffix, settings in modes.items()
         for key in args.dtypes
     }
     first: dict[str, torch.Tensor] = {}  # cold-start decisions, to compare dtypes
@@ -320,6 +325,11 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
     for _ in range(args.warmup):
         for fn in variants.values():
             fn()
+    compile_seconds = {
+        key: planner.compiled_step.compile_seconds
+        for key, planner in planners.items()
+        if planner.compiled_step is not None
+    }
     chain = gemm_chain(cfg, n_agents)
     chain(1)
     kernels = mlp_kernels(cfg, n_agents, args.compile)
@@ -359,6 +369,19 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
                 f"{statistics.median(eager) / statistics.median(graphed):.2f}x (medians); "
                 f"max |a_graph - a_eager| = {diff:.2e} of range; "
                 f"{planners[f'{key}+graph'].graph_captures} capture(s)"
+            )
+    for key in args.dtypes:
+        if f"{key}+compiled" in planners:
+            eager, fast = times[key], times[f"{key}+compiled"]
+            diff = (first[f"{key}+compiled"] - first[key]).abs().max().item() / (HIGH - LOW)
+            step = planners[f"{key}+compiled"].compiled_step
+            print(
+                f"      compiled {key}: eager {spread(eager)}, compiled {spread(fast)} -> "
+                f"{statistics.median(eager) / statistics.median(fast):.2f}x (medians); "
+                f"max |a_compiled - a_eager| = {diff:.2e} of range; compile "
+                f"{compile_seconds[f'{key}+compiled']:.1f} s (first decision, untimed; "
+                f"{step.compiles} graph(s))"
+                + (f"; EAGER FALLBACK: {step.fallback_reason}" if step.fallback_reason else "")
             )
     gemm = best["gemm"]
     if "fp32" not in planners:
@@ -475,6 +498,12 @@ def main() -> None:
         help="also time each dtype with cuda_graph=True (the decision captured once and "
         "replayed; --device cuda only); the capture is the untimed warm-up call",
     )
+    parser.add_argument(
+        "--compiled",
+        action="store_true",
+        help="also time each dtype with compile=True (the rollout step through torch.compile; "
+        "the compilation is the untimed warm-up call, its seconds are printed)",
+    )
     parser.add_argument("--quick", action="store_true", help="cpu preset, I in {1, 8}, 2 repeats")
     parser.add_argument(
         "--reference",
@@ -490,6 +519,8 @@ def main() -> None:
         args.configs, args.agents, args.repeats = ["cpu"], [1, 8], 2
     if args.repeats <= 0 or args.warmup < 0 or any(i <= 0 for i in args.agents):
         parser.error("--repeats and --agents must be positive, --warmup non-negative")
+    if args.compiled and args.warmup < 1:
+        parser.error("--compiled needs --warmup >= 1 (the compilation must not be timed)")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     global DEVICE
