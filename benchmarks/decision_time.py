@@ -24,7 +24,7 @@ Examples::
     python benchmarks/decision_time.py                       # everything, 8 CAVs, 1 thread
     python benchmarks/decision_time.py --methods mapets-cpu maddpg --decisions 50
     python benchmarks/decision_time.py --loop figure-eight-multilane --agents 22 \\
-        --methods mapets-cpu maddpg mappo sac
+        --methods mapets-cpu mapets-cpu-compiled maddpg mappo sac
     python benchmarks/decision_time.py --device cuda --paper-decisions 10
 """
 
@@ -50,13 +50,15 @@ PAPER_TABLE_IV_MS = {
 counterpart here)."""
 
 
-def _mapets(preset: str, cuda_graph: bool = False) -> Callable[[argparse.Namespace], Any]:
+def _mapets(
+    preset: str, cuda_graph: bool = False, compile: bool = False
+) -> Callable[[argparse.Namespace], Any]:
     def build(args: argparse.Namespace) -> Any:
         from recipes.mapets import MAPETS, MAPETSConfig
 
         config = MAPETSConfig(
             preset=preset,
-            planner={"cuda_graph": cuda_graph},
+            planner={"cuda_graph": cuda_graph, "compile": compile},
             env=args.loop,
             env_config={"n_cavs": args.agents},
             **_common(args),
@@ -86,13 +88,15 @@ METHODS: dict[str, tuple[str, Callable[[argparse.Namespace], Any]]] = {
     "mapets-paper": ("mapets", _mapets("paper")),
     "mapets-cpu-graph": ("mapets", _mapets("cpu", cuda_graph=True)),
     "mapets-paper-graph": ("mapets", _mapets("paper", cuda_graph=True)),
+    "mapets-cpu-compiled": ("mapets", _mapets("cpu", compile=True)),
     "maddpg": ("maddpg", _model_free("maddpg", "MADDPG", "loop")),
     "mappo": ("mappo", _model_free("mappo", "MAPPO", "loop")),
     "sac": ("sac", _model_free("sac", "SAC", "loop")),
     "shapley_ac": ("shapley_ac", _model_free("shapley_ac", "ShapleyAC", "freeway")),
 }
 """Method name -> (paper key, builder of the recipe's Experiment). The ``-graph`` methods plan
-with ``planner.cuda_graph`` (CUDA devices only; the first, untimed warm-up decision captures)."""
+with ``planner.cuda_graph`` (CUDA devices only; the first, untimed warm-up decision captures),
+``-compiled`` with ``planner.compile`` (the first, untimed warm-up decision compiles)."""
 
 _TMP: list[tempfile.TemporaryDirectory] = []
 
@@ -227,8 +231,8 @@ def main() -> None:
         paper = name.startswith("mapets-paper")
         decisions = args.paper_decisions if paper else args.decisions
         warmup = args.paper_warmup if paper else args.warmup
-        if name.endswith("-graph"):
-            warmup = max(warmup, 1)  # the capture is not a decision's time
+        if name.endswith(("-graph", "-compiled")):
+            warmup = max(warmup, 1)  # the capture / compilation is not a decision's time
         pool = states(exp, max(min(decisions + warmup, 50), 1))
         times = time_decisions(exp.eval_policy, pool, decisions, warmup, args.device, args.agents)
         ms = [1e3 * t for t in times]
@@ -244,6 +248,10 @@ def main() -> None:
         )
         rows.append(row)
         print(row, flush=True)
+        step = getattr(getattr(exp, "planner", None), "compiled_step", None)
+        if step is not None:
+            how = f"eager fallback: {step.fallback_reason}" if step.fallback_reason else "compiled"
+            print(f"  ({name}: {how}; compile {step.compile_seconds:.1f} s in the warm-up)")
         exp.env.close()
     print()
     print(
