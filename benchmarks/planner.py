@@ -29,6 +29,7 @@ Examples::
     python benchmarks/planner.py --configs cpu --agents 1 8 22 --dtypes fp32 bf16 --repeats 5
     python benchmarks/planner.py --quick --agents 8 --set noise_beta=2 keep_elites=0.3
     python benchmarks/planner.py --configs cpu --agents 1 8 22 --dtypes fp32 bf16 --compiled
+    python benchmarks/planner.py --configs cpu --compiled --baseline population=32 compile=false
     python benchmarks/planner.py --device cuda --configs paper --agents 1 8 22 --dtypes fp32 bf16
     PYTHONPATH=. /work/mbrl-venv/bin/python benchmarks/planner.py --reference mbrl-lib \
         --configs paper --agents 1 --dtypes fp32 --threads 1 --repeats 2 --naive-max-agents 0
@@ -290,6 +291,18 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
         for suffix, settings in modes.items()
         for key in args.dtypes
     }
+    baseline_settings = dict(map(parse_override, args.baseline))
+    if baseline_settings:
+        for key in args.dtypes:
+            planners[f"{key}@baseline"] = TrajectorySamplingCEM(
+                model,
+                figure_eight_reward,
+                LOW,
+                HIGH,
+                seed=0,
+                config=cfg.planner.replace(**baseline_settings),
+                dtype=DTYPES[key],
+            )
     first: dict[str, torch.Tensor] = {}  # cold-start decisions, to compare dtypes
 
     def decide(key: str) -> None:
@@ -355,8 +368,10 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
     total = flops(cfg, n_agents, iters)
     line = f"{name:>5} I={n_agents:<3d}"
     for key in planners:
+        planner_cfg = cfg.planner.replace(**baseline_settings) if "@" in key else cfg.planner
+        work = flops(replace(cfg, planner=planner_cfg), n_agents, iters)
         line += (
-            f" | {key}: {best[key]:8.3f} s/decision {total / best[key] / 1e9:6.1f} GFLOP/s "
+            f" | {key}: {best[key]:8.3f} s/decision {work / best[key] / 1e9:6.1f} GFLOP/s "
             f"peak RSS {peak[key]:6.0f} MiB"
         )
     print(line)
@@ -383,6 +398,15 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
                 f"{step.compiles} graph(s))"
                 + (f"; EAGER FALLBACK: {step.fallback_reason}" if step.fallback_reason else "")
             )
+    for key in args.dtypes:
+        if f"{key}@baseline" in planners:
+            base = times[f"{key}@baseline"]
+            for other in [k for k in planners if k.split("+")[0] == key]:
+                print(
+                    f"      vs baseline ({' '.join(args.baseline)}), {key}: baseline "
+                    f"{spread(base)}, {other} {spread(times[other])} -> "
+                    f"{statistics.median(base) / statistics.median(times[other]):.2f}x (medians)"
+                )
     gemm = best["gemm"]
     if "fp32" not in planners:
         return
@@ -503,6 +527,15 @@ def main() -> None:
         action="store_true",
         help="also time each dtype with compile=True (the rollout step through torch.compile; "
         "the compilation is the untimed warm-up call, its seconds are printed)",
+    )
+    parser.add_argument(
+        "--baseline",
+        nargs="*",
+        default=[],
+        metavar="key=value",
+        help="also time, interleaved, a baseline planner: the preset with these PlannerConfig "
+        "fields (e.g. the cpu preset before issue 24: population=32 compile=false), and print "
+        "each variant's speed-up over it",
     )
     parser.add_argument("--quick", action="store_true", help="cpu preset, I in {1, 8}, 2 repeats")
     parser.add_argument(
