@@ -24,7 +24,7 @@ Examples::
     python benchmarks/decision_time.py                       # everything, 8 CAVs, 1 thread
     python benchmarks/decision_time.py --methods mapets-cpu maddpg --decisions 50
     python benchmarks/decision_time.py --loop figure-eight-multilane --agents 22 \\
-        --methods mapets-cpu mapets-cpu-compiled maddpg mappo sac
+        --methods mapets-cpu-before-24 mapets-cpu-eager mapets-cpu maddpg mappo sac
     python benchmarks/decision_time.py --device cuda --paper-decisions 10
 """
 
@@ -50,15 +50,13 @@ PAPER_TABLE_IV_MS = {
 counterpart here)."""
 
 
-def _mapets(
-    preset: str, cuda_graph: bool = False, compile: bool = False
-) -> Callable[[argparse.Namespace], Any]:
+def _mapets(preset: str, **planner: Any) -> Callable[[argparse.Namespace], Any]:
     def build(args: argparse.Namespace) -> Any:
         from recipes.mapets import MAPETS, MAPETSConfig
 
         config = MAPETSConfig(
             preset=preset,
-            planner={"cuda_graph": cuda_graph, "compile": compile},
+            planner=planner,
             env=args.loop,
             env_config={"n_cavs": args.agents},
             **_common(args),
@@ -85,10 +83,11 @@ def _model_free(module: str, cls: str, env: str) -> Callable[[argparse.Namespace
 
 METHODS: dict[str, tuple[str, Callable[[argparse.Namespace], Any]]] = {
     "mapets-cpu": ("mapets", _mapets("cpu")),
+    "mapets-cpu-eager": ("mapets", _mapets("cpu", compile=False)),
+    "mapets-cpu-before-24": ("mapets", _mapets("cpu", population=32, compile=False)),
     "mapets-paper": ("mapets", _mapets("paper")),
     "mapets-cpu-graph": ("mapets", _mapets("cpu", cuda_graph=True)),
     "mapets-paper-graph": ("mapets", _mapets("paper", cuda_graph=True)),
-    "mapets-cpu-compiled": ("mapets", _mapets("cpu", compile=True)),
     "maddpg": ("maddpg", _model_free("maddpg", "MADDPG", "loop")),
     "mappo": ("mappo", _model_free("mappo", "MAPPO", "loop")),
     "sac": ("sac", _model_free("sac", "SAC", "loop")),
@@ -96,7 +95,9 @@ METHODS: dict[str, tuple[str, Callable[[argparse.Namespace], Any]]] = {
 }
 """Method name -> (paper key, builder of the recipe's Experiment). The ``-graph`` methods plan
 with ``planner.cuda_graph`` (CUDA devices only; the first, untimed warm-up decision captures),
-``-compiled`` with ``planner.compile`` (the first, untimed warm-up decision compiles)."""
+``mapets-cpu`` compiles its rollout step (``planner.compile``, the first, untimed warm-up decision
+compiles), ``mapets-cpu-eager`` does not, ``mapets-cpu-before-24`` is the cpu preset before issue
+24 (Q = 32, eager)."""
 
 _TMP: list[tempfile.TemporaryDirectory] = []
 
@@ -231,7 +232,7 @@ def main() -> None:
         paper = name.startswith("mapets-paper")
         decisions = args.paper_decisions if paper else args.decisions
         warmup = args.paper_warmup if paper else args.warmup
-        if name.endswith(("-graph", "-compiled")):
+        if name.endswith("-graph") or name == "mapets-cpu":
             warmup = max(warmup, 1)  # the capture / compilation is not a decision's time
         pool = states(exp, max(min(decisions + warmup, 50), 1))
         times = time_decisions(exp.eval_policy, pool, decisions, warmup, args.device, args.agents)

@@ -156,3 +156,26 @@ def test_compile_is_a_planner_setting_of_the_recipe(tmp_path, monkeypatch):
     assert exp.planner.compiled_step is not None
     with pytest.raises(ValueError, match="compile"):
         MAPETSConfig(planner={"compile": "yes"})
+
+
+@needs_compiler
+def test_a_compiled_run_compiles_once_across_episodes_and_model_refits(tmp_path):
+    """The cpu preset compiles; refitting the ensembles between episodes (in-place updates) and
+    starting new episodes reuse the first graph."""
+    config = MAPETSConfig(
+        preset="cpu",
+        episodes=3,
+        seed=1,
+        env_config={"n_cavs": 3, "n_hvs": 1, "horizon": 15},
+        planner={"horizon": 4, "population": 8},
+        model={"hidden": [16], "buffer_size": 64, "epochs": 2},
+        num_threads=1,
+        progress=False,
+    )
+    assert config.planner.compile
+    exp = MAPETS(config, tmp_path / "run")
+    exp.train()
+    step = exp.planner.compiled_step
+    assert step.fallback_reason is None and step.compiles == 1
+    metrics = exp.results.train[-1]["metrics"]
+    assert 0.0 <= metrics["safety"] <= 1.0 and metrics["random"] == 0.0

@@ -166,10 +166,11 @@ def test_presets_resolve_and_explicit_fields_win():
     cpu = MAPETSConfig(preset="cpu", planner={"horizon": 15})
     assert (cpu.planner.horizon, cpu.planner.population, cpu.model.hidden, cpu.model.epochs) == (
         15,
-        32,
+        16,
         [64, 64, 64],
         30,
     )
+    assert cpu.planner.compile and not paper.planner.compile
     assert cpu.with_overrides(["model.lr=3e-4"]).planner.horizon == 15
 
 

@@ -61,7 +61,8 @@ class PlannerConfig(ConfigSection):
             elementwise ops into a few loops around the GEMMs
             (:class:`~mapets_rl.planning.compiled.CompiledStep`): compiled once per run at its
             first decision (seconds), equal to eager planning up to floating-point
-            reassociation; eager, with a warning, where no C++ compiler is found.
+            reassociation; eager, with a warning, where no C++ compiler is found. CPU planning
+            only: on an accelerator the step stays eager (use ``cuda_graph`` there).
     """
 
     horizon: int = dataclasses.field(default=25, metadata={"unit": "steps"})
@@ -145,23 +146,27 @@ class Preset:
 #: TFLOP per agent and decision, a GPU workload.
 PAPER_PRESET = Preset(planner=PlannerConfig(), model=EnsembleConfig())
 
-#: Scaled down for a 2-core CPU: w=25, Q=32, X=4, Y=2, P=5, B=5, 3x64 hidden. The horizon stays
+#: Scaled down for a 2-core CPU: w=25, Q=16, X=4, Y=2, P=5, B=5, 3x64 hidden. The horizon stays
 #: the paper's 2.5 s, long enough to brake from 13.89 m/s at -6 m/s^2 (2.3 s); the CEM is
-#: narrowed instead (Q x w x Y = 1,600 model rows per particle and agent-decision, ~300x fewer
-#: MLP FLOPs than the paper). The model trains 30 epochs after each episode: 5 are 40-80
-#: gradient steps at this size and leave the model underestimating fast closing; the training
-#: NLL flattens by ~30. iCEM's anchor candidates and keep-best are on (the paper preset keeps the
-#: plain CEM): with Q = 32 they lift the two-lane oracle-model planner's safety from 0.49 to 0.76
-#: (0.94 with the headway margin). See benchmarks/RESULTS.md for timings and the NLL curve.
+#: narrowed instead (Q x w x Y = 800 model rows per particle and agent-decision, ~600x fewer MLP
+#: FLOPs than the paper). The model trains 30 epochs after each episode: 5 are 40-80 gradient
+#: steps at this size and leave the model underestimating fast closing; the training NLL flattens
+#: by ~30. iCEM's anchor candidates and keep-best are on (the paper preset keeps the plain CEM):
+#: with them the oracle-model planner is as safe at Q = 16 or 8 as at Q = 32 on both
+#: figure-eights (and iCEM's colored noise costs two-lane safety); with Q = 32 they lifted the
+#: two-lane oracle planner's safety from 0.49 to 0.76 (0.94 with the headway margin). Each
+#: rollout step is compiled (``compile``; eager where no C++ compiler is found). See
+#: benchmarks/RESULTS.md for timings, the safety-vs-model-rows table and the NLL curve.
 CPU_PRESET = Preset(
     planner=PlannerConfig(
         horizon=25,
-        population=32,
+        population=16,
         elites=4,
         iterations=2,
         particles=5,
         anchor_candidates=True,
         keep_best=True,
+        compile=True,
     ),
     model=EnsembleConfig(ensemble_size=5, hidden=[64, 64, 64], epochs=30),
 )

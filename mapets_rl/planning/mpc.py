@@ -11,6 +11,7 @@ Python loops are over CEM iterations and horizon steps.
 from __future__ import annotations
 
 import contextlib
+import logging
 import warnings
 from collections.abc import Sequence
 from typing import Any
@@ -36,6 +37,8 @@ from mapets_rl.planning.trajectory_sampling import (
 )
 
 __all__ = ["TrajectorySamplingCEM"]
+
+log = logging.getLogger(__name__)
 
 
 _TORCH_DTYPES = {torch.float32: "fp32", torch.bfloat16: "bf16"}
@@ -204,7 +207,12 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             generator.manual_seed(seed)
         self.generator = generator
         self._graphed = GraphedStep(device, generator) if config.cuda_graph else None
-        self._step: StepFn = CompiledStep() if config.compile else propagate_step
+        # compile fuses a CPU step; on an accelerator cuda_graph is the tool (inductor's GPU
+        # backend is not tested here), so the step stays eager there.
+        compiled = config.compile and device.type == "cpu"
+        if config.compile and not compiled:
+            log.info("planner compile applies to CPU planning; the %s step runs eagerly", device)
+        self._step: StepFn = CompiledStep() if compiled else propagate_step
         self.optimizer = CEMOptimizer(
             config.population,
             config.elites,
