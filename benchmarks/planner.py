@@ -272,7 +272,7 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
     """Time every variant once per repeat, interleaved, and keep each variant's fastest run."""
     obs = make_obs(n_agents).to(DEVICE)
     model = make_model(cfg, n_agents).to(DEVICE)
-    modes = {"": {}}
+    modes: dict[str, dict] = {"": {"compile": False} if args.compiled else {}}
     if args.graph:
         modes["+graph"] = {"cuda_graph": True}
     if args.compiled:
