@@ -144,6 +144,20 @@ def test_a_failing_compilation_falls_back_to_the_eager_step(monkeypatch, caplog)
         assert torch.equal(g, w)
 
 
+def test_the_fallback_reason_names_the_root_cause(monkeypatch):
+    def broken(fn, **kwargs):
+        def run(*args):
+            raise RuntimeError("backend='inductor' raised:") from OSError("File too large")
+
+        return run
+
+    monkeypatch.setattr(compiled, "compiler_unavailable", lambda: None)
+    monkeypatch.setattr(torch, "compile", broken)
+    step = CompiledStep()
+    step(*step_inputs("ts_inf"))
+    assert step.fallback_reason == "torch.compile failed: OSError: File too large"
+
+
 def test_compile_is_a_planner_setting_of_the_recipe(tmp_path, monkeypatch):
     monkeypatch.setattr(compiled, "compiler_unavailable", lambda: "skipped in this test")
     config = MAPETSConfig(

@@ -100,7 +100,10 @@ class CompiledStep:
         except (ValueError, TypeError):
             raise  # the step's own input errors (e.g. a reward of the wrong shape)
         except Exception as err:  # noqa: BLE001 - inductor failures: plan eagerly instead
-            self._fall_back(f"torch.compile failed: {type(err).__name__}: {err}".splitlines()[0])
+            root = err
+            while root.__cause__ is not None:  # e.g. BackendCompilerFailed <- OSError
+                root = root.__cause__
+            self._fall_back(f"torch.compile failed: {type(root).__name__}: {root}".splitlines()[0])
             return propagate_step(*args)
         self.compile_seconds += time.perf_counter() - start
         self.compiles += 1
