@@ -249,7 +249,7 @@ CLI_CASES = [
             "planner.propagation=ts1",
             "planner.particles=3",
         ],
-        r"planner.particles \* population \(48\) must be divisible by the ensemble size \(5\)",
+        r"planner.particles \* population \(24\) must be divisible by the ensemble size \(5\)",
     ),
     (
         "coma on continuous actions",

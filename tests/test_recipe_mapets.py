@@ -166,7 +166,7 @@ def test_presets_resolve_and_explicit_fields_win():
     cpu = MAPETSConfig(preset="cpu", planner={"horizon": 15})
     assert (cpu.planner.horizon, cpu.planner.population, cpu.model.hidden, cpu.model.epochs) == (
         15,
-        16,
+        8,
         [64, 64, 64],
         30,
     )

@@ -146,21 +146,20 @@ class Preset:
 #: TFLOP per agent and decision, a GPU workload.
 PAPER_PRESET = Preset(planner=PlannerConfig(), model=EnsembleConfig())
 
-#: Scaled down for a 2-core CPU: w=25, Q=16, X=4, Y=2, P=5, B=5, 3x64 hidden. The horizon stays
+#: Scaled down for a 2-core CPU: w=25, Q=8, X=4, Y=2, P=5, B=5, 3x64 hidden. The horizon stays
 #: the paper's 2.5 s, long enough to brake from 13.89 m/s at -6 m/s^2 (2.3 s); the CEM is
-#: narrowed instead (Q x w x Y = 800 model rows per particle and agent-decision, ~600x fewer MLP
-#: FLOPs than the paper). The model trains 30 epochs after each episode: 5 are 40-80 gradient
-#: steps at this size and leave the model underestimating fast closing; the training NLL flattens
-#: by ~30. iCEM's anchor candidates and keep-best are on (the paper preset keeps the plain CEM):
-#: with them the oracle-model planner is as safe at Q = 16 or 8 as at Q = 32 on both
-#: figure-eights (and iCEM's colored noise costs two-lane safety); with Q = 32 they lifted the
-#: two-lane oracle planner's safety from 0.49 to 0.76 (0.94 with the headway margin). Each
+#: narrowed instead ((Q + 3 anchors) x w x Y = 550 model rows per particle and agent-decision).
+#: The model trains 30 epochs after each episode: 5 are 40-80 gradient steps at this size and
+#: leave the model underestimating fast closing; the training NLL flattens by ~30. iCEM's anchor
+#: candidates and keep-best are on (the paper preset keeps the plain CEM): with them the
+#: planner is as safe at Q = 8 or 16 as at Q = 32 on both figure-eights, with the exact model and
+#: with the learned ones (iCEM's colored noise costs two-lane safety, so it stays off). Each
 #: rollout step is compiled (``compile``; eager where no C++ compiler is found). See
 #: benchmarks/RESULTS.md for timings, the safety-vs-model-rows table and the NLL curve.
 CPU_PRESET = Preset(
     planner=PlannerConfig(
         horizon=25,
-        population=16,
+        population=8,
         elites=4,
         iterations=2,
         particles=5,
