@@ -232,7 +232,8 @@ def main() -> None:
         paper = name.startswith("mapets-paper")
         decisions = args.paper_decisions if paper else args.decisions
         warmup = args.paper_warmup if paper else args.warmup
-        if name.endswith("-graph") or name == "mapets-cpu":
+        planner = getattr(exp, "planner", None)  # MA-PETS's
+        if planner is not None and (planner.cuda_graph or planner.compiled_step is not None):
             warmup = max(warmup, 1)  # the capture / compilation is not a decision's time
         pool = states(exp, max(min(decisions + warmup, 50), 1))
         times = time_decisions(exp.eval_policy, pool, decisions, warmup, args.device, args.agents)
@@ -249,7 +250,7 @@ def main() -> None:
         )
         rows.append(row)
         print(row, flush=True)
-        step = getattr(getattr(exp, "planner", None), "compiled_step", None)
+        step = None if planner is None else planner.compiled_step
         if step is not None:
             how = f"eager fallback: {step.fallback_reason}" if step.fallback_reason else "compiled"
             print(f"  ({name}: {how}; compile {step.compile_seconds:.1f} s in the warm-up)")

@@ -49,6 +49,13 @@ from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, fit_ensemble, tra
 from recipes.mapets import MAPETS
 
 GAP_AHEAD = 5
+#: The loss keys of the flat ``[N, I, *]`` dataset :func:`load_data` builds.
+FLAT_KEYS = {
+    "observation": "observation",
+    "action": "action",
+    "next_observation": "next_observation",
+    "mask": "mask",
+}
 SPEED = 0
 
 
@@ -96,10 +103,9 @@ def gap_errors(model: ProbabilisticEnsemble, data: TensorDict) -> dict[str, floa
     return out
 
 
-def split(data: TensorDict, seed: int) -> tuple[TensorDict, TensorDict]:
-    """(train, test): 20% of the rows (the same for every agent) masked out of ``train`` and
-    only those in ``test``."""
-    gen = torch.Generator().manual_seed(seed)
+def split(data: TensorDict, gen: torch.Generator) -> tuple[TensorDict, TensorDict]:
+    """(train, test): 20% of the rows (the same for every agent, one draw from ``gen``) masked
+    out of ``train`` and only those in ``test``."""
     holdout = torch.rand(data.batch_size, generator=gen) < 0.2
     train = data.clone()
     train.set("mask", data.get("mask") & ~holdout[:, None])
@@ -126,9 +132,7 @@ def new_loss(exp: MAPETS, seed: int, bootstrap: bool = True) -> EnsembleNLLLoss:
         logvar_bound_coef=cfg.logvar_bound_coef,
         generator=torch.Generator().manual_seed(seed + 1),
     )
-    loss.set_keys(
-        observation="observation", action="action", next_observation="next_observation", mask="mask"
-    )
+    loss.set_keys(**FLAT_KEYS)
     return loss
 
 
@@ -151,7 +155,7 @@ def compare(args: argparse.Namespace) -> None:
     )
     print("|---|---|---|---|---|---|---|---|---|")
     for seed in args.seeds:
-        train, test = split(data, seed)
+        train, test = split(data, torch.Generator().manual_seed(seed))
         for start in ("cold", "warm"):
             init = new_loss(exp, seed)
             if start == "warm":  # the previous episode's model: trained on half of the rows
@@ -268,11 +272,7 @@ def main() -> None:
     exp, data = load_data(args.run_dir)
     cfg = exp.config.model
     gen = torch.Generator().manual_seed(args.seed)
-    holdout = torch.rand(data.batch_size, generator=gen) < 0.2
-    train = data.clone()
-    train.set("mask", data.get("mask") & ~holdout[:, None])
-    test = data.clone()
-    test.set("mask", data.get("mask") & holdout[:, None])
+    train, test = split(data, gen)  # gen then drives the training's bootstrap and shuffles
     model = ProbabilisticEnsemble(
         exp.model.obs_dim,
         exp.model.action_dim,
@@ -281,13 +281,9 @@ def main() -> None:
         hidden=tuple(cfg.hidden),
     )
     loss = EnsembleNLLLoss(model, logvar_bound_coef=cfg.logvar_bound_coef, generator=gen)
-    loss.set_keys(
-        observation="observation", action="action", next_observation="next_observation", mask="mask"
-    )
+    loss.set_keys(**FLAT_KEYS)
     holdout_loss = EnsembleNLLLoss(model, bootstrap=False)
-    holdout_loss.set_keys(
-        observation="observation", action="action", next_observation="next_observation", mask="mask"
-    )
+    holdout_loss.set_keys(**FLAT_KEYS)
     optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.lr)
     print(
         f"run {args.run_dir}: {exp.n_agents} agents, |D(i)+| = "

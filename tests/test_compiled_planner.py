@@ -61,7 +61,9 @@ def step_inputs(propagation: str) -> tuple:
     rows = particles * cands
     state = observations(3).reshape(3, 1, OBS_DIM).expand(-1, rows, -1).contiguous()
     action = torch.rand(3, rows, 1, generator=gen) * 6 - 3
-    eps = torch.randn(particles, 1, OBS_DIM, generator=gen)
+    eps = (
+        None if propagation == "expectation" else torch.randn(particles, 1, OBS_DIM, generator=gen)
+    )
     perm = torch.randperm(rows, generator=gen) if propagation == "ts1" else None
     returns = torch.rand(3, rows, generator=gen)
     alive = torch.rand(3, rows, generator=gen) > 0.2

@@ -8,26 +8,12 @@ import math
 import pytest
 import torch
 from tensordict import TensorDict
+from test_planner import DT, RHO, quadratic_reward
+from test_planner import ExactPointMass as PointMass
 
 from mapets_rl.config import ConfigError
 from mapets_rl.planning import PlannerConfig, TrajectorySamplingCEM
 from mapets_rl.planning.cem import CEMOptimizer, colored_noise, kept_elite_count, sample_sizes
-
-DT, RHO = 0.1, 0.1
-
-
-class PointMass:
-    """Exact 1-D point mass, a DynamicsModel without an ensemble (B = 1)."""
-
-    n_agents, obs_dim, action_dim, ensemble_size = 1, 2, 1, 1
-
-    def predict(self, obs, action, dtype=torch.float32):
-        mean = torch.cat([DT * obs[..., 1:2], DT * action], dim=-1)
-        return mean, torch.full_like(mean, -60.0)
-
-
-def quadratic_reward(obs, action, next_obs):
-    return -(next_obs.pow(2).sum(-1) + RHO * action.pow(2).sum(-1))
 
 
 def point_mass_planner(seed: int = 0, **settings) -> TrajectorySamplingCEM:

@@ -90,7 +90,7 @@ def propagate_step(
     model: DynamicsModel,
     state: torch.Tensor,
     action: torch.Tensor,
-    eps: torch.Tensor,
+    eps: torch.Tensor | None,
     perm: torch.Tensor | None,
     returns: torch.Tensor,
     alive: torch.Tensor,
@@ -109,7 +109,7 @@ def propagate_step(
             ``C`` candidates; row block ``p`` is particle ``p``, member ``p mod B``).
         action: ``[I, R, A]`` this step's actions.
         eps: ``[P, 1, S]`` standard-normal noise of the step (common to the candidates);
-            unused by ``expectation``.
+            ``None`` for ``expectation``.
         perm: ``[R]`` the rows' member re-draw of ``ts1`` (``None`` otherwise).
         returns: ``[I, R]`` summed rewards so far; alive: ``[I, R]`` bool, particles not yet
             terminated; finite_steps: ``[I, R]`` long, steps with a finite counted reward.
@@ -179,9 +179,8 @@ def trajectory_sampling_returns(
     the step at which it predicts a termination (that step's reward counts, later ones do not,
     as in mbrl-lib's ``ModelEnv``).
 
-    Every random number of the rollout is drawn before its first step (per step, in the order
-    the steps use them), so each step is a pure function (:func:`propagate_step`, or a
-    compiled version of it passed as ``step``).
+    Each step's random numbers are drawn here and passed in, so the step itself is a pure
+    function (:func:`propagate_step`, or a compiled version of it passed as ``step``).
 
     Args:
         model: the agents' dynamics (:class:`DynamicsModel`).
@@ -209,21 +208,15 @@ def trajectory_sampling_returns(
     # Every step's model-input actions [H, I, rows, act], built once (not once per step).
     actions = candidates.reshape(n_agents, cands, horizon, -1).permute(2, 0, 1, 3).unsqueeze(2)
     step_actions = actions.expand(-1, -1, particles, -1, -1).reshape(horizon, n_agents, rows, -1)
-    noise: list[tuple[torch.Tensor | None, torch.Tensor]] = []
-    for _ in range(horizon):
-        perm = None
-        if propagation == "ts1":
-            perm = torch.randperm(rows, generator=generator, device=device)
-        if propagation == "expectation":
-            eps = torch.zeros((1, 1, obs_dim), device=device)
-        else:
-            eps = torch.randn((particles, 1, obs_dim), generator=generator, device=device)
-        noise.append((perm, eps))
     returns = torch.zeros(n_agents, rows, device=device)
     alive = torch.ones(n_agents, rows, dtype=torch.bool, device=device)
     finite_steps = torch.zeros(n_agents, rows, dtype=torch.long, device=device)
     for t in range(horizon):
-        perm, eps = noise[t]
+        perm = eps = None
+        if propagation == "ts1":
+            perm = torch.randperm(rows, generator=generator, device=device)
+        if propagation != "expectation":
+            eps = torch.randn((particles, 1, obs_dim), generator=generator, device=device)
         state, returns, alive, finite_steps = step(
             model,
             state,
