@@ -1,0 +1,673 @@
+"""``freeway`` and ``freeway-merge`` as one tensor program over ``B`` independent roads.
+
+:class:`BatchedFreeway` holds the state of ``B`` roads of ``V`` vehicles each (``[B, V]``
+tensors; on ``freeway-merge`` a ``V + 1``-th body per road is the obstacle that ends the
+acceleration lane) and their ``I`` CAVs (``[B, I]``), and advances all roads by one policy step
+at a time: the CAVs' decisions (KL, CL, CR, ES), then ``simulation_frequency /
+policy_frequency`` simulation steps of highway-env's drivers (IDM + MOBIL, lane-following
+steering, the kinematic bicycle model, rectangle collisions; :mod:`.dynamics`), then the
+observation, reward and episode bookkeeping of :class:`~mapets_rl.envs.FreewayEnv`. What each
+part reproduces, and where the simulator departs from highway-env, is listed in
+``docs/ARCHITECTURE.md`` and measured in ``benchmarks/RESULTS.md`` ("The batched freeway").
+
+Randomness is drawn only when a road is reset (spawn slots, speeds, target speeds, human IDM
+exponents, which vehicles are CAVs), from the simulator's own ``torch.Generator``; stepping is
+deterministic. :meth:`BatchedFreeway.snapshot` / :meth:`BatchedFreeway.restore` copy the whole
+state, the generator's included, so a rollout can branch and replay bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from highway_env.vehicle.behavior import IDMVehicle
+from highway_env.vehicle.objects import Obstacle
+from tensordict import TensorDict
+
+from mapets_rl.envs.freeway import CL, CR, ES, KL
+from mapets_rl.envs.freeway import OBS_DIM as FREEWAY_OBS_DIM
+from mapets_rl.envs.torch_freeway.dynamics import (
+    DISTANCE_WANTED,
+    LENGTH,
+    SQRT_AB,
+    TIME_WANTED,
+    WIDTH,
+    NeighbourTables,
+    idm_acceleration,
+    integrate,
+    rectangle_collisions,
+    steering_control,
+)
+from mapets_rl.envs.torch_freeway.geometry import (
+    LANE_WIDTH,
+    MAINLINE,
+    VEHICLE_LENGTH,
+    FreewayGeometry,
+)
+from mapets_rl.envs.vehicles import ACC_MIN
+
+ACC_MAX = IDMVehicle.ACC_MAX
+"""Largest |acceleration| of an IDM driver [m/s^2] (highway-env ``IDMVehicle.ACC_MAX``)."""
+LANE_CHANGE_DELAY = IDMVehicle.LANE_CHANGE_DELAY
+MIN_ACC_GAIN = IDMVehicle.LANE_CHANGE_MIN_ACC_GAIN
+MAX_BRAKING_IMPOSED = IDMVehicle.LANE_CHANGE_MAX_BRAKING_IMPOSED
+DELTA_RANGE = tuple(IDMVehicle.DELTA_RANGE)
+"""Range of a human driver's IDM exponent (``IDMVehicle.randomize_behavior``)."""
+if IDMVehicle.POLITENESS != 0:  # MOBIL's follower terms are dropped below because they weigh 0
+    raise ImportError("the batched freeway assumes highway-env's MOBIL politeness of 0")
+
+STATE_FLOAT = (
+    "x", "y", "heading", "speed", "target_speed", "delta", "timer", "acc", "steer",
+    "impact_x", "impact_y",
+)  # fmt: skip
+"""Per-body float entries of the state ``[B, N]``."""
+
+
+@dataclass
+class StepResult:
+    """What one policy step of every road returns (``B`` roads, ``I`` CAVs).
+
+    Attributes:
+        observation: ``[B, I, obs_dim]`` of the CAVs that acted (zero rows for the others).
+        reward: ``[B, I]`` reward of the step (0 for CAVs that did not act).
+        acting: ``[B, I]`` the CAVs that were driving at the start of the step.
+        alive: ``[B, I]`` the CAVs still driving after it.
+        collided: ``[B, I]`` the CAVs that crashed in this step.
+        distance: ``[B, I]`` metres travelled in the step.
+        traffic_velocity, traffic_comfort: ``[B]`` means over all vehicles on the road.
+        truncated: ``[B]`` the horizon is reached.
+        terminated: ``[B]`` every CAV has crashed.
+    """
+
+    observation: torch.Tensor
+    reward: torch.Tensor
+    acting: torch.Tensor
+    alive: torch.Tensor
+    collided: torch.Tensor
+    distance: torch.Tensor
+    traffic_velocity: torch.Tensor
+    traffic_comfort: torch.Tensor
+    truncated: torch.Tensor
+    terminated: torch.Tensor
+
+
+class BatchedFreeway:
+    """``B`` roads of ``freeway`` (``merge=False``) or ``freeway-merge`` stepped together.
+
+    Args:
+        config: a complete, validated ``FreewayEnv`` / ``FreewayMergeEnv`` config (defaults
+            filled in, ``n_cavs`` derived).
+        merge: the road has the on-ramp.
+        num_roads: ``B``.
+        device, dtype: where the state lives and its float precision (float32 by default;
+            float64 matches highway-env's arithmetic to rounding).
+        seed: seed of the simulator's random generator.
+    """
+
+    def __init__(
+        self,
+        config: dict,
+        merge: bool,
+        num_roads: int,
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float32,
+        seed: int = 0,
+    ) -> None:
+        self.config = dict(config)
+        self.merge = merge
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.geometry = FreewayGeometry.from_config(config, merge, self.device, dtype)
+        self.n_roads = int(num_roads)
+        self.n_vehicles = int(config["n_vehicles"])
+        self.n_bodies = self.n_vehicles + (1 if merge else 0)
+        self.n_cavs = int(config["n_cavs"])
+        self.n_ramp = int(round(config["ramp_fraction"] * self.n_vehicles)) if merge else 0
+        self.obs_dim = FREEWAY_OBS_DIM + (2 if merge else 0)
+        self.frames = int(config["simulation_frequency"]) // int(config["policy_frequency"])
+        self.dt = 1.0 / float(config["simulation_frequency"])
+        self.speed_limit = float(config["speed_limit"])
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(int(seed))
+        n = self.n_bodies
+        obstacle = torch.zeros(n, dtype=torch.bool, device=self.device)
+        obstacle[self.n_vehicles :] = True
+        self.is_obstacle = obstacle
+        self.body_length = torch.where(obstacle, Obstacle.LENGTH, LENGTH).to(dtype)
+        self.body_width = torch.where(obstacle, Obstacle.WIDTH, WIDTH).to(dtype)
+        self.body_index = torch.arange(n, device=self.device)
+        self.state = self._empty_state()
+        self.reset(torch.ones(self.n_roads, dtype=torch.bool, device=self.device))
+
+    # --- state ---------------------------------------------------------------------------------
+    def _empty_state(self) -> TensorDict:
+        b, n, i = self.n_roads, self.n_bodies, self.n_cavs
+        dev, dt = self.device, self.dtype
+        bodies = {key: torch.zeros(b, n, dtype=dt, device=dev) for key in STATE_FLOAT}
+        for key in ("lane", "target", "decision"):
+            bodies[key] = torch.zeros(b, n, dtype=torch.long, device=dev)
+        for key in ("crashed", "present", "has_impact", "cav"):
+            bodies[key] = torch.zeros(b, n, dtype=torch.bool, device=dev)
+        agents = {
+            "slot": torch.zeros(b, i, dtype=torch.long, device=dev),
+            "alive": torch.zeros(b, i, dtype=torch.bool, device=dev),
+        }
+        roads = {
+            "steps": torch.zeros(b, dtype=torch.long, device=dev),
+            "speed_sum": torch.zeros(b, dtype=torch.float64, device=dev),
+            "comfort_sum": torch.zeros(b, dtype=torch.float64, device=dev),
+            "samples": torch.zeros(b, dtype=torch.float64, device=dev),
+        }
+        return TensorDict(
+            {
+                "bodies": TensorDict(bodies, batch_size=[b, n], device=dev),
+                "agents": TensorDict(agents, batch_size=[b, i], device=dev),
+                **roads,
+            },
+            batch_size=[b],
+            device=dev,
+        )
+
+    def snapshot(self) -> TensorDict:
+        """A copy of the whole state of every road, the random generator's included
+        (``"rng"``); :meth:`restore` brings it back bit for bit."""
+        snap = self.state.clone()
+        snap.batch_size = []
+        snap["rng"] = self.generator.get_state().to(self.device)
+        return snap
+
+    def restore(self, snapshot: TensorDict) -> None:
+        """Return every road to ``snapshot`` (from :meth:`snapshot` of a simulator with the
+        same config, number of roads, device and dtype); ValueError otherwise."""
+        expected = self.snapshot()
+        if set(snapshot.keys(True, True)) != set(expected.keys(True, True)) or any(
+            snapshot.get(k).shape != expected.get(k).shape
+            or snapshot.get(k).dtype != expected.get(k).dtype
+            for k in expected.keys(True, True)
+        ):
+            raise ValueError(
+                "snapshot does not fit this simulator (another scenario config, number of "
+                "roads, device or dtype); take it with snapshot() of an identical simulator"
+            )
+        state = snapshot.exclude("rng").clone()
+        state.batch_size = [self.n_roads]
+        self.state = state.to(self.device)
+        self.generator.set_state(snapshot.get("rng").cpu())
+
+    # --- reset ---------------------------------------------------------------------------------
+    def _uniform(self, low_high: tuple[float, float], shape: tuple[int, ...]) -> torch.Tensor:
+        low, high = float(low_high[0]), float(low_high[1])
+        u = torch.rand(shape, generator=self.generator, device=self.device, dtype=self.dtype)
+        return low + (high - low) * u
+
+    def _choose(self, k: int, population: int, count: int) -> torch.Tensor:
+        """``[k, count]`` distinct draws from ``0 .. population - 1`` per road."""
+        keys = torch.rand(k, population, generator=self.generator, device=self.device)
+        return keys.argsort(dim=1)[:, :count]
+
+    def reset(self, mask: torch.Tensor) -> None:
+        """Start a new episode on the roads where ``mask [B]`` is True (spawned as the
+        highway-env scenario spawns: random slots ``min_spacing`` apart, speeds and target
+        speeds from the config's ranges, random human IDM exponents, random CAVs)."""
+        idx = mask.nonzero().squeeze(-1)
+        k = int(idx.numel())
+        if k == 0:
+            return
+        cfg, geo = self.config, self.geometry
+        n, v = self.n_bodies, self.n_vehicles
+        spacing = float(cfg["min_spacing"])
+        per_lane = int(cfg["spawn_length"] // cfg["min_spacing"])
+        n_main = v - self.n_ramp
+        slot = self._choose(k, per_lane * geo.lanes, n_main)
+        lanes = [slot // per_lane]
+        along = [(slot % per_lane).to(self.dtype) * spacing]
+        if self.n_ramp:
+            ramp_slots = int(cfg["ramp_length"] // cfg["min_spacing"])
+            ramp = self._choose(k, ramp_slots, self.n_ramp)
+            lanes.append(torch.full_like(ramp, geo.lanes + 1))
+            along.append(ramp.to(self.dtype) * spacing)
+        lane = torch.cat(lanes, dim=1)
+        s = torch.cat(along, dim=1)
+        x = geo.start_x[lane] + s * geo.dir_x[lane]
+        y = geo.start_y[lane] + s * geo.dir_y[lane]
+        cav = torch.zeros(k, v, dtype=torch.bool, device=self.device)
+        cav.scatter_(1, self._choose(k, v, self.n_cavs), True)
+        on_ramp = lane == geo.lanes + 1
+        speed = self._uniform(cfg["initial_speed"], (k, v))
+        if self.merge:
+            speed = torch.where(on_ramp, self._uniform(cfg["ramp_speed"], (k, v)), speed)
+            target_speed = self._uniform(cfg["target_speed"], (k, v))
+        else:
+            human = self._uniform(cfg["hv_target_speed"], (k, v))
+            target_speed = torch.where(cav, float(cfg["cav_target_speed"]), human)
+        delta = torch.where(cav, IDMVehicle.DELTA, self._uniform(DELTA_RANGE, (k, v)))
+        bodies = {
+            "x": x,
+            "y": y,
+            "heading": geo.heading[lane],
+            "speed": speed,
+            "target_speed": target_speed.to(self.dtype),
+            "delta": delta.to(self.dtype),
+            "timer": torch.remainder((x + y) * math.pi, LANE_CHANGE_DELAY),
+            "lane": lane,
+            "target": lane.clone(),
+            "cav": cav,
+        }
+        if self.merge:  # the obstacle at the end of the acceleration lane, last body
+            extra = {
+                "x": geo.merge_end,
+                "y": geo.lanes * LANE_WIDTH,
+                "lane": geo.lanes,
+                "target": geo.lanes,
+            }
+            for key, value in bodies.items():
+                fill = extra.get(key, 0)
+                column = torch.full((k, 1), fill, dtype=value.dtype, device=self.device)
+                bodies[key] = torch.cat([value, column], dim=1)
+        new = self.state["bodies"][idx].clone().zero_()
+        for key, value in bodies.items():
+            new.set(key, value)
+        new.set("present", torch.ones(k, n, dtype=torch.bool, device=self.device))
+        self.state["bodies"][idx] = new
+        # agents in a fixed order along the road: by x, then by lane number
+        number = geo.number[lane]
+        by_lane = torch.argsort(torch.where(cav, number, number.max() + 1), dim=1, stable=True)
+        cav_x = torch.where(cav, x, math.inf).gather(1, by_lane)
+        order = by_lane.gather(1, torch.argsort(cav_x, dim=1, stable=True))
+        agents = self.state["agents"][idx].clone()
+        agents.set("slot", order[:, : self.n_cavs])
+        agents.set("alive", torch.ones(k, self.n_cavs, dtype=torch.bool, device=self.device))
+        self.state["agents"][idx] = agents
+        for key in ("steps", "speed_sum", "comfort_sum", "samples"):
+            self.state.get(key)[idx] = 0
+
+    # --- one policy step -----------------------------------------------------------------------
+    def step(self, action: torch.Tensor) -> StepResult:
+        """Apply the CAVs' decisions ``[B, I]`` (0..3: KL, CL, CR, ES; ignored for CAVs no
+        longer driving) and advance every road by one policy step."""
+        geo, bodies, agents = self.geometry, self.state["bodies"], self.state["agents"]
+        slot, acting = agents.get("slot"), agents.get("alive")
+        action = action.to(self.device).long()
+        lane, target = bodies.get("lane"), bodies.get("target")
+        cav_lane = lane.gather(1, slot)
+        if self.merge:  # CL / CR on the slanted ramp lane count as KL
+            on_ramp = geo.segment[cav_lane] != MAINLINE
+            action = torch.where(on_ramp & ((action == CL) | (action == CR)), KL, action)
+        decision = bodies.get("decision").scatter(
+            1, slot, torch.where(acting, action, bodies.get("decision").gather(1, slot))
+        )
+        wanted = geo.number[cav_lane] + torch.where(action == CL, -1, 1)
+        settled = cav_lane == target.gather(1, slot)
+        change = acting & ((action == CL) | (action == CR)) & settled
+        change &= (wanted >= 0) & (wanted < geo.lanes)
+        new_target = torch.where(change, wanted, target.gather(1, slot))
+        bodies.set("target", target.scatter(1, slot, new_target))
+        bodies.set("decision", decision)
+
+        b, n = self.n_roads, self.n_bodies
+        abs_acc = torch.zeros(b, n, dtype=self.dtype, device=self.device)
+        lane_change = torch.zeros(b, n, dtype=torch.bool, device=self.device)
+        crashed_now = torch.zeros_like(acting)
+        distance = torch.zeros(acting.shape, dtype=self.dtype, device=self.device)
+        tables = self._tables()
+        for _ in range(self.frames):
+            self._act(tables)
+            self._move()
+            tables = self._tables()
+            self._collide(tables)
+            speed = bodies.get("speed")
+            abs_acc += bodies.get("acc").abs()
+            lane_change |= bodies.get("lane") != bodies.get("target")
+            driving = acting & ~crashed_now
+            distance += torch.where(driving, speed.gather(1, slot) * self.dt, 0.0)
+            crashed_now |= driving & bodies.get("crashed").gather(1, slot)
+        return self._finish_step(tables, abs_acc / self.frames, lane_change, crashed_now, distance)
+
+    def _tables(self) -> NeighbourTables:
+        bodies = self.state["bodies"]
+        table = self.geometry.table[bodies.get("lane")]
+        return NeighbourTables.build(table, bodies.get("x"), bodies.get("present"))
+
+    def _neighbours(self, tables: NeighbourTables) -> tuple[torch.Tensor, torch.Tensor]:
+        """Leader and follower ``[B, N, 3]`` of every body in the lane tables left of, equal to
+        and right of its own (``-1``: none)."""
+        bodies = self.state["bodies"]
+        own = self.geometry.table[bodies.get("lane")]
+        b, n = own.shape
+        query = (own.unsqueeze(-1) + torch.tensor([-1, 0, 1], device=self.device)).reshape(b, -1)
+        x = bodies.get("x").unsqueeze(-1).expand(b, n, 3).reshape(b, -1)
+        body = self.body_index.view(1, n, 1).expand(b, n, 3).reshape(b, -1)
+        front, rear = tables.search(query, x, body)
+        return front.view(b, n, 3), rear.view(b, n, 3)
+
+    def _gather(self, key: str, index: torch.Tensor) -> torch.Tensor:
+        """``bodies[key]`` at body indices ``index [B, ...]`` (``-1`` reads body 0)."""
+        value = self.state["bodies"].get(key)
+        flat = index.clamp(min=0).reshape(index.shape[0], -1)
+        return value.gather(1, flat).view(index.shape)
+
+    def _idm(self, ego: torch.Tensor, front: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+        """IDM acceleration of bodies ``ego`` behind bodies ``front`` (``-1``: none), with the
+        deciding vehicles' exponent ``delta``; 0 where ``ego`` is none or the obstacle."""
+        gather = self._gather
+        has_front = front >= 0
+        acc = idm_acceleration(
+            gather("speed", ego),
+            gather("target_speed", ego),
+            gather("heading", ego),
+            delta,
+            self.speed_limit,
+            has_front,
+            gather("x", front) - gather("x", ego),
+            torch.where(has_front, gather("speed", front), 0.0),
+            torch.where(has_front, gather("heading", front), 0.0),
+        )
+        is_vehicle = (ego >= 0) & ~self.is_obstacle[ego.clamp(min=0)]
+        return torch.where(is_vehicle, acc, 0.0)
+
+    def _act(self, tables: NeighbourTables) -> None:
+        """Every driving vehicle decides its lane and its commands (highway-env
+        ``IDMVehicle.act`` for humans and for CAVs under KL / CL / CR; the emergency stop of
+        ``LaneDecisionVehicle.act`` under ES)."""
+        geo, bodies = self.geometry, self.state["bodies"]
+        x, y, heading = bodies.get("x"), bodies.get("y"), bodies.get("heading")
+        speed, lane, target = bodies.get("speed"), bodies.get("lane"), bodies.get("target")
+        cav, crashed = bodies.get("cav"), bodies.get("crashed")
+        acting = bodies.get("present") & ~crashed & ~self.is_obstacle
+        stop = cav & (bodies.get("decision") == ES)
+        own_table = geo.table[lane]
+        front, rear = self._neighbours(tables)
+        ego = self.body_index.expand_as(lane)
+        delta = bodies.get("delta")
+        # follow_road: at the end of the ramp, the acceleration lane becomes the target
+        s_target, _ = geo.local_coordinates(x, y, target)
+        after_end = s_target > geo.length[target] - VEHICLE_LENGTH / 2
+        target = torch.where(acting & after_end, geo.next_lane[target], target)
+        # MOBIL for humans and for merge CAVs on the ramp (not under ES)
+        lane_changer = ~cav | (own_table == geo.ramp_table) if self.merge else ~cav
+        enabled = acting & ~stop & lane_changer
+        changing = lane != target
+        aborting = enabled & changing & (geo.segment[lane] == geo.segment[target])
+        timer = bodies.get("timer")
+        deciding = enabled & ~changing & (timer > LANE_CHANGE_DELAY)
+        before = bodies.get("target")
+        bodies.set("timer", torch.where(deciding, 0.0, timer))
+        self_a = self._idm(ego, front[..., 1], delta)
+        for column, query in ((0, 0), (1, 2)):  # left, then right (right wins if both)
+            side = geo.side[lane, column]
+            exists = side >= 0
+            candidate = side.clamp(min=0)
+            s, r = geo.local_coordinates(x, y, candidate)
+            reachable = exists & ~geo.forbidden[candidate] & (r.abs() <= 2 * LANE_WIDTH)
+            reachable &= (s >= 0) & (s < geo.length[candidate] + VEHICLE_LENGTH)
+            new_front, new_rear = front[..., query], rear[..., query]
+            imposed = self._idm(new_rear, ego, delta)
+            gain = self._idm(ego, new_front, delta) - self_a
+            mobil = (imposed >= -MAX_BRAKING_IMPOSED) & (gain >= MIN_ACC_GAIN)
+            go = deciding & reachable & (speed.abs() >= 1) & mobil
+            target = torch.where(go, side, target)
+        target = torch.where(self._blocked_change(aborting, before, target), lane, target)
+        bodies.set("target", target)
+        # lateral control towards the target lane, IDM in the current and target lanes
+        _, lateral = geo.local_coordinates(x, y, target)
+        steer = steering_control(lateral, geo.heading[target], heading, speed)
+        column = (geo.table[target] - own_table + 1).clamp(0, 2).unsqueeze(-1)
+        target_a = self._idm(ego, front.gather(-1, column).squeeze(-1), delta)
+        acc = torch.where(lane != target, torch.minimum(self_a, target_a), self_a)
+        acc = acc.clamp(-ACC_MAX, ACC_MAX)
+        acc = torch.where(stop, torch.where(speed > 0, ACC_MIN, 0.0), acc)
+        bodies.set("acc", torch.where(acting, acc, bodies.get("acc")))
+        bodies.set("steer", torch.where(acting, steer, bodies.get("steer")))
+
+    def _blocked_change(
+        self, aborting: torch.Tensor, before: torch.Tensor, after: torch.Tensor
+    ) -> torch.Tensor:
+        """highway-env's abort of a lane change (``IDMVehicle.change_lane_policy``): for the
+        vehicles ``aborting [B, N]`` (changing lanes within a segment), whether another vehicle
+        not yet in the target lane but heading for it is ahead within the desired gap.
+
+        highway-env lets the vehicles act one after the other, so a vehicle sees the targets of
+        the vehicles before it as they are ``after`` their decision in this simulation step and
+        those after it as they were ``before``; the test runs on the few vehicles changing lanes
+        (``[E, N]`` pairs), not on all pairs."""
+        road, ego = aborting.nonzero(as_tuple=True)
+        blocked = torch.zeros_like(aborting)
+        if road.numel() == 0:
+            return blocked
+        bodies = self.state["bodies"]
+        x, speed = bodies.get("x")[road], bodies.get("speed")[road]
+        heading = bodies.get("heading")[road]
+        goal = after[road, ego].unsqueeze(-1)
+        earlier = self.body_index.unsqueeze(0) < ego.unsqueeze(-1)
+        other_goal = torch.where(earlier, after[road], before[road])
+        others = (bodies.get("present")[road] & ~self.is_obstacle) & (
+            self.body_index.unsqueeze(0) != ego.unsqueeze(-1)
+        )
+        others &= (bodies.get("lane")[road] != goal) & (other_goal == goal)
+        own_x = x.gather(1, ego.unsqueeze(-1))
+        own_speed = speed.gather(1, ego.unsqueeze(-1))
+        own_heading = heading.gather(1, ego.unsqueeze(-1))
+        cos, sin = torch.cos(own_heading), torch.sin(own_heading)
+        dv = (own_speed * cos - speed * torch.cos(heading)) * cos + (
+            own_speed * sin - speed * torch.sin(heading)
+        ) * sin
+        desired = DISTANCE_WANTED + own_speed * TIME_WANTED + own_speed * dv / (2 * SQRT_AB)
+        gap = x - own_x
+        blocked[road, ego] = (others & (gap > 0) & (gap < desired)).any(1)
+        return blocked
+
+    def _move(self) -> None:
+        """One simulation step of every vehicle's kinematics, then its lane assignment."""
+        bodies = self.state["bodies"]
+        moving = bodies.get("present") & ~self.is_obstacle
+        crashed = bodies.get("crashed")
+        x, y, heading, speed, steer, acc = integrate(
+            bodies.get("x"),
+            bodies.get("y"),
+            bodies.get("heading"),
+            bodies.get("speed"),
+            bodies.get("steer"),
+            bodies.get("acc"),
+            crashed,
+            self.speed_limit,
+            self.dt,
+        )
+        impact = bodies.get("has_impact") & moving
+        x = x + torch.where(impact, bodies.get("impact_x"), 0.0)
+        y = y + torch.where(impact, bodies.get("impact_y"), 0.0)
+        lane = self.geometry.closest_lane(x, y, heading)
+        updates = {
+            "x": x,
+            "y": y,
+            "heading": heading,
+            "speed": speed,
+            "steer": steer,
+            "acc": acc,
+            "timer": bodies.get("timer") + self.dt,
+            "lane": lane,
+        }
+        for key, value in updates.items():
+            bodies.set(key, torch.where(moving, value, bodies.get(key)))
+        bodies.set("crashed", crashed | impact)
+        bodies.set("has_impact", bodies.get("has_impact") & ~moving)
+
+    def _collide(self, tables: NeighbourTables) -> None:
+        """Rectangle collisions among the bodies of every road (highway-env ``Road.step``'s
+        pairwise ``handle_collisions``), tested for each vehicle against its leader in its lane
+        and its leaders and followers in the lanes beside it (see ``docs/ARCHITECTURE.md``)."""
+        bodies = self.state["bodies"]
+        front, rear = self._neighbours(tables)
+        partner = torch.stack(
+            [front[..., 1], front[..., 0], rear[..., 0], front[..., 2], rear[..., 2]], dim=-1
+        )
+        b, n = partner.shape[:2]
+        ego = self.body_index.view(1, n, 1).expand(b, n, 5)
+        valid = (partner >= 0) & (bodies.get("present") & ~self.is_obstacle).unsqueeze(-1)
+        partner = torch.where(valid, partner, ego)
+        lo, hi = torch.minimum(ego, partner), torch.maximum(ego, partner)
+        gather = self._gather
+        length, width = self.body_length, self.body_width
+        hit, will, tx, ty = rectangle_collisions(
+            gather("x", lo), gather("y", lo), gather("heading", lo), gather("speed", lo),
+            length[lo], width[lo],
+            gather("x", hi), gather("y", hi), gather("heading", hi), gather("speed", hi),
+            length[hi], width[hi],
+            self.dt,
+        )  # fmt: skip
+        hit &= valid
+        will &= valid
+        flat = (b, -1)
+        crash = torch.zeros(b, n, dtype=self.dtype, device=self.device)
+        crash.scatter_reduce_(1, lo.reshape(flat), hit.to(self.dtype).reshape(flat), "amax")
+        crash.scatter_reduce_(1, hi.reshape(flat), hit.to(self.dtype).reshape(flat), "amax")
+        bodies.set("crashed", bodies.get("crashed") | ((crash > 0) & ~self.is_obstacle))
+        # impacts: each body keeps the one of the last pair highway-env visits (pairs (i, j),
+        # i < j, row by row)
+        obstacle_hi = self.is_obstacle[hi]
+        half = torch.where(obstacle_hi, 1.0, 0.5).to(self.dtype)
+        key_lo = torch.where(will, (n + hi).to(self.dtype), -1.0)
+        key_hi = torch.where(will & ~obstacle_hi, lo.to(self.dtype), -1.0)
+        best = torch.full((b, n), -1.0, dtype=self.dtype, device=self.device)
+        best.scatter_reduce_(1, lo.reshape(flat), key_lo.reshape(flat), "amax")
+        best.scatter_reduce_(1, hi.reshape(flat), key_hi.reshape(flat), "amax")
+        pad = torch.zeros(b, 1, dtype=self.dtype, device=self.device)
+        impact_x = torch.cat([bodies.get("impact_x"), pad], dim=1)  # column n: dropped writes
+        impact_y = torch.cat([bodies.get("impact_y"), pad], dim=1)
+        for index, key, scale in ((lo, key_lo, half), (hi, key_hi, -0.5)):
+            chosen = (key >= 0) & (key == best.gather(1, index.reshape(flat)).view(index.shape))
+            dest = torch.where(chosen, index, n).reshape(flat)
+            impact_x.scatter_(1, dest, (scale * tx).reshape(flat))
+            impact_y.scatter_(1, dest, (scale * ty).reshape(flat))
+        bodies.set("impact_x", impact_x[:, :n])
+        bodies.set("impact_y", impact_y[:, :n])
+        bodies.set("has_impact", bodies.get("has_impact") | ((best >= 0) & ~self.is_obstacle))
+
+    def _finish_step(
+        self,
+        tables: NeighbourTables,
+        abs_acc: torch.Tensor,
+        lane_change: torch.Tensor,
+        crashed_now: torch.Tensor,
+        distance: torch.Tensor,
+    ) -> StepResult:
+        """Comfort, observation, reward and episode bookkeeping at the end of a policy step
+        (``FreewayEnv._simulate``, ``observe_agents``, ``agent_rewards`` and
+        ``MultiAgentTrafficEnv.step``)."""
+        cfg, bodies, agents = self.config, self.state["bodies"], self.state["agents"]
+        slot, acting = agents.get("slot"), agents.get("alive")
+        present = bodies.get("present") & ~self.is_obstacle
+        comfort = torch.where(abs_acc < float(cfg["comfort_threshold"]), 3.0, 2.0)
+        comfort = torch.where(lane_change, 1.0, comfort)
+        decision = bodies.get("decision")
+        cav = bodies.get("cav")
+        comfort = torch.where(cav & ((decision == CL) | (decision == CR)), 1.0, comfort)
+        comfort = torch.where(cav & (decision == ES), 0.0, comfort).to(self.dtype)
+        speed = bodies.get("speed")
+        count = present.sum(1).clamp(min=1).to(self.dtype)
+        velocity = torch.where(present, speed, 0.0).sum(1) / count
+        mean_comfort = torch.where(present, comfort, 0.0).sum(1) / count
+        self.state.set("speed_sum", self.state.get("speed_sum") + velocity.double() * count)
+        self.state.set("comfort_sum", self.state.get("comfort_sum") + mean_comfort * count)
+        self.state.set("samples", self.state.get("samples") + present.sum(1))
+        observation = self._observe(tables, acting)
+        reward = float(cfg["velocity_weight"]) * speed.gather(1, slot) + comfort.gather(1, slot)
+        reward = torch.where(crashed_now, float(cfg["collision_reward"]), reward)
+        if cfg["team_reward"]:
+            paid = acting.to(self.dtype)
+            mean = (reward * paid).sum(1, keepdim=True) / paid.sum(1, keepdim=True).clamp(min=1)
+            reward = mean.expand_as(reward)
+        reward = torch.where(acting, reward, 0.0)
+        alive = acting & ~crashed_now
+        agents.set("alive", alive)
+        bodies.set("present", bodies.get("present") & ~bodies.get("crashed"))
+        steps = self.state.get("steps") + 1
+        self.state.set("steps", steps)
+        return StepResult(
+            observation=observation,
+            reward=reward,
+            acting=acting,
+            alive=alive,
+            collided=crashed_now,
+            distance=distance,
+            traffic_velocity=velocity,
+            traffic_comfort=mean_comfort,
+            truncated=steps >= int(cfg["horizon"]),
+            terminated=~alive.any(1),
+        )
+
+    # --- observation and metrics ---------------------------------------------------------------
+    def observe(self, acting: torch.Tensor | None = None) -> torch.Tensor:
+        """The CAVs' observation ``[B, I, obs_dim]`` now (zero rows where ``acting`` is False;
+        default: the CAVs still driving)."""
+        acting = self.state["agents"].get("alive") if acting is None else acting
+        return self._observe(self._tables(), acting)
+
+    def _observe(self, tables: NeighbourTables, acting: torch.Tensor) -> torch.Tensor:
+        """``FreewayEnv.observe_agents`` (and ``FreewayMergeEnv``'s two merge distances)."""
+        geo, bodies = self.geometry, self.state["bodies"]
+        slot = self.state["agents"].get("slot")
+        perception = float(self.config["perception"])
+        front, rear = self._neighbours(tables)
+        index = slot.unsqueeze(-1).expand(*slot.shape, 3)
+        front, rear = front.gather(1, index), rear.gather(1, index)  # [B, I, 3]
+        lane = bodies.get("lane").gather(1, slot)
+        x, y = bodies.get("x").gather(1, slot), bodies.get("y").gather(1, slot)
+        speed = bodies.get("speed").gather(1, slot)
+        _, lateral = geo.local_coordinates(x, y, lane)
+        own = torch.stack(
+            [speed, geo.number[lane].to(self.dtype), lateral, bodies.get("acc").gather(1, slot)],
+            dim=-1,
+        )
+        table = geo.table[lane].unsqueeze(-1) + torch.tensor([-1, 0, 1], device=self.device)
+        lane_ok = (table >= 0) & (table < geo.n_tables)
+        blocks = []
+        for other, sign in ((front, 1.0), (rear, -1.0)):
+            exists = lane_ok & (other >= 0) & ~self.is_obstacle[other.clamp(min=0)]
+            dx = self._gather("x", other) - x.unsqueeze(-1)
+            dv = self._gather("speed", other) - speed.unsqueeze(-1)
+            seen = exists & (dx.abs() <= perception)
+            blocks.append(
+                torch.stack(
+                    [
+                        seen.to(self.dtype),
+                        torch.where(seen, dx, sign * perception),
+                        torch.where(seen, dv, 0.0),
+                    ],
+                    dim=-1,
+                )
+            )
+        neighbours = torch.stack(blocks, dim=-2).flatten(-3)  # [B, I, 3 lanes x 2 x 3]
+        parts = [own, neighbours]
+        if self.merge:
+            merge = torch.stack([geo.merge_start - x, geo.merge_end - x], dim=-1)
+            parts.append(merge.clamp(-perception, perception))
+        obs = torch.cat(parts, dim=-1).to(torch.float32)
+        return torch.where(acting.unsqueeze(-1), obs, 0.0)
+
+    def episode_metrics(self) -> dict[str, torch.Tensor]:
+        """The episode so far of every road, as ``FreewayEnv.episode_metrics`` reports it:
+        ``average_velocity`` [m/s] and ``average_comfort`` over all vehicles and steps,
+        ``collisions`` (CAVs crashed) and, with the ramp, ``ramp_stuck`` (vehicles still on
+        it); each ``[B]``."""
+        samples = self.state.get("samples").clamp(min=1)
+        metrics = {
+            "average_velocity": self.state.get("speed_sum") / samples,
+            "average_comfort": self.state.get("comfort_sum") / samples,
+            "collisions": (~self.state["agents"].get("alive")).sum(1).double(),
+        }
+        if self.merge:
+            bodies = self.state["bodies"]
+            on_ramp = self.geometry.table[bodies.get("lane")] == self.geometry.ramp_table
+            stuck = bodies.get("present") & ~self.is_obstacle & on_ramp
+            metrics["ramp_stuck"] = stuck.sum(1).double()
+        return metrics
+
+    def positions(self) -> torch.Tensor:
+        """The CAVs' positions ``[B, I, 2]`` [m] (a crashed CAV's where it crashed)."""
+        slot = self.state["agents"].get("slot")
+        bodies = self.state["bodies"]
+        return torch.stack(
+            [bodies.get("x").gather(1, slot), bodies.get("y").gather(1, slot)], dim=-1
+        )
