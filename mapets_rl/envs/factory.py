@@ -35,6 +35,15 @@ from mapets_rl.envs.figure_eight import figure_eight_collision, figure_eight_rew
 from mapets_rl.envs.freeway_merge import FreewayMergeParallelEnv
 from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, TrafficParallelEnv
 from mapets_rl.envs.registry import builtin_envs, register_builtin, registered_scenario
+from mapets_rl.envs.torch_freeway.env import TorchFreewayEnv
+
+TORCH_BACKEND = {
+    FreewayParallelEnv: FreewayParallelEnv.env_class,
+    FreewayMergeParallelEnv: FreewayMergeParallelEnv.env_class,
+}
+"""PettingZoo env class of a scenario -> the highway-env scenario class the torch backend
+simulates."""
+TORCH_NAMES = ("freeway", "freeway-merge")
 
 
 class TrafficPettingZooWrapper(PettingZooWrapper):
@@ -166,11 +175,20 @@ def make_parallel_env(name: str, **config: Any) -> TrafficParallelEnv:
     return scenario.parallel_env(**{**scenario.changes, **config})
 
 
+BACKENDS = ("highway-env", "torch")
+"""Simulators of the built-in scenarios: highway-env (every scenario; the reference) and the
+batched torch freeway (``freeway``, ``freeway-merge``)."""
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
 def make_env(
     name: str,
     seed: int | None = None,
     device: str = "cpu",
     categorical_actions: bool = False,
+    backend: str = "highway-env",
+    num_envs: int | None = None,
+    dtype: str = "float32",
     **config: Any,
 ) -> EnvBase:
     """A TorchRL env of scenario ``name``: ``"figure-eight"``, ``"figure-eight-multilane"``,
@@ -187,15 +205,50 @@ def make_env(
     Args:
         name: scenario name.
         seed: seed of the first reset (``env.set_seed`` works as usual).
-        device: torch device of the output tensors.
+        device: torch device of the output tensors (and, with ``backend="torch"``, of the
+            simulation).
         categorical_actions: discrete actions as indices instead of one-hot (freeway).
+        backend: ``"highway-env"`` (default, every scenario) or ``"torch"`` (``freeway`` and
+            ``freeway-merge``: ``num_envs`` roads simulated as one tensor program,
+            :class:`~mapets_rl.envs.torch_freeway.env.TorchFreewayEnv`).
+        num_envs: with ``backend="torch"``, the number of roads ``B`` (env ``batch_size=[B]``);
+            None: one road without a batch dimension.
+        dtype: with ``backend="torch"``, the simulation's precision (``"float32"`` or
+            ``"float64"``).
         **config: scenario config (``FigureEightParallelEnv`` / ``FreewayParallelEnv`` args).
     """
-    return wrap_parallel_env(
-        make_parallel_env(name, **config),
-        seed=seed,
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {list(BACKENDS)}, got {backend!r}")
+    if backend == "highway-env":
+        if num_envs is not None or dtype != "float32":
+            raise ValueError(
+                "num_envs and dtype need backend='torch' (the highway-env backend simulates one "
+                "road; batch it with torchrl's SerialEnv / ParallelEnv)"
+            )
+        return wrap_parallel_env(
+            make_parallel_env(name, **config),
+            seed=seed,
+            device=device,
+            categorical_actions=categorical_actions,
+        )
+    scenario = registered_scenario(name)
+    if scenario is None or scenario.parallel_env not in TORCH_BACKEND:
+        raise ValueError(
+            f"backend='torch' simulates {sorted(TORCH_NAMES)}, not {name!r}; use "
+            "backend='highway-env'"
+        )
+    if dtype not in DTYPES:
+        raise ValueError(f"dtype must be one of {list(DTYPES)}, got {dtype!r}")
+    render_mode = config.pop("render_mode", None)
+    return TorchFreewayEnv(
+        TORCH_BACKEND[scenario.parallel_env],
+        {**scenario.changes, **config},
+        num_envs=num_envs,
         device=device,
+        dtype=DTYPES[dtype],
+        seed=seed,
         categorical_actions=categorical_actions,
+        render_mode=render_mode,
     )
 
 
