@@ -107,6 +107,9 @@ class RunConfig(ConfigFields):
     # SAC's ``lr`` -> ``lr_actor``, ``lr_critic``, ``lr_alpha``); reading such a file
     # (``from_yaml``, resuming a run) renames them with a one-line warning naming the old key
     renamed_fields: ClassVar[Mapping[str, tuple[str, ...]]] = {}
+    # whether the recipe collects from a batched env (``env_config.num_envs``, see
+    # ExperimentConfig); a config that steps one road refuses ``num_envs``
+    collects_env_batches: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
         coerce_fields(self)
@@ -119,6 +122,27 @@ class RunConfig(ConfigFields):
         check(self.keep_last >= 1, "keep_last", ">= 1", self.keep_last)
         check(self.logger in LOGGERS, "logger", f"one of {list(LOGGERS)}", self.logger)
         check_logger_package(self.logger)
+        if not self.collects_env_batches:
+            check(
+                self.env_batch_size is None,
+                "env_config.num_envs",
+                f"left out for {type(self).__name__}, which steps one road (batched envs feed "
+                "the collectors of the frame-budget recipes)",
+                self.env_batch_size,
+            )
+
+    # ------------------------------------------------------------------------- batched envs
+    @property
+    def env_batch_size(self) -> int | None:
+        """``env_config["num_envs"]``: the number of roads ``B`` of a batched env (the torch
+        freeway, ``env_config.backend="torch"``), None when the env steps one road."""
+        return self.env_config.get("num_envs")
+
+    def unbatched_env_config(self) -> dict[str, Any]:
+        """``env_config`` without ``num_envs``: one road of the same backend and scenario (the
+        env that evaluation, video and the recipe's specs use)."""
+        return {k: v for k, v in self.env_config.items() if k != "num_envs"}
+
 
     # ----------------------------------------------------------------------------- conversions
     @classmethod
@@ -226,7 +250,17 @@ class ExperimentConfig(RunConfig):
             run continues exactly like an uninterrupted one (an episode in flight is cut there;
             bit-exact with ``num_envs=1``; worker processes of ``num_envs > 1`` re-seed their
             environments but not their own torch RNG).
+
+    A batched env (``env_config={"backend": "torch", "num_envs": B, ...}``: ``B`` roads of the
+    torch freeway as one env of ``batch_size=[B]``) is collected by one ``Collector`` in this
+    process (``num_envs`` 1, ``collector`` ``auto`` or ``single``); a frame is then one step of
+    one road (all its agents), so a batch of ``frames_per_batch`` frames holds
+    ``frames_per_batch / B`` steps of every road (a ``[B, T]`` TensorDict) and
+    ``frames_per_batch`` must be a multiple of ``B``. Evaluation and video run on one road of
+    the same backend (``env_config`` without ``num_envs``).
     """
+
+    collects_env_batches: ClassVar[bool] = True
 
     total_frames: int = dataclasses.field(default=3000, metadata=_FRAMES)
     frames_per_batch: int = dataclasses.field(default=200, metadata=_FRAMES)
@@ -269,6 +303,34 @@ class ExperimentConfig(RunConfig):
         check(self.eval_interval >= 0, "eval_interval", ">= 0", self.eval_interval)
         check(
             self.checkpoint_interval >= 0, "checkpoint_interval", ">= 0", self.checkpoint_interval
+        )
+        self.check_env_batch()
+
+    def check_env_batch(self) -> None:
+        """ConfigError unless ``env_config.num_envs`` (when given) is an int >= 1 that divides
+        ``frames_per_batch``, collected by the single in-process collector."""
+        batch = self.env_batch_size
+        if batch is None:
+            return
+        check(
+            isinstance(batch, int) and not isinstance(batch, bool) and batch >= 1,
+            "env_config.num_envs",
+            "an int >= 1 (the roads of the batched torch env)",
+            batch,
+        )
+        check(
+            self.num_envs == 1 and self.collector in ("auto", "single"),
+            "num_envs",
+            f"1 with collector 'auto' or 'single' when env_config.num_envs={batch} batches the "
+            f"env (one Collector steps the {batch} roads; got collector={self.collector!r})",
+            self.num_envs,
+        )
+        check(
+            self.frames_per_batch % batch == 0,
+            "frames_per_batch",
+            f"a multiple of env_config.num_envs={batch} (a batch holds the same number of "
+            "steps of every road)",
+            self.frames_per_batch,
         )
 
     @classmethod

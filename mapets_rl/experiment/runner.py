@@ -277,8 +277,10 @@ class Experiment:
 
     # ------------------------------------------------------------------ recipe-facing helpers
     def make_env(self) -> EnvBase:
-        """A fresh environment of ``config.env`` with ``config.env_config``."""
-        return build_env(self.config.env, self.config.env_config)
+        """A fresh environment of ``config.env`` with ``config.env_config``, one road of it
+        when ``env_config.num_envs`` batches the env (this is the env that evaluation and the
+        recipe's specs use; the collector builds the batched one)."""
+        return build_env(self.config.env, self.config.unbatched_env_config())
 
     def modules_to_device(self) -> None:
         """Move every torch module this experiment holds (policies, critics, normalisers,
@@ -297,7 +299,8 @@ class Experiment:
         with ``num_envs`` worker processes, or torchrl's ``RayCollector`` with ``num_envs``
         remote collectors (one CPU each; synchronous, so each batch holds
         ``frames_per_batch / num_envs`` steps of every env); the run loop stops it at
-        ``total_frames``. The first ``init_random_frames`` frames of the run use uniformly
+        ``total_frames``. A batched env (``env_config.num_envs = B`` roads) is stepped by one
+        ``Collector``, whose batches are ``[B, frames_per_batch / B]`` (road, time). The first ``init_random_frames`` frames of the run use uniformly
         random actions (counted over the whole run, resumes included). Extra ``kwargs`` go to
         the collector (to each remote collector with ``"ray"``)."""
         if init_random_frames < 0:
@@ -532,7 +535,8 @@ class Experiment:
             os.environ.setdefault("SDL_VIDEODRIVER", "offscreen")
             try:
                 self._video_env = build_env(
-                    self.config.env, {**self.config.env_config, "render_mode": "rgb_array"}
+                    self.config.env,
+                    {**self.config.unbatched_env_config(), "render_mode": "rgb_array"},
                 )
             except TypeError as err:
                 raise ValueError(
@@ -582,10 +586,12 @@ class Experiment:
 
     def _policy_frequency(self) -> float:
         """Policy steps per second of the video env's scenario (``policy_frequency`` of a
-        highway-env scenario; 10 when the env does not say)."""
-        scenario = getattr(getattr(self._video_env, "base_env", None), "_env", None)
-        config = getattr(getattr(scenario, "env", None), "config", None) or {}
-        return float(config.get("policy_frequency", 10))
+        highway-env scenario, or of the torch freeway's config; 10 when the env does not
+        say)."""
+        base = getattr(self._video_env, "base_env", self._video_env)
+        scenario = getattr(getattr(base, "_env", None), "env", None)
+        config = getattr(scenario, "config", None) or getattr(base, "config", None)
+        return float((config if isinstance(config, Mapping) else {}).get("policy_frequency", 10))
 
     def _write_video(self, frames: list[Any]) -> Path:
         """An animated GIF of ``frames``, one per policy step, played in real time (imageio's

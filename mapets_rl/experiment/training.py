@@ -11,6 +11,8 @@ re-declaring the field (e.g. ``gamma: float = 0.99`` in ``SACConfig``).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
+from typing import Any
 
 from mapets_rl.config import check
 from mapets_rl.experiment.config import ExperimentConfig
@@ -67,11 +69,23 @@ class ModelFreeConfig(ExperimentConfig):
 class OffPolicyConfig(ModelFreeConfig):
     """Replay-buffer actor-critic training (plus :class:`ModelFreeConfig`).
 
+    The update-to-data ratio is set by ``updates_per_batch``, ``update_interval`` and
+    ``batch_size``, not by ``frames_per_batch``: with ``update_interval = 0`` (default) every
+    collected batch is followed by ``updates_per_batch`` gradient steps; with
+    ``update_interval = N > 0`` by ``updates_per_batch`` gradient steps for every multiple of
+    ``N`` that the run's frame count passed during the batch (counted over the whole run,
+    resumes included), i.e. ``updates_per_batch / N`` gradient steps per frame whatever
+    ``frames_per_batch`` and ``env_config.num_envs`` are (see :meth:`gradient_steps`).
+
     Attributes:
         tau: soft target update rate in (0, 1].
         buffer_size: replay capacity in transitions (>= batch_size).
         batch_size: transitions per gradient step (>= 1).
-        updates_per_batch: gradient steps per collected batch (>= 1).
+        updates_per_batch: gradient steps per update round (>= 1): after each collected batch
+            (``update_interval = 0``) or every ``update_interval`` frames.
+        update_interval: frames between update rounds (>= 0; 0: one round per collected
+            batch). openai/maddpg's schedule is one gradient step per 100 frames:
+            ``update_interval=100, updates_per_batch=1``.
         init_random_frames: frames collected before the first update (>= 0); ``maddpg`` and
             ``sac`` act uniformly at random during them, ``shapley_ac`` acts with its policy
             (see the recipe).
@@ -82,6 +96,7 @@ class OffPolicyConfig(ModelFreeConfig):
     buffer_size: int = dataclasses.field(default=100_000, metadata={"unit": "transitions"})
     batch_size: int = dataclasses.field(default=256, metadata={"unit": "transitions"})
     updates_per_batch: int = 20
+    update_interval: int = dataclasses.field(default=0, metadata={"unit": "frames"})
     init_random_frames: int = dataclasses.field(default=200, metadata={"unit": "frames"})
     lr_actor: float = 1e-3
     lr_critic: float = 1e-3
@@ -97,9 +112,28 @@ class OffPolicyConfig(ModelFreeConfig):
             self.buffer_size,
         )
         check(self.updates_per_batch >= 1, "updates_per_batch", ">= 1", self.updates_per_batch)
+        check(self.update_interval >= 0, "update_interval", ">= 0", self.update_interval)
         check(self.init_random_frames >= 0, "init_random_frames", ">= 0", self.init_random_frames)
         check(self.lr_actor > 0, "lr_actor", "> 0", self.lr_actor)
         check(self.lr_critic > 0, "lr_critic", "> 0", self.lr_critic)
+
+    @classmethod
+    def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
+        """A config written before ``update_interval`` existed updated after every batch:
+        ``update_interval = 0``."""
+        data = super().upgrade_dict(data)
+        data.setdefault("update_interval", 0)
+        return data
+
+    def gradient_steps(self, frames_before: int, frames_after: int) -> int:
+        """Gradient steps due after a batch took the run's frame count from ``frames_before``
+        to ``frames_after``: ``updates_per_batch`` (``update_interval = 0``), else
+        ``updates_per_batch`` times the multiples of ``update_interval`` in
+        ``(frames_before, frames_after]``."""
+        if self.update_interval == 0:
+            return self.updates_per_batch
+        rounds = frames_after // self.update_interval - frames_before // self.update_interval
+        return self.updates_per_batch * rounds
 
 
 @dataclasses.dataclass

@@ -23,36 +23,14 @@ from dataclasses import dataclass
 
 import torch
 from highway_env.vehicle.behavior import IDMVehicle
-from highway_env.vehicle.objects import Obstacle
 from tensordict import TensorDict
 
 from mapets_rl.envs.freeway import CL, CR, ES, KL
 from mapets_rl.envs.freeway import OBS_DIM as FREEWAY_OBS_DIM
-from mapets_rl.envs.torch_freeway.dynamics import (
-    DISTANCE_WANTED,
-    LENGTH,
-    SQRT_AB,
-    TIME_WANTED,
-    WIDTH,
-    NeighbourTables,
-    idm_acceleration,
-    integrate,
-    rectangle_collisions,
-    steering_control,
-)
-from mapets_rl.envs.torch_freeway.geometry import (
-    LANE_WIDTH,
-    MAINLINE,
-    VEHICLE_LENGTH,
-    FreewayGeometry,
-)
-from mapets_rl.envs.vehicles import ACC_MIN
+from mapets_rl.envs.torch_freeway.dynamics import NeighbourTables
+from mapets_rl.envs.torch_freeway.geometry import LANE_WIDTH, MAINLINE, FreewayGeometry
+from mapets_rl.envs.torch_freeway.physics import LANE_CHANGE_DELAY, Bodies, RoadPhysics
 
-ACC_MAX = IDMVehicle.ACC_MAX
-"""Largest |acceleration| of an IDM driver [m/s^2] (highway-env ``IDMVehicle.ACC_MAX``)."""
-LANE_CHANGE_DELAY = IDMVehicle.LANE_CHANGE_DELAY
-MIN_ACC_GAIN = IDMVehicle.LANE_CHANGE_MIN_ACC_GAIN
-MAX_BRAKING_IMPOSED = IDMVehicle.LANE_CHANGE_MAX_BRAKING_IMPOSED
 DELTA_RANGE = tuple(IDMVehicle.DELTA_RANGE)
 """Range of a human driver's IDM exponent (``IDMVehicle.randomize_behavior``)."""
 if IDMVehicle.POLITENESS != 0:  # MOBIL's follower terms are dropped below because they weigh 0
@@ -131,13 +109,11 @@ class BatchedFreeway:
         self.speed_limit = float(config["speed_limit"])
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(int(seed))
-        n = self.n_bodies
-        obstacle = torch.zeros(n, dtype=torch.bool, device=self.device)
-        obstacle[self.n_vehicles :] = True
-        self.is_obstacle = obstacle
-        self.body_length = torch.where(obstacle, Obstacle.LENGTH, LENGTH).to(dtype)
-        self.body_width = torch.where(obstacle, Obstacle.WIDTH, WIDTH).to(dtype)
-        self.body_index = torch.arange(n, device=self.device)
+        self.physics = RoadPhysics(
+            self.geometry, self.n_vehicles, self.n_bodies, self.speed_limit, self.dt
+        )
+        self.is_obstacle = self.physics.is_obstacle
+        self.frame = self._frame
         self.state = self._empty_state()
         self.reset(torch.ones(self.n_roads, dtype=torch.bool, device=self.device))
 
@@ -306,243 +282,49 @@ class BatchedFreeway:
         bodies.set("target", target.scatter(1, slot, new_target))
         bodies.set("decision", decision)
 
-        b, n = self.n_roads, self.n_bodies
-        abs_acc = torch.zeros(b, n, dtype=self.dtype, device=self.device)
-        lane_change = torch.zeros(b, n, dtype=torch.bool, device=self.device)
-        crashed_now = torch.zeros_like(acting)
-        distance = torch.zeros(acting.shape, dtype=self.dtype, device=self.device)
-        tables = self._tables()
-        for _ in range(self.frames):
-            self._act(tables)
-            self._move()
-            tables = self._tables()
-            self._collide(tables)
-            speed = bodies.get("speed")
-            abs_acc += bodies.get("acc").abs()
-            lane_change |= bodies.get("lane") != bodies.get("target")
-            driving = acting & ~crashed_now
-            distance += torch.where(driving, speed.gather(1, slot) * self.dt, 0.0)
-            crashed_now |= driving & bodies.get("crashed").gather(1, slot)
-        return self._finish_step(tables, abs_acc / self.frames, lane_change, crashed_now, distance)
-
-    def _tables(self) -> NeighbourTables:
-        bodies = self.state["bodies"]
-        table = self.geometry.table[bodies.get("lane")]
-        return NeighbourTables.build(table, bodies.get("x"), bodies.get("present"))
-
-    def _neighbours(self, tables: NeighbourTables) -> tuple[torch.Tensor, torch.Tensor]:
-        """Leader and follower ``[B, N, 3]`` of every body in the lane tables left of, equal to
-        and right of its own (``-1``: none)."""
-        bodies = self.state["bodies"]
-        own = self.geometry.table[bodies.get("lane")]
-        b, n = own.shape
-        query = (own.unsqueeze(-1) + torch.tensor([-1, 0, 1], device=self.device)).reshape(b, -1)
-        x = bodies.get("x").unsqueeze(-1).expand(b, n, 3).reshape(b, -1)
-        body = self.body_index.view(1, n, 1).expand(b, n, 3).reshape(b, -1)
-        front, rear = tables.search(query, x, body)
-        return front.view(b, n, 3), rear.view(b, n, 3)
-
-    def _gather(self, key: str, index: torch.Tensor) -> torch.Tensor:
-        """``bodies[key]`` at body indices ``index [B, ...]`` (``-1`` reads body 0)."""
-        value = self.state["bodies"].get(key)
-        flat = index.clamp(min=0).reshape(index.shape[0], -1)
-        return value.gather(1, flat).view(index.shape)
-
-    def _idm(self, ego: torch.Tensor, front: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-        """IDM acceleration of bodies ``ego`` behind bodies ``front`` (``-1``: none), with the
-        deciding vehicles' exponent ``delta``; 0 where ``ego`` is none or the obstacle."""
-        gather = self._gather
-        has_front = front >= 0
-        acc = idm_acceleration(
-            gather("speed", ego),
-            gather("target_speed", ego),
-            gather("heading", ego),
-            delta,
-            self.speed_limit,
-            has_front,
-            gather("x", front) - gather("x", ego),
-            torch.where(has_front, gather("speed", front), 0.0),
-            torch.where(has_front, gather("heading", front), 0.0),
-        )
-        is_vehicle = (ego >= 0) & ~self.is_obstacle[ego.clamp(min=0)]
-        return torch.where(is_vehicle, acc, 0.0)
-
-    def _act(self, tables: NeighbourTables) -> None:
-        """Every driving vehicle decides its lane and its commands (highway-env
-        ``IDMVehicle.act`` for humans and for CAVs under KL / CL / CR; the emergency stop of
-        ``LaneDecisionVehicle.act`` under ES)."""
-        geo, bodies = self.geometry, self.state["bodies"]
-        x, y, heading = bodies.get("x"), bodies.get("y"), bodies.get("heading")
-        speed, lane, target = bodies.get("speed"), bodies.get("lane"), bodies.get("target")
-        cav, crashed = bodies.get("cav"), bodies.get("crashed")
-        acting = bodies.get("present") & ~crashed & ~self.is_obstacle
-        stop = cav & (bodies.get("decision") == ES)
-        own_table = geo.table[lane]
-        front, rear = self._neighbours(tables)
-        ego = self.body_index.expand_as(lane)
-        delta = bodies.get("delta")
-        # follow_road: at the end of the ramp, the acceleration lane becomes the target
-        s_target, _ = geo.local_coordinates(x, y, target)
-        after_end = s_target > geo.length[target] - VEHICLE_LENGTH / 2
-        target = torch.where(acting & after_end, geo.next_lane[target], target)
-        # MOBIL for humans and for merge CAVs on the ramp (not under ES)
-        lane_changer = ~cav | (own_table == geo.ramp_table) if self.merge else ~cav
-        enabled = acting & ~stop & lane_changer
-        changing = lane != target
-        aborting = enabled & changing & (geo.segment[lane] == geo.segment[target])
-        timer = bodies.get("timer")
-        deciding = enabled & ~changing & (timer > LANE_CHANGE_DELAY)
-        before = bodies.get("target")
-        bodies.set("timer", torch.where(deciding, 0.0, timer))
-        self_a = self._idm(ego, front[..., 1], delta)
-        for column, query in ((0, 0), (1, 2)):  # left, then right (right wins if both)
-            side = geo.side[lane, column]
-            exists = side >= 0
-            candidate = side.clamp(min=0)
-            s, r = geo.local_coordinates(x, y, candidate)
-            reachable = exists & ~geo.forbidden[candidate] & (r.abs() <= 2 * LANE_WIDTH)
-            reachable &= (s >= 0) & (s < geo.length[candidate] + VEHICLE_LENGTH)
-            new_front, new_rear = front[..., query], rear[..., query]
-            imposed = self._idm(new_rear, ego, delta)
-            gain = self._idm(ego, new_front, delta) - self_a
-            mobil = (imposed >= -MAX_BRAKING_IMPOSED) & (gain >= MIN_ACC_GAIN)
-            go = deciding & reachable & (speed.abs() >= 1) & mobil
-            target = torch.where(go, side, target)
-        target = torch.where(self._blocked_change(aborting, before, target), lane, target)
-        bodies.set("target", target)
-        # lateral control towards the target lane, IDM in the current and target lanes
-        _, lateral = geo.local_coordinates(x, y, target)
-        steer = steering_control(lateral, geo.heading[target], heading, speed)
-        column = (geo.table[target] - own_table + 1).clamp(0, 2).unsqueeze(-1)
-        target_a = self._idm(ego, front.gather(-1, column).squeeze(-1), delta)
-        acc = torch.where(lane != target, torch.minimum(self_a, target_a), self_a)
-        acc = acc.clamp(-ACC_MAX, ACC_MAX)
-        acc = torch.where(stop, torch.where(speed > 0, ACC_MIN, 0.0), acc)
-        bodies.set("acc", torch.where(acting, acc, bodies.get("acc")))
-        bodies.set("steer", torch.where(acting, steer, bodies.get("steer")))
-
-    def _blocked_change(
-        self, aborting: torch.Tensor, before: torch.Tensor, after: torch.Tensor
-    ) -> torch.Tensor:
-        """highway-env's abort of a lane change (``IDMVehicle.change_lane_policy``): for the
-        vehicles ``aborting [B, N]`` (changing lanes within a segment), whether another vehicle
-        not yet in the target lane but heading for it is ahead within the desired gap.
-
-        highway-env lets the vehicles act one after the other, so a vehicle sees the targets of
-        the vehicles before it as they are ``after`` their decision in this simulation step and
-        those after it as they were ``before``; the test runs on the few vehicles changing lanes
-        (``[E, N]`` pairs), not on all pairs."""
-        road, ego = aborting.nonzero(as_tuple=True)
-        blocked = torch.zeros_like(aborting)
-        if road.numel() == 0:
-            return blocked
-        bodies = self.state["bodies"]
-        x, speed = bodies.get("x")[road], bodies.get("speed")[road]
-        heading = bodies.get("heading")[road]
-        goal = after[road, ego].unsqueeze(-1)
-        earlier = self.body_index.unsqueeze(0) < ego.unsqueeze(-1)
-        other_goal = torch.where(earlier, after[road], before[road])
-        others = (bodies.get("present")[road] & ~self.is_obstacle) & (
-            self.body_index.unsqueeze(0) != ego.unsqueeze(-1)
-        )
-        others &= (bodies.get("lane")[road] != goal) & (other_goal == goal)
-        own_x = x.gather(1, ego.unsqueeze(-1))
-        own_speed = speed.gather(1, ego.unsqueeze(-1))
-        own_heading = heading.gather(1, ego.unsqueeze(-1))
-        cos, sin = torch.cos(own_heading), torch.sin(own_heading)
-        dv = (own_speed * cos - speed * torch.cos(heading)) * cos + (
-            own_speed * sin - speed * torch.sin(heading)
-        ) * sin
-        desired = DISTANCE_WANTED + own_speed * TIME_WANTED + own_speed * dv / (2 * SQRT_AB)
-        gap = x - own_x
-        blocked[road, ego] = (others & (gap > 0) & (gap < desired)).any(1)
-        return blocked
-
-    def _move(self) -> None:
-        """One simulation step of every vehicle's kinematics, then its lane assignment."""
-        bodies = self.state["bodies"]
-        moving = bodies.get("present") & ~self.is_obstacle
-        crashed = bodies.get("crashed")
-        x, y, heading, speed, steer, acc = integrate(
-            bodies.get("x"),
-            bodies.get("y"),
-            bodies.get("heading"),
-            bodies.get("speed"),
-            bodies.get("steer"),
-            bodies.get("acc"),
-            crashed,
-            self.speed_limit,
-            self.dt,
-        )
-        impact = bodies.get("has_impact") & moving
-        x = x + torch.where(impact, bodies.get("impact_x"), 0.0)
-        y = y + torch.where(impact, bodies.get("impact_y"), 0.0)
-        lane = self.geometry.closest_lane(x, y, heading)
-        updates = {
-            "x": x,
-            "y": y,
-            "heading": heading,
-            "speed": speed,
-            "steer": steer,
-            "acc": acc,
-            "timer": bodies.get("timer") + self.dt,
-            "lane": lane,
+        state = dict(bodies.items())
+        tables = self.physics.tables(state)
+        key, order = tables.key, tables.order
+        zeros = torch.zeros(self.n_roads, self.n_bodies, dtype=self.dtype, device=self.device)
+        book = {
+            "abs_acc": zeros,
+            "lane_change": torch.zeros_like(zeros, dtype=torch.bool),
+            "distance": torch.zeros(acting.shape, dtype=self.dtype, device=self.device),
+            "crashed_now": torch.zeros_like(acting),
         }
-        for key, value in updates.items():
-            bodies.set(key, torch.where(moving, value, bodies.get(key)))
-        bodies.set("crashed", crashed | impact)
-        bodies.set("has_impact", bodies.get("has_impact") & ~moving)
-
-    def _collide(self, tables: NeighbourTables) -> None:
-        """Rectangle collisions among the bodies of every road (highway-env ``Road.step``'s
-        pairwise ``handle_collisions``), tested for each vehicle against its leader in its lane
-        and its leaders and followers in the lanes beside it (see ``docs/ARCHITECTURE.md``)."""
-        bodies = self.state["bodies"]
-        front, rear = self._neighbours(tables)
-        partner = torch.stack(
-            [front[..., 1], front[..., 0], rear[..., 0], front[..., 2], rear[..., 2]], dim=-1
+        for _ in range(self.frames):
+            state, key, order, book = self.frame(state, key, order, book, slot, acting)
+        for name, value in state.items():
+            bodies.set(name, value)
+        return self._finish_step(
+            NeighbourTables(key, order),
+            book["abs_acc"] / self.frames,
+            book["lane_change"],
+            book["crashed_now"],
+            book["distance"],
         )
-        b, n = partner.shape[:2]
-        ego = self.body_index.view(1, n, 1).expand(b, n, 5)
-        valid = (partner >= 0) & (bodies.get("present") & ~self.is_obstacle).unsqueeze(-1)
-        partner = torch.where(valid, partner, ego)
-        lo, hi = torch.minimum(ego, partner), torch.maximum(ego, partner)
-        gather = self._gather
-        length, width = self.body_length, self.body_width
-        hit, will, tx, ty = rectangle_collisions(
-            gather("x", lo), gather("y", lo), gather("heading", lo), gather("speed", lo),
-            length[lo], width[lo],
-            gather("x", hi), gather("y", hi), gather("heading", hi), gather("speed", hi),
-            length[hi], width[hi],
-            self.dt,
-        )  # fmt: skip
-        hit &= valid
-        will &= valid
-        flat = (b, -1)
-        crash = torch.zeros(b, n, dtype=self.dtype, device=self.device)
-        crash.scatter_reduce_(1, lo.reshape(flat), hit.to(self.dtype).reshape(flat), "amax")
-        crash.scatter_reduce_(1, hi.reshape(flat), hit.to(self.dtype).reshape(flat), "amax")
-        bodies.set("crashed", bodies.get("crashed") | ((crash > 0) & ~self.is_obstacle))
-        # impacts: each body keeps the one of the last pair highway-env visits (pairs (i, j),
-        # i < j, row by row)
-        obstacle_hi = self.is_obstacle[hi]
-        half = torch.where(obstacle_hi, 1.0, 0.5).to(self.dtype)
-        key_lo = torch.where(will, (n + hi).to(self.dtype), -1.0)
-        key_hi = torch.where(will & ~obstacle_hi, lo.to(self.dtype), -1.0)
-        best = torch.full((b, n), -1.0, dtype=self.dtype, device=self.device)
-        best.scatter_reduce_(1, lo.reshape(flat), key_lo.reshape(flat), "amax")
-        best.scatter_reduce_(1, hi.reshape(flat), key_hi.reshape(flat), "amax")
-        pad = torch.zeros(b, 1, dtype=self.dtype, device=self.device)
-        impact_x = torch.cat([bodies.get("impact_x"), pad], dim=1)  # column n: dropped writes
-        impact_y = torch.cat([bodies.get("impact_y"), pad], dim=1)
-        for index, key, scale in ((lo, key_lo, half), (hi, key_hi, -0.5)):
-            chosen = (key >= 0) & (key == best.gather(1, index.reshape(flat)).view(index.shape))
-            dest = torch.where(chosen, index, n).reshape(flat)
-            impact_x.scatter_(1, dest, (scale * tx).reshape(flat))
-            impact_y.scatter_(1, dest, (scale * ty).reshape(flat))
-        bodies.set("impact_x", impact_x[:, :n])
-        bodies.set("impact_y", impact_y[:, :n])
-        bodies.set("has_impact", bodies.get("has_impact") | ((best >= 0) & ~self.is_obstacle))
+
+    def _frame(
+        self,
+        b: Bodies,
+        key: torch.Tensor,
+        order: torch.Tensor,
+        book: dict[str, torch.Tensor],
+        slot: torch.Tensor,
+        acting: torch.Tensor,
+    ) -> tuple[Bodies, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+        """One simulation step of every road and its bookkeeping (``FreewayEnv._on_substep``:
+        |acceleration| and lane changes of every vehicle, distance and crash of every CAV)."""
+        b, key, order = self.physics.substep(b, key, order)
+        driving = acting & ~book["crashed_now"]
+        book = {
+            "abs_acc": book["abs_acc"] + b["acc"].abs(),
+            "lane_change": book["lane_change"] | (b["lane"] != b["target"]),
+            "distance": book["distance"]
+            + torch.where(driving, b["speed"].gather(1, slot) * self.dt, 0.0),
+            "crashed_now": book["crashed_now"] | (driving & b["crashed"].gather(1, slot)),
+        }
+        return b, key, order, book
 
     def _finish_step(
         self,
@@ -602,14 +384,14 @@ class BatchedFreeway:
         """The CAVs' observation ``[B, I, obs_dim]`` now (zero rows where ``acting`` is False;
         default: the CAVs still driving)."""
         acting = self.state["agents"].get("alive") if acting is None else acting
-        return self._observe(self._tables(), acting)
+        return self._observe(self.physics.tables(dict(self.state["bodies"].items())), acting)
 
     def _observe(self, tables: NeighbourTables, acting: torch.Tensor) -> torch.Tensor:
         """``FreewayEnv.observe_agents`` (and ``FreewayMergeEnv``'s two merge distances)."""
         geo, bodies = self.geometry, self.state["bodies"]
         slot = self.state["agents"].get("slot")
         perception = float(self.config["perception"])
-        front, rear = self._neighbours(tables)
+        front, rear = self.physics.neighbours(dict(bodies.items()), tables)
         index = slot.unsqueeze(-1).expand(*slot.shape, 3)
         front, rear = front.gather(1, index), rear.gather(1, index)  # [B, I, 3]
         lane = bodies.get("lane").gather(1, slot)
@@ -625,8 +407,8 @@ class BatchedFreeway:
         blocks = []
         for other, sign in ((front, 1.0), (rear, -1.0)):
             exists = lane_ok & (other >= 0) & ~self.is_obstacle[other.clamp(min=0)]
-            dx = self._gather("x", other) - x.unsqueeze(-1)
-            dv = self._gather("speed", other) - speed.unsqueeze(-1)
+            dx = self.physics.gather(bodies.get("x"), other) - x.unsqueeze(-1)
+            dv = self.physics.gather(bodies.get("speed"), other) - speed.unsqueeze(-1)
             seen = exists & (dx.abs() <= perception)
             blocks.append(
                 torch.stack(
