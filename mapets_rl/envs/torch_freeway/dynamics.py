@@ -9,8 +9,8 @@ highway-env's classes, so they cannot drift from the reference):
   gains set how long a lane change takes);
 - :func:`integrate`: ``Vehicle.step`` (kinematic bicycle model) with ``clip_actions`` and our
   ``RouteVehicleMixin.step`` floor (speeds never go below 0 within a step);
-- :func:`NeighbourTables`: the leader / follower search of
-  :class:`~mapets_rl.envs.road.SortedNeighbourRoad` (one sort per road, then ``searchsorted``);
+- :func:`lane_neighbours`: the leader / follower search of
+  :class:`~mapets_rl.envs.road.SortedNeighbourRoad` (one sort per road, then running minima);
 - :func:`rectangle_collisions`: ``RoadObject._is_colliding`` (the spherical pre-check, then the
   separating-axis test of ``utils.are_polygons_intersecting`` with the displacement of one
   simulation step).
@@ -19,7 +19,6 @@ highway-env's classes, so they cannot drift from the reference):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 from highway_env.vehicle.behavior import IDMVehicle
@@ -135,52 +134,65 @@ def integrate(
     return x, y, heading, speed, steering, acceleration
 
 
-TABLE_SPAN = 1.0e5
-"""Width of one neighbour table in the sort key ``table * TABLE_SPAN + x`` [m]: road
-coordinates must lie in ``(-TABLE_SPAN / 2, TABLE_SPAN / 2)``."""
+def lane_neighbours(
+    x: torch.Tensor, table: torch.Tensor, present: torch.Tensor, n_tables: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Leader and follower of every body in the lane tables left of, equal to and right of its
+    own (highway-env ``Road.neighbour_vehicles`` as :class:`SortedNeighbourRoad` answers it).
 
+    One sort of each road's bodies by ``x``, then for every table the next and previous body
+    of that table at each sorted position (reverse / forward running minimum and maximum), so
+    the search costs ``O(N log N + N T)`` per road with no per-query binary search. As in
+    highway-env, the leader is the first body strictly ahead and the follower the last body at
+    or behind ``x`` other than the body itself.
 
-@dataclass
-class NeighbourTables:
-    """Per-lane tables of the bodies of every road sorted by their route coordinate ``x``
-    (highway-env ``Road.neighbour_vehicles`` as :class:`SortedNeighbourRoad` answers it).
+    Args:
+        x: ``[B, N]`` route coordinates [m].
+        table: ``[B, N]`` neighbour-search lane of each body (``0 .. n_tables - 1``).
+        present: ``[B, N]`` bodies on the road (the others are never neighbours).
+        n_tables: number of tables ``T``.
 
-    Attributes:
-        key: ``[B, N]`` sorted keys ``table * TABLE_SPAN + x`` (float64; absent bodies ``inf``).
-        order: ``[B, N]`` the body index at each sorted position.
+    Returns:
+        ``(front, rear)``, each ``[B, N, 3]`` body indices (``-1``: none) for the tables
+        ``table - 1``, ``table``, ``table + 1``.
     """
+    rows, n = x.shape
+    device = x.device
+    pos = torch.arange(n, device=device)
+    sorted_x, order = torch.sort(torch.where(present, x, math.inf), dim=1, stable=True)
+    rank = torch.empty_like(order).scatter_(1, order, pos.expand(rows, n))
+    sorted_table = torch.where(present.gather(1, order), table.gather(1, order), -1)
+    # the last sorted position of each group of equal x (searchsorted's side="right")
+    group_end = torch.ones(rows, n, dtype=torch.bool, device=device)
+    group_end[:, :-1] = sorted_x[:, 1:] != sorted_x[:, :-1]
+    upper = torch.where(group_end, pos, n).flip(1).cummin(1).values.flip(1)
+    tables = torch.arange(n_tables, device=device).view(1, -1, 1)
+    member = sorted_table.unsqueeze(1) == tables  # [B, T, N]
+    after = torch.where(member, pos, n).flip(2).cummin(2).values.flip(2)
+    before = torch.where(member, pos, -1).cummax(2).values
+    # padded so that position n reads "none" ahead and position -1 reads "none" behind
+    after = torch.cat([after, torch.full_like(after[..., :1], n)], dim=2)  # [B, T, N + 1]
+    before = torch.cat([torch.full_like(before[..., :1], -1), before], dim=2)  # index p + 1
+    own = table.unsqueeze(-1) + torch.tensor([-1, 0, 1], device=device)  # [B, N, 3]
+    valid = (own >= 0) & (own < n_tables) & present.unsqueeze(-1)
+    lane = own.clamp(0, n_tables - 1)
+    self_rank = rank.unsqueeze(-1).expand(rows, n, 3)
+    top = upper.gather(1, rank).unsqueeze(-1).expand(rows, n, 3)
+    width = n + 1
+    front_pos = after.reshape(rows, -1).gather(1, (lane * width + top + 1).reshape(rows, -1))
+    rear_pos = before.reshape(rows, -1).gather(1, (lane * width + top + 1).reshape(rows, -1))
+    front_pos, rear_pos = front_pos.view(rows, n, 3), rear_pos.view(rows, n, 3)
+    is_self = rear_pos == self_rank  # only in the own table: the one behind it instead
+    earlier = before.reshape(rows, -1).gather(1, (lane * width + self_rank).reshape(rows, -1))
+    rear_pos = torch.where(is_self, earlier.view(rows, n, 3), rear_pos)
 
-    key: torch.Tensor
-    order: torch.Tensor
+    def body(position: torch.Tensor) -> torch.Tensor:
+        flat = position.clamp(0, n - 1).reshape(rows, -1)
+        return order.gather(1, flat).view(rows, n, 3)
 
-    @classmethod
-    def build(cls, table: torch.Tensor, x: torch.Tensor, present: torch.Tensor) -> NeighbourTables:
-        """Sort the bodies ``[B, N]`` (table ids, coordinates, presence) of every road."""
-        key = table.double() * TABLE_SPAN + x.double()
-        key = torch.where(present, key, math.inf)
-        key, order = torch.sort(key, dim=1, stable=True)
-        return cls(key, order)
-
-    def search(
-        self, table: torch.Tensor, x: torch.Tensor, body: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Leader and follower of each query ``[B, M]`` in lane table ``table`` at coordinate
-        ``x``: the first body strictly ahead, and the last body at or behind ``x`` that is
-        not the querying ``body`` itself. Returns body indices ``[B, M]`` (``-1``: none)."""
-        n = self.key.shape[1]
-        base = table.double() * TABLE_SPAN
-        query = base + x.double()
-        pos = torch.searchsorted(self.key, query, right=True)
-        front_pos = pos.clamp(max=n - 1)
-        front_ok = (pos < n) & (self.key.gather(1, front_pos) < base + TABLE_SPAN / 2)
-        rear_pos = pos - 1
-        is_self = self.order.gather(1, rear_pos.clamp(min=0)) == body
-        rear_pos = rear_pos - (is_self & (rear_pos >= 0)).long()
-        rear_safe = rear_pos.clamp(min=0)
-        rear_ok = (rear_pos >= 0) & (self.key.gather(1, rear_safe) >= base - TABLE_SPAN / 2)
-        front = torch.where(front_ok, self.order.gather(1, front_pos), -1)
-        rear = torch.where(rear_ok, self.order.gather(1, rear_safe), -1)
-        return front, rear
+    front = torch.where(valid & (front_pos < n), body(front_pos), -1)
+    rear = torch.where(valid & (rear_pos >= 0), body(rear_pos), -1)
+    return front, rear
 
 
 def rectangle_collisions(

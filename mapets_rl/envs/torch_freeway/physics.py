@@ -35,9 +35,9 @@ from mapets_rl.envs.torch_freeway.dynamics import (
     SQRT_AB,
     TIME_WANTED,
     WIDTH,
-    NeighbourTables,
     idm_acceleration,
     integrate,
+    lane_neighbours,
     rectangle_collisions,
     steering_control,
 )
@@ -85,23 +85,21 @@ class RoadPhysics:
         self.is_obstacle = self.body_index >= n_vehicles
         self.body_length = torch.where(self.is_obstacle, Obstacle.LENGTH, LENGTH).to(dtype)
         self.body_width = torch.where(self.is_obstacle, Obstacle.WIDTH, WIDTH).to(dtype)
-        self.sides = torch.tensor([-1, 0, 1], device=device)
+        self.body_diagonal = torch.sqrt(self.body_length**2 + self.body_width**2)
+        self.dense = {
+            "decide": self.decide,
+            "control_and_move": self.control_and_move,
+            "near_pairs": self.near_pairs,
+        }
+        """The dense parts of :meth:`substep`, by name (``BatchedFreeway`` may compile them)."""
 
     # --- neighbour search ----------------------------------------------------------------------
-    def tables(self, b: Bodies) -> NeighbourTables:
-        """The sorted lane tables of every road's bodies on the road now."""
-        return NeighbourTables.build(self.geometry.table[b["lane"]], b["x"], b["present"])
-
-    def neighbours(self, b: Bodies, tables: NeighbourTables) -> tuple[torch.Tensor, torch.Tensor]:
+    def neighbours(self, b: Bodies) -> tuple[torch.Tensor, torch.Tensor]:
         """Leader and follower ``[B, N, 3]`` of every body in the lane tables left of, equal to
-        and right of its own (``-1``: none)."""
-        own = self.geometry.table[b["lane"]]
-        rows, n = own.shape
-        query = (own.unsqueeze(-1) + self.sides).reshape(rows, -1)
-        x = b["x"].unsqueeze(-1).expand(rows, n, 3).reshape(rows, -1)
-        body = self.body_index.view(1, n, 1).expand(rows, n, 3).reshape(rows, -1)
-        front, rear = tables.search(query, x, body)
-        return front.view(rows, n, 3), rear.view(rows, n, 3)
+        and right of its own (``-1``: none), for the bodies on the road now."""
+        return lane_neighbours(
+            b["x"], self.geometry.table[b["lane"]], b["present"], self.geometry.n_tables
+        )
 
     @staticmethod
     def gather(value: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
@@ -109,7 +107,9 @@ class RoadPhysics:
         flat = index.clamp(min=0).reshape(index.shape[0], -1)
         return value.gather(1, flat).view(index.shape)
 
-    def idm(self, b: Bodies, ego: torch.Tensor, front: torch.Tensor, delta: torch.Tensor):
+    def idm(
+        self, b: Bodies, ego: torch.Tensor, front: torch.Tensor, delta: torch.Tensor
+    ) -> torch.Tensor:
         """IDM acceleration ``[B, ...]`` of bodies ``ego`` behind bodies ``front`` (``-1``:
         none), with the deciding vehicles' exponent ``delta``; 0 where ``ego`` is none or the
         obstacle."""
@@ -131,108 +131,156 @@ class RoadPhysics:
 
     # --- the step ------------------------------------------------------------------------------
     def substep(
-        self, b: Bodies, key: torch.Tensor, order: torch.Tensor
+        self, b: Bodies, front: torch.Tensor, rear: torch.Tensor
     ) -> tuple[Bodies, torch.Tensor, torch.Tensor]:
-        """One simulation step of every road from bodies ``b`` and their lane tables
-        ``(key, order)`` (:class:`NeighbourTables`); returns the new bodies and tables."""
-        b = self.act(b, NeighbourTables(key, order))
-        b = self.move(b)
-        tables = self.tables(b)
-        b = self.collide(b, tables)
-        return b, tables.key, tables.order
+        """One simulation step of every road from bodies ``b`` and their neighbours
+        ``(front, rear)`` (:meth:`neighbours`); returns the new bodies and neighbours.
 
-    def act(self, b: Bodies, tables: NeighbourTables) -> Bodies:
-        """Every driving vehicle decides its lane and its commands (highway-env
-        ``IDMVehicle.act`` for humans and for CAVs under KL / CL / CR; the emergency stop of
-        ``LaneDecisionVehicle.act`` under ES)."""
+        The dense parts (every vehicle's decision inputs, its control and motion, the
+        collision pre-check) run through ``self.dense`` (the same functions, compiled where
+        :class:`~mapets_rl.envs.torch_freeway.simulator.BatchedFreeway` compiles them); MOBIL,
+        the abort rule and the exact collision test run on the few vehicles that need them."""
+        decision = self.dense["decide"](b, front, rear)
+        target = decision["target"]
+        deciding = decision["deciding"].nonzero(as_tuple=True)
+        if deciding[0].numel():
+            target = self.mobil(b, front, rear, target, decision["self_a"], deciding)
+        aborting = decision["aborting"].nonzero(as_tuple=True)
+        if aborting[0].numel():
+            target = self.abort(b, target, aborting)
+        b = self.dense["control_and_move"](b, decision, target, front)
+        front, rear = self.neighbours(b)
+        b = self.collide(b, front, rear)
+        return b, front, rear
+
+    def decide(self, b: Bodies, front: torch.Tensor, rear: torch.Tensor) -> Bodies:
+        """What every vehicle's decision starts from (highway-env ``IDMVehicle.act`` up to
+        MOBIL): ``follow_road`` (at the end of the ramp the acceleration lane becomes the
+        target), who may change lanes (humans, and merge CAVs on the ramp, not under ES), who is
+        changing lanes within a segment (``aborting``: the abort rule applies), who decides on
+        a lane change now (``deciding``: the lane-change timer passed), and the IDM
+        acceleration in the current lane (``self_a``)."""
         geo = self.geometry
-        x, y, heading, speed = b["x"], b["y"], b["heading"], b["speed"]
-        lane, before, cav = b["lane"], b["target"], b["cav"]
+        lane, cav = b["lane"], b["cav"]
         acting = b["present"] & ~b["crashed"] & ~self.is_obstacle
         stop = cav & (b["decision"] == ES)
         own_table = geo.table[lane]
-        front, rear = self.neighbours(b, tables)
-        ego = self.body_index.expand_as(lane)
-        delta = b["delta"]
-        # follow_road: at the end of the ramp, the acceleration lane becomes the target
-        s_target, _ = geo.local_coordinates(x, y, before)
-        after_end = s_target > geo.length[before] - VEHICLE_LENGTH / 2
-        target = torch.where(acting & after_end, geo.next_lane[before], before)
-        # MOBIL for humans and for merge CAVs on the ramp (not under ES)
+        s_target, _ = geo.local_coordinates(b["x"], b["y"], b["target"])
+        after_end = s_target > geo.length[b["target"]] - VEHICLE_LENGTH / 2
+        target = torch.where(acting & after_end, geo.next_lane[b["target"]], b["target"])
         lane_changer = (~cav | (own_table == geo.ramp_table)) if self.merge else ~cav
         enabled = acting & ~stop & lane_changer
         changing = lane != target
-        aborting = enabled & changing & (geo.segment[lane] == geo.segment[target])
         deciding = enabled & ~changing & (b["timer"] > LANE_CHANGE_DELAY)
-        self_a = self.idm(b, ego, front[..., 1], delta)
-        for column, query in ((0, 0), (1, 2)):  # left, then right (right wins if both)
+        ego = self.body_index.expand_as(lane)
+        return {
+            "target": target,
+            "acting": acting,
+            "stop": stop,
+            "aborting": enabled & changing & (geo.segment[lane] == geo.segment[target]),
+            "deciding": deciding,
+            "timer": torch.where(deciding, 0.0, b["timer"]),
+            "self_a": self.idm(b, ego, front[..., 1], b["delta"]),
+        }
+
+    def mobil(
+        self,
+        b: Bodies,
+        front: torch.Tensor,
+        rear: torch.Tensor,
+        target: torch.Tensor,
+        self_a: torch.Tensor,
+        who: tuple[torch.Tensor, torch.Tensor],
+    ) -> torch.Tensor:
+        """MOBIL (highway-env ``IDMVehicle.mobil``, politeness 0) for the vehicles ``who``
+        (road and body indices ``[E]``): left, then right (right wins when both pass); the
+        side lane must be reachable, the vehicle moving, the new follower's imposed braking at
+        most ``LANE_CHANGE_MAX_BRAKING_IMPOSED`` and the own gain at least
+        ``LANE_CHANGE_MIN_ACC_GAIN``. Returns the targets ``[B, N]``."""
+        geo = self.geometry
+        road, ego = who
+        sub = {key: value[road] for key, value in b.items()}  # [E, N]
+        lane = sub["lane"].gather(1, ego.unsqueeze(1))  # [E, 1]
+        x, y = sub["x"].gather(1, ego.unsqueeze(1)), sub["y"].gather(1, ego.unsqueeze(1))
+        speed = sub["speed"].gather(1, ego.unsqueeze(1))
+        delta = sub["delta"].gather(1, ego.unsqueeze(1))
+        me = ego.unsqueeze(1)
+        chosen = target[road, ego]
+        for column, query in ((0, 0), (1, 2)):  # left, then right
             side = geo.side[lane, column]
             candidate = side.clamp(min=0)
             s, r = geo.local_coordinates(x, y, candidate)
             reachable = (side >= 0) & ~geo.forbidden[candidate] & (r.abs() <= 2 * LANE_WIDTH)
             reachable &= (s >= 0) & (s < geo.length[candidate] + VEHICLE_LENGTH)
-            imposed = self.idm(b, rear[..., query], ego, delta)
-            gain = self.idm(b, ego, front[..., query], delta) - self_a
-            mobil = (imposed >= -MAX_BRAKING_IMPOSED) & (gain >= MIN_ACC_GAIN)
-            target = torch.where(deciding & reachable & (speed.abs() >= 1) & mobil, side, target)
-        target = torch.where(self.blocked_change(b, aborting, before, target), lane, target)
-        # lateral control towards the target lane, IDM in the current and target lanes
-        _, lateral = geo.local_coordinates(x, y, target)
-        steer = steering_control(lateral, geo.heading[target], heading, speed)
-        column = (geo.table[target] - own_table + 1).clamp(0, 2).unsqueeze(-1)
-        target_a = self.idm(b, ego, front.gather(-1, column).squeeze(-1), delta)
-        acc = torch.where(lane != target, torch.minimum(self_a, target_a), self_a)
-        acc = acc.clamp(-ACC_MAX, ACC_MAX)
-        acc = torch.where(stop, torch.where(speed > 0, ACC_MIN, 0.0), acc)
-        return {
-            **b,
-            "target": target,
-            "timer": torch.where(deciding, 0.0, b["timer"]),
-            "acc": torch.where(acting, acc, b["acc"]),
-            "steer": torch.where(acting, steer, b["steer"]),
-        }
+            new_front = front[road, ego, query].unsqueeze(1)
+            new_rear = rear[road, ego, query].unsqueeze(1)
+            imposed = self.idm(sub, new_rear, me, delta)
+            gain = self.idm(sub, me, new_front, delta) - self_a[road, ego].unsqueeze(1)
+            go = reachable & (speed.abs() >= 1) & (imposed >= -MAX_BRAKING_IMPOSED)
+            go &= gain >= MIN_ACC_GAIN
+            chosen = torch.where(go.squeeze(1), side.squeeze(1), chosen)
+        target = target.clone()
+        target[road, ego] = chosen
+        return target
 
-    def blocked_change(
-        self, b: Bodies, aborting: torch.Tensor, before: torch.Tensor, after: torch.Tensor
+    def abort(
+        self, b: Bodies, after: torch.Tensor, who: tuple[torch.Tensor, torch.Tensor]
     ) -> torch.Tensor:
-        """highway-env's abort of a lane change (``IDMVehicle.change_lane_policy``): for the
-        vehicles ``aborting [B, N]`` (changing lanes within a segment), whether another vehicle
-        not yet in the target lane but heading for it is ahead within the desired gap.
-
-        highway-env lets the vehicles act one after the other, so a vehicle sees the targets of
-        the vehicles before it as they are ``after`` their decision in this simulation step and
-        those after it as they were ``before``. Pairs ``[B, N, N]``."""
-        index = self.body_index
-        earlier = index.view(1, 1, -1) < index.view(1, -1, 1)  # [1, ego, other]
-        goal = after.unsqueeze(-1)
-        other_goal = torch.where(earlier, after.unsqueeze(1), before.unsqueeze(1))
-        others = (b["present"] & ~self.is_obstacle).unsqueeze(1) & ~torch.eye(
-            index.numel(), dtype=torch.bool, device=index.device
-        )
-        others = others & (b["lane"].unsqueeze(1) != goal) & (other_goal == goal)
-        speed, heading = b["speed"], b["heading"]
-        own_speed, own_heading = speed.unsqueeze(-1), heading.unsqueeze(-1)
+        """highway-env's abort of a lane change (``IDMVehicle.change_lane_policy``) for the
+        vehicles ``who`` (``[E]`` road and body indices, changing lanes within a segment): the
+        change is given up when another vehicle not yet in the target lane but heading for it
+        is ahead within the desired gap. highway-env lets the vehicles act one after the other,
+        so a vehicle sees the targets of the vehicles before it as they are ``after`` their
+        decision in this simulation step, and those after it as they were before (``b``).
+        Returns the targets ``[B, N]``."""
+        road, ego = who
+        x, speed, heading = b["x"][road], b["speed"][road], b["heading"][road]  # [E, N]
+        goal = after[road, ego].unsqueeze(-1)
+        earlier = self.body_index.unsqueeze(0) < ego.unsqueeze(-1)
+        other_goal = torch.where(earlier, after[road], b["target"][road])
+        others = b["present"][road] & ~self.is_obstacle
+        others &= self.body_index.unsqueeze(0) != ego.unsqueeze(-1)
+        others &= (b["lane"][road] != goal) & (other_goal == goal)
+        own_x, own_speed = x.gather(1, ego.unsqueeze(-1)), speed.gather(1, ego.unsqueeze(-1))
+        own_heading = heading.gather(1, ego.unsqueeze(-1))
         cos, sin = torch.cos(own_heading), torch.sin(own_heading)
-        other_speed, other_heading = speed.unsqueeze(1), heading.unsqueeze(1)
-        dv = (own_speed * cos - other_speed * torch.cos(other_heading)) * cos + (
-            own_speed * sin - other_speed * torch.sin(other_heading)
+        dv = (own_speed * cos - speed * torch.cos(heading)) * cos + (
+            own_speed * sin - speed * torch.sin(heading)
         ) * sin
         desired = DISTANCE_WANTED + own_speed * TIME_WANTED + own_speed * dv / (2 * SQRT_AB)
-        gap = b["x"].unsqueeze(1) - b["x"].unsqueeze(-1)
-        return aborting & (others & (gap > 0) & (gap < desired)).any(-1)
+        gap = x - own_x
+        blocked = (others & (gap > 0) & (gap < desired)).any(1)
+        target = after.clone()
+        target[road, ego] = torch.where(blocked, b["lane"][road, ego], after[road, ego])
+        return target
 
-    def move(self, b: Bodies) -> Bodies:
-        """One simulation step of every vehicle's kinematics (a pending impact applied and the
-        vehicle marked crashed), then its lane assignment."""
+    def control_and_move(
+        self, b: Bodies, decision: Bodies, target: torch.Tensor, front: torch.Tensor
+    ) -> Bodies:
+        """Lateral control towards the target lane, IDM in the current and target lanes (the
+        lower while changing lanes), or the emergency stop; then one step of the kinematics
+        (a pending impact applied and the vehicle marked crashed) and the lane assignment."""
+        geo = self.geometry
+        lane, speed = b["lane"], b["speed"]
+        acting, self_a = decision["acting"], decision["self_a"]
+        _, lateral = geo.local_coordinates(b["x"], b["y"], target)
+        steer = steering_control(lateral, geo.heading[target], b["heading"], speed)
+        column = (geo.table[target] - geo.table[lane] + 1).clamp(0, 2).unsqueeze(-1)
+        ego = self.body_index.expand_as(lane)
+        target_a = self.idm(b, ego, front.gather(-1, column).squeeze(-1), b["delta"])
+        acc = torch.where(lane != target, torch.minimum(self_a, target_a), self_a)
+        acc = acc.clamp(-ACC_MAX, ACC_MAX)
+        acc = torch.where(decision["stop"], torch.where(speed > 0, ACC_MIN, 0.0), acc)
+        acc = torch.where(acting, acc, b["acc"])
+        steer = torch.where(acting, steer, b["steer"])
         moving = b["present"] & ~self.is_obstacle
         x, y, heading, speed, steer, acc = integrate(
-            b["x"], b["y"], b["heading"], b["speed"], b["steer"], b["acc"], b["crashed"],
+            b["x"], b["y"], b["heading"], speed, steer, acc, b["crashed"],
             self.speed_limit, self.dt,
         )  # fmt: skip
         impact = b["has_impact"] & moving
         x = x + torch.where(impact, b["impact_x"], 0.0)
         y = y + torch.where(impact, b["impact_y"], 0.0)
-        lane = self.geometry.closest_lane(x, y, heading)
         updates = {
             "x": x,
             "y": y,
@@ -240,19 +288,22 @@ class RoadPhysics:
             "speed": speed,
             "steer": steer,
             "acc": acc,
-            "timer": b["timer"] + self.dt,
-            "lane": lane,
+            "timer": decision["timer"] + self.dt,
+            "lane": geo.closest_lane(x, y, heading),
         }
         out = {**b, **{k: torch.where(moving, v, b[k]) for k, v in updates.items()}}
+        out["target"] = target
         out["crashed"] = b["crashed"] | impact
         out["has_impact"] = b["has_impact"] & ~moving
         return out
 
-    def collide(self, b: Bodies, tables: NeighbourTables) -> Bodies:
-        """Rectangle collisions among the bodies of every road (highway-env ``Road.step``'s
-        pairwise ``handle_collisions``), tested for each vehicle against its leader in its lane
-        and its leaders and followers in the lanes beside it."""
-        front, rear = self.neighbours(b, tables)
+    def near_pairs(
+        self, b: Bodies, front: torch.Tensor, rear: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The candidate pairs of the collision test: each vehicle with its leader in its lane
+        and its leaders and followers in the lanes beside it, as ``(lo, hi)`` body indices
+        ``[B, N, 5]`` (``lo < hi``, the order in which highway-env visits a pair) and whether
+        they pass highway-env's spherical pre-check (``RoadObject._is_colliding``)."""
         partner = torch.stack(
             [front[..., 1], front[..., 0], rear[..., 0], front[..., 2], rear[..., 2]], dim=-1
         )
@@ -262,41 +313,60 @@ class RoadPhysics:
         partner = torch.where(valid, partner, ego)
         lo, hi = torch.minimum(ego, partner), torch.maximum(ego, partner)
         g = self.gather
+        dx, dy = g(b["x"], hi) - g(b["x"], lo), g(b["y"], hi) - g(b["y"], lo)
+        reach = (self.body_diagonal[lo] + self.body_diagonal[hi]) / 2 + g(b["speed"], lo) * self.dt
+        return lo, hi, valid & (dx * dx + dy * dy <= reach * reach)
+
+    def collide(self, b: Bodies, front: torch.Tensor, rear: torch.Tensor) -> Bodies:
+        """Rectangle collisions among the bodies of every road (highway-env ``Road.step``'s
+        pairwise ``handle_collisions``): the separating-axis test on the pairs that pass the
+        pre-check of :meth:`near_pairs`; touching bodies crash, and a pair about to touch
+        within a step leaves each the impact highway-env applies in the next step (each body
+        keeps the one of the last pair highway-env visits: pairs ``(i, j)``, ``i < j``, row by
+        row; an obstacle pushes the vehicle by the whole translation)."""
+        lo, hi, near = self.dense["near_pairs"](b, front, rear)
+        road, row, column = near.nonzero(as_tuple=True)
+        if road.numel() == 0:
+            return b
+        lo, hi = lo[road, row, column], hi[road, row, column]
+        length, width = self.body_length, self.body_width
+
+        def at(key: str, index: torch.Tensor) -> torch.Tensor:
+            return b[key][road, index]
+
         hit, will, tx, ty = rectangle_collisions(
-            g(b["x"], lo), g(b["y"], lo), g(b["heading"], lo), g(b["speed"], lo),
-            self.body_length[lo], self.body_width[lo],
-            g(b["x"], hi), g(b["y"], hi), g(b["heading"], hi), g(b["speed"], hi),
-            self.body_length[hi], self.body_width[hi],
+            at("x", lo), at("y", lo), at("heading", lo), at("speed", lo), length[lo], width[lo],
+            at("x", hi), at("y", hi), at("heading", hi), at("speed", hi), length[hi], width[hi],
             self.dt,
         )  # fmt: skip
-        hit = hit & valid
-        will = will & valid
-        flat = (rows, -1)
-        dtype = b["x"].dtype
-        crash = torch.zeros(rows, n, dtype=dtype, device=lo.device)
-        crash = crash.scatter_reduce(1, lo.reshape(flat), hit.to(dtype).reshape(flat), "amax")
-        crash = crash.scatter_reduce(1, hi.reshape(flat), hit.to(dtype).reshape(flat), "amax")
-        # impacts: each body keeps the one of the last pair highway-env visits (pairs (i, j),
-        # i < j, row by row); an obstacle pushes the vehicle by the whole translation
+        crashed = b["crashed"].clone()
+        crashed[road[hit], lo[hit]] = True
+        crashed[road[hit], hi[hit]] = True
+        crashed &= ~self.is_obstacle
+        out = {**b, "crashed": crashed}
+        if not bool(will.any()):
+            return out
+        road, lo, hi, tx, ty = road[will], lo[will], hi[will], tx[will], ty[will]
+        n = self.body_index.numel()
         obstacle_hi = self.is_obstacle[hi]
-        half = torch.where(obstacle_hi, 1.0, 0.5).to(dtype)
-        key_lo = torch.where(will, (n + hi).to(dtype), -1.0)
-        key_hi = torch.where(will & ~obstacle_hi, lo.to(dtype), -1.0)
-        best = torch.full((rows, n), -1.0, dtype=dtype, device=lo.device)
-        best = best.scatter_reduce(1, lo.reshape(flat), key_lo.reshape(flat), "amax")
-        best = best.scatter_reduce(1, hi.reshape(flat), key_hi.reshape(flat), "amax")
-        pad = torch.zeros(rows, 1, dtype=dtype, device=lo.device)
-        impact_x = torch.cat([b["impact_x"], pad], dim=1)  # column n takes the dropped writes
-        impact_y = torch.cat([b["impact_y"], pad], dim=1)
-        for index, key, scale in ((lo, key_lo, half), (hi, key_hi, -0.5)):
-            chosen = (key >= 0) & (key == self.gather(best, index))
-            dest = torch.where(chosen, index, n).reshape(flat)
-            impact_x = impact_x.scatter(1, dest, (scale * tx).reshape(flat))
-            impact_y = impact_y.scatter(1, dest, (scale * ty).reshape(flat))
-        return {
-            **b,
-            "crashed": b["crashed"] | ((crash > 0) & ~self.is_obstacle),
-            "impact_x": impact_x[:, :n],
-            "impact_y": impact_y[:, :n],
-            "has_impact": b["has_impact"] | ((best >= 0) & ~self.is_obstacle),
-        }
+        # visit order of the pairs touching each body: its pairs as the lower index come last
+        rows = torch.cat([road, road[~obstacle_hi]])
+        body = torch.cat([lo, hi[~obstacle_hi]])
+        rank = torch.cat([n + hi, lo[~obstacle_hi]])
+        lower_share = torch.where(obstacle_hi, 1.0, 0.5).to(tx.dtype)
+        upper_share = torch.full((int((~obstacle_hi).sum()),), -0.5, dtype=tx.dtype)
+        scale = torch.cat([lower_share, upper_share.to(tx.device)])
+        dx = torch.cat([tx, tx[~obstacle_hi]]) * scale
+        dy = torch.cat([ty, ty[~obstacle_hi]]) * scale
+        slot = rows * n + body
+        order = torch.argsort(slot * (2 * n + 1) + rank, stable=True)
+        slot, dx, dy = slot[order], dx[order], dy[order]
+        last = torch.ones_like(slot, dtype=torch.bool)
+        last[:-1] = slot[1:] != slot[:-1]
+        impact_x, impact_y = b["impact_x"].clone(), b["impact_y"].clone()
+        has_impact = b["has_impact"].clone()
+        impact_x.view(-1)[slot[last]] = dx[last]
+        impact_y.view(-1)[slot[last]] = dy[last]
+        has_impact.view(-1)[slot[last]] = True
+        out.update(impact_x=impact_x, impact_y=impact_y, has_impact=has_impact)
+        return out

@@ -27,7 +27,6 @@ from tensordict import TensorDict
 
 from mapets_rl.envs.freeway import CL, CR, ES, KL
 from mapets_rl.envs.freeway import OBS_DIM as FREEWAY_OBS_DIM
-from mapets_rl.envs.torch_freeway.dynamics import NeighbourTables
 from mapets_rl.envs.torch_freeway.geometry import LANE_WIDTH, MAINLINE, FreewayGeometry
 from mapets_rl.envs.torch_freeway.physics import LANE_CHANGE_DELAY, Bodies, RoadPhysics
 
@@ -113,7 +112,6 @@ class BatchedFreeway:
             self.geometry, self.n_vehicles, self.n_bodies, self.speed_limit, self.dt
         )
         self.is_obstacle = self.physics.is_obstacle
-        self.frame = self._frame
         self.state = self._empty_state()
         self.reset(torch.ones(self.n_roads, dtype=torch.bool, device=self.device))
 
@@ -283,8 +281,7 @@ class BatchedFreeway:
         bodies.set("decision", decision)
 
         state = dict(bodies.items())
-        tables = self.physics.tables(state)
-        key, order = tables.key, tables.order
+        front, rear = self.physics.neighbours(state)
         zeros = torch.zeros(self.n_roads, self.n_bodies, dtype=self.dtype, device=self.device)
         book = {
             "abs_acc": zeros,
@@ -293,11 +290,11 @@ class BatchedFreeway:
             "crashed_now": torch.zeros_like(acting),
         }
         for _ in range(self.frames):
-            state, key, order, book = self.frame(state, key, order, book, slot, acting)
+            state, front, rear, book = self._frame(state, front, rear, book, slot, acting)
         for name, value in state.items():
             bodies.set(name, value)
         return self._finish_step(
-            NeighbourTables(key, order),
+            (front, rear),
             book["abs_acc"] / self.frames,
             book["lane_change"],
             book["crashed_now"],
@@ -307,15 +304,15 @@ class BatchedFreeway:
     def _frame(
         self,
         b: Bodies,
-        key: torch.Tensor,
-        order: torch.Tensor,
+        front: torch.Tensor,
+        rear: torch.Tensor,
         book: dict[str, torch.Tensor],
         slot: torch.Tensor,
         acting: torch.Tensor,
     ) -> tuple[Bodies, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
         """One simulation step of every road and its bookkeeping (``FreewayEnv._on_substep``:
         |acceleration| and lane changes of every vehicle, distance and crash of every CAV)."""
-        b, key, order = self.physics.substep(b, key, order)
+        b, front, rear = self.physics.substep(b, front, rear)
         driving = acting & ~book["crashed_now"]
         book = {
             "abs_acc": book["abs_acc"] + b["acc"].abs(),
@@ -324,11 +321,11 @@ class BatchedFreeway:
             + torch.where(driving, b["speed"].gather(1, slot) * self.dt, 0.0),
             "crashed_now": book["crashed_now"] | (driving & b["crashed"].gather(1, slot)),
         }
-        return b, key, order, book
+        return b, front, rear, book
 
     def _finish_step(
         self,
-        tables: NeighbourTables,
+        neighbours: tuple[torch.Tensor, torch.Tensor],
         abs_acc: torch.Tensor,
         lane_change: torch.Tensor,
         crashed_now: torch.Tensor,
@@ -353,7 +350,7 @@ class BatchedFreeway:
         self.state.set("speed_sum", self.state.get("speed_sum") + velocity.double() * count)
         self.state.set("comfort_sum", self.state.get("comfort_sum") + mean_comfort * count)
         self.state.set("samples", self.state.get("samples") + present.sum(1))
-        observation = self._observe(tables, acting)
+        observation = self._observe(neighbours, acting)
         reward = float(cfg["velocity_weight"]) * speed.gather(1, slot) + comfort.gather(1, slot)
         reward = torch.where(crashed_now, float(cfg["collision_reward"]), reward)
         if cfg["team_reward"]:
@@ -384,14 +381,16 @@ class BatchedFreeway:
         """The CAVs' observation ``[B, I, obs_dim]`` now (zero rows where ``acting`` is False;
         default: the CAVs still driving)."""
         acting = self.state["agents"].get("alive") if acting is None else acting
-        return self._observe(self.physics.tables(dict(self.state["bodies"].items())), acting)
+        return self._observe(self.physics.neighbours(dict(self.state["bodies"].items())), acting)
 
-    def _observe(self, tables: NeighbourTables, acting: torch.Tensor) -> torch.Tensor:
+    def _observe(
+        self, neighbours: tuple[torch.Tensor, torch.Tensor], acting: torch.Tensor
+    ) -> torch.Tensor:
         """``FreewayEnv.observe_agents`` (and ``FreewayMergeEnv``'s two merge distances)."""
         geo, bodies = self.geometry, self.state["bodies"]
         slot = self.state["agents"].get("slot")
         perception = float(self.config["perception"])
-        front, rear = self.physics.neighbours(dict(bodies.items()), tables)
+        front, rear = neighbours
         index = slot.unsqueeze(-1).expand(*slot.shape, 3)
         front, rear = front.gather(1, index), rear.gather(1, index)  # [B, I, 3]
         lane = bodies.get("lane").gather(1, slot)
