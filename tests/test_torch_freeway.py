@@ -160,14 +160,14 @@ def test_mobil_decisions_match_highway_env(scene: list, changes: bool) -> None:
     load_scene(sim, 0, env)
     human = next(v for v in env.vehicles_all if v not in env.cavs)
     k = env.vehicles_all.index(human)
+    bodies = dict(sim.state["bodies"].items())
+    front, rear = sim.physics.neighbours(bodies)
     for _ in range(3):  # three simulation steps of both simulators
         env.road.act()
         env.road.step(0.1)
-        sim.frames = 1
-        sim._act(sim._tables())
-        sim._move()
-        assert int(sim.state["bodies", "target"][0, k]) == lane_id(human.target_lane_index, 3)
-        accel = float(sim.state["bodies", "acc"][0, k])
+        bodies, front, rear = sim.physics.substep(bodies, front, rear)
+        assert int(bodies["target"][0, k]) == lane_id(human.target_lane_index, 3)
+        accel = float(bodies["acc"][0, k])
         assert accel == pytest.approx(human.action["acceleration"], abs=1e-5)
     assert (human.target_lane_index != ("0", "1", 1)) is changes
 
