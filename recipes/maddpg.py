@@ -55,6 +55,39 @@ from mapets_rl.objectives.n_step import STEPS_TO_NEXT_OBS, n_step_transitions
 PREACTIVATION = (GROUP, "param")
 """The actor's pre-activation [*, I, act]: the tanh input (continuous) or the logits (one-hot)."""
 
+OPENAI_MADDPG: tuple[str, ...] = (
+    "update_interval=100",
+    "updates_per_batch=1",
+    "batch_size=1024",
+    "lr_actor=0.01",
+    "lr_critic=0.01",
+    "gamma=0.95",
+    "tau=0.01",
+    "num_cells=[64, 64]",
+    "max_grad_norm=0.5",
+)
+"""The update schedule of openai/maddpg (``experiments/train.py`` and
+``maddpg/trainer/maddpg.py`` defaults), as config overrides of ``maddpg`` / ``m3ddpg``: one
+gradient step per 100 frames with minibatches of 1,024 transitions, Adam at 1e-2 for actor and
+critic, gamma 0.95, soft target updates at 0.01 (their polyak 0.99), two hidden layers of 64
+units, gradient norms clipped at 0.5 (their actor's ``mean(p^2)`` penalty at 1e-3 is
+``actor_preactivation_coef``'s default).
+
+This is an inference, not a setting the Shapley paper (Han et al.) states: the paper gives no
+update schedule, and its software versions match openai/maddpg's release, whose defaults these
+are. What differs from openai/maddpg: one shared actor and one centralised critic update for all
+agents per step (openai/maddpg updates each agent's own pair at every step), updates start once
+the buffer holds ``batch_size`` transitions (theirs wait for 25,600: ``batch_size`` times their
+25-step episodes) after ``init_random_frames`` of uniform random actions, and the replay keeps
+``buffer_size`` (default 100,000) transitions, not 10^6 (about 7 kB each at 30 CAVs).
+
+Python: ``MADDPGConfig(...).with_overrides(OPENAI_MADDPG)``; command line::
+
+    mapets-rl train maddpg --env freeway-merge update_interval=100 updates_per_batch=1 \
+        batch_size=1024 lr_actor=0.01 lr_critic=0.01 gamma=0.95 tau=0.01 \
+        "num_cells=[64, 64]" max_grad_norm=0.5
+"""
+
 
 @dataclasses.dataclass
 class MADDPGConfig(OffPolicyConfig):
@@ -213,7 +246,9 @@ class MADDPG(Experiment):
         )
 
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
-        """Store the batch; ``updates_per_batch`` critic + actor steps; soft target update."""
+        """Store the batch ``[*, T]`` (time last: ``[T]``, or ``[B, T]`` from ``B`` roads);
+        the gradient steps due (:meth:`OffPolicyConfig.gradient_steps`), each a critic + actor
+        step and a soft target update."""
         if self.config.n_steps > 1:
             batch = n_step_transitions(batch, self.config.gamma, self.config.n_steps)
         self.buffer.extend(batch.reshape(-1))
@@ -222,10 +257,10 @@ class MADDPG(Experiment):
             sync_target_statistics(self.loss, self.obs_norm)
         if self.exploration is not None:
             self.exploration.step(batch.numel())
-        if len(self.buffer) < self.config.batch_size:
+        n = self.config.gradient_steps(self.frames - batch.numel(), self.frames)
+        if len(self.buffer) < self.config.batch_size or n == 0:
             return {}
         logs = {"loss_actor": 0.0, "loss_actor_reg": 0.0, "loss_value": 0.0}
-        n = self.config.updates_per_batch
         for _ in range(n):
             out = self.loss(self.buffer.sample())
             # the actor loss sees detached critic params, so one backward serves both

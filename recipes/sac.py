@@ -169,16 +169,18 @@ class SAC(Experiment):
         )
 
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
-        """Store the batch; ``updates_per_batch`` SAC steps; soft target update."""
+        """Store the batch ``[*, T]`` (``[T]``, or ``[B, T]`` from ``B`` roads); the gradient
+        steps due (:meth:`OffPolicyConfig.gradient_steps`), each a SAC step and a soft target
+        update."""
         self.buffer.extend(batch.reshape(-1))
         if self.obs_norm is not None:
             self.obs_norm.update(batch.get(OBS), batch.get(MASK, None))
             sync_target_statistics(self.loss, self.obs_norm)
-        if len(self.buffer) < self.config.batch_size:
+        n = self.config.gradient_steps(self.frames - batch.numel(), self.frames)
+        if len(self.buffer) < self.config.batch_size or n == 0:
             return {}
         keys = ("loss_actor", "loss_qvalue", "loss_alpha")
         logs = dict.fromkeys(keys, 0.0)
-        n = self.config.updates_per_batch
         for _ in range(n):
             out = self.loss(self.buffer.sample())
             self.optim.zero_grad()

@@ -234,12 +234,17 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
         )
 
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
+        """Store the transitions of the batch ``[*, T]`` (``[T]``, or ``[B, T]`` from ``B``
+        roads); once the buffer holds ``max(init_random_frames, batch_size)`` of them, the
+        gradient steps due (:meth:`OffPolicyConfig.gradient_steps`), each a critic step, an
+        actor step on the Shapley values and a soft target update."""
         cfg = self.config
         self.buffer.extend(batch.reshape(-1).select(*REPLAY_KEYS).to(self.device))
-        if len(self.buffer) < max(cfg.init_random_frames, cfg.batch_size):
+        steps = cfg.gradient_steps(self.frames - batch.numel(), self.frames)
+        if len(self.buffer) < max(cfg.init_random_frames, cfg.batch_size) or steps == 0:
             return {}
         logs: dict[str, float] = {}
-        for _ in range(cfg.updates_per_batch):
+        for _ in range(steps):
             sample = self.buffer.sample()
             loss_value, meta = self.loss.loss_value(sample)
             self.critic_optim.zero_grad()
@@ -262,7 +267,7 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
                 **{k: v.item() for k, v in {**meta, **meta_actor}.items()},
             }
             for key, val in step.items():
-                logs[key] = logs.get(key, 0.0) + val / cfg.updates_per_batch
+                logs[key] = logs.get(key, 0.0) + val / steps
         return logs
 
     def stateful_components(self) -> dict[str, Any]:

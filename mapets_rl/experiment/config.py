@@ -143,7 +143,6 @@ class RunConfig(ConfigFields):
         env that evaluation, video and the recipe's specs use)."""
         return {k: v for k, v in self.env_config.items() if k != "num_envs"}
 
-
     # ----------------------------------------------------------------------------- conversions
     @classmethod
     def rename_old_keys(cls, data: Mapping[str, Any], source: str) -> dict[str, Any]:

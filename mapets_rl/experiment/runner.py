@@ -300,9 +300,10 @@ class Experiment:
         remote collectors (one CPU each; synchronous, so each batch holds
         ``frames_per_batch / num_envs`` steps of every env); the run loop stops it at
         ``total_frames``. A batched env (``env_config.num_envs = B`` roads) is stepped by one
-        ``Collector``, whose batches are ``[B, frames_per_batch / B]`` (road, time). The first ``init_random_frames`` frames of the run use uniformly
-        random actions (counted over the whole run, resumes included). Extra ``kwargs`` go to
-        the collector (to each remote collector with ``"ray"``)."""
+        ``Collector``, whose batches are ``[B, frames_per_batch / B]`` (road, time). The
+        first ``init_random_frames`` frames of the run use uniformly random actions (counted
+        over the whole run, resumes included). Extra ``kwargs`` go to the collector (to each
+        remote collector with ``"ray"``)."""
         if init_random_frames < 0:
             raise ValueError(f"init_random_frames must be >= 0, got {init_random_frames}")
         self.modules_to_device()
