@@ -36,10 +36,13 @@ if IDMVehicle.POLITENESS != 0:  # MOBIL's follower terms are dropped below becau
     raise ImportError("the batched freeway assumes highway-env's MOBIL politeness of 0")
 
 STATE_FLOAT = (
-    "x", "y", "heading", "speed", "target_speed", "delta", "timer", "acc", "steer",
+    "x", "y", "heading", "speed", "target_speed", "delta", "acc", "steer",
     "impact_x", "impact_y",
 )  # fmt: skip
-"""Per-body float entries of the state ``[B, N]``."""
+"""Per-body float entries of the state ``[B, N]`` (in the simulator's dtype; the lane-change
+timer ``"timer"`` is float64 whatever the dtype: highway-env adds 0.1 s to it every simulation
+step and decides when it exceeds 1 s, and 0.1 added ten times is 0.99999... in float64 but
+1.0000001 in float32, which would make every MOBIL decision one simulation step early)."""
 
 
 @dataclass
@@ -120,6 +123,7 @@ class BatchedFreeway:
         b, n, i = self.n_roads, self.n_bodies, self.n_cavs
         dev, dt = self.device, self.dtype
         bodies = {key: torch.zeros(b, n, dtype=dt, device=dev) for key in STATE_FLOAT}
+        bodies["timer"] = torch.zeros(b, n, dtype=torch.float64, device=dev)
         for key in ("lane", "target", "decision"):
             bodies[key] = torch.zeros(b, n, dtype=torch.long, device=dev)
         for key in ("crashed", "present", "has_impact", "cav"):
@@ -224,7 +228,7 @@ class BatchedFreeway:
             "speed": speed,
             "target_speed": target_speed.to(self.dtype),
             "delta": delta.to(self.dtype),
-            "timer": torch.remainder((x + y) * math.pi, LANE_CHANGE_DELAY),
+            "timer": torch.remainder((x.double() + y.double()) * math.pi, LANE_CHANGE_DELAY),
             "lane": lane,
             "target": lane.clone(),
             "cav": cav,
