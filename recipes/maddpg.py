@@ -42,6 +42,7 @@ from mapets_rl.modules import (
     OBS,
     OBS_NORM,
     Q_VALUE,
+    TRANSITION_KEYS,
     AgentGroupSpec,
     GumbelSoftmaxHead,
     make_obs_norm,
@@ -54,6 +55,10 @@ from mapets_rl.objectives.n_step import STEPS_TO_NEXT_OBS, n_step_transitions
 
 PREACTIVATION = (GROUP, "param")
 """The actor's pre-activation [*, I, act]: the tanh input (continuous) or the logits (one-hot)."""
+
+REPLAY_KEYS = (*TRANSITION_KEYS, STEPS_TO_NEXT_OBS)
+"""What the replay buffer keeps of a collected step: the loss's inputs (the n-step count only
+with ``n_steps > 1``)."""
 
 OPENAI_MADDPG: tuple[str, ...] = (
     "update_interval=100",
@@ -251,7 +256,7 @@ class MADDPG(Experiment):
         step and a soft target update."""
         if self.config.n_steps > 1:
             batch = n_step_transitions(batch, self.config.gamma, self.config.n_steps)
-        self.buffer.extend(batch.reshape(-1))
+        self.buffer.extend(batch.reshape(-1).select(*REPLAY_KEYS, strict=False))
         if self.obs_norm is not None:
             self.obs_norm.update(batch.get(OBS), batch.get(MASK, None))
             sync_target_statistics(self.loss, self.obs_norm)

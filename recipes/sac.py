@@ -34,6 +34,7 @@ from mapets_rl.modules import (
     OBS,
     OBS_NORM,
     Q_VALUE,
+    TRANSITION_KEYS,
     AgentGroupSpec,
     make_obs_norm,
     make_q_critic,
@@ -172,7 +173,7 @@ class SAC(Experiment):
         """Store the batch ``[*, T]`` (``[T]``, or ``[B, T]`` from ``B`` roads); the gradient
         steps due (:meth:`OffPolicyConfig.gradient_steps`), each a SAC step and a soft target
         update."""
-        self.buffer.extend(batch.reshape(-1))
+        self.buffer.extend(batch.reshape(-1).select(*TRANSITION_KEYS))
         if self.obs_norm is not None:
             self.obs_norm.update(batch.get(OBS), batch.get(MASK, None))
             sync_target_statistics(self.loss, self.obs_norm)

@@ -17,6 +17,7 @@ from PIL import Image
 from tensordict import TensorDictBase
 
 from mapets_rl.experiment import ConfigError
+from mapets_rl.modules import TRANSITION_KEYS
 from mapets_rl.objectives.n_step import n_step_transitions
 from recipes.coma import COMA, COMAConfig
 from recipes.maddpg import M3DDPG, MADDPG, OPENAI_MADDPG, M3DDPGConfig, MADDPGConfig
@@ -229,3 +230,13 @@ def test_evaluation_video_of_the_torch_backend_plays_one_road_in_real_time(
     assert len(frames) == metrics["length"] == 3 and frames[0].ndim == 3
     with Image.open(path) as gif:  # the freeway's policy runs at 1 Hz
         assert gif.info["duration"] == 1000
+
+
+@pytest.mark.parametrize("recipe", ["maddpg", "sac"])
+def test_the_replay_buffer_keeps_only_what_the_loss_reads(recipe: str, tmp_path: Path) -> None:
+    cls, config_cls, extra = RECIPES[recipe]
+    exp = cls(config_cls(**COMMON, **extra), tmp_path)
+    exp.train()
+    sample = exp.buffer.sample()
+    kept = set(sample.exclude("index").keys(include_nested=True, leaves_only=True))
+    assert kept == set(TRANSITION_KEYS)

@@ -21,6 +21,7 @@ from mapets_rl.modules.keys import (
     Q_VALUE,
     REWARD,
     TERMINATED,
+    TRANSITION_KEYS,
     VALUE,
 )
 from mapets_rl.modules.normalization import RunningObsNorm, make_obs_norm, sync_target_statistics
@@ -46,6 +47,7 @@ __all__ = [
     "Q_VALUE",
     "REWARD",
     "TERMINATED",
+    "TRANSITION_KEYS",
     "VALUE",
     "AgentGroupSpec",
     "GumbelSoftmaxHead",

@@ -16,6 +16,17 @@ MASK = (GROUP, "mask")
 
 LOSS_KEYS = {"reward": REWARD, "done": DONE, "terminated": TERMINATED}
 """Per-agent reward / done / terminated keys for ``loss.set_keys(**LOSS_KEYS)``."""
+TRANSITION_KEYS = (
+    OBS,
+    ACTION,
+    ("next", *OBS),
+    ("next", *REWARD),
+    ("next", *DONE),
+    ("next", *TERMINATED),
+)
+"""What a one-step TD learner replays of a collected step ``(o, a, r, o', done, terminated)``:
+the rest of the step (infos, positions, normalised observations, which the networks recompute)
+stays out of the replay buffer."""
 
 OBS_NORM = (GROUP, "observation_normalized")
 """Standardised observation [*, I, obs] written by :func:`~mapets_rl.modules.make_obs_norm`."""
