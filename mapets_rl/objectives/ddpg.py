@@ -12,8 +12,9 @@ actor loss (``coef = 1e-3``), which keeps the pre-activation where gradients flo
 from __future__ import annotations
 
 import torch
-from tensordict import NestedKey, TensorDict, TensorDictBase
+from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModule
+from torch import nn
 from torchrl.objectives import DDPGLoss
 
 
@@ -48,15 +49,25 @@ class PreactivationRegularisedDDPGLoss(DDPGLoss):
         self.preactivation_key = preactivation_key
         self.preactivation_coef = preactivation_coef
 
-    def forward(self, tensordict: TensorDictBase) -> TensorDict:
-        """DDPG's ``loss_actor`` and ``loss_value`` plus ``loss_actor_reg`` (scalars) on a
-        replay batch ``[B]`` of the ``("agents", ...)`` group."""
-        out = super().forward(tensordict)
-        td = tensordict.select(*self.actor_network.in_keys, strict=False).detach()
-        with self.actor_network_params.to_module(self.actor_network):
-            preactivation = self.actor_network(td).get(self.preactivation_key)
-        out.set("loss_actor_reg", self.preactivation_coef * preactivation.pow(2).mean())
-        return out
+    def loss_actor(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
+        """DDPG's actor loss, with the penalty ``loss_actor_reg`` of the same actor pass in its
+        metadata: the pre-activation is read as the actor writes it (a forward hook), so one
+        actor forward and one backward serve both terms."""
+        written: list[torch.Tensor] = []
+
+        def keep(_module: nn.Module, _args: object, out: TensorDictBase) -> None:
+            written.append(out.get(self.preactivation_key))
+
+        handle = self.actor_network.register_forward_hook(keep)
+        try:
+            loss, metadata = super().loss_actor(tensordict)
+        finally:
+            handle.remove()
+        (preactivation,) = written
+        return loss, {
+            **metadata,
+            "loss_actor_reg": self.preactivation_coef * preactivation.pow(2).mean(),
+        }
 
     @staticmethod
     def total(out: TensorDictBase) -> torch.Tensor:
