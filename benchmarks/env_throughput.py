@@ -18,12 +18,20 @@ reference at 8 CAVs + 8 HVs and >= 3x at 22 + 20 on two lanes; the TorchRL env a
 slower than the raw env at 8 + 8 (issue 14).
 
     PYTHONPATH=. python benchmarks/env_throughput.py [--steps 300] [--repeats 5]
-        [--cases 8+8 22+20 freeway]
+        [--cases 8+8 22+20 freeway] [--backends freeway-merge] [--roads 1 64 256 1024]
+
+``--backends SCENARIO`` times the two backends of a freeway scenario side by side instead (issue
+30): the highway-env TorchRL env (one road) against ``make_env(..., backend="torch",
+num_envs=B)`` for each ``B`` of ``--roads``, with the fused CPU kernel and with the torch
+program (``kernel="torch"``), every CAV keeping its lane, 30 vehicles, one thread; frames are
+steps x roads, per CPU-second; ratios are medians of the per-round ratios to highway-env.
+Targets: >= 400x highway-env at B >= 256 (at least 200x).
 """
 
 from __future__ import annotations
 
 import argparse
+import platform
 import statistics
 import time
 from collections.abc import Callable
@@ -42,6 +50,18 @@ CASES = {
     ),
     "freeway": ("freeway 30 vehicles", "freeway", {"n_vehicles": 30}),
 }
+
+
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), or the platform's processor string."""
+    try:
+        with open("/proc/cpuinfo") as info:
+            for line in info:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def rate(run: Callable[[], int]) -> float:
@@ -109,6 +129,48 @@ def torchrl_runner(name: str, config: dict, steps: int) -> Callable[[], int]:
     return run
 
 
+def backend_runner(
+    name: str, steps: int, roads: int | None, kernel: str = "auto"
+) -> Callable[[], int]:
+    """Frames of ``steps`` keep-lane steps of scenario ``name`` at 30 vehicles: the highway-env
+    backend (``roads=None``) or ``roads`` roads of the torch backend."""
+    if roads is None:
+        env = make_env(name, seed=0, n_vehicles=30, categorical_actions=True)
+    else:
+        env = make_env(name, seed=0, backend="torch", num_envs=roads, n_vehicles=30,
+                       categorical_actions=True, kernel=kernel)  # fmt: skip
+    action = torch.zeros(env.full_action_spec["agents", "action"].shape, dtype=torch.long)
+
+    def run() -> int:
+        td = env.reset()
+        with torch.no_grad():
+            for _ in range(steps):
+                td = env.step_and_maybe_reset(td.set(("agents", "action"), action))[1]
+        return steps * (roads or 1)
+
+    return run
+
+
+def compare_backends(name: str, steps: int, repeats: int, road_counts: list[int]) -> None:
+    """The two backends of freeway scenario ``name`` side by side (see module docstring)."""
+    layers: dict[str, Callable[[], int]] = {"highway-env": backend_runner(name, steps, None)}
+    for roads in road_counts:
+        layers[f"torch B={roads}, kernel"] = backend_runner(name, steps, roads)
+        layers[f"torch B={roads}, torch ops"] = backend_runner(name, steps, roads, "torch")
+    for run in layers.values():  # warm-up (builds the kernel on first use)
+        run()
+    rates: dict[str, list[float]] = {layer: [] for layer in layers}
+    for _ in range(repeats):
+        for layer, run in layers.items():
+            rates[layer].append(rate(run))
+    print(f"\n{name}, 30 vehicles, keep lane: frames per CPU-s (median, min..max), ratio")
+    reference = rates["highway-env"]
+    for layer, values in rates.items():
+        ratio = statistics.median(v / r for v, r in zip(values, reference, strict=True))
+        spread = f"{statistics.median(values):.0f} ({min(values):.0f}..{max(values):.0f})"
+        print(f"{layer:28s} {spread:>28s} {ratio:8.1f}x")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--steps", type=int, default=300, help="env steps per timed run")
@@ -116,9 +178,20 @@ def main() -> None:
     parser.add_argument(
         "--cases", nargs="+", choices=sorted(CASES), default=list(CASES), help="cases to run"
     )
+    parser.add_argument(
+        "--backends", choices=["freeway", "freeway-merge"], default=None,
+        help="compare the highway-env and torch backends of this scenario instead",
+    )  # fmt: skip
+    parser.add_argument("--roads", nargs="+", type=int, default=[1, 64, 256, 1024])
     args = parser.parse_args()
     torch.set_num_threads(1)
-    print(f"torch {torch.__version__}, CPU capability {torch.backends.cpu.get_cpu_capability()}")
+    print(
+        f"torch {torch.__version__}, CPU capability {torch.backends.cpu.get_cpu_capability()}, "
+        f"{cpu_model()}"
+    )
+    if args.backends is not None:
+        compare_backends(args.backends, args.steps, args.repeats, args.roads)
+        return
 
     print(f"{'case':42s} {'layer':20s} {'steps per CPU-s (median, min..max)':>36s}")
     ratios: dict[str, dict[str, float]] = {}

@@ -189,6 +189,7 @@ def make_env(
     backend: str = "highway-env",
     num_envs: int | None = None,
     dtype: str = "float32",
+    kernel: str = "auto",
     **config: Any,
 ) -> EnvBase:
     """A TorchRL env of scenario ``name``: ``"figure-eight"``, ``"figure-eight-multilane"``,
@@ -215,15 +216,17 @@ def make_env(
             None: one road without a batch dimension.
         dtype: with ``backend="torch"``, the simulation's precision (``"float32"`` or
             ``"float64"``).
+        kernel: with ``backend="torch"`` on a CPU, ``"auto"`` (the fused C++ kernel where it
+            builds, else torch ops), ``"native"`` (the kernel, or an error) or ``"torch"``.
         **config: scenario config (``FigureEightParallelEnv`` / ``FreewayParallelEnv`` args).
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {list(BACKENDS)}, got {backend!r}")
     if backend == "highway-env":
-        if num_envs is not None or dtype != "float32":
+        if num_envs is not None or dtype != "float32" or kernel != "auto":
             raise ValueError(
-                "num_envs and dtype need backend='torch' (the highway-env backend simulates one "
-                "road; batch it with torchrl's SerialEnv / ParallelEnv)"
+                "num_envs, dtype and kernel need backend='torch' (the highway-env backend "
+                "simulates one road; batch it with torchrl's SerialEnv / ParallelEnv)"
             )
         return wrap_parallel_env(
             make_parallel_env(name, **config),
@@ -249,6 +252,7 @@ def make_env(
         seed=seed,
         categorical_actions=categorical_actions,
         render_mode=render_mode,
+        kernel=kernel,
     )
 
 

@@ -86,14 +86,21 @@ def steering_control(
 ) -> torch.Tensor:
     """Steering angle [rad] that follows a straight lane's centre (highway-env
     ``ControlledVehicle.steering_control``), from the lateral offset [m] on that lane, the
-    lane's heading, and the vehicle's heading [rad] and speed [m/s]."""
-    speed_nz = not_zero(speed)
+    lane's heading, and the vehicle's heading [rad] and speed [m/s].
+
+    Computed in float64 whatever the inputs' dtype: at a standstill the controller saturates at
+    ``asin(1)``, which float32 rounds above pi / 2, so that ``tan`` flips sign and the vehicle
+    would steer the wrong way (measured: ramp vehicles that stop before the merge point then
+    stay stuck more often)."""
+    dtype = lateral.dtype
+    lateral, lane_heading = lateral.double(), lane_heading.double()
+    heading, speed_nz = heading.double(), not_zero(speed.double())
     heading_command = torch.asin((-KP_LATERAL * lateral / speed_nz).clamp(-1.0, 1.0))
     heading_ref = lane_heading + heading_command.clamp(-math.pi / 4, math.pi / 4)
     heading_rate = KP_HEADING * wrap_to_pi(heading_ref - heading)
     slip = torch.asin((LENGTH / 2 / speed_nz * heading_rate).clamp(-1.0, 1.0))
     steering = torch.atan(2 * torch.tan(slip))
-    return steering.clamp(-MAX_STEERING_ANGLE, MAX_STEERING_ANGLE)
+    return steering.clamp(-MAX_STEERING_ANGLE, MAX_STEERING_ANGLE).to(dtype)
 
 
 def integrate(

@@ -81,6 +81,8 @@ class TorchFreewayEnv(EnvBase):
         seed: seed of the first reset (``set_seed`` works as usual).
         categorical_actions: actions as indices ``[.., I]`` instead of one-hot ``[.., I, 4]``.
         render_mode: None or ``"rgb_array"`` (draws road 0 with highway-env's viewer).
+        kernel: how a CPU simulator steps (``"auto"``, ``"native"``, ``"torch"``; see
+            :class:`~mapets_rl.envs.torch_freeway.simulator.BatchedFreeway`).
     """
 
     def __init__(
@@ -93,6 +95,7 @@ class TorchFreewayEnv(EnvBase):
         seed: int | None = None,
         categorical_actions: bool = False,
         render_mode: str | None = None,
+        kernel: str = "auto",
     ) -> None:
         require(
             num_envs is None or (isinstance(num_envs, int) and not isinstance(num_envs, bool)
@@ -121,6 +124,7 @@ class TorchFreewayEnv(EnvBase):
             device=self.device,
             dtype=dtype,
             seed=0 if seed is None else seed,
+            kernel=kernel,
         )
         self.categorical_actions = categorical_actions
         self.last_episode_metrics: dict[str, float] = {}

@@ -27,13 +27,42 @@ from tensordict import TensorDict
 
 from mapets_rl.envs.freeway import CL, CR, ES, KL
 from mapets_rl.envs.freeway import OBS_DIM as FREEWAY_OBS_DIM
-from mapets_rl.envs.torch_freeway.geometry import LANE_WIDTH, MAINLINE, FreewayGeometry
-from mapets_rl.envs.torch_freeway.physics import LANE_CHANGE_DELAY, Bodies, RoadPhysics
+from mapets_rl.envs.torch_freeway.dynamics import (
+    COMFORT_ACC_MAX,
+    COMFORT_ACC_MIN,
+    DISTANCE_WANTED,
+    KP_HEADING,
+    KP_LATERAL,
+    LENGTH,
+    MAX_STEERING_ANGLE,
+    SQRT_AB,
+    TIME_WANTED,
+)
+from mapets_rl.envs.torch_freeway.geometry import (
+    LANE_WIDTH,
+    MAINLINE,
+    VEHICLE_LENGTH,
+    FreewayGeometry,
+)
+from mapets_rl.envs.torch_freeway.native import kernel_unavailable, load_kernel
+from mapets_rl.envs.torch_freeway.physics import (
+    ACC_MAX,
+    LANE_CHANGE_DELAY,
+    MAX_BRAKING_IMPOSED,
+    MIN_ACC_GAIN,
+    Bodies,
+    RoadPhysics,
+)
+from mapets_rl.envs.vehicles import ACC_MIN
 
 DELTA_RANGE = tuple(IDMVehicle.DELTA_RANGE)
 """Range of a human driver's IDM exponent (``IDMVehicle.randomize_behavior``)."""
 if IDMVehicle.POLITENESS != 0:  # MOBIL's follower terms are dropped below because they weigh 0
     raise ImportError("the batched freeway assumes highway-env's MOBIL politeness of 0")
+
+KERNELS = ("auto", "native", "torch")
+"""How a CPU simulator steps: the fused C++ kernel where it builds (``"auto"``), always
+(``"native"``), or never (``"torch"``: the torch program, as on other devices)."""
 
 STATE_FLOAT = (
     "x", "y", "heading", "speed", "target_speed", "delta", "acc", "steer",
@@ -84,6 +113,9 @@ class BatchedFreeway:
         device, dtype: where the state lives and its float precision (float32 by default;
             float64 matches highway-env's arithmetic to rounding).
         seed: seed of the simulator's random generator.
+        kernel: on a CPU, step with the fused C++ kernel (:mod:`.native`; built on first use)
+            instead of the torch program (``"auto"``: where it can be built; ``"native"``:
+            required; ``"torch"``: never). On other devices the torch program runs.
     """
 
     def __init__(
@@ -94,7 +126,10 @@ class BatchedFreeway:
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float32,
         seed: int = 0,
+        kernel: str = "auto",
     ) -> None:
+        if kernel not in KERNELS:
+            raise ValueError(f"kernel must be one of {list(KERNELS)}, got {kernel!r}")
         self.config = dict(config)
         self.merge = merge
         self.device = torch.device(device)
@@ -115,6 +150,12 @@ class BatchedFreeway:
             self.geometry, self.n_vehicles, self.n_bodies, self.speed_limit, self.dt
         )
         self.is_obstacle = self.physics.is_obstacle
+        self.kernel = None
+        if kernel != "torch" and self.device.type == "cpu":
+            self.kernel = load_kernel()
+            if self.kernel is None and kernel == "native":
+                raise RuntimeError(f"the fused CPU kernel cannot be built: {kernel_unavailable()}")
+            self._kernel_args = self._native_constants() if self.kernel is not None else None
         self.state = self._empty_state()
         self.reset(torch.ones(self.n_roads, dtype=torch.bool, device=self.device))
 
@@ -284,6 +325,8 @@ class BatchedFreeway:
         bodies.set("target", target.scatter(1, slot, new_target))
         bodies.set("decision", decision)
 
+        if self.kernel is not None:
+            return self._native_step(slot, acting)
         state = dict(bodies.items())
         front, rear = self.physics.neighbours(state)
         zeros = torch.zeros(self.n_roads, self.n_bodies, dtype=self.dtype, device=self.device)
@@ -303,6 +346,88 @@ class BatchedFreeway:
             book["lane_change"],
             book["crashed_now"],
             book["distance"],
+        )
+
+    def _native_constants(self) -> tuple:
+        """The fixed arguments of the fused kernel (lanes, bodies, highway-env's constants)."""
+        geo, ph = self.geometry, self.physics
+
+        def f64(t: torch.Tensor) -> torch.Tensor:
+            return t.detach().to(torch.float64).contiguous()
+
+        lanes_f = [f64(t) for t in (geo.start_x, geo.start_y, geo.dir_x, geo.dir_y,
+                                    geo.heading, geo.length)]  # fmt: skip
+        lanes_i = [geo.table, geo.segment, geo.side.reshape(-1), geo.next_lane, geo.number]
+        constants = [
+            COMFORT_ACC_MAX, COMFORT_ACC_MIN, DISTANCE_WANTED, TIME_WANTED, IDMVehicle.DELTA,
+            ACC_MAX, ACC_MIN, KP_LATERAL, KP_HEADING, MAX_STEERING_ANGLE, LENGTH, LANE_WIDTH,
+            VEHICLE_LENGTH, LANE_CHANGE_DELAY, MIN_ACC_GAIN, MAX_BRAKING_IMPOSED,
+            self.speed_limit, self.dt, SQRT_AB,
+        ]  # fmt: skip
+        ints = [geo.n_tables, geo.ramp_table, int(geo.merge)]
+        return (
+            lanes_f,
+            [t.contiguous() for t in lanes_i],
+            geo.forbidden.contiguous(),
+            ph.is_obstacle.contiguous(),
+            f64(ph.body_length),
+            f64(ph.body_width),
+            [float(v) for v in constants],
+            ints,
+        )
+
+    def _native_step(self, slot: torch.Tensor, acting: torch.Tensor) -> StepResult:
+        """The policy step through the fused CPU kernel (same results as the torch program up
+        to rounding; see :mod:`.native`)."""
+        bodies = self.state["bodies"]
+        for key in bodies.keys():  # the kernel writes in place: contiguous storage
+            if not bodies.get(key).is_contiguous():
+                bodies.set(key, bodies.get(key).contiguous())
+        b, n = self.n_roads, self.n_bodies
+        abs_acc = torch.zeros(b, n, dtype=self.dtype)
+        lane_change = torch.zeros(b, n, dtype=torch.bool)
+        distance = torch.zeros(acting.shape, dtype=self.dtype)
+        crashed_now = torch.zeros_like(acting)
+        front = torch.empty(b, n, 3, dtype=torch.long)
+        rear = torch.empty(b, n, 3, dtype=torch.long)
+        lanes_f, lanes_i, forbidden, obstacle, length, width, k, ki = self._kernel_args
+        cfg = self.config
+        settings = [
+            float(cfg["comfort_threshold"]), float(cfg["velocity_weight"]),
+            float(cfg["collision_reward"]), float(cfg["perception"]),
+            self.geometry.merge_start, self.geometry.merge_end,
+            float(bool(cfg["team_reward"])), float(self.merge),
+        ]  # fmt: skip
+        alive = acting.clone()
+        observation = torch.empty(b, self.n_cavs, self.obs_dim, dtype=torch.float32)
+        reward = torch.empty(acting.shape, dtype=self.dtype)
+        velocity = torch.empty(b, dtype=self.dtype)
+        comfort = torch.empty(b, dtype=self.dtype)
+        sums = [self.state.get(key) for key in ("speed_sum", "comfort_sum", "samples")]
+        self.kernel.policy_step(
+            [bodies.get(key) for key in STATE_FLOAT],
+            bodies.get("timer"),
+            [bodies.get(key) for key in ("lane", "target", "decision")],
+            [bodies.get(key) for key in ("crashed", "present", "has_impact", "cav")],
+            lanes_f, lanes_i, forbidden, obstacle, length, width, k, ki,
+            slot.contiguous(), acting.contiguous(), abs_acc, lane_change, distance, crashed_now,
+            front, rear, self.frames,
+            settings, alive, observation, reward, velocity, comfort, *sums,
+        )  # fmt: skip
+        self.state["agents"].set("alive", alive)
+        steps = self.state.get("steps") + 1
+        self.state.set("steps", steps)
+        return StepResult(
+            observation=observation,
+            reward=reward,
+            acting=acting,
+            alive=alive,
+            collided=crashed_now,
+            distance=distance,
+            traffic_velocity=velocity,
+            traffic_comfort=comfort,
+            truncated=steps >= int(cfg["horizon"]),
+            terminated=~alive.any(1),
         )
 
     def _frame(

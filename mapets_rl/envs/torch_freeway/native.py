@@ -1,0 +1,77 @@
+"""The fused CPU kernel of the batched freeway (``native_step.cpp``), built on first use.
+
+On a CPU the simulation step is a few hundred small tensor operations per simulation step,
+mostly gathers over ``[B, N]`` tensors; their dispatch and memory traffic dominate, and
+``torch.compile`` does not fuse the gathers well. ``native_step.cpp`` computes the same policy
+step as :meth:`~mapets_rl.envs.torch_freeway.physics.RoadPhysics.substep` (repeated for the
+simulation steps, with their bookkeeping) in one loop per road, vehicle by vehicle in
+highway-env's order. It is compiled with ``torch.utils.cpp_extension`` (a C++ compiler and
+``ninja`` are needed) into a private build directory: ``$MAPETS_RL_CACHE`` or
+``~/.cache/mapets_rl``, then ``torch_extensions/<torch version>``, created with mode 0700 and
+refused when another user owns it or others may write to it (a shared build directory would
+let another user plant the module that every run loads). Where it cannot be built,
+:func:`load_kernel` says why and the simulator runs its torch program instead.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import stat
+from pathlib import Path
+from types import ModuleType
+
+import torch
+
+log = logging.getLogger(__name__)
+
+SOURCE = Path(__file__).with_name("native_step.cpp")
+_KERNEL: ModuleType | None = None
+_FAILURE: str | None = None
+
+
+def build_directory() -> Path:
+    """The private directory the kernel is built in (created, owner- and mode-checked)."""
+    root = Path(os.environ.get("MAPETS_RL_CACHE") or Path.home() / ".cache" / "mapets_rl")
+    path = root / "torch_extensions" / torch.__version__.replace("+", "_")
+    for part in (root, root / "torch_extensions", path):
+        part.mkdir(mode=0o700, exist_ok=True)
+        info = part.lstat()
+        if stat.S_ISLNK(info.st_mode) or not stat.S_ISDIR(info.st_mode):
+            raise OSError(f"{part} must be a directory, not a link or a file")
+        if info.st_uid != os.getuid():
+            raise OSError(f"{part} belongs to another user (uid {info.st_uid})")
+        if info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+            raise OSError(f"{part} is writable by other users (mode {oct(info.st_mode & 0o777)})")
+    return path
+
+
+def load_kernel() -> ModuleType | None:
+    """The compiled kernel module, or None (and :func:`kernel_unavailable` says why) where it
+    cannot be built. Built once per process (seconds to a minute the first time on a machine;
+    later processes load the cached build)."""
+    global _KERNEL, _FAILURE
+    if _KERNEL is not None or _FAILURE is not None:
+        return _KERNEL
+    try:
+        from torch.utils.cpp_extension import load
+
+        _KERNEL = load(
+            name="mapets_rl_freeway_step",
+            sources=[str(SOURCE)],
+            extra_cflags=["-O3"],
+            build_directory=str(build_directory()),
+            verbose=False,
+        )
+    except Exception as err:  # noqa: BLE001 - no compiler, no ninja, unsafe directory...
+        root = err
+        while root.__cause__ is not None:
+            root = root.__cause__
+        _FAILURE = f"{type(root).__name__}: {root}".splitlines()[0]
+        log.warning("the freeway's fused CPU kernel is unavailable (%s); using torch ops", _FAILURE)
+    return _KERNEL
+
+
+def kernel_unavailable() -> str | None:
+    """Why the kernel could not be built (one line), or None when it was (or was not tried)."""
+    return _FAILURE
