@@ -26,11 +26,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from collections.abc import Sequence
 from typing import Any, NoReturn
 
 from mapets_rl import quiet_dependencies
+from mapets_rl._compile_cache import prepare_compile_cache
 from mapets_rl.experiment.threads import prepare_process
 
 PROG = "mapets-rl"
@@ -639,6 +641,10 @@ def _recipe_help(name: str) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``mapets-rl`` console script."""
     prepare_process()  # the OpenMP wait policy must be set before anything imports torch
+    try:  # so must torch.compile's cache: importing torch creates it
+        prepare_compile_cache()
+    except ValueError as err:
+        _fail(str(err))
     quiet_dependencies()
     argv = list(sys.argv[1:] if argv is None else argv)
     if (
@@ -673,4 +679,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    # `python -m mapets_rl.experiment.cli` puts the working directory first on sys.path: run
+    # inside a run directory from elsewhere, a module or *.dist-info entry point planted there
+    # would be imported as a recipe or scenario (the mapets-rl command has no such entry)
+    if sys.path and sys.path[0] in ("", os.getcwd()):
+        del sys.path[0]
     sys.exit(main())

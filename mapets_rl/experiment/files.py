@@ -9,6 +9,12 @@ its whole life: an exclusive ``flock`` on ``RUN_DIR/.lock``, which the kernel dr
 process ends however it ends (kill -9 included), so a lock is never left stale. A second writer
 is refused with a :class:`RunDirLocked` error naming the pid of the holder before it writes
 anything.
+
+Nothing a run writes or deletes lies outside its run directory, even in a run directory that
+came from elsewhere (downloaded, shared): ``.lock`` is opened without following a symbolic link
+and must be a regular file of this user's own with no other name, and the directories a run
+writes and prunes (``checkpoints/``, ``videos/``, ``logs/`` and everything below them) must not
+be symbolic links (:func:`check_run_subdirs`).
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ from __future__ import annotations
 import errno
 import fcntl
 import os
+import stat
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -23,6 +30,11 @@ from typing import Any
 
 LOCK_FILE = ".lock"
 """Name of the lock file in a run directory (see :class:`RunDirLock`)."""
+RUN_SUBDIRS = ("checkpoints", "videos", "logs")
+"""The directories a run writes and prunes below its run directory."""
+_PID_WIDTH = 21
+"""Bytes of the pid record at the start of ``.lock`` (the pid, padded with spaces, and a
+newline): written in place, never truncated."""
 
 __all__ = [
     "LOCK_FILE",
@@ -32,6 +44,7 @@ __all__ = [
     "atomic_savefig",
     "atomic_write",
     "atomic_write_text",
+    "check_run_subdirs",
     "check_writable_dir",
     "make_writable_dir",
     "write_failed",
@@ -154,6 +167,30 @@ def atomic_savefig(fig: Any, path: str | os.PathLike, **savefig_kwargs: Any) -> 
     atomic_write(path, lambda tmp: fig.savefig(tmp, **savefig_kwargs))
 
 
+def check_run_subdirs(run_dir: str | os.PathLike, names: tuple[str, ...] = RUN_SUBDIRS) -> None:
+    """ValueError (one line naming it) when one of the directories ``names`` of ``run_dir``,
+    or a directory anywhere below them, is a symbolic link or not a directory: a run writes,
+    truncates and deletes files there, and must never do so outside its run directory."""
+    run_dir = Path(run_dir)
+    for name in names:
+        top = run_dir / name
+        if not os.path.lexists(top):
+            continue
+        bad = top if top.is_symlink() or not top.is_dir() else None
+        if bad is None:
+            for parent, dirs, _ in os.walk(top):
+                bad = next((Path(parent, d) for d in dirs if os.path.islink(Path(parent, d))), None)
+                if bad is not None:
+                    break
+        if bad is not None:
+            kind = "a symbolic link" if bad.is_symlink() else "not a directory"
+            raise ValueError(
+                f"run_dir {str(run_dir)!r} cannot be used: {str(bad)!r} is {kind}; a run "
+                "writes and deletes files there, and never outside its run directory "
+                "(replace it with a plain directory)"
+            )
+
+
 class RunDirLocked(ValueError):
     """Another process (or another object of this process) holds the lock of a run
     directory."""
@@ -192,13 +229,26 @@ class RunDirLock:
         path = run_dir / LOCK_FILE
         umask = os.umask(0)
         os.umask(umask)
+        flags = os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW | os.O_NONBLOCK
         try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666 & ~umask)
+            fd = os.open(path, flags, 0o666 & ~umask)
         except OSError as err:
+            reason = (
+                "it is a symbolic link"
+                if err.errno == errno.ELOOP
+                else err.strerror or type(err).__name__
+            )
             raise ValueError(
                 f"{what} {str(run_dir)!r} cannot be locked: {str(path)!r} cannot be "
-                f"opened ({err.strerror or type(err).__name__})"
+                f"opened ({reason})"
             ) from None
+        problem = _lock_file_problem(os.fstat(fd))
+        if problem is not None:
+            os.close(fd)
+            raise ValueError(
+                f"{what} {str(run_dir)!r} cannot be locked: {str(path)!r} {problem} (a run "
+                "directory's lock must be a regular file of your own); remove it"
+            )
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as err:
@@ -216,11 +266,7 @@ class RunDirLock:
                 f"{what} {str(run_dir)!r} is in use by another writer ({who} holds "
                 f"{LOCK_FILE}); wait for it to finish or choose another {what}"
             ) from None
-        try:
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        except OSError:
-            pass  # the pid is only informative: the lock is held either way
+        _write_pid(fd, str(os.getpid()))
         return cls(run_dir, fd)
 
     @property
@@ -234,9 +280,7 @@ class RunDirLock:
         if fd is None:
             return
         try:
-            os.ftruncate(fd, 0)
-        except OSError:
-            pass
+            _write_pid(fd, "")
         finally:
             os.close(fd)  # closing the last descriptor of the open file unlocks it
 
@@ -257,10 +301,32 @@ class RunDirLock:
         return f"{type(self).__name__}({str(self.run_dir)!r}, {state})"
 
 
+def _lock_file_problem(st: os.stat_result) -> str | None:
+    """What makes the opened ``.lock`` with status ``st`` unfit to be written (one phrase), or
+    ``None``: it must be a regular file of this user's own with no other name (a hard link to
+    another file would let the pid record overwrite that file's first bytes)."""
+    if not stat.S_ISREG(st.st_mode):
+        return "is not a regular file"
+    if st.st_uid != os.geteuid():
+        return f"belongs to another user (uid {st.st_uid})"
+    if st.st_nlink != 1:
+        return f"has {st.st_nlink} names (a hard link to another file)"
+    return None
+
+
+def _write_pid(fd: int, pid: str) -> None:
+    """Write ``pid`` (``""`` to clear it) as the fixed-width record at the start of the open
+    lock file, in place: the file is never truncated."""
+    try:
+        os.pwrite(fd, f"{pid:<{_PID_WIDTH - 1}}\n".encode(), 0)
+    except OSError:
+        pass  # the pid is only informative: the lock is held either way
+
+
 def _read_pid(fd: int) -> int | None:
     """The pid written in an open lock file, ``None`` when it holds none."""
     try:
-        text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+        text = os.pread(fd, _PID_WIDTH, 0).decode("ascii", "replace").strip()
     except OSError:
         return None
     return int(text) if text.isdigit() else None

@@ -11,6 +11,7 @@ import contextlib
 import functools
 import json
 import os
+import re
 import time
 from collections.abc import Callable, Iterator, Mapping
 from datetime import datetime, timezone
@@ -25,6 +26,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from tqdm import tqdm
 
+from mapets_rl._entry_points import check_name
 from mapets_rl.config import ConfigError, parse_override, read_yaml_mapping
 from mapets_rl.envs.registry import build_env
 from mapets_rl.experiment.checkpoint import (
@@ -39,9 +41,11 @@ from mapets_rl.experiment.checkpoint import (
 )
 from mapets_rl.experiment.config import ExperimentConfig, RunConfig, check_device
 from mapets_rl.experiment.files import (
+    LOCK_FILE,
     RunDirLock,
     atomic_write,
     atomic_write_text,
+    check_run_subdirs,
     check_writable_dir,
     make_writable_dir,
 )
@@ -57,12 +61,19 @@ from mapets_rl.modules import masked_mean
 
 CONFIG_FILE = "config.yaml"
 RUN_FILE = "run.json"
+_TEMP_FILE = re.compile(r"^\..+\.tmp(\.[^.]+)?$")
+"""Temp files of atomic writes and write probes (``.<name>.<random>.tmp<ext>``), which an
+interrupted run of ours leaves behind."""
 EVAL_SEED_OFFSET = 1_000_003
 BOUNDARY_SEED_STRIDE = 7_919
 
 
 def default_run_dir(recipe: str, env: str, seed: int, root: str | os.PathLike = "runs") -> Path:
-    """``runs/<recipe>_<env>_seed<seed>_<UTC timestamp>``."""
+    """``runs/<recipe>_<env>_seed<seed>_<UTC timestamp>``; ValueError when ``recipe`` or
+    ``env`` is not a valid name (a path separator, ``..``, a control character), which would
+    put the directory elsewhere than below ``root``."""
+    check_name(recipe, "recipe")
+    check_name(env, "scenario")
     stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S-%f")
     return Path(root) / f"{recipe}_{env}_seed{seed}_{stamp}"
 
@@ -197,7 +208,7 @@ class Experiment:
         restoring = self._resuming
         check_writable_dir(self.run_dir if run_dir is None else run_dir)  # '' is refused
         if not restoring:
-            self._refuse_finished_run()
+            self._refuse_occupied_dir()
         seed_everything(config.seed)
         self.threads = configure_threads(config_threads(config))
         self.device = torch.device(config.device)
@@ -224,16 +235,17 @@ class Experiment:
         ``restoring``: a resumed run writes its config, results and logs only once its first
         iteration has succeeded, see :meth:`_start_writing`)."""
         self._hold_lock()
+        check_run_subdirs(self.run_dir)
         config = self.config
         if not restoring:  # again under the lock: a writer that held it may have finished
-            self._refuse_finished_run()
+            self._refuse_occupied_dir()
         remove_stale_files(self.run_dir)
-        if not restoring:
-            config.to_yaml(self.run_dir / CONFIG_FILE)
+        if not restoring:  # run.json first: it marks the directory as a run directory of ours
             atomic_write_text(
                 self.run_dir / RUN_FILE,
                 json.dumps({"recipe": self.name, "env": config.env, "seed": config.seed}),
             )
+            config.to_yaml(self.run_dir / CONFIG_FILE)
         self.logger: RunLogger | None = None
         if config.logger != "none":
             self.logger = RunLogger(
@@ -245,13 +257,36 @@ class Experiment:
             self.run_dir, self.name, config.env, config.seed, config.to_dict()
         )
 
-    def _refuse_finished_run(self) -> None:
-        """ValueError when the run directory already holds checkpoints (of another run)."""
+    def _refuse_occupied_dir(self) -> None:
+        """ValueError when the run directory of a new run already holds checkpoints (of
+        another run), or holds files but is not a run directory (no valid ``run.json``):
+        another program's files are never overwritten. A run directory whose earlier attempt
+        never checkpointed is started afresh."""
         if list_checkpoints(self.run_dir):
             raise ValueError(
                 f"run_dir {str(self.run_dir)!r} already holds a run with "
                 "checkpoints; continue it with from_run_dir / `mapets-rl resume` "
                 "or choose another run_dir"
+            )
+        if not self.run_dir.is_dir():
+            return
+        try:
+            run_recipe_name(self.run_dir)
+            return  # a run directory of ours
+        except ValueError:
+            pass  # no run.json, or one that is not ours: refused below when not empty
+        theirs = sorted(
+            entry.name
+            for entry in self.run_dir.iterdir()
+            if entry.name != LOCK_FILE and not _TEMP_FILE.match(entry.name)
+        )
+        if theirs:
+            shown = ", ".join(repr(name) for name in theirs[:3])
+            more = f" and {len(theirs) - 3} more" if len(theirs) > 3 else ""
+            raise ValueError(
+                f"run_dir {str(self.run_dir)!r} is not empty and is not a run directory (no "
+                f"valid {RUN_FILE}; it holds {shown}{more}): its files would be overwritten; "
+                "choose a new or empty directory"
             )
 
     def _hold_lock(self) -> None:
@@ -732,6 +767,7 @@ class Experiment:
         cls, run_dir: Path, overrides: list[str], load: bool, lock: RunDirLock
     ) -> Experiment:
         """:meth:`from_run_dir` once ``lock`` (of ``run_dir``) is held."""
+        check_run_subdirs(run_dir)
         saved, config, on_disk = cls._run_config(run_dir, overrides)
         if config.env != saved.env:
             raise ConfigError(

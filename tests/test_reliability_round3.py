@@ -1,0 +1,425 @@
+"""Issue 34, security and data loss: no code from a shared torch.compile cache, nothing written,
+truncated or deleted outside the run directory, no foreign directory overwritten, no run
+directory outside ``runs/`` by a scenario's name, nothing imported from the working directory.
+
+Each test fails on the code before the fix (the foreign-owner cases need root, to make a file
+of another user; they are skipped otherwise)."""
+
+from __future__ import annotations
+
+import os
+import pickle
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+from toy_recipe import ToyConfig, ToyLearner
+
+from mapets_rl import _compile_cache
+from mapets_rl._compile_cache import CACHE_ENV, HEADERS_ENV, prepare_compile_cache
+from mapets_rl.experiment import checkpoint
+from mapets_rl.experiment.files import LOCK_FILE, RunDirLock, check_run_subdirs
+from mapets_rl.experiment.plugins import load_recipe
+from mapets_rl.experiment.runner import default_run_dir
+from mapets_rl.planning import compiled
+
+ROOT = Path(__file__).resolve().parents[1]
+OTHER_UID = 54321
+needs_root = pytest.mark.skipif(os.geteuid() != 0, reason="a file of another user needs root")
+needs_compiler = pytest.mark.skipif(
+    compiled.compiler_unavailable() is not None, reason="no C++ compiler for inductor"
+)
+
+
+def _env(**extra: str) -> dict[str, str]:
+    """The environment of a child process that imports this checkout of the project."""
+    env = {k: v for k, v in os.environ.items() if k not in (CACHE_ENV, HEADERS_ENV)}
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    env.update(extra)
+    return env
+
+
+def _cli(args: list[str], cwd: Path, **extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "mapets_rl.experiment.cli", *args],
+        cwd=cwd,
+        env=_env(**extra),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+# ------------------------------------------------------------------ torch.compile's cache
+@pytest.fixture
+def fresh_choice(monkeypatch) -> None:
+    """Forget the cache directory chosen earlier in this process."""
+    monkeypatch.setattr(_compile_cache, "_chosen", None)
+
+
+def test_the_default_compile_cache_is_private_to_the_user(tmp_path, fresh_choice):
+    env = {"XDG_CACHE_HOME": str(tmp_path / "xdg")}
+    chosen = prepare_compile_cache(env)
+    assert chosen == str(tmp_path / "xdg" / "mapets_rl" / "torchinductor")
+    assert env[CACHE_ENV] == chosen and env[HEADERS_ENV] == "0"
+    st = os.stat(chosen)
+    assert st.st_uid == os.geteuid() and st.st_mode & 0o777 == 0o700
+    assert prepare_compile_cache(env) == chosen  # a second call keeps it
+
+
+def test_inductors_own_temp_default_counts_as_unset(tmp_path, fresh_choice):
+    """Importing torch first writes $TMPDIR/torchinductor_<user> into the variable."""
+    env = {CACHE_ENV: _compile_cache._inductor_default(), "XDG_CACHE_HOME": str(tmp_path)}
+    assert prepare_compile_cache(env) == str(tmp_path / "mapets_rl" / "torchinductor")
+
+
+def test_an_unusable_default_falls_back_to_a_private_temp_dir(tmp_path, fresh_choice):
+    (tmp_path / "file").write_text("")
+    env = {"XDG_CACHE_HOME": str(tmp_path / "file")}
+    chosen = prepare_compile_cache(env)
+    assert not chosen.startswith(str(tmp_path)) and os.stat(chosen).st_mode & 0o777 == 0o700
+
+
+@pytest.mark.parametrize("case", ["file", "under a file", "world-writable", "group-writable"])
+def test_a_bad_user_cache_dir_is_refused_naming_the_variable(tmp_path, fresh_choice, case):
+    target = tmp_path / "cache"
+    if case in ("file", "under a file"):
+        target.write_text("")
+        if case == "under a file":
+            target = target / "sub"
+    else:
+        target.mkdir()
+        target.chmod(0o777 if case == "world-writable" else 0o770)
+    with pytest.raises(ValueError, match=rf"^{CACHE_ENV}=.* cannot be torch.compile's cache"):
+        prepare_compile_cache({CACHE_ENV: str(target)})
+
+
+@needs_root
+def test_a_cache_dir_of_another_user_is_refused(tmp_path, fresh_choice):
+    target = tmp_path / "theirs"
+    target.mkdir(mode=0o700)
+    os.chown(target, OTHER_UID, -1)
+    with pytest.raises(ValueError, match="owned by another user"):
+        prepare_compile_cache({CACHE_ENV: str(target)})
+
+
+def test_a_user_cache_dir_is_created_private(tmp_path, fresh_choice):
+    target = tmp_path / "a" / "b"
+    assert prepare_compile_cache({CACHE_ENV: str(target)}) == str(target)
+    assert target.stat().st_mode & 0o777 == 0o700
+
+
+@pytest.mark.parametrize("case", ["file", "uncreatable"])
+def test_the_cli_refuses_a_bad_cache_dir_in_one_line(tmp_path, case):
+    """It used to be a FileExistsError / FileNotFoundError traceback at `import tensordict`."""
+    (tmp_path / "file").write_text("")
+    value = tmp_path / "file" if case == "file" else tmp_path / "file" / "sub"
+    out = _cli(["train", "mapets", "--env", "figure-eight"], tmp_path, **{CACHE_ENV: str(value)})
+    assert out.returncode == 2, out.stderr
+    assert out.stderr.startswith(f"mapets-rl: error: {CACHE_ENV}=")
+    assert "Traceback" not in out.stderr and len(out.stderr.splitlines()) == 1
+
+
+_STEP_SCRIPT = textwrap.dedent(
+    """
+    import torch  # before the project: inductor has already chosen $TMPDIR/torchinductor_<user>
+
+    from mapets_rl.envs.figure_eight import figure_eight_collision, figure_eight_reward
+    from mapets_rl.models import ProbabilisticEnsemble
+    from mapets_rl.planning.compiled import CompiledStep
+
+    torch.manual_seed(0)
+    model = ProbabilisticEnsemble(10, 1, 2, 2, (8,))
+    rows = 4
+    args = (
+        model, torch.rand(2, rows, 10), torch.rand(2, rows, 1), torch.randn(2, 1, 10), None,
+        torch.zeros(2, rows), torch.ones(2, rows, dtype=torch.bool),
+        torch.zeros(2, rows, dtype=torch.long), figure_eight_reward, figure_eight_collision,
+        "ts_inf", torch.float32,
+    )
+    step = CompiledStep()
+    with torch.no_grad():
+        step(*args)
+    print(step.fallback_reason)
+    """
+)
+
+
+class _Marker:
+    """Unpickling it creates the file ``path``: stands for any code a planted pickle runs."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def __reduce__(self):
+        return (open, (self.path, "w"))
+
+
+@needs_root
+@needs_compiler
+def test_a_pickle_planted_in_the_shared_inductor_cache_is_never_loaded(tmp_path):
+    """Another user pre-creates $TMPDIR/torchinductor_<user> (mode 0777) and plants a pickle
+    under the key of the compiled planner step (copied from a cache the same step filled);
+    the next compiling process neither loads it nor writes anything there."""
+    script = tmp_path / "step.py"
+    script.write_text(_STEP_SCRIPT)
+    shared = tmp_path / "shared"
+    shared.mkdir()
+
+    def run(**env: str) -> str:
+        """The compiled step in a new process: why it fell back to eager, or "None"."""
+        done = subprocess.run(
+            [sys.executable, str(script)],
+            env=_env(TMPDIR=str(shared), **env),
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert done.returncode == 0, done.stderr[-2000:]
+        return done.stdout.strip()
+
+    filled = tmp_path / "filled"
+    assert run(**{CACHE_ENV: str(filled)}) == "None"
+    entries = [p for p in (filled / "fxgraph").rglob("*") if p.is_file()]
+    assert entries, "the first run cached no compiled graph"
+    planted = shared / Path(_compile_cache._inductor_default()).name
+    marker = tmp_path / "marker"
+    for entry in entries:
+        target = planted / entry.relative_to(filled)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(pickle.dumps(_Marker(str(marker))))
+    for path in [planted, *planted.rglob("*")]:
+        os.chown(path, OTHER_UID, -1)
+        path.chmod(0o777)
+    before = sorted(p.relative_to(planted) for p in planted.rglob("*"))
+
+    fallback = run(XDG_CACHE_HOME=str(tmp_path / "fresh"))
+    assert not marker.exists(), "a planted pickle was loaded"
+    assert fallback == "None"
+    assert sorted(p.relative_to(planted) for p in planted.rglob("*")) == before
+    assert any((tmp_path / "fresh" / "mapets_rl" / "torchinductor" / "fxgraph").rglob("*"))
+
+
+# ------------------------------------------------------------------------ the .lock file
+def _victim(tmp_path: Path) -> Path:
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious\n")
+    return victim
+
+
+def test_a_symlinked_lock_is_refused_and_its_target_kept(tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    victim = _victim(tmp_path)
+    (run_dir / LOCK_FILE).symlink_to(victim)
+    with pytest.raises(ValueError, match="symbolic link"):
+        RunDirLock.acquire(run_dir)
+    assert victim.read_text() == "precious\n"
+
+
+def test_a_hard_linked_lock_is_refused_and_its_target_kept(tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    victim = _victim(tmp_path)
+    os.link(victim, run_dir / LOCK_FILE)
+    with pytest.raises(ValueError, match="2 names"):
+        RunDirLock.acquire(run_dir)
+    assert victim.read_text() == "precious\n"
+
+
+@pytest.mark.parametrize("kind", ["fifo", "directory"])
+def test_a_lock_that_is_not_a_regular_file_is_refused(tmp_path, kind):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    if kind == "fifo":
+        os.mkfifo(run_dir / LOCK_FILE)
+    else:
+        (run_dir / LOCK_FILE).mkdir()
+    with pytest.raises(ValueError, match="cannot be locked"):
+        RunDirLock.acquire(run_dir)
+
+
+@needs_root
+def test_a_lock_file_of_another_user_is_refused(tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / LOCK_FILE).write_text("")
+    os.chown(run_dir / LOCK_FILE, OTHER_UID, -1)
+    with pytest.raises(ValueError, match="another user"):
+        RunDirLock.acquire(run_dir)
+
+
+def test_the_lock_is_never_truncated_and_names_its_holder(tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / LOCK_FILE).write_text("x" * 100)
+    lock = RunDirLock.acquire(run_dir)
+    text = (run_dir / LOCK_FILE).read_text()
+    assert len(text) == 100 and text.split()[0] == str(os.getpid())
+    lock.release()
+    assert len((run_dir / LOCK_FILE).read_text()) == 100
+    with RunDirLock.acquire(run_dir):  # a cleared record: the next holder writes its own
+        with pytest.raises(ValueError, match=f"pid {os.getpid()}"):
+            RunDirLock.acquire(run_dir)
+
+
+# ---------------------------------------------------- symlinked directories of a run directory
+def _foreign_checkpoints(tmp_path: Path) -> Path:
+    """A directory outside the run with two old checkpoints and a file named like a temp."""
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    for step in (1, 2):
+        checkpoint.save_checkpoint({"step": step}, tmp_path / "elsewhere", step, keep_last=5)
+    for path in (tmp_path / "elsewhere" / "checkpoints").iterdir():
+        shutil.copy(path, theirs / path.name)
+    (theirs / ".notes.abcdefgh.tmp").write_text("mine")
+    return theirs
+
+
+@pytest.mark.parametrize("write", ["save_checkpoint", "remove_stale_files"])
+def test_pruning_never_deletes_through_a_symlinked_checkpoints_dir(tmp_path, write):
+    theirs = _foreign_checkpoints(tmp_path)
+    before = sorted(p.name for p in theirs.iterdir())
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "checkpoints").symlink_to(theirs)
+    with pytest.raises(ValueError, match="symbolic link"):
+        if write == "save_checkpoint":
+            checkpoint.save_checkpoint({"step": 9}, run_dir, 9, keep_last=1)
+        else:
+            checkpoint.remove_stale_files(run_dir)
+    assert sorted(p.name for p in theirs.iterdir()) == before
+
+
+@pytest.mark.parametrize("where", ["videos", "logs", "logs/exp/scalars"])
+def test_a_symlink_anywhere_below_the_written_dirs_is_refused(tmp_path, where):
+    run_dir = tmp_path / "run"
+    link = run_dir / where
+    link.parent.mkdir(parents=True)
+    link.symlink_to(tmp_path)
+    with pytest.raises(ValueError, match=rf"{where}' is a symbolic link"):
+        check_run_subdirs(run_dir)
+
+
+# --------------------------------------------------------- scenario and recipe names
+@pytest.mark.parametrize("name", ["../../escape", "a/b", "x\nline", "..", "tab\there", " pad"])
+def test_register_env_refuses_a_name_that_is_not_a_plain_name(name, monkeypatch):
+    from mapets_rl.envs import registry
+
+    monkeypatch.setattr(registry, "_SCENARIOS", dict(registry._SCENARIOS))
+    with pytest.raises(ValueError, match="scenario name .* is refused"):
+        registry.register_env(name, lambda **_: None)
+    assert name not in registry.available_envs()
+
+
+@pytest.mark.parametrize("recipe, env", [("../up", "figure-eight"), ("mapets", "a/b")])
+def test_the_default_run_dir_stays_below_runs(recipe, env, tmp_path):
+    with pytest.raises(ValueError, match="name .* is refused"):
+        default_run_dir(recipe, env, 0, tmp_path / "runs")
+
+
+def test_valid_names_keep_working(tmp_path):
+    path = default_run_dir("mapets", "figure-eight", 3, tmp_path)
+    assert path.parent == tmp_path and path.name.startswith("mapets_figure-eight_seed3_")
+
+
+# ------------------------------------------------------------- run directories of others
+@pytest.fixture
+def finished_toy_run(tmp_path, toy_scenario) -> Path:
+    run_dir = tmp_path / "run"
+    ToyLearner(ToyConfig(total_frames=20), run_dir).train()
+    return run_dir
+
+
+@pytest.mark.parametrize("entry", [LOCK_FILE, "checkpoints"])
+def test_resume_of_a_run_dir_with_a_symlinked_entry_changes_nothing_outside(
+    tmp_path, finished_toy_run, entry
+):
+    victim = tmp_path / "victim"
+    if entry == "checkpoints":
+        victim.mkdir()
+        (finished_toy_run / "checkpoints").rename(victim / "moved")
+        (victim / ".notes.abcdefgh.tmp").write_text("mine")
+        (finished_toy_run / "checkpoints").symlink_to(victim / "moved")
+    else:
+        victim.write_text("precious\n")
+        (finished_toy_run / LOCK_FILE).unlink()
+        (finished_toy_run / LOCK_FILE).symlink_to(victim)
+    before = {p: p.read_bytes() for p in [victim, *victim.rglob("*")] if p.is_file()}
+    with pytest.raises(ValueError, match="symbolic link"):
+        ToyLearner.from_run_dir(finished_toy_run, ["total_frames=40"])
+    assert {p: p.read_bytes() for p in [victim, *victim.rglob("*")] if p.is_file()} == before
+
+
+def test_a_new_run_refuses_a_foreign_non_empty_directory(tmp_path, toy_scenario):
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "config.yaml").write_text("their: config\n")
+    (theirs / "results.json").write_text('{"their": "results"}')
+    with pytest.raises(ValueError, match="is not empty and is not a run directory"):
+        ToyLearner(ToyConfig(total_frames=20), theirs)
+    assert sorted(p.name for p in theirs.iterdir()) == ["config.yaml", "results.json"]
+    assert (theirs / "config.yaml").read_text() == "their: config\n"
+
+
+def test_the_cli_refuses_a_foreign_run_dir_in_one_line(tmp_path):
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "config.yaml").write_text("their: config\n")
+    out = _cli(
+        ["train", "mappo", "--env", "figure-eight", "--run-dir", str(theirs)],
+        tmp_path,
+        **{CACHE_ENV: str(tmp_path / "cache")},
+    )
+    assert out.returncode == 2 and "is not empty and is not a run directory" in out.stderr
+    assert (theirs / "config.yaml").read_text() == "their: config\n"
+
+
+def test_an_empty_dir_or_one_of_an_attempt_that_never_checkpointed_is_used(tmp_path, toy_scenario):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / LOCK_FILE).write_text("")  # left by an attempt that failed at once
+    ToyLearner(ToyConfig(total_frames=20), empty).close()
+    assert (empty / "run.json").is_file()
+    ToyLearner(ToyConfig(total_frames=20), empty).close()  # not checkpointed: started afresh
+
+
+# ------------------------------------------------ what `python -m ... cli` imports
+def _planted_run_dir(tmp_path: Path) -> Path:
+    """A run directory naming recipe ``evil``, with an entry point and module of that name
+    planted in it; importing the module creates ``tmp_path/marker``."""
+    run_dir = tmp_path / "run"
+    info = run_dir / "evil-1.0.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: evil\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[mapets_rl.recipes]\nevil = evilmod:Evil\n")
+    (run_dir / "evilmod.py").write_text(
+        f"open({str(tmp_path / 'marker')!r}, 'w').close()\nEvil = object\n"
+    )
+    (run_dir / "run.json").write_text('{"recipe": "evil", "env": "figure-eight", "seed": 0}')
+    (run_dir / "config.yaml").write_text("env: figure-eight\n")
+    return run_dir
+
+
+def test_python_m_cli_imports_nothing_from_the_working_directory(tmp_path):
+    run_dir = _planted_run_dir(tmp_path)
+    out = _cli(["resume", "."], run_dir, **{CACHE_ENV: str(tmp_path / "cache")})
+    assert out.returncode == 2 and "unknown recipe 'evil'" in out.stderr, out.stderr
+    assert not (tmp_path / "marker").exists()
+
+
+def test_a_recipe_entry_point_must_name_an_experiment_class(add_entry_point):
+    add_entry_point("mapets_rl.recipes", "notarecipe", "os:path")
+    with pytest.raises(ValueError, match="recipe 'notarecipe' .* is not an Experiment subclass"):
+        load_recipe("notarecipe")
+
+
+def test_a_scenario_entry_point_must_name_a_factory(add_entry_point):
+    from mapets_rl.envs.registry import build_env
+
+    add_entry_point("mapets_rl.scenarios", "notafactory", "os:sep")
+    with pytest.raises(ValueError, match="scenario 'notafactory' .* is not a factory"):
+        build_env("notafactory")
