@@ -542,6 +542,11 @@ class MAPETS(Experiment):
         }
 
     # ------------------------------------------------------------------ the loop
+    def progress(self) -> tuple[int, int]:
+        """``(episodes done, config.episodes)``: the loop of :meth:`train` runs while more are
+        due (and a resume that asks for fewer episodes than were done is refused)."""
+        return self.episode, self.config.episodes
+
     def train(
         self, on_episode_end: Callable[[dict[str, float]], None] | None = None
     ) -> list[dict[str, Any]]:
@@ -560,7 +565,6 @@ class MAPETS(Experiment):
         cfg = self.config
         with self.training_loop(
             on_episode_end,
-            progress=lambda: (self.episode, cfg.episodes),
             label=f"{self.name} {cfg.env} d={cfg.comm.comm_range:g} seed {cfg.seed}",
             postfix=lambda m, fps: {k: f"{m[k]:.3g}" for k in ("agility", "safety") if k in m},
         ) as loop:

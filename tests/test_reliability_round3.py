@@ -423,3 +423,170 @@ def test_a_scenario_entry_point_must_name_a_factory(add_entry_point):
     add_entry_point("mapets_rl.scenarios", "notafactory", "os:sep")
     with pytest.raises(ValueError, match="scenario 'notafactory' .* is not a factory"):
         build_env("notafactory")
+
+
+# ===================================================== work lost or silently changed
+def test_a_resume_that_asks_for_less_than_was_done_is_refused(finished_toy_run):
+    config_before = (finished_toy_run / "config.yaml").read_bytes()
+    with pytest.raises(ValueError, match="has done 20 frames, more than the 10"):
+        ToyLearner.from_run_dir(finished_toy_run, ["total_frames=10", "frames_per_batch=10"])
+    assert (finished_toy_run / "config.yaml").read_bytes() == config_before
+    resumed = ToyLearner.from_run_dir(finished_toy_run, ["total_frames=40"])  # forwards: fine
+    resumed.train()
+    assert resumed.frames == 40
+
+
+def test_a_mapets_resume_to_fewer_episodes_is_refused(tmp_path):
+    """It used to rewrite config.yaml to 1 episode, train nothing and exit 0."""
+    from recipes.mapets import MAPETS, MAPETSConfig
+
+    tiny = dict(
+        env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},
+        preset="cpu",
+        planner={"horizon": 2, "population": 4, "elites": 2, "iterations": 1, "particles": 5},
+        model={"hidden": [8], "buffer_size": 16, "batch_size": 4, "epochs": 1},
+        num_threads=1,
+        progress=False,
+        episodes=2,
+    )
+    run_dir = tmp_path / "run"
+    MAPETS(MAPETSConfig(**tiny), run_dir).train()
+    config_before = (run_dir / "config.yaml").read_bytes()
+    with pytest.raises(ValueError, match="has done 2 episodes, more than the 1"):
+        MAPETS.from_run_dir(run_dir, ["episodes=1"])
+    assert (run_dir / "config.yaml").read_bytes() == config_before
+
+
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("screen_width", -5),
+        ("scaling", float("nan")),
+        ("centering_position", "middle"),
+        ("screen_height", 100000),
+        ("stock_neighbour_search", "no"),
+        ("real_time_rendering", "yes"),
+        ("offscreen_rendering", 5),
+    ],
+)
+@pytest.mark.parametrize("scenario", ["figure-eight", "freeway", "freeway-merge"])
+def test_rendering_keys_are_validated_when_the_env_is_built(scenario, key, value):
+    from mapets_rl.envs import make_env
+
+    with pytest.raises(ValueError, match=f"^{key} must be"):
+        make_env(scenario, **{key: value})
+
+
+def test_a_bad_rendering_key_fails_before_the_run_dir_exists(tmp_path):
+    from recipes.mappo import MAPPO, MAPPOConfig
+
+    config = MAPPOConfig(video=True, env_config={"screen_width": -5})
+    with pytest.raises(ValueError, match="screen_width must be"):
+        MAPPO(config, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_failing_final_evaluation_still_writes_the_final_checkpoint(
+    tmp_path, toy_scenario, monkeypatch
+):
+    run_dir = tmp_path / "run"
+    exp = ToyLearner(ToyConfig(total_frames=40, eval_interval=40), run_dir)
+
+    def fail(*args, **kwargs):
+        raise ValueError("the video cannot be written")
+
+    monkeypatch.setattr(exp, "evaluate", fail)
+    with pytest.raises(ValueError, match="video cannot be written"):
+        exp.train()
+    assert [p.name for p in checkpoint.list_checkpoints(run_dir)][-1] == "ckpt_000000000040.pt"
+    assert ToyLearner.from_run_dir(run_dir).frames == 40  # the training is kept
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["planner={horizon: 6}", "planner.horizon=5"],
+        ["planner.horizon=5", "planner={horizon: 6}"],
+        ["env_config={n_cavs: 2}", "env_config.n_cavs=4"],
+    ],
+)
+def test_conflicting_nested_overrides_are_refused(overrides):
+    from mapets_rl.config import ConfigError
+    from recipes.mapets import MAPETSConfig
+
+    with pytest.raises(ConfigError, match="both set (planner|env_config): give it once"):
+        MAPETSConfig().with_overrides(overrides)
+
+
+def test_a_config_file_is_validated_with_the_overrides(tmp_path):
+    """total_frames: 20 alone is refused (< frames_per_batch=200); with frames_per_batch=20
+    it is a valid config."""
+    from recipes.sac import SACConfig
+
+    path = tmp_path / "c.yaml"
+    path.write_text("total_frames: 20\n")
+    config = SACConfig.from_yaml(path, ["frames_per_batch=20"])
+    assert (config.total_frames, config.frames_per_batch) == (20, 20)
+
+
+def test_a_config_file_with_a_preset_takes_section_overrides(tmp_path):
+    from recipes.mapets import MAPETSConfig
+
+    path = tmp_path / "c.yaml"
+    path.write_text("preset: cpu\n")
+    config = MAPETSConfig.from_yaml(path, ["planner.horizon=5"])
+    cpu = MAPETSConfig(preset="cpu")
+    assert config.planner == cpu.planner.replace(horizon=5)
+
+
+@pytest.mark.parametrize("text, value", [("1e3", 1000.0), ("3e-4", 3e-4), ("1.5e3", 1500.0)])
+def test_exponent_floats_are_numbers(text, value):
+    from recipes.mappo import MAPPOConfig
+
+    config = MAPPOConfig().with_overrides([f"env_config.length={text}"])
+    assert config.env_config["length"] == value and isinstance(config.env_config["length"], float)
+
+
+def test_a_fifo_as_config_file_is_refused_at_once(tmp_path):
+    from mapets_rl.config import ConfigError, read_yaml_mapping
+
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    with pytest.raises(ConfigError, match="is not a regular file"):
+        read_yaml_mapping(fifo)
+
+
+def test_a_config_file_larger_than_the_bound_is_still_refused(tmp_path):
+    from mapets_rl.config import MAX_CONFIG_BYTES, ConfigError, read_yaml_mapping
+
+    path = tmp_path / "big.yaml"
+    path.write_bytes(b"#" * (MAX_CONFIG_BYTES + 1))
+    with pytest.raises(ConfigError, match=f"larger than {MAX_CONFIG_BYTES} bytes"):
+        read_yaml_mapping(path)
+
+
+# ============================================================== tracebacks left
+def test_a_deeply_nested_config_file_is_one_error(tmp_path):
+    from mapets_rl.config import ConfigError, read_yaml_mapping
+
+    path = tmp_path / "deep.yaml"
+    path.write_text("a: " + "[" * 50_000 + "]" * 50_000 + "\n")  # 100 kB, no aliases
+    with pytest.raises(ConfigError, match="nested deeper than 32 levels"):
+        read_yaml_mapping(path)
+
+
+@pytest.mark.parametrize(
+    "override", ["env_config.x=" + "[" * 5000 + "]" * 5000, "env_config." + "a." * 2000 + "b=1"]
+)
+def test_a_deeply_nested_override_is_one_error(override):
+    from mapets_rl.config import ConfigError
+    from recipes.mappo import MAPPOConfig
+
+    with pytest.raises(ConfigError, match="deeper than 32 levels"):
+        MAPPOConfig().with_overrides([override])
+
+
+def test_a_run_dir_with_a_deeply_nested_config_yaml_is_one_error(finished_toy_run):
+    (finished_toy_run / "config.yaml").write_text("env_config: " + "{a: " * 3000 + "1" + "}" * 3000)
+    with pytest.raises(ValueError, match="nested deeper than 32 levels"):
+        ToyLearner.from_run_dir(finished_toy_run)

@@ -337,8 +337,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if args.seed is not None:
         overrides.append(f"seed={args.seed}")
     try:
-        config = cls.Config.from_yaml(args.config) if args.config else cls.Config()
-        config = config.with_overrides(overrides + user_overrides)
+        if args.config:  # validated once, with the overrides applied to the file's fields
+            config = cls.Config.from_yaml(args.config, overrides + user_overrides)
+        else:
+            config = cls.Config().with_overrides(overrides + user_overrides)
     except ConfigError as err:
         _fail(str(err))
     if args.run_dir is not None:

@@ -506,14 +506,23 @@ class Experiment:
     def end_iteration(self, metrics: Mapping[str, float], prev_frames: int, last: bool) -> None:
         """After an iteration that advanced the frames from ``prev_frames`` (``last``: the
         final one): evaluate every ``eval_interval`` frames and checkpoint every
-        ``checkpoint_interval`` frames, both at the end."""
+        ``checkpoint_interval`` frames, both at the end. An evaluation that fails (e.g. its
+        video cannot be written) first writes the checkpoint due at this iteration, without
+        that evaluation, so the training done is kept; then its error propagates."""
         cfg = self.config
+        checkpoint_due = last or _crossed(prev_frames, self.frames, cfg.checkpoint_interval)
         if last or _crossed(prev_frames, self.frames, cfg.eval_interval):
-            evaluation = self.evaluate()
+            try:
+                evaluation = self.evaluate()
+            except Exception:
+                if checkpoint_due:
+                    self.boundaries += 1
+                    self.save_checkpoint()
+                raise
             self.results.add_evaluation(self.frames, evaluation)
             log_scalars(self.logger, "eval", evaluation, self.frames)
             self.latest_metrics = evaluation
-        if last or _crossed(prev_frames, self.frames, cfg.checkpoint_interval):
+        if checkpoint_due:
             self.boundaries += 1
             self.save_checkpoint()
             if not last:
@@ -743,7 +752,8 @@ class Experiment:
         (or a checkpoint is saved): a resume whose override fails then (out of memory) leaves
         the run directory byte for byte as it was, and a plain resume still works. (A
         ``config.yaml`` in an older layout is rewritten in today's at once, with the same
-        values.) Every failure is a one-line ValueError.
+        values.) Overrides that set the budget below what the run has done (``episodes=1``
+        after 2 episodes) are refused. Every failure is a one-line ValueError.
 
         The run directory's lock is taken before anything is read: a run directory that
         another experiment (or process) writes to is refused with
@@ -783,6 +793,14 @@ class Experiment:
         exp.__init__(config, run_dir)
         if state is not None:
             exp._restore(state, ckpt, _changed_keys(saved.to_dict(), config.to_dict()))
+            done, total = exp.progress()
+            if overrides and done > total:
+                raise ConfigError(
+                    f"cannot resume run_dir {str(run_dir)!r} with {' '.join(overrides)}: the "
+                    f"run has done {done} {exp.progress_unit}s, more than the {total} it would "
+                    "ask for; a resume only extends a run's budget (start a new run for a "
+                    "shorter one)"
+                )
         if saved.to_dict() != on_disk:  # an older layout of the same config
             saved.to_yaml(run_dir / CONFIG_FILE)
         if exp._deferred is not None:
