@@ -590,3 +590,201 @@ def test_a_run_dir_with_a_deeply_nested_config_yaml_is_one_error(finished_toy_ru
     (finished_toy_run / "config.yaml").write_text("env_config: " + "{a: " * 3000 + "1" + "}" * 3000)
     with pytest.raises(ValueError, match="nested deeper than 32 levels"):
         ToyLearner.from_run_dir(finished_toy_run)
+
+
+def test_a_huge_population_decay_is_no_overflow():
+    from recipes.mapets import MAPETSConfig
+
+    config = MAPETSConfig(planner={"population_decay": 1e200, "iterations": 3})
+    sizes = config.planner.candidates_per_iteration()
+    assert len(sizes) == 3 and sizes[1] == sizes[2] < sizes[0]
+
+
+# ----------------------------------------------------------------- memory estimates
+@pytest.mark.parametrize("settings", [{"ensemble_size": 10**7}, {"hidden": (10**6, 10**6)}])
+def test_an_ensemble_too_large_for_memory_is_refused_before_allocating(settings):
+    from mapets_rl.models import ProbabilisticEnsemble
+
+    with pytest.raises(ValueError, match="the ensemble's weights .* GiB available"):
+        ProbabilisticEnsemble(10, 1, 3, **settings)
+
+
+def test_a_planner_too_large_for_memory_is_refused_at_construction():
+    from mapets_rl.models import ProbabilisticEnsemble
+    from mapets_rl.planning import TrajectorySamplingCEM
+
+    model = ProbabilisticEnsemble(10, 1, 3, 5, (8,))
+    with pytest.raises(ValueError, match="one planner decision .* GiB available"):
+        TrajectorySamplingCEM(model, lambda o, a, n: o.sum(-1), -1.0, 1.0, population=10**9)
+
+
+def test_the_mapets_estimate_counts_the_datasets(tmp_path):
+    from recipes.mapets import MAPETS, MAPETSConfig
+
+    config = MAPETSConfig(preset="cpu", model={"buffer_size": 10**12})
+    with pytest.raises(ValueError, match="model.buffer_size=1000000000000"):
+        MAPETS(config, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_available_memory_respects_ulimit_v():
+    script = textwrap.dedent(
+        """
+        import resource
+        from mapets_rl.modules.memory import available_memory
+        free = available_memory()
+        resource.setrlimit(resource.RLIMIT_AS, (8 * 2**30, resource.RLIM_INFINITY))
+        limited = available_memory()
+        assert limited is not None and limited < 8 * 2**30 and limited <= free, (free, limited)
+        """
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], env=_env(), capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+
+
+@pytest.mark.parametrize("version", ["v2", "v1"])
+def test_a_cgroup_limit_bounds_the_available_memory(tmp_path, version):
+    from mapets_rl.modules.memory import _cgroup_left
+
+    if version == "v2":
+        (tmp_path / "memory.max").write_text(f"{3 * 2**30}\n")
+        (tmp_path / "memory.current").write_text(f"{2**30}\n")
+    else:
+        (tmp_path / "memory").mkdir()
+        (tmp_path / "memory" / "memory.limit_in_bytes").write_text(f"{3 * 2**30}\n")
+        (tmp_path / "memory" / "memory.usage_in_bytes").write_text(f"{2**30}\n")
+    assert _cgroup_left(tmp_path) == 2 * 2**30
+    (tmp_path / "memory.max").write_text("max\n")
+    if version == "v2":
+        assert _cgroup_left(tmp_path) is None
+
+
+# ------------------------------------------------------------------- bad input
+def test_a_figure_eight_of_a_petametre_is_refused():
+    from mapets_rl.envs import make_env
+
+    with pytest.raises(ValueError, match=r"length must be a finite number > 0 and <= 20000"):
+        make_env("figure-eight", length=1e15)
+
+
+@pytest.mark.parametrize(
+    "obs, dtype, match",
+    [
+        ((2, 1, 3, 4), "int32", "dtype must be a floating-point"),
+        ((2, 3, 4), None, r"obs must be \[I=2, B, N, 4\]"),
+    ],
+)
+def test_ensemble_predict_checks_its_dtype_and_shapes(obs, dtype, match):
+    import torch
+
+    from mapets_rl.models import ProbabilisticEnsemble
+
+    model = ProbabilisticEnsemble(4, 1, 2, 2, (8,))
+    action = torch.zeros(*obs[:-1], 1)
+    with pytest.raises(ValueError, match=match):
+        model.predict(torch.zeros(obs), action, None if dtype is None else getattr(torch, dtype))
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"fraction": 0.9}, r"fraction must be in \[0, 0.5\)"),
+        ({"fraction": -1}, "fraction must be a finite number >= 0"),
+        ({"fraction": True}, "fraction must be a finite number"),
+        ({"mask": "wrong shape"}, r"mask must be \[rows=10, n_agents=2\]"),
+    ],
+)
+def test_holdout_split_checks_its_arguments(kwargs, match):
+    import torch
+
+    from mapets_rl.objectives import holdout_split
+
+    args = {"mask": None, "rows": 10, "n_agents": 2, "fraction": 0.2, **kwargs}
+    if args["mask"] == "wrong shape":
+        args["mask"] = torch.ones(10, 3, dtype=torch.bool)
+    with pytest.raises(ValueError, match=match):
+        holdout_split(**args)
+
+
+@pytest.mark.parametrize("beta", [float("nan"), float("inf"), True, -1.0])
+def test_colored_noise_refuses_a_beta_that_is_not_a_finite_number(beta):
+    from mapets_rl.planning.cem import colored_noise
+
+    with pytest.raises(ValueError, match="beta must be a finite number >= 0"):
+        colored_noise((2, 5, 1), beta)
+
+
+def test_fit_ensemble_refuses_an_agent_without_any_row():
+    import torch
+    from tensordict import TensorDict
+
+    from mapets_rl.models import ProbabilisticEnsemble
+    from mapets_rl.objectives import EnsembleNLLLoss, fit_ensemble
+
+    model = ProbabilisticEnsemble(3, 1, 2, 2, (8,))
+    loss = EnsembleNLLLoss(model)
+    mask = torch.ones(40, 2, dtype=torch.bool)
+    mask[:, 1] = False
+    data = TensorDict(
+        {
+            ("agents", "observation"): torch.randn(40, 2, 3),
+            ("agents", "action"): torch.randn(40, 2, 1),
+            ("next", "agents", "observation"): torch.randn(40, 2, 3),
+            ("agents", "mask"): mask,
+        },
+        batch_size=[40],
+    )
+    optimizer = torch.optim.Adam(loss.parameters(), 1e-3)
+    with pytest.raises(ValueError, match=r"no valid row .* for agents \[1\]"):
+        fit_ensemble(loss, optimizer, data, epochs=2, batch_size=8, holdout=0.2)
+
+
+@pytest.mark.parametrize("epsilon", [float("inf"), True, float("nan")])
+def test_minimax_perturbation_refuses_a_bad_epsilon(epsilon):
+    import torch
+
+    from mapets_rl.objectives import minimax_action_perturbation
+
+    with pytest.raises(ValueError, match="epsilon must be a finite number >= 0"):
+        minimax_action_perturbation(lambda a: a.sum((-1, -2)), torch.zeros(2, 1), epsilon)
+
+
+def test_minimax_perturbation_refuses_nan_actions():
+    import torch
+
+    from mapets_rl.objectives import minimax_action_perturbation
+
+    actions = torch.tensor([[0.0], [float("nan")]])
+    with pytest.raises(ValueError, match="actions must be finite"):
+        minimax_action_perturbation(lambda a: a.sum((-1, -2)), actions, 0.1)
+
+
+@pytest.mark.parametrize("field", ["epsilon_critic", "epsilon_actor"])
+def test_m3ddpg_loss_refuses_a_boolean_epsilon(field):
+    from mapets_rl.objectives import M3DDPGLoss
+
+    epsilons = {"epsilon_critic": 0.1, "epsilon_actor": 0.1, field: True}
+    with pytest.raises(ValueError, match=f"{field} must be a finite number"):
+        M3DDPGLoss(None, None, action_key="action", value_key="q", **epsilons)
+
+
+def test_a_new_run_under_a_file_size_limit_is_one_line(tmp_path):
+    script = (
+        "import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (1024, 1024)); "
+        "sys.argv[0] = 'mapets-rl'; from mapets_rl.experiment.cli import main; "
+        "sys.exit(main(sys.argv[1:]))"
+    )
+    argv = ["train", "mappo", "--env", "figure-eight", "--run-dir", str(tmp_path / "run")]
+    argv += ["total_frames=200", "frames_per_batch=100", "minibatch_size=50", "progress=false"]
+    done = subprocess.run(
+        [sys.executable, "-c", script, *argv],
+        cwd=tmp_path,
+        env=_env(**{CACHE_ENV: str(tmp_path / "cache")}),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert "Traceback" not in done.stderr and "ulimit -f" in done.stderr

@@ -355,6 +355,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         exp = cls(config, run_dir)
     except ValueError as err:
         _fail(str(err))
+    except OSError as err:
+        _fail_setup(err)
     _train(exp)
     print(
         json.dumps(
@@ -398,6 +400,19 @@ def _load_run(run_dir: str, overrides: Sequence[str] = ()):
         return cls.from_run_dir(run_dir, overrides=list(overrides))
     except ValueError as err:
         _fail(str(err))
+    except OSError as err:
+        _fail_setup(err)
+
+
+def _fail_setup(err: OSError) -> NoReturn:
+    """One line for an OSError while a run is set up, e.g. the shared memory of a replay
+    buffer under a file-size limit (``ulimit -f``) or on a full ``/dev/shm``."""
+    import errno
+
+    reason = err.strerror or str(err) or type(err).__name__
+    if err.errno == errno.EFBIG:
+        reason += " (the file size limit, ulimit -f, was reached)"
+    _fail(f"the run cannot be set up: {reason}")
 
 
 def _cmd_resume(args: argparse.Namespace) -> int:
