@@ -7,6 +7,7 @@ of another user; they are skipped otherwise)."""
 
 from __future__ import annotations
 
+import json
 import os
 import pickle
 import shutil
@@ -788,3 +789,56 @@ def test_a_new_run_under_a_file_size_limit_is_one_line(tmp_path):
     )
     assert done.returncode == 2, done.stderr[-2000:]
     assert "Traceback" not in done.stderr and "ulimit -f" in done.stderr
+
+
+# ===================================================== byte-identical checkpoints and results
+def test_identical_mapets_runs_write_byte_identical_checkpoints_and_results(tmp_path):
+    """Wall-clock metrics (train_time, step_time) go to timings.json: the checkpoints and
+    results.json of two identical runs are equal byte for byte."""
+    import hashlib
+
+    from mapets_rl.experiment.results import read_results
+    from recipes.mapets import MAPETS, MAPETSConfig
+
+    tiny = dict(
+        env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},
+        preset="cpu",
+        planner={"horizon": 2, "population": 4, "elites": 2, "iterations": 1, "particles": 5},
+        model={"hidden": [8], "buffer_size": 16, "batch_size": 4, "epochs": 1},
+        num_threads=1,
+        progress=False,
+        episodes=2,
+        seed=5,
+    )
+    runs = [tmp_path / "a", tmp_path / "b"]
+    for run_dir in runs:
+        MAPETS(MAPETSConfig(**tiny), run_dir).train()
+
+    def digests(run_dir: Path) -> dict[str, str]:
+        files = [*sorted((run_dir / "checkpoints").iterdir()), run_dir / "results.json"]
+        return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
+
+    assert digests(runs[0]) == digests(runs[1])
+    assert len(digests(runs[0])) == 5  # 2 checkpoints, 2 digest files, results.json
+    assert "train_time" not in (runs[0] / "results.json").read_text()
+    timings = json.loads((runs[0] / "timings.json").read_text())
+    assert [sorted(t["metrics"]) for t in timings["train"]] == [["step_time", "train_time"]] * 2
+    entries = read_results(runs[0])["train"]  # read back with their timings
+    assert all(e["metrics"]["train_time"] >= 0 and "agility" in e["metrics"] for e in entries)
+
+
+def test_a_resume_keeps_the_timings_of_the_entries_its_checkpoint_holds(tmp_path, toy_scenario):
+    from mapets_rl.experiment.results import ResultsWriter
+
+    writer = ResultsWriter(tmp_path, "toy", "toy", 0, {})
+    writer.add_train(10, {"reward": 1.0, "train_time": 0.5})
+    state = writer.state_dict()
+    writer.add_train(20, {"reward": 2.0, "train_time": 0.7})  # after the checkpoint
+    resumed = ResultsWriter(tmp_path, "toy", "toy", 0, {})
+    resumed.load_state_dict(state)
+    resumed.add_train(20, {"reward": 2.0, "train_time": 0.9})
+    timings = json.loads((tmp_path / "timings.json").read_text())["train"]
+    assert timings == [
+        {"frames": 10, "metrics": {"train_time": 0.5}},
+        {"frames": 20, "metrics": {"train_time": 0.9}},
+    ]
