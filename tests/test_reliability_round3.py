@@ -842,3 +842,34 @@ def test_a_resume_keeps_the_timings_of_the_entries_its_checkpoint_holds(tmp_path
         {"frames": 10, "metrics": {"train_time": 0.5}},
         {"frames": 20, "metrics": {"train_time": 0.9}},
     ]
+
+
+def test_a_resume_hides_no_tensorboard_point_logged_before_its_checkpoint(tmp_path, monkeypatch):
+    """MA-PETS logs model/nll by epoch (10 per episode here), ahead of the frames (5 per
+    episode): the purge step must lie past the epochs, or TensorBoard hides epochs 6-10."""
+    from mapets_rl.experiment import results
+    from recipes.mapets import MAPETS, MAPETSConfig
+
+    tiny = dict(
+        env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},
+        preset="cpu",
+        planner={"horizon": 2, "population": 4, "elites": 2, "iterations": 1, "particles": 5},
+        model={"hidden": [8], "buffer_size": 16, "batch_size": 4, "epochs": 10},
+        num_threads=1,
+        progress=False,
+        episodes=1,
+    )
+    run_dir = tmp_path / "run"
+    MAPETS(MAPETSConfig(**tiny), run_dir).train()
+    purged = []
+    make_logger = results.make_logger
+
+    def recording(kind, run_dir, exp_name, purge_step=None):
+        purged.append(purge_step)
+        return make_logger(kind, run_dir, exp_name, purge_step)
+
+    monkeypatch.setattr(results, "make_logger", recording)
+    resumed = MAPETS.from_run_dir(run_dir, ["episodes=2"])
+    assert resumed.frames == 5
+    resumed.train()
+    assert purged == [11]  # past model/nll's epochs 1-10, not frames + 1 = 6

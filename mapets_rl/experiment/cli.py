@@ -151,7 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="train a recipe on a scenario",
         description="Train RECIPE on SCENARIO. The run directory receives config.yaml (the "
         "resolved config), results.json (metrics of every evaluation, and of training episodes for "
-        "recipes that record them), checkpoints/ and logs/.",
+        "recipes that record them; their measured durations go to timings.json), checkpoints/ "
+        "and logs/. A --run-dir that holds files but is not a run directory is refused.",
         epilog="Any config field can be set as key=value (value parsed as YAML), e.g. "
         "total_frames=30000 lr=3e-4 env_config.n_cavs=8 logger=tensorboard video=true. "
         "`mapets-rl train RECIPE --help` lists the scenarios RECIPE supports and its fields "

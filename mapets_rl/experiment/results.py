@@ -127,11 +127,13 @@ class RunLogger:
       those steps again). A fresh run (no checkpoint) in a directory with logs of an attempt
       that never checkpointed starts from empty CSV logs;
     - for TensorBoard, whose event files cannot be truncated, starts a new event file (as every
-      ``SummaryWriter`` does) whose first event is a restart marker at ``purge_step`` (the
-      checkpoint's frames + 1): TensorBoard hides the events of the older event files at that
-      step and later, so it shows each step once. (TensorBoard purges by one step axis; a
-      scalar logged on another axis, MA-PETS's ``model/nll`` by training epoch, may show the
-      redone steps twice.) wandb runs are left as they are.
+      ``SummaryWriter`` does) whose first event is a restart marker at ``purge_step`` (one past
+      the largest step any scalar reached at the checkpoint,
+      :func:`~mapets_rl.experiment.runner.purge_step`): TensorBoard hides the events of the
+      older event files at that step and later, for every scalar. No point logged before the
+      checkpoint is hidden; a scalar whose steps lag behind that largest step (the frames of
+      MA-PETS, whose ``model/nll`` runs ahead by epoch) may show the steps redone after a kill
+      twice. wandb runs are left as they are.
 
     A checkpoint written before checkpoints held these steps leaves the logs as they are.
     """

@@ -734,8 +734,8 @@ class Experiment:
         if deferred["results"]:
             self.results.write()
         if self.logger is not None:
-            frames = int(deferred["frames"])
-            self.logger.open(deferred["log_steps"], purge_step=frames + 1 if frames else None)
+            steps = deferred["log_steps"]
+            self.logger.open(steps, purge_step=purge_step(int(deferred["frames"]), steps))
 
     @classmethod
     def from_run_dir(
@@ -946,6 +946,16 @@ def _ray_collector(
         ray_init_config=init,
         remote_configs={"num_cpus": 1},
     )
+
+
+def purge_step(frames: int, log_steps: Mapping[str, int] | None) -> int | None:
+    """The TensorBoard ``purge_step`` of a run resumed from a checkpoint at ``frames`` whose
+    scalars were last logged at ``log_steps`` (name -> step): one past the largest step any
+    scalar reached, so that no point logged before the checkpoint is hidden (a scalar on
+    another axis than frames, MA-PETS's ``model/nll`` by epoch, may run ahead of the frames);
+    ``None`` for a run that had logged nothing."""
+    last = max([frames, *(log_steps or {}).values()])
+    return last + 1 if last else None
 
 
 def run_recipe_name(run_dir: str | os.PathLike) -> str:
