@@ -873,3 +873,84 @@ def test_a_resume_hides_no_tensorboard_point_logged_before_its_checkpoint(tmp_pa
     assert resumed.frames == 5
     resumed.train()
     assert purged == [11]  # past model/nll's epochs 1-10, not frames + 1 = 6
+
+
+# ================================================================ a killed Ray sweep
+def _descendants(root: int) -> dict[int, str]:
+    """pid -> command name of every live (not zombie) descendant of process ``root``."""
+    parents, names = {}, {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text().rpartition(")")[2].split()
+            name = (entry / "cmdline").read_bytes().split(b"\0")[0].decode(errors="replace")
+        except OSError:
+            continue
+        if stat[0] != "Z":
+            parents[int(entry.name)], names[int(entry.name)] = int(stat[1]), name
+    found, frontier = {}, {root}
+    while frontier:
+        frontier = {pid for pid, parent in parents.items() if parent in frontier}
+        found.update({pid: names[pid] for pid in frontier})
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to find Ray's processes")
+def test_a_ray_sweep_killed_with_kill_9_leaves_no_ray_agent(tmp_path):
+    pytest.importorskip("ray", reason="ray is not installed (pip install 'mapets-rl[ray]')")
+    import signal
+    import time
+
+    from sweep_helpers import SLOW_ENV
+    from test_sweep import _SWEEP_SCRIPT, TINY
+
+    from mapets_rl.experiment.sweep import RAY_AGENTS
+
+    out = tmp_path / "sweep"
+    argv = ["sweep", "slowtoy", "--env", "toy", "--seeds", "0", *TINY, "--out", str(out)]
+    argv += ["--backend", "ray"]
+    script = _SWEEP_SCRIPT.format(
+        tests=str(ROOT / "tests"), extending=str(ROOT / "examples" / "extending"), argv=argv
+    )
+    with open(tmp_path / "sweep.log", "w") as log:
+        proc = subprocess.Popen(
+            [sys.executable, "-c", script],
+            cwd=ROOT,
+            env=_env(**{SLOW_ENV: "4.0"}),
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
+    record = out / "trials" / "seed=0" / "trial.json"
+    deadline = time.monotonic() + 180
+    while time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.5)
+        try:
+            if json.loads(record.read_text()).get("state") == "running":
+                break
+        except (OSError, ValueError):
+            continue
+    ray_processes = _descendants(proc.pid)
+    agents = [pid for pid, name in ray_processes.items() if name.strip() in RAY_AGENTS]
+    try:
+        assert len(agents) == 2, (ray_processes, (tmp_path / "sweep.log").read_text()[-2000:])
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        deadline = time.monotonic() + 10.0  # they used to live on for about a minute
+        alive = agents
+        while alive and time.monotonic() < deadline:
+            time.sleep(0.2)
+            alive = [pid for pid in agents if _is_running(pid)]
+        assert not alive, "Ray agents outlived the killed sweep"
+    finally:
+        for pid in ray_processes:
+            if _is_running(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
+def _is_running(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    except OSError:
+        return False
+    return stat[0] != "Z"
