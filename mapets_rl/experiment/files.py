@@ -30,6 +30,13 @@ from typing import Any
 
 LOCK_FILE = ".lock"
 """Name of the lock file in a run directory (see :class:`RunDirLock`)."""
+TRIAL_RECORD = "trial.json"
+"""A sweep's record of the trial whose run directory holds it (written before the run)."""
+ERROR_FILE = "error.txt"
+"""A sweep's record of why the trial whose run directory holds it failed."""
+OWN_FILES = (LOCK_FILE, TRIAL_RECORD, ERROR_FILE)
+"""What a run directory of ours may hold before its ``run.json``: a new run in a directory
+holding anything else is refused (another program's files would be overwritten)."""
 RUN_SUBDIRS = ("checkpoints", "videos", "logs")
 """The directories a run writes and prunes below its run directory."""
 _PID_WIDTH = 21
@@ -37,9 +44,12 @@ _PID_WIDTH = 21
 newline): written in place, never truncated."""
 
 __all__ = [
+    "ERROR_FILE",
     "LOCK_FILE",
+    "OWN_FILES",
     "RunDirLock",
     "RunDirLocked",
+    "TRIAL_RECORD",
     "WriteFailed",
     "atomic_savefig",
     "atomic_write",

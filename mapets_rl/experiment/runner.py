@@ -41,7 +41,7 @@ from mapets_rl.experiment.checkpoint import (
 )
 from mapets_rl.experiment.config import ExperimentConfig, RunConfig, check_device
 from mapets_rl.experiment.files import (
-    LOCK_FILE,
+    OWN_FILES,
     RunDirLock,
     atomic_write,
     atomic_write_text,
@@ -259,9 +259,10 @@ class Experiment:
 
     def _refuse_occupied_dir(self) -> None:
         """ValueError when the run directory of a new run already holds checkpoints (of
-        another run), or holds files but is not a run directory (no valid ``run.json``):
-        another program's files are never overwritten. A run directory whose earlier attempt
-        never checkpointed is started afresh."""
+        another run), or holds files but is not a run directory (no valid ``run.json``; only
+        the lock and a sweep's trial records, :data:`~mapets_rl.experiment.files.OWN_FILES`,
+        may precede it): another program's files are never overwritten. A run directory whose
+        earlier attempt never checkpointed is started afresh."""
         if list_checkpoints(self.run_dir):
             raise ValueError(
                 f"run_dir {str(self.run_dir)!r} already holds a run with "
@@ -278,7 +279,7 @@ class Experiment:
         theirs = sorted(
             entry.name
             for entry in self.run_dir.iterdir()
-            if entry.name != LOCK_FILE and not _TEMP_FILE.match(entry.name)
+            if entry.name not in OWN_FILES and not _TEMP_FILE.match(entry.name)
         )
         if theirs:
             shown = ", ".join(repr(name) for name in theirs[:3])

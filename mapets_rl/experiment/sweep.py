@@ -80,11 +80,15 @@ from typing import Any
 import yaml
 
 from mapets_rl.config import ConfigError, check, load_yaml, parse_override, read_yaml_mapping
-from mapets_rl.experiment.files import atomic_write_text, check_writable_dir, make_writable_dir
+from mapets_rl.experiment.files import (
+    ERROR_FILE,
+    TRIAL_RECORD,
+    atomic_write_text,
+    check_writable_dir,
+    make_writable_dir,
+)
 
 MANIFEST = "sweep.json"
-TRIAL_RECORD = "trial.json"
-ERROR_FILE = "error.txt"
 TRIALS_DIR = "trials"
 SUMMARY_DIR = "summary"
 BACKENDS = ("local", "ray")
