@@ -305,6 +305,15 @@ def test_a_symlink_anywhere_below_the_written_dirs_is_refused(tmp_path, where):
         check_run_subdirs(run_dir)
 
 
+@needs_root
+def test_a_checkpoints_dir_of_another_user_is_refused(tmp_path):
+    run_dir = tmp_path / "run"
+    (run_dir / "checkpoints").mkdir(parents=True)
+    os.chown(run_dir / "checkpoints", OTHER_UID, -1)
+    with pytest.raises(ValueError, match="belongs to another user"):
+        checkpoint.save_checkpoint({"step": 1}, run_dir, 1)
+
+
 # --------------------------------------------------------- scenario and recipe names
 @pytest.mark.parametrize("name", ["../../escape", "a/b", "x\nline", "..", "tab\there", " pad"])
 def test_register_env_refuses_a_name_that_is_not_a_plain_name(name, monkeypatch):

@@ -179,26 +179,41 @@ def atomic_savefig(fig: Any, path: str | os.PathLike, **savefig_kwargs: Any) -> 
 
 def check_run_subdirs(run_dir: str | os.PathLike, names: tuple[str, ...] = RUN_SUBDIRS) -> None:
     """ValueError (one line naming it) when one of the directories ``names`` of ``run_dir``,
-    or a directory anywhere below them, is a symbolic link or not a directory: a run writes,
-    truncates and deletes files there, and must never do so outside its run directory."""
+    or a directory anywhere below them, is a symbolic link, not a directory or another
+    user's: a run writes, truncates and deletes files there, and must never do so outside
+    its run directory or in another user's files."""
     run_dir = Path(run_dir)
     for name in names:
         top = run_dir / name
         if not os.path.lexists(top):
             continue
-        bad = top if top.is_symlink() or not top.is_dir() else None
-        if bad is None:
+        problem = _subdir_problem(top)
+        if problem is None:
             for parent, dirs, _ in os.walk(top):
-                bad = next((Path(parent, d) for d in dirs if os.path.islink(Path(parent, d))), None)
-                if bad is not None:
+                problem = next(
+                    (p for p in (_subdir_problem(Path(parent, d)) for d in dirs) if p), None
+                )
+                if problem is not None:
                     break
-        if bad is not None:
-            kind = "a symbolic link" if bad.is_symlink() else "not a directory"
+        if problem is not None:
             raise ValueError(
-                f"run_dir {str(run_dir)!r} cannot be used: {str(bad)!r} is {kind}; a run "
-                "writes and deletes files there, and never outside its run directory "
-                "(replace it with a plain directory)"
+                f"run_dir {str(run_dir)!r} cannot be used: {problem}; a run writes and deletes "
+                "files there, and never outside its run directory (replace it with a plain "
+                "directory of your own)"
             )
+
+
+def _subdir_problem(path: Path) -> str | None:
+    """Why directory ``path`` of a run directory cannot be written to (one phrase naming it),
+    or ``None``."""
+    st = os.lstat(path)
+    if stat.S_ISLNK(st.st_mode):
+        return f"{str(path)!r} is a symbolic link"
+    if not stat.S_ISDIR(st.st_mode):
+        return f"{str(path)!r} is not a directory"
+    if st.st_uid != os.geteuid():
+        return f"{str(path)!r} belongs to another user (uid {st.st_uid})"
+    return None
 
 
 class RunDirLocked(ValueError):
