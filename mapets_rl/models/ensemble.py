@@ -360,11 +360,12 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
             ``(delta_mean, delta_logvar)``, each ``[I, B, N, obs]``.
 
         Raises:
-            ValueError: ``dtype`` is not a floating-point dtype, or ``obs`` / ``action`` are
-                not ``[I, B or 1, N, obs]`` / ``[I, B or 1, N, act]`` (checked on the shapes
-                only: no device sync).
+            ValueError: ``dtype`` is an integer or bool torch dtype, or ``obs`` / ``action``
+                are not ``[I, B or 1, N, obs]`` / ``[I, B or 1, N, act]`` (checked on the
+                shapes only: no device sync).
+            TypeError: ``dtype`` is not a torch dtype.
         """
-        if dtype is not None and not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+        if isinstance(dtype, torch.dtype) and not dtype.is_floating_point:
             raise ValueError(f"dtype must be a floating-point torch dtype or None, got {dtype!r}.")
         for name, tensor, width in (
             ("obs", obs, self.obs_dim),
