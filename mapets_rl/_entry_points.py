@@ -8,8 +8,42 @@ loaded, so ``mapets-rl --help`` stays fast.
 
 from __future__ import annotations
 
+import os
+import unicodedata
 from importlib import metadata
 from typing import Any
+
+
+def check_name(name: object, what: str) -> str:
+    """``name`` when it can name a ``what`` (``"scenario"``, ``"recipe"``); one-line ValueError
+    otherwise. The names become part of the default run directory's name
+    (``runs/<recipe>_<scenario>_seed<N>_<time>``), so a name must be a non-empty string without
+    path separators, ``..`` or control characters (line breaks included) and without leading
+    or trailing white space."""
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"name must be a non-empty {what} name, got {name!r}")
+    separators = {"/", "\\", os.sep, os.altsep} - {None}
+    bad = next(
+        (
+            char
+            for char in name
+            if char in separators or unicodedata.category(char) in ("Cc", "Cf", "Zl", "Zp")
+        ),
+        None,
+    )
+    if bad is not None or ".." in name or name != name.strip():
+        why = (
+            f"the character {bad!r}"
+            if bad is not None
+            else "'..'"
+            if ".." in name
+            else "leading or trailing white space"
+        )
+        raise ValueError(
+            f"{what} name {name!r} is refused: it holds {why} (a name becomes part of the run "
+            "directory's name: no path separators, '..' or control characters)"
+        )
+    return name
 
 
 def entry_points(group: str) -> dict[str, metadata.EntryPoint]:

@@ -27,6 +27,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
+import stat
 import types
 import typing
 from collections.abc import Hashable, Iterable, Mapping
@@ -204,7 +206,14 @@ class ConfigSection(ConfigFields):
 
 MAX_CONFIG_BYTES = 1 << 20
 """The largest config file read (1 MiB: a config is a few hundred bytes; this bounds a read of
-``/dev/zero`` or of a wrong file)."""
+a wrong file)."""
+MAX_CONFIG_DEPTH = 32
+"""The deepest nesting of mappings and lists a config (file, override value or dotted key)
+may have: a config nests two or three levels; this bounds the recursion of reading it."""
+
+
+class ConfigTooDeep(yaml.composer.ComposerError):
+    """A YAML document nests deeper than :data:`MAX_CONFIG_DEPTH`."""
 
 
 class _ConfigLoader(yaml.SafeLoader):
@@ -212,13 +221,24 @@ class _ConfigLoader(yaml.SafeLoader):
     a key given twice is refused (the safe loader keeps the last silently), and so are aliases
     (``*name``), whose nested expansion ("billion laughs") can take unbounded memory."""
 
+    _depth = 0
+
     def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node | None:
         if self.check_event(yaml.AliasEvent):
             mark = self.peek_event().start_mark
             raise yaml.composer.ComposerError(
                 None, None, "aliases (*name) are not accepted in a config", mark
             )
-        return super().compose_node(parent, index)
+        if self._depth >= MAX_CONFIG_DEPTH:
+            mark = self.peek_event().start_mark
+            raise ConfigTooDeep(
+                None, None, f"nested deeper than {MAX_CONFIG_DEPTH} levels (not a config)", mark
+            )
+        self._depth += 1
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
         seen: set[Any] = set()
@@ -233,9 +253,19 @@ class _ConfigLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
+# YAML 1.2 floats: PyYAML (YAML 1.1) reads 1e3, 3e-4 and 1.5e3 as strings (its floats need a
+# dot and a signed exponent); ints still resolve first, as the int resolver comes before
+_ConfigLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)(?:[eE][-+]?[0-9]+)?$"),
+    list("-+0123456789."),
+)
+
+
 def load_yaml(text: str) -> Any:
-    """``text`` parsed as YAML by the config loader (safe types only; duplicate keys and
-    aliases refused with a ``yaml.YAMLError``)."""
+    """``text`` parsed as YAML by the config loader (safe types only; duplicate keys, aliases
+    and nesting deeper than :data:`MAX_CONFIG_DEPTH` refused with a ``yaml.YAMLError``;
+    ``1e3`` is a float, as in YAML 1.2)."""
     return yaml.load(text, Loader=_ConfigLoader)  # noqa: S506 - a SafeLoader subclass
 
 
@@ -245,19 +275,34 @@ def parse_override(item: str) -> tuple[str, Any]:
     key = key.strip()
     if not sep or not key:
         raise ConfigError(f"override {item!r} must look like key=value")
+    if key.count(".") >= MAX_CONFIG_DEPTH:
+        raise ConfigError(
+            f"override key {key[:40]!r}... nests deeper than {MAX_CONFIG_DEPTH} levels"
+        )
     try:
         value = load_yaml(raw) if raw.strip() else ""
+    except ConfigTooDeep:
+        raise ConfigError(
+            f"the value of {key} nests deeper than {MAX_CONFIG_DEPTH} levels (not a config value)"
+        ) from None
     except yaml.YAMLError:
         value = raw
     return key, value
 
 
 def read_yaml_mapping(path: str | os.PathLike) -> dict[str, Any]:
-    """The mapping a YAML file holds; ConfigError (one line naming the file) when it cannot be
-    read, is larger than :data:`MAX_CONFIG_BYTES`, is not valid YAML (a key given twice and
-    aliases included) or does not hold a mapping."""
+    """The mapping a YAML file holds; ConfigError (one line naming the file) when it is not a
+    regular file (a FIFO or terminal would block the read), cannot be read, is larger than
+    :data:`MAX_CONFIG_BYTES`, is not valid YAML (a key given twice, aliases and nesting deeper
+    than :data:`MAX_CONFIG_DEPTH` included) or does not hold a mapping."""
     try:
-        with open(path, "rb") as fh:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+        with os.fdopen(fd, "rb") as fh:
+            if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
+                raise ConfigError(
+                    f"config file {str(path)!r} is not a regular file (a FIFO, device or "
+                    "directory): not a config"
+                )
             raw = fh.read(MAX_CONFIG_BYTES + 1)
         if len(raw) > MAX_CONFIG_BYTES:
             raise ConfigError(

@@ -82,6 +82,11 @@ default; the others, the cost of training (``step_time``, ``train_time``), bookk
 (``episode``, ``frames``, ``transitions_*``, ``bytes_shared``, ``dataset_size``) and recipe
 internals (losses, exploration rates), only when asked for by name."""
 
+TIMING_METRICS: frozenset[str] = frozenset({"step_time", "train_time"})
+"""Metrics that are measured wall-clock durations: they differ between any two runs, so a run
+keeps them apart from its results and checkpoints (``timings.json``), which are then the same
+byte for byte for two identical runs."""
+
 METRIC_RANGES: dict[str, tuple[float, float]] = {
     "agility": (0.0, math.inf),
     "safety": (0.0, 1.0),
@@ -113,6 +118,12 @@ def metric_range(name: str) -> tuple[float, float]:
     """``(low, high)`` of metric ``name`` (:data:`METRIC_RANGES`; ``(-inf, inf)`` when it
     declares none); ``"train/safety"`` and ``"safety"`` alike."""
     return METRIC_RANGES.get(name.rsplit("/", 1)[-1], (-math.inf, math.inf))
+
+
+def is_timing_metric(name: str) -> bool:
+    """Whether ``name`` (``"train/step_time"`` and ``"step_time"`` alike) is one of
+    :data:`TIMING_METRICS`."""
+    return name.rsplit("/", 1)[-1] in TIMING_METRICS
 
 
 def is_task_metric(name: str) -> bool:

@@ -69,7 +69,12 @@ from mapets_rl.planning import (
     TerminationFn,
     TrajectorySamplingCEM,
 )
-from mapets_rl.planning.memory import available_memory, ensemble_bytes, planner_bytes
+from mapets_rl.planning.memory import (
+    available_memory,
+    dataset_bytes,
+    ensemble_bytes,
+    planner_bytes,
+)
 
 FIGURE_EIGHT_REWARD_FIELDS = (
     "collision_gap",
@@ -502,17 +507,22 @@ class MAPETS(Experiment):
             )
         planner, model = config.planner, config.model
         dims = (group.n_agents, group.obs_dim, group.action_dim)
-        need = planner_bytes(
-            *dims, model.hidden, planner.population, planner.particles, planner.horizon
-        ) + ensemble_bytes(*dims, model.hidden, model.ensemble_size)
+        need = (
+            planner_bytes(
+                *dims, model.hidden, planner.population, planner.particles, planner.horizon
+            )
+            + ensemble_bytes(*dims, model.hidden, model.ensemble_size)
+            + dataset_bytes(*dims, model.buffer_size)
+        )
         free = available_memory(config.device)
         if free is not None and need > free:
             raise ValueError(
-                f"the planner and ensembles need about {need / 2**30:.1f} GiB on "
+                f"the planner, ensembles and datasets need about {need / 2**30:.1f} GiB on "
                 f"{config.device} ({group.n_agents} agents x planner.population="
                 f"{planner.population} x planner.particles={planner.particles}, model.hidden="
-                f"{list(model.hidden)}), more than the {free / 2**30:.1f} GiB available: lower "
-                "planner.population, planner.particles or model.hidden"
+                f"{list(model.hidden)}, model.buffer_size={model.buffer_size}), more than the "
+                f"{free / 2**30:.1f} GiB available: lower planner.population, "
+                "planner.particles, model.hidden or model.buffer_size"
             )
 
     def make_loss(self, model: ProbabilisticEnsemble) -> LossModule:
@@ -542,6 +552,11 @@ class MAPETS(Experiment):
         }
 
     # ------------------------------------------------------------------ the loop
+    def progress(self) -> tuple[int, int]:
+        """``(episodes done, config.episodes)``: the loop of :meth:`train` runs while more are
+        due (and a resume that asks for fewer episodes than were done is refused)."""
+        return self.episode, self.config.episodes
+
     def train(
         self, on_episode_end: Callable[[dict[str, float]], None] | None = None
     ) -> list[dict[str, Any]]:
@@ -560,7 +575,6 @@ class MAPETS(Experiment):
         cfg = self.config
         with self.training_loop(
             on_episode_end,
-            progress=lambda: (self.episode, cfg.episodes),
             label=f"{self.name} {cfg.env} d={cfg.comm.comm_range:g} seed {cfg.seed}",
             postfix=lambda m, fps: {k: f"{m[k]:.3g}" for k in ("agility", "safety") if k in m},
         ) as loop:

@@ -18,6 +18,7 @@ FLOORS = {
     "mapets_rl": 0,  # the package root (quiet_dependencies)
     "mapets_rl._console": 0,
     "mapets_rl._entry_points": 0,
+    "mapets_rl._compile_cache": 0,
     "mapets_rl.config": 0,
     "mapets_rl.metrics": 0,
     "mapets_rl.envs": 1,

@@ -219,7 +219,7 @@ CLI_CASES = [
         "total_frames must be >= frames_per_batch=200",
     ),
     ("seed=2**64", TRAIN + [f"seed={2**64}"], r"seed must be in \[0, 4611686018427387903\]"),
-    ("--config /dev/zero", TRAIN + ["--config", "/dev/zero"], "larger than 1048576 bytes"),
+    ("--config /dev/zero", TRAIN + ["--config", "/dev/zero"], "is not a regular file"),
     (
         "--config duplicate key",
         TRAIN + ["--config", "{dup_yaml}"],

@@ -61,7 +61,7 @@ def test_second_experiment_on_the_same_run_dir_is_refused_and_changes_nothing(
     run = tmp_path / "run"
     first = ToyLearner(ToyConfig(seed=0, total_frames=40), run)
     before = _snapshot(run)
-    assert (run / LOCK_FILE).read_text() == f"{os.getpid()}\n"
+    assert (run / LOCK_FILE).read_text().strip() == str(os.getpid())
     with pytest.raises(RunDirLocked) as err:
         ToyLearner(ToyConfig(seed=1, total_frames=40), run)
     message = str(err.value)
@@ -83,7 +83,7 @@ def test_second_experiment_on_the_same_run_dir_is_refused_and_changes_nothing(
     with pytest.raises(RunDirLocked, match=f"pid {os.getpid()}"):
         ToyLearner.from_run_dir(run)
     resumed.train()
-    assert resumed.frames == 60 and (run / LOCK_FILE).read_text() == ""
+    assert resumed.frames == 60 and (run / LOCK_FILE).read_text().strip() == ""
 
 
 def test_close_context_manager_and_garbage_collection_release_the_lock(tmp_path: Path) -> None:
@@ -156,7 +156,9 @@ def test_a_lock_held_by_another_process_refuses_every_writer_naming_its_pid(
             assert err_text.count("\n") == 1 and err_text.startswith("mapets-rl: error: ")
             if argv[0] != "train":  # train first refuses a directory that holds checkpoints
                 assert f"pid {holder.pid}" in err_text, err_text
-        assert _snapshot(run) == {**before, LOCK_FILE: f"{holder.pid}\n".encode()}
+        after = _snapshot(run)
+        assert after.pop(LOCK_FILE).split() == [str(holder.pid).encode()]
+        assert after == {k: v for k, v in before.items() if k != LOCK_FILE}
     finally:
         holder.stdin.close()
         holder.wait(timeout=60)
@@ -189,19 +191,19 @@ def test_kill_9_of_the_holder_leaves_no_stale_lock(tmp_path: Path) -> None:
         ToyLearner.from_run_dir(run)
     holder.send_signal(signal.SIGKILL)
     assert holder.wait(timeout=60) == -signal.SIGKILL
-    assert (run / LOCK_FILE).read_text() == f"{holder.pid}\n"  # its pid is left, not its lock
+    assert (run / LOCK_FILE).read_text().strip() == str(holder.pid)  # its pid is left, not lock
     resumed = ToyLearner.from_run_dir(run, overrides=["total_frames=40"])
-    assert (run / LOCK_FILE).read_text() == f"{os.getpid()}\n"
+    assert (run / LOCK_FILE).read_text().strip() == str(os.getpid())
     resumed.train()
     assert resumed.frames == 40
 
 
 def test_run_dir_lock_protocol(tmp_path: Path) -> None:
     with RunDirLock.acquire(tmp_path) as lock:
-        assert lock.held and (tmp_path / LOCK_FILE).read_text() == f"{os.getpid()}\n"
+        assert lock.held and (tmp_path / LOCK_FILE).read_text().strip() == str(os.getpid())
         with pytest.raises(RunDirLocked, match="this process"):
             RunDirLock.acquire(tmp_path)
-    assert not lock.held and (tmp_path / LOCK_FILE).read_text() == ""
+    assert not lock.held and (tmp_path / LOCK_FILE).read_text().strip() == ""
     RunDirLock.acquire(tmp_path).release()
     with pytest.raises(ValueError, match="cannot be locked"):
         RunDirLock.acquire(tmp_path / "missing")

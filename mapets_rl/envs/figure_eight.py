@@ -62,6 +62,9 @@ from mapets_rl.envs.validation import (
 from mapets_rl.envs.vehicles import HumanVehicle, TargetSpeedVehicle, clip, idm_acceleration
 from mapets_rl.metrics import agility, safety
 
+MAX_LENGTH = 20_000.0
+"""The longest figure-eight loop [m] (the default is 480 m): the initial vehicle slots are laid
+out along it, so a typo such as ``length=1e15`` would ask for petabytes."""
 MAX_SPEED = 13.89
 """Speed limit of the figure-eight [m/s] (50 km/h)."""
 GAP_RANGE = 75.0
@@ -265,7 +268,7 @@ class FigureEightEnv(MultiAgentTrafficEnv):
             config["observation"] in OBSERVATIONS,
             f"observation must be one of {sorted(OBSERVATIONS)}, got {config['observation']!r}",
         )
-        require_number(config, "length", low=0.0, low_open=True, unit="m")
+        require_number(config, "length", low=0.0, low_open=True, high=MAX_LENGTH, unit="m")
         require_number(
             config, "max_speed", low=0.0, low_open=True, high=PHYSICAL_MAX_SPEED, unit="m/s"
         )

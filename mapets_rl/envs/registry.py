@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
-from mapets_rl._entry_points import entry_points, load_entry_point
+from mapets_rl._entry_points import check_name, entry_points, load_entry_point
 
 if TYPE_CHECKING:
     from torchrl.envs import EnvBase
@@ -85,6 +85,7 @@ def register_builtin(
     ``changes`` what the scenario changes from that class's defaults, ``gym_id`` its
     gymnasium id and ``planner_reward`` / ``planner_termination`` what a planner scores its
     trajectories with (see :class:`Scenario`). A name registered before raises ValueError."""
+    check_name(name, "scenario")
     if name in _SCENARIOS:
         raise ValueError(f"scenario {name!r} is already registered")
     _SCENARIOS[name] = Scenario(
@@ -105,10 +106,11 @@ def register_env(name: str, factory: Callable[..., EnvBase], overwrite: bool = F
 
     Registering a name that already exists (a built-in scenario, an installed one, or another
     factory under the same name) raises ValueError unless ``overwrite=True``; registering the
-    same factory again is a no-op.
+    same factory again is a no-op. ``name`` must be a non-empty string without path
+    separators, ``..`` or control characters (it becomes part of the default run directory's
+    name); ValueError otherwise.
     """
-    if not isinstance(name, str) or not name:
-        raise ValueError(f"name must be a non-empty scenario name, got {name!r}")
+    check_name(name, "scenario")
     if not callable(factory):
         raise ValueError(
             f"factory must be callable (factory(**env_config) -> EnvBase), got "
@@ -168,6 +170,12 @@ def build_env(name: str, env_config: Mapping[str, Any] | None = None) -> EnvBase
         return scenario.factory(**env_config)
     if name in _installed_envs():
         factory = load_entry_point(SCENARIO_GROUP, name, "scenario")
+        if not callable(factory):
+            raise ValueError(
+                f"scenario {name!r} ({entry_points(SCENARIO_GROUP)[name].value}) is not a "
+                f"factory (factory(**env_config) -> EnvBase) but {type(factory).__name__}; "
+                "the installed package that declares it is broken"
+            )
         return factory(**env_config)
     raise ValueError(f"unknown scenario name {name!r}; choose one of {available_envs()}")
 

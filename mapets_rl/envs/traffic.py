@@ -30,7 +30,7 @@ from mapets_rl.envs.rendering import (
     paint_vehicles,
 )
 from mapets_rl.envs.road import SortedNeighbourRoad
-from mapets_rl.envs.validation import is_integer, require_number
+from mapets_rl.envs.validation import is_integer, require_number, require_rendering
 
 
 def require(condition: bool, message: str) -> None:
@@ -152,6 +152,7 @@ class MultiAgentTrafficEnv(AbstractEnv):
             f"simulation_frequency must be a positive multiple of policy_frequency={policy} "
             f"[Hz] (otherwise simulated time is silently lost), got {sim!r}",
         )
+        require_rendering(config)
 
     # --- scene -------------------------------------------------------------------------------
     def _reset(self) -> None:

@@ -83,3 +83,47 @@ def require_range(
             f"{key} must be a range (lo, hi) of finite numbers with {lo}lo <= hi"
             f"{hi}{unit}, got {value!r}"
         )
+
+
+RENDERING_FLAGS = (
+    "offscreen_rendering",
+    "real_time_rendering",
+    "render_agent",
+    "show_trajectories",
+    "stock_neighbour_search",
+)
+"""Config keys of every traffic scenario that must be booleans (``"no"`` would read as true)."""
+MAX_SCREEN_PIXELS = 4096
+"""The largest ``screen_width`` / ``screen_height`` a scenario draws [px]: a frame of 4096 x
+4096 RGB pixels is 48 MiB, and a video keeps one per step."""
+
+
+def require_rendering(config: dict) -> None:
+    """ValueError naming the first rendering key of ``config`` (highway-env's, present in every
+    traffic scenario) that is not valid: the flags of :data:`RENDERING_FLAGS` must be booleans,
+    ``screen_width`` / ``screen_height`` integers in ``[1, MAX_SCREEN_PIXELS]``, ``scaling`` a
+    finite number > 0 (pixels per metre) and ``centering_position`` a pair of numbers in
+    ``[0, 1]`` (the ego vehicle's place on the screen, as fractions of its size)."""
+    for key in RENDERING_FLAGS:
+        if key in config and not isinstance(config[key], bool | np.bool_):
+            raise ValueError(f"{key} must be true or false, got {config[key]!r}")
+    for key in ("screen_width", "screen_height"):
+        value = config.get(key)
+        if key in config and not (is_integer(value) and 1 <= value <= MAX_SCREEN_PIXELS):
+            raise ValueError(
+                f"{key} must be an integer in [1, {MAX_SCREEN_PIXELS}] [px], got {value!r}"
+            )
+    if "scaling" in config:
+        require_number(config, "scaling", 0.0, 1000.0, low_open=True, unit="px/m")
+    if "centering_position" in config:
+        value = config["centering_position"]
+        ok = (
+            isinstance(value, list | tuple | np.ndarray)
+            and len(value) == 2
+            and all(is_real(v) and 0 <= v <= 1 for v in value)
+        )
+        if not ok:
+            raise ValueError(
+                "centering_position must be a pair [x, y] of numbers in [0, 1] (fractions of "
+                f"the screen), got {value!r}"
+            )

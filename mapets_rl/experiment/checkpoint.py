@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mapets_rl.experiment.files import atomic_write, atomic_write_text
+from mapets_rl.experiment.files import atomic_write, atomic_write_text, check_run_subdirs
 
 CHECKPOINT_DIR = "checkpoints"
 DIGEST_SUFFIX = ".sha256"
@@ -266,7 +266,8 @@ def save_checkpoint(
 ) -> Path:
     """Write ``state`` as ``run_dir/checkpoints/ckpt_<step>.pt`` (+ digest) atomically; keep the
     newest ``keep_last`` checkpoints that verify and delete older ones (only after the new one
-    is in place).
+    is in place). A ``checkpoints/`` that is a symbolic link is refused (ValueError): pruning
+    never deletes outside ``run_dir``.
 
     A file named like a checkpoint that does not verify (:func:`checkpoint_problem`) is not
     counted among the kept ones and is not deleted: it is reported in one logged warning
@@ -276,6 +277,7 @@ def save_checkpoint(
         raise ValueError(f"step must be >= 0, got {step}")
     if keep_last < 1:
         raise ValueError(f"keep_last must be >= 1, got {keep_last}")
+    check_run_subdirs(run_dir, (CHECKPOINT_DIR,))
     path = atomic_torch_save(state, Path(run_dir) / CHECKPOINT_DIR / f"ckpt_{step:012d}.pt")
     verified = []
     for candidate in list_checkpoints(run_dir):
@@ -398,8 +400,11 @@ def remove_stale_files(run_dir: str | os.PathLike) -> list[Path]:
     run dir, ``checkpoints/`` and ``videos/``) and digest files whose checkpoint is gone.
 
     Call it only when no other process writes to ``run_dir``. Returns the removed paths.
+    A ``checkpoints/`` or ``videos/`` that is a symbolic link is refused (ValueError): nothing
+    outside ``run_dir`` is deleted.
     """
     run_dir = Path(run_dir)
+    check_run_subdirs(run_dir, (CHECKPOINT_DIR, "videos"))
     ckpt_dir = run_dir / CHECKPOINT_DIR
     stale = [
         path

@@ -26,11 +26,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from collections.abc import Sequence
 from typing import Any, NoReturn
 
 from mapets_rl import quiet_dependencies
+from mapets_rl._compile_cache import prepare_compile_cache
 from mapets_rl.experiment.threads import prepare_process
 
 PROG = "mapets-rl"
@@ -149,7 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="train a recipe on a scenario",
         description="Train RECIPE on SCENARIO. The run directory receives config.yaml (the "
         "resolved config), results.json (metrics of every evaluation, and of training episodes for "
-        "recipes that record them), checkpoints/ and logs/.",
+        "recipes that record them; their measured durations go to timings.json), checkpoints/ "
+        "and logs/. A --run-dir that holds files but is not a run directory is refused.",
         epilog="Any config field can be set as key=value (value parsed as YAML), e.g. "
         "total_frames=30000 lr=3e-4 env_config.n_cavs=8 logger=tensorboard video=true. "
         "`mapets-rl train RECIPE --help` lists the scenarios RECIPE supports and its fields "
@@ -335,8 +338,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if args.seed is not None:
         overrides.append(f"seed={args.seed}")
     try:
-        config = cls.Config.from_yaml(args.config) if args.config else cls.Config()
-        config = config.with_overrides(overrides + user_overrides)
+        if args.config:  # validated once, with the overrides applied to the file's fields
+            config = cls.Config.from_yaml(args.config, overrides + user_overrides)
+        else:
+            config = cls.Config().with_overrides(overrides + user_overrides)
     except ConfigError as err:
         _fail(str(err))
     if args.run_dir is not None:
@@ -351,6 +356,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         exp = cls(config, run_dir)
     except ValueError as err:
         _fail(str(err))
+    except OSError as err:
+        _fail_setup(err)
     _train(exp)
     print(
         json.dumps(
@@ -394,6 +401,19 @@ def _load_run(run_dir: str, overrides: Sequence[str] = ()):
         return cls.from_run_dir(run_dir, overrides=list(overrides))
     except ValueError as err:
         _fail(str(err))
+    except OSError as err:
+        _fail_setup(err)
+
+
+def _fail_setup(err: OSError) -> NoReturn:
+    """One line for an OSError while a run is set up, e.g. the shared memory of a replay
+    buffer under a file-size limit (``ulimit -f``) or on a full ``/dev/shm``."""
+    import errno
+
+    reason = err.strerror or str(err) or type(err).__name__
+    if err.errno == errno.EFBIG:
+        reason += " (the file size limit, ulimit -f, was reached)"
+    _fail(f"the run cannot be set up: {reason}")
 
 
 def _cmd_resume(args: argparse.Namespace) -> int:
@@ -639,6 +659,10 @@ def _recipe_help(name: str) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``mapets-rl`` console script."""
     prepare_process()  # the OpenMP wait policy must be set before anything imports torch
+    try:  # so must torch.compile's cache: importing torch creates it
+        prepare_compile_cache()
+    except ValueError as err:
+        _fail(str(err))
     quiet_dependencies()
     argv = list(sys.argv[1:] if argv is None else argv)
     if (
@@ -673,4 +697,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    # `python -m mapets_rl.experiment.cli` puts the working directory first on sys.path: run
+    # inside a run directory from elsewhere, a module or *.dist-info entry point planted there
+    # would be imported as a recipe or scenario (the mapets-rl command has no such entry)
+    if sys.path and sys.path[0] in ("", os.getcwd()):
+        del sys.path[0]
     sys.exit(main())

@@ -172,16 +172,21 @@ class RunConfig(ConfigFields):
         return {k: v for k, v in data.items() if k not in cls.retired_fields}
 
     @classmethod
-    def from_yaml(cls, path: str | os.PathLike) -> RunConfig:
+    def from_yaml(cls, path: str | os.PathLike, overrides: Iterable[str] = ()) -> RunConfig:
         """Build from a YAML file of fields (old keys renamed by :meth:`rename_old_keys`, older
-        layouts upgraded by :meth:`upgrade_dict`); every error is a one-line ConfigError."""
+        layouts upgraded by :meth:`upgrade_dict`) with ``key=value`` ``overrides`` applied to
+        it; the result is validated once, as a whole (a file may leave to an override what
+        only the combination makes valid). Every error is a one-line ConfigError."""
         data = cls.upgrade_dict(
             cls.rename_old_keys(read_yaml_mapping(path), f"config file {str(path)!r}")
         )
+        overrides = list(overrides)
+        data = cls._apply_overrides(data, overrides)
         try:
             return cls.from_dict(data)
         except ConfigError as err:
-            raise ConfigError(f"config file {str(path)!r}: {err}") from None
+            with_overrides = " with the key=value overrides" if overrides else ""
+            raise ConfigError(f"config file {str(path)!r}{with_overrides}: {err}") from None
 
     def to_dict(self) -> dict[str, Any]:
         return {f.name: to_plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
@@ -197,12 +202,32 @@ class RunConfig(ConfigFields):
 
     @classmethod
     def _apply_overrides(cls, data: dict[str, Any], overrides: Iterable[str]) -> dict[str, Any]:
-        """``data`` (a :meth:`to_dict` mapping) with ``key=value`` strings applied."""
+        """``data`` (a :meth:`to_dict` mapping, or the fields a config file gives: a field it
+        leaves out starts from its default) with ``key=value`` strings applied. Two overrides
+        of the same key, or of a key and a key inside it (``planner={horizon: 6}
+        planner.horizon=5``), are refused: which one would win is not obvious."""
+        given: dict[str, str] = {}
         for item in overrides:
             key, value = parse_override(item)
+            clash = next(
+                (
+                    k
+                    for k in given
+                    if k == key or key.startswith(f"{k}.") or k.startswith(f"{key}.")
+                ),
+                None,
+            )
+            if clash is not None:
+                inner = min(clash, key, key=len)
+                raise ConfigError(f"{given[clash]!r} and {item!r} both set {inner}: give it once")
+            given[key] = item
             head, _, rest = key.partition(".")
+            if head not in data and head in cls.field_names():
+                data[head] = cls._plain_default(head)
             if head not in data:
                 raise unknown_key_error(cls, head)
+            if rest and data[head] is None:
+                data[head] = {}  # a section a preset fills (MA-PETS' planner, model)
             if rest:
                 if not isinstance(data[head], dict):
                     raise ConfigError(f"config key {head!r} is not a mapping; cannot set {key!r}")
@@ -219,6 +244,17 @@ class RunConfig(ConfigFields):
             else:
                 data[head] = value
         return data
+
+    @classmethod
+    def _plain_default(cls, name: str) -> Any:
+        """The default of field ``name`` as :meth:`to_dict` writes it (``None`` when it has
+        none)."""
+        field = next(f for f in dataclasses.fields(cls) if f.name == name)
+        if field.default is not dataclasses.MISSING:
+            return to_plain(field.default)
+        if field.default_factory is not dataclasses.MISSING:
+            return to_plain(field.default_factory())
+        return None
 
 
 _FRAMES = {"unit": "frames"}

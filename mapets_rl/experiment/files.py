@@ -9,6 +9,12 @@ its whole life: an exclusive ``flock`` on ``RUN_DIR/.lock``, which the kernel dr
 process ends however it ends (kill -9 included), so a lock is never left stale. A second writer
 is refused with a :class:`RunDirLocked` error naming the pid of the holder before it writes
 anything.
+
+Nothing a run writes or deletes lies outside its run directory, even in a run directory that
+came from elsewhere (downloaded, shared): ``.lock`` is opened without following a symbolic link
+and must be a regular file of this user's own with no other name, and the directories a run
+writes and prunes (``checkpoints/``, ``videos/``, ``logs/`` and everything below them) must not
+be symbolic links (:func:`check_run_subdirs`).
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ from __future__ import annotations
 import errno
 import fcntl
 import os
+import stat
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -23,15 +30,31 @@ from typing import Any
 
 LOCK_FILE = ".lock"
 """Name of the lock file in a run directory (see :class:`RunDirLock`)."""
+TRIAL_RECORD = "trial.json"
+"""A sweep's record of the trial whose run directory holds it (written before the run)."""
+ERROR_FILE = "error.txt"
+"""A sweep's record of why the trial whose run directory holds it failed."""
+OWN_FILES = (LOCK_FILE, TRIAL_RECORD, ERROR_FILE)
+"""What a run directory of ours may hold before its ``run.json``: a new run in a directory
+holding anything else is refused (another program's files would be overwritten)."""
+RUN_SUBDIRS = ("checkpoints", "videos", "logs")
+"""The directories a run writes and prunes below its run directory."""
+_PID_WIDTH = 21
+"""Bytes of the pid record at the start of ``.lock`` (the pid, padded with spaces, and a
+newline): written in place, never truncated."""
 
 __all__ = [
+    "ERROR_FILE",
     "LOCK_FILE",
+    "OWN_FILES",
     "RunDirLock",
     "RunDirLocked",
+    "TRIAL_RECORD",
     "WriteFailed",
     "atomic_savefig",
     "atomic_write",
     "atomic_write_text",
+    "check_run_subdirs",
     "check_writable_dir",
     "make_writable_dir",
     "write_failed",
@@ -154,6 +177,45 @@ def atomic_savefig(fig: Any, path: str | os.PathLike, **savefig_kwargs: Any) -> 
     atomic_write(path, lambda tmp: fig.savefig(tmp, **savefig_kwargs))
 
 
+def check_run_subdirs(run_dir: str | os.PathLike, names: tuple[str, ...] = RUN_SUBDIRS) -> None:
+    """ValueError (one line naming it) when one of the directories ``names`` of ``run_dir``,
+    or a directory anywhere below them, is a symbolic link, not a directory or another
+    user's: a run writes, truncates and deletes files there, and must never do so outside
+    its run directory or in another user's files."""
+    run_dir = Path(run_dir)
+    for name in names:
+        top = run_dir / name
+        if not os.path.lexists(top):
+            continue
+        problem = _subdir_problem(top)
+        if problem is None:
+            for parent, dirs, _ in os.walk(top):
+                problem = next(
+                    (p for p in (_subdir_problem(Path(parent, d)) for d in dirs) if p), None
+                )
+                if problem is not None:
+                    break
+        if problem is not None:
+            raise ValueError(
+                f"run_dir {str(run_dir)!r} cannot be used: {problem}; a run writes and deletes "
+                "files there, and never outside its run directory (replace it with a plain "
+                "directory of your own)"
+            )
+
+
+def _subdir_problem(path: Path) -> str | None:
+    """Why directory ``path`` of a run directory cannot be written to (one phrase naming it),
+    or ``None``."""
+    st = os.lstat(path)
+    if stat.S_ISLNK(st.st_mode):
+        return f"{str(path)!r} is a symbolic link"
+    if not stat.S_ISDIR(st.st_mode):
+        return f"{str(path)!r} is not a directory"
+    if st.st_uid != os.geteuid():
+        return f"{str(path)!r} belongs to another user (uid {st.st_uid})"
+    return None
+
+
 class RunDirLocked(ValueError):
     """Another process (or another object of this process) holds the lock of a run
     directory."""
@@ -192,13 +254,26 @@ class RunDirLock:
         path = run_dir / LOCK_FILE
         umask = os.umask(0)
         os.umask(umask)
+        flags = os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW | os.O_NONBLOCK
         try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666 & ~umask)
+            fd = os.open(path, flags, 0o666 & ~umask)
         except OSError as err:
+            reason = (
+                "it is a symbolic link"
+                if err.errno == errno.ELOOP
+                else err.strerror or type(err).__name__
+            )
             raise ValueError(
                 f"{what} {str(run_dir)!r} cannot be locked: {str(path)!r} cannot be "
-                f"opened ({err.strerror or type(err).__name__})"
+                f"opened ({reason})"
             ) from None
+        problem = _lock_file_problem(os.fstat(fd))
+        if problem is not None:
+            os.close(fd)
+            raise ValueError(
+                f"{what} {str(run_dir)!r} cannot be locked: {str(path)!r} {problem} (a run "
+                "directory's lock must be a regular file of your own); remove it"
+            )
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as err:
@@ -216,11 +291,7 @@ class RunDirLock:
                 f"{what} {str(run_dir)!r} is in use by another writer ({who} holds "
                 f"{LOCK_FILE}); wait for it to finish or choose another {what}"
             ) from None
-        try:
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        except OSError:
-            pass  # the pid is only informative: the lock is held either way
+        _write_pid(fd, str(os.getpid()))
         return cls(run_dir, fd)
 
     @property
@@ -234,9 +305,7 @@ class RunDirLock:
         if fd is None:
             return
         try:
-            os.ftruncate(fd, 0)
-        except OSError:
-            pass
+            _write_pid(fd, "")
         finally:
             os.close(fd)  # closing the last descriptor of the open file unlocks it
 
@@ -257,10 +326,32 @@ class RunDirLock:
         return f"{type(self).__name__}({str(self.run_dir)!r}, {state})"
 
 
+def _lock_file_problem(st: os.stat_result) -> str | None:
+    """What makes the opened ``.lock`` with status ``st`` unfit to be written (one phrase), or
+    ``None``: it must be a regular file of this user's own with no other name (a hard link to
+    another file would let the pid record overwrite that file's first bytes)."""
+    if not stat.S_ISREG(st.st_mode):
+        return "is not a regular file"
+    if st.st_uid != os.geteuid():
+        return f"belongs to another user (uid {st.st_uid})"
+    if st.st_nlink != 1:
+        return f"has {st.st_nlink} names (a hard link to another file)"
+    return None
+
+
+def _write_pid(fd: int, pid: str) -> None:
+    """Write ``pid`` (``""`` to clear it) as the fixed-width record at the start of the open
+    lock file, in place: the file is never truncated."""
+    try:
+        os.pwrite(fd, f"{pid:<{_PID_WIDTH - 1}}\n".encode(), 0)
+    except OSError:
+        pass  # the pid is only informative: the lock is held either way
+
+
 def _read_pid(fd: int) -> int | None:
     """The pid written in an open lock file, ``None`` when it holds none."""
     try:
-        text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+        text = os.pread(fd, _PID_WIDTH, 0).decode("ascii", "replace").strip()
     except OSError:
         return None
     return int(text) if text.isdigit() else None

@@ -31,5 +31,15 @@ def available_recipes() -> list[str]:
 
 def load_recipe(name: str) -> type:
     """The recipe class installed as ``name`` (an ``Experiment`` subclass); one-line ValueError
-    naming the known recipes when there is none of that name."""
-    return load_entry_point(RECIPE_GROUP, name, "recipe")
+    naming the known recipes when there is none of that name, and when the entry point names
+    anything but an ``Experiment`` subclass."""
+    recipe = load_entry_point(RECIPE_GROUP, name, "recipe")  # an unknown name: before torch
+    from mapets_rl.experiment.runner import Experiment
+
+    if not (isinstance(recipe, type) and issubclass(recipe, Experiment)):
+        raise ValueError(
+            f"recipe {name!r} ({entry_points(RECIPE_GROUP)[name].value}) is not an Experiment "
+            f"subclass (it is {type(recipe).__name__} {recipe!r:.60}); the installed package "
+            "that declares it is broken"
+        )
+    return recipe

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 from collections.abc import Iterable, Mapping
@@ -13,9 +14,14 @@ from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLo
 
 from mapets_rl.experiment.config import LOGGERS, check_logger_package
 from mapets_rl.experiment.files import atomic_write_text, write_failed
-from mapets_rl.metrics import METRIC_UNITS, metric_unit
+from mapets_rl.metrics import METRIC_UNITS, is_timing_metric, metric_unit
+
+log = logging.getLogger(__name__)
 
 RESULTS_FILE = "results.json"
+TIMINGS_FILE = "timings.json"
+"""Beside ``results.json``: the wall-clock metrics (:data:`mapets_rl.metrics.TIMING_METRICS`)
+of its entries, which ``results.json`` and the checkpoints leave out."""
 UNITS_FILE = "units.json"
 """Written beside the logger's files (``RUN_DIR/logs/units.json``): metric name -> unit."""
 
@@ -121,11 +127,13 @@ class RunLogger:
       those steps again). A fresh run (no checkpoint) in a directory with logs of an attempt
       that never checkpointed starts from empty CSV logs;
     - for TensorBoard, whose event files cannot be truncated, starts a new event file (as every
-      ``SummaryWriter`` does) whose first event is a restart marker at ``purge_step`` (the
-      checkpoint's frames + 1): TensorBoard hides the events of the older event files at that
-      step and later, so it shows each step once. (TensorBoard purges by one step axis; a
-      scalar logged on another axis, MA-PETS's ``model/nll`` by training epoch, may show the
-      redone steps twice.) wandb runs are left as they are.
+      ``SummaryWriter`` does) whose first event is a restart marker at ``purge_step`` (one past
+      the largest step any scalar reached at the checkpoint,
+      :func:`~mapets_rl.experiment.runner.purge_step`): TensorBoard hides the events of the
+      older event files at that step and later, for every scalar. No point logged before the
+      checkpoint is hidden; a scalar whose steps lag behind that largest step (the frames of
+      MA-PETS, whose ``model/nll`` runs ahead by epoch) may show the steps redone after a kill
+      twice. wandb runs are left as they are.
 
     A checkpoint written before checkpoints held these steps leaves the logs as they are.
     """
@@ -246,6 +254,13 @@ class ResultsWriter:
     from the planner while it learns). Rewritten atomically after every entry;
     :func:`read_results` reads it back.
 
+    Measured durations (:data:`~mapets_rl.metrics.TIMING_METRICS`, e.g. MA-PETS's
+    ``train_time``) go to ``timings.json`` instead, ``{"units": ..., "train": [...],
+    "evaluations": [...]}`` with entries of the same form: ``results.json`` and the
+    checkpoints of two identical runs are then the same byte for byte. :func:`read_results`
+    puts them back into their entries. A resumed run keeps the timings of the entries its
+    checkpoint holds.
+
     Results files and checkpoints written before the two were kept apart hold one list,
     ``evaluations``, of whichever kind the recipe wrote (each recipe wrote one kind). Restored
     from such a checkpoint, the entries stay unsorted, and the file keeps that layout, until
@@ -261,6 +276,7 @@ class ResultsWriter:
         config: Mapping[str, Any],
     ) -> None:
         self.path = Path(run_dir) / RESULTS_FILE
+        self.timings_path = Path(run_dir) / TIMINGS_FILE
         self.header = {"recipe": recipe, "env": env, "seed": seed, "config": dict(config)}
         self.evaluations: list[dict[str, Any]] = []
         self.train: list[dict[str, Any]] = []
@@ -295,8 +311,11 @@ class ResultsWriter:
         """The entries as JSON strings (for checkpoints): ``evaluations`` and ``train``; only
         ``evaluations`` while entries of an old checkpoint are still unsorted."""
         if self._unsorted is not None:
-            return {"evaluations": json.dumps(self._unsorted)}
-        return {"evaluations": json.dumps(self.evaluations), "train": json.dumps(self.train)}
+            return {"evaluations": json.dumps(_split(self._unsorted, timed=False))}
+        return {
+            "evaluations": json.dumps(_split(self.evaluations, timed=False)),
+            "train": json.dumps(_split(self.train, timed=False)),
+        }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore :meth:`state_dict`'s entries; a state without ``train`` (a checkpoint
@@ -308,16 +327,46 @@ class ResultsWriter:
             self._unsorted = None
         else:
             self.evaluations, self.train, self._unsorted = [], [], entries
+        data = (
+            {"evaluations": self._unsorted}
+            if self._unsorted is not None
+            else {"train": self.train, "evaluations": self.evaluations}
+        )
+        try:  # the timings of the restored entries; those of later ones are dropped with them
+            _merge_timings(data, self.timings_path)
+        except ValueError as err:
+            log.warning("%s; the resumed run keeps no timings of its earlier entries", err)
 
     def write(self) -> None:
-        entries = (self._unsorted or []) + self.train + self.evaluations
-        units = metric_units(["frames", *(k for e in entries for k in e["metrics"])])
-        header = {**self.header, "units": units}
+        """Rewrite ``results.json`` (the entries without their timings) and, when any entry
+        has timings (or the file exists), ``timings.json``."""
+        lists = {"train": self.train, "evaluations": self.evaluations}
         if self._unsorted is not None:
-            data = {**header, "evaluations": self._unsorted}
-        else:
-            data = {**header, "train": self.train, "evaluations": self.evaluations}
-        atomic_write_text(self.path, json.dumps(data, indent=1))
+            lists = {"evaluations": self._unsorted}
+        kept = {kind: _split(entries, timed=False) for kind, entries in lists.items()}
+        timed = {kind: _split(entries, timed=True) for kind, entries in lists.items()}
+        names = ["frames", *(k for es in kept.values() for e in es for k in e["metrics"])]
+        atomic_write_text(
+            self.path,
+            json.dumps({**self.header, "units": metric_units(names), **kept}, indent=1),
+        )
+        timed_names = [k for es in timed.values() for e in es for k in e["metrics"]]
+        if timed_names or self.timings_path.exists():
+            atomic_write_text(
+                self.timings_path,
+                json.dumps({"units": metric_units(timed_names), **timed}, indent=1),
+            )
+
+
+def _split(entries: list[dict[str, Any]], timed: bool) -> list[dict[str, Any]]:
+    """The entries with only their timing metrics (``timed``; entries without any left out)
+    or without them (:data:`~mapets_rl.metrics.TIMING_METRICS`)."""
+    out = []
+    for entry in entries:
+        metrics = {k: v for k, v in entry["metrics"].items() if is_timing_metric(k) == timed}
+        if metrics or not timed:
+            out.append({**entry, "metrics": metrics})
+    return out
 
 
 def read_results(run_dir: str | os.PathLike, legacy_as: str = "eval") -> dict[str, Any]:
@@ -355,11 +404,35 @@ def read_results(run_dir: str | os.PathLike, legacy_as: str = "eval") -> dict[st
                 f"{str(path)!r} is not a results file: {key!r} must be a list "
                 "of {'frames': int, 'metrics': {...}}"
             )
+    _merge_timings(data, Path(run_dir) / TIMINGS_FILE)
     data["legacy"] = "train" not in data
     if data["legacy"]:
         entries = data.pop("evaluations")
         data["train"], data["evaluations"] = ([], entries) if legacy_as == "eval" else (entries, [])
     return data
+
+
+def _merge_timings(data: dict[str, Any], path: Path) -> None:
+    """Put the metrics of ``timings.json`` (``path``, when there is one) back into the entries
+    of ``data`` (a ``results.json``) of the same kind and frames; ValueError naming the file
+    when it is not a timings file."""
+    if not path.is_file():
+        return
+    timings = read_json_object(path)
+    for kind in ("train", "evaluations"):
+        entries = timings.get(kind, [])
+        if not isinstance(entries, list) or not all(
+            isinstance(e, dict) and isinstance(e.get("metrics"), dict) for e in entries
+        ):
+            raise ValueError(
+                f"{str(path)!r} is not a timings file: {kind!r} must be a list "
+                "of {'frames': int, 'metrics': {...}}"
+            )
+        by_frames = {e["frames"]: e for e in data.get(kind, []) if isinstance(e, dict)}
+        for timed in entries:
+            entry = by_frames.get(timed.get("frames"))
+            if entry is not None and isinstance(entry.get("metrics"), dict):
+                entry["metrics"].update(timed["metrics"])
 
 
 def read_json_object(path: str | os.PathLike) -> dict[str, Any]:

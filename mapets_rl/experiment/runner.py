@@ -11,6 +11,7 @@ import contextlib
 import functools
 import json
 import os
+import re
 import time
 from collections.abc import Callable, Iterator, Mapping
 from datetime import datetime, timezone
@@ -25,6 +26,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from tqdm import tqdm
 
+from mapets_rl._entry_points import check_name
 from mapets_rl.config import ConfigError, parse_override, read_yaml_mapping
 from mapets_rl.envs.registry import build_env
 from mapets_rl.experiment.checkpoint import (
@@ -39,9 +41,11 @@ from mapets_rl.experiment.checkpoint import (
 )
 from mapets_rl.experiment.config import ExperimentConfig, RunConfig, check_device
 from mapets_rl.experiment.files import (
+    OWN_FILES,
     RunDirLock,
     atomic_write,
     atomic_write_text,
+    check_run_subdirs,
     check_writable_dir,
     make_writable_dir,
 )
@@ -57,12 +61,19 @@ from mapets_rl.modules import masked_mean
 
 CONFIG_FILE = "config.yaml"
 RUN_FILE = "run.json"
+_TEMP_FILE = re.compile(r"^\..+\.tmp(\.[^.]+)?$")
+"""Temp files of atomic writes and write probes (``.<name>.<random>.tmp<ext>``), which an
+interrupted run of ours leaves behind."""
 EVAL_SEED_OFFSET = 1_000_003
 BOUNDARY_SEED_STRIDE = 7_919
 
 
 def default_run_dir(recipe: str, env: str, seed: int, root: str | os.PathLike = "runs") -> Path:
-    """``runs/<recipe>_<env>_seed<seed>_<UTC timestamp>``."""
+    """``runs/<recipe>_<env>_seed<seed>_<UTC timestamp>``; ValueError when ``recipe`` or
+    ``env`` is not a valid name (a path separator, ``..``, a control character), which would
+    put the directory elsewhere than below ``root``."""
+    check_name(recipe, "recipe")
+    check_name(env, "scenario")
     stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S-%f")
     return Path(root) / f"{recipe}_{env}_seed{seed}_{stamp}"
 
@@ -197,7 +208,7 @@ class Experiment:
         restoring = self._resuming
         check_writable_dir(self.run_dir if run_dir is None else run_dir)  # '' is refused
         if not restoring:
-            self._refuse_finished_run()
+            self._refuse_occupied_dir()
         seed_everything(config.seed)
         self.threads = configure_threads(config_threads(config))
         self.device = torch.device(config.device)
@@ -224,16 +235,17 @@ class Experiment:
         ``restoring``: a resumed run writes its config, results and logs only once its first
         iteration has succeeded, see :meth:`_start_writing`)."""
         self._hold_lock()
+        check_run_subdirs(self.run_dir)
         config = self.config
         if not restoring:  # again under the lock: a writer that held it may have finished
-            self._refuse_finished_run()
+            self._refuse_occupied_dir()
         remove_stale_files(self.run_dir)
-        if not restoring:
-            config.to_yaml(self.run_dir / CONFIG_FILE)
+        if not restoring:  # run.json first: it marks the directory as a run directory of ours
             atomic_write_text(
                 self.run_dir / RUN_FILE,
                 json.dumps({"recipe": self.name, "env": config.env, "seed": config.seed}),
             )
+            config.to_yaml(self.run_dir / CONFIG_FILE)
         self.logger: RunLogger | None = None
         if config.logger != "none":
             self.logger = RunLogger(
@@ -245,13 +257,37 @@ class Experiment:
             self.run_dir, self.name, config.env, config.seed, config.to_dict()
         )
 
-    def _refuse_finished_run(self) -> None:
-        """ValueError when the run directory already holds checkpoints (of another run)."""
+    def _refuse_occupied_dir(self) -> None:
+        """ValueError when the run directory of a new run already holds checkpoints (of
+        another run), or holds files but is not a run directory (no valid ``run.json``; only
+        the lock and a sweep's trial records, :data:`~mapets_rl.experiment.files.OWN_FILES`,
+        may precede it): another program's files are never overwritten. A run directory whose
+        earlier attempt never checkpointed is started afresh."""
         if list_checkpoints(self.run_dir):
             raise ValueError(
                 f"run_dir {str(self.run_dir)!r} already holds a run with "
                 "checkpoints; continue it with from_run_dir / `mapets-rl resume` "
                 "or choose another run_dir"
+            )
+        if not self.run_dir.is_dir():
+            return
+        try:
+            run_recipe_name(self.run_dir)
+            return  # a run directory of ours
+        except ValueError:
+            pass  # no run.json, or one that is not ours: refused below when not empty
+        theirs = sorted(
+            entry.name
+            for entry in self.run_dir.iterdir()
+            if entry.name not in OWN_FILES and not _TEMP_FILE.match(entry.name)
+        )
+        if theirs:
+            shown = ", ".join(repr(name) for name in theirs[:3])
+            more = f" and {len(theirs) - 3} more" if len(theirs) > 3 else ""
+            raise ValueError(
+                f"run_dir {str(self.run_dir)!r} is not empty and is not a run directory (no "
+                f"valid {RUN_FILE}; it holds {shown}{more}): its files would be overwritten; "
+                "choose a new or empty directory"
             )
 
     def _hold_lock(self) -> None:
@@ -475,14 +511,23 @@ class Experiment:
     def end_iteration(self, metrics: Mapping[str, float], prev_frames: int, last: bool) -> None:
         """After an iteration that advanced the frames from ``prev_frames`` (``last``: the
         final one): evaluate every ``eval_interval`` frames and checkpoint every
-        ``checkpoint_interval`` frames, both at the end."""
+        ``checkpoint_interval`` frames, both at the end. An evaluation that fails (e.g. its
+        video cannot be written) first writes the checkpoint due at this iteration, without
+        that evaluation, so the training done is kept; then its error propagates."""
         cfg = self.config
+        checkpoint_due = last or _crossed(prev_frames, self.frames, cfg.checkpoint_interval)
         if last or _crossed(prev_frames, self.frames, cfg.eval_interval):
-            evaluation = self.evaluate()
+            try:
+                evaluation = self.evaluate()
+            except Exception:
+                if checkpoint_due:
+                    self.boundaries += 1
+                    self.save_checkpoint()
+                raise
             self.results.add_evaluation(self.frames, evaluation)
             log_scalars(self.logger, "eval", evaluation, self.frames)
             self.latest_metrics = evaluation
-        if last or _crossed(prev_frames, self.frames, cfg.checkpoint_interval):
+        if checkpoint_due:
             self.boundaries += 1
             self.save_checkpoint()
             if not last:
@@ -697,8 +742,8 @@ class Experiment:
         if deferred["results"]:
             self.results.write()
         if self.logger is not None:
-            frames = int(deferred["frames"])
-            self.logger.open(deferred["log_steps"], purge_step=frames + 1 if frames else None)
+            steps = deferred["log_steps"]
+            self.logger.open(steps, purge_step=purge_step(int(deferred["frames"]), steps))
 
     @classmethod
     def from_run_dir(
@@ -715,7 +760,8 @@ class Experiment:
         (or a checkpoint is saved): a resume whose override fails then (out of memory) leaves
         the run directory byte for byte as it was, and a plain resume still works. (A
         ``config.yaml`` in an older layout is rewritten in today's at once, with the same
-        values.) Every failure is a one-line ValueError.
+        values.) Overrides that set the budget below what the run has done (``episodes=1``
+        after 2 episodes) are refused. Every failure is a one-line ValueError.
 
         The run directory's lock is taken before anything is read: a run directory that
         another experiment (or process) writes to is refused with
@@ -739,6 +785,7 @@ class Experiment:
         cls, run_dir: Path, overrides: list[str], load: bool, lock: RunDirLock
     ) -> Experiment:
         """:meth:`from_run_dir` once ``lock`` (of ``run_dir``) is held."""
+        check_run_subdirs(run_dir)
         saved, config, on_disk = cls._run_config(run_dir, overrides)
         if config.env != saved.env:
             raise ConfigError(
@@ -754,6 +801,14 @@ class Experiment:
         exp.__init__(config, run_dir)
         if state is not None:
             exp._restore(state, ckpt, _changed_keys(saved.to_dict(), config.to_dict()))
+            done, total = exp.progress()
+            if overrides and done > total:
+                raise ConfigError(
+                    f"cannot resume run_dir {str(run_dir)!r} with {' '.join(overrides)}: the "
+                    f"run has done {done} {exp.progress_unit}s, more than the {total} it would "
+                    "ask for; a resume only extends a run's budget (start a new run for a "
+                    "shorter one)"
+                )
         if saved.to_dict() != on_disk:  # an older layout of the same config
             saved.to_yaml(run_dir / CONFIG_FILE)
         if exp._deferred is not None:
@@ -899,6 +954,16 @@ def _ray_collector(
         ray_init_config=init,
         remote_configs={"num_cpus": 1},
     )
+
+
+def purge_step(frames: int, log_steps: Mapping[str, int] | None) -> int | None:
+    """The TensorBoard ``purge_step`` of a run resumed from a checkpoint at ``frames`` whose
+    scalars were last logged at ``log_steps`` (name -> step): one past the largest step any
+    scalar reached, so that no point logged before the checkpoint is hidden (a scalar on
+    another axis than frames, MA-PETS's ``model/nll`` by epoch, may run ahead of the frames);
+    ``None`` for a run that had logged nothing."""
+    last = max([frames, *(log_steps or {}).values()])
+    return last + 1 if last else None
 
 
 def run_recipe_name(run_dir: str | os.PathLike) -> str:

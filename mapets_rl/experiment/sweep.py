@@ -39,7 +39,9 @@ Backends (neither schedules by hand):
   spawned processes, each running one trial at a time. Ray is not imported.
 - ``ray``: every trial is a Ray core task with ``num_cpus=cpus_per_trial``,
   ``num_gpus=gpus_per_trial`` and no retries; Ray queues and places them. Without ``address``
-  (nor ``RAY_ADDRESS``) a local Ray instance is started for the sweep (its workers see this
+  (nor ``RAY_ADDRESS``) a local Ray instance is started for the sweep; a small reaper
+  process (:func:`reap_ray_agents_on_exit`) ends the Ray agents that would outlive a driver
+  killed with kill -9 (its workers see this
   process's ``sys.path``) and shut down after it; with one, the sweep joins that cluster, whose
   nodes must have the recipe and scenario installed (entry points) and see ``--out`` (a shared
   file system). An already initialised Ray (``ray.init`` in this process) is used as it is.
@@ -78,11 +80,15 @@ from typing import Any
 import yaml
 
 from mapets_rl.config import ConfigError, check, load_yaml, parse_override, read_yaml_mapping
-from mapets_rl.experiment.files import atomic_write_text, check_writable_dir, make_writable_dir
+from mapets_rl.experiment.files import (
+    ERROR_FILE,
+    TRIAL_RECORD,
+    atomic_write_text,
+    check_writable_dir,
+    make_writable_dir,
+)
 
 MANIFEST = "sweep.json"
-TRIAL_RECORD = "trial.json"
-ERROR_FILE = "error.txt"
 TRIALS_DIR = "trials"
 SUMMARY_DIR = "summary"
 BACKENDS = ("local", "ray")
@@ -617,6 +623,7 @@ def run_ray(
         check_ray_address(kwargs["address"])
         ray.init(**kwargs)
         started = True
+    reaper = reap_ray_agents_on_exit() if started and kwargs["address"] == "local" else None
     try:
         task = ray.remote(run_trial).options(
             num_cpus=cpus_per_trial, num_gpus=gpus_per_trial, max_retries=0
@@ -633,6 +640,81 @@ def run_ray(
     finally:
         if started:
             ray.shutdown()
+        if reaper is not None:
+            reaper.stdin.close()  # a normal end: the agents have exited with Ray
+            reaper.wait()
+
+
+RAY_AGENTS = ("ray::DashboardAgent", "ray::RuntimeEnvAgent")
+"""Processes of a local Ray instance that outlive its driver after a kill -9 (for about a
+minute: they notice their raylet's death but hang in a call to the dead GCS)."""
+
+_REAPER = """
+import os, signal, sys
+targets = [line.split() for line in sys.argv[1:]]
+sys.stdin.buffer.read()  # end of file: the driver exited, however it exited
+for pid, start in targets:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            fields = fh.read().rpartition(")")[2].split()
+    except OSError:
+        continue  # gone already
+    if fields[19] == start:  # the same process, not a new one that got its pid
+        os.kill(int(pid), signal.SIGKILL)
+"""
+
+
+def _proc_stat(pid: int) -> list[str] | None:
+    """The fields of ``/proc/<pid>/stat`` after the command name (``[0]`` is the state,
+    ``[1]`` the parent pid, ``[19]`` the start time), ``None`` when it cannot be read."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    except OSError:
+        return None
+
+
+def ray_agents_of_this_process() -> list[tuple[int, str]]:
+    """``(pid, start time)`` of the :data:`RAY_AGENTS` whose parent (the raylet) is a child of
+    this process: those of the local Ray instance it started. Empty without ``/proc``."""
+    proc = Path("/proc")
+    if not proc.is_dir():
+        return []
+    parents: dict[int, int] = {}
+    for entry in proc.iterdir():
+        stat = _proc_stat(int(entry.name)) if entry.name.isdigit() else None
+        if stat is not None:
+            parents[int(entry.name)] = int(stat[1])
+    children = {pid for pid, parent in parents.items() if parent == os.getpid()}
+    agents = []
+    for pid, parent in parents.items():
+        if parent not in children:
+            continue
+        try:
+            name = (proc / str(pid) / "cmdline").read_bytes().split(b"\0")[0].decode()
+        except (OSError, UnicodeDecodeError):
+            continue
+        stat = _proc_stat(pid)
+        if stat is not None and name.strip() in RAY_AGENTS:
+            agents.append((pid, stat[19]))
+    return agents
+
+
+def reap_ray_agents_on_exit() -> subprocess.Popen | None:
+    """Start a reaper (its own session, so a signal to the driver's process group spares it)
+    that waits for this process to exit, however it exits, and then SIGKILLs the
+    :data:`RAY_AGENTS` of the local Ray instance this process started, if they still run
+    (checked by pid and start time). Closing its ``stdin`` after ``ray.shutdown`` ends it.
+    ``None`` where there are no such agents (no ``/proc``)."""
+    agents = ray_agents_of_this_process()
+    if not agents:
+        return None
+    return subprocess.Popen(
+        [sys.executable, "-c", _REAPER, *(f"{pid} {start}" for pid, start in agents)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
 
 
 # ------------------------------------------------------------------------------ the sweep

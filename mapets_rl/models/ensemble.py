@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Iterator, Sequence
+from itertools import pairwise
 
 import torch
 from tensordict import TensorDictBase
@@ -30,6 +31,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from mapets_rl.modules.arguments import is_positive_int
+from mapets_rl.modules.memory import check_memory
 from mapets_rl.modules.tensor_checks import (
     as_mask,
     check_finite,
@@ -95,6 +97,16 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
                 f"init_min_logvar ({init_min_logvar}) must be < "
                 f"init_max_logvar ({init_max_logvar})."
             )
+        groups = 1 if share_across_agents else n_agents
+        sizes = (obs_dim + action_dim, *hidden, 2 * obs_dim)
+        weights = groups * ensemble_size * sum((a + 1) * b for a, b in pairwise(sizes))
+        check_memory(  # the fp32 weights alone: a lower bound that never refuses what fits
+            4 * weights,
+            "cpu",
+            f"the ensemble's weights ({groups} x ensemble_size={ensemble_size} MLPs of "
+            f"hidden={list(hidden)})",
+            "lower ensemble_size or hidden",
+        )
         super().__init__()
         self.obs_dim = obs_dim
         self.action_dim = action_dim
@@ -105,9 +117,7 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
         self.in_keys = [observation_key, action_key]
         self.out_keys = [mean_key, logvar_key]
 
-        groups = 1 if share_across_agents else n_agents
         in_dim = obs_dim + action_dim
-        sizes = (in_dim, *hidden, 2 * obs_dim)
         self.weights = nn.ParameterList()
         self.biases = nn.ParameterList()
         for fan_in, fan_out in zip(sizes[:-1], sizes[1:], strict=True):
@@ -348,7 +358,23 @@ class ProbabilisticEnsemble(TensorDictModuleBase):
 
         Returns:
             ``(delta_mean, delta_logvar)``, each ``[I, B, N, obs]``.
+
+        Raises:
+            ValueError: ``dtype`` is an integer or bool torch dtype, or ``obs`` / ``action``
+                are not ``[I, B or 1, N, obs]`` / ``[I, B or 1, N, act]`` (checked on the
+                shapes only: no device sync).
+            TypeError: ``dtype`` is not a torch dtype.
         """
+        if isinstance(dtype, torch.dtype) and not dtype.is_floating_point:
+            raise ValueError(f"dtype must be a floating-point torch dtype or None, got {dtype!r}.")
+        for name, tensor, width in (
+            ("obs", obs, self.obs_dim),
+            ("action", action, self.action_dim),
+        ):
+            if tensor.ndim != 4 or tensor.shape[0] != self.n_agents or tensor.shape[-1] != width:
+                raise ValueError(
+                    f"{name} must be [I={self.n_agents}, B, N, {width}], got {tuple(tensor.shape)}."
+                )
         x = self.normalize_inputs(obs, action)
         if x.shape[1] != self.ensemble_size:
             x = x.expand(-1, self.ensemble_size, -1, -1)

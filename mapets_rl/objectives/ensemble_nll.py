@@ -302,7 +302,21 @@ def holdout_split(
     all ``N`` without a mask), drawn uniformly without replacement from one ``[I, N]``
     ``torch.rand`` draw of ``generator``; padding rows are never held out and, as
     ``fraction < 0.5``, every agent keeps at least half of its rows for training.
+
+    Raises:
+        ValueError: ``fraction`` is not a finite number in ``[0, 0.5)``, ``rows`` or
+            ``n_agents`` is not a positive int, or ``mask`` is not ``[rows, n_agents]``.
     """
+    fraction = finite_number("fraction", fraction, minimum=0)
+    if not fraction < 0.5:
+        raise ValueError(f"fraction must be in [0, 0.5), got {fraction!r}")
+    for name, value in (("rows", rows), ("n_agents", n_agents)):
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ValueError(f"{name} must be a positive int, got {value!r}")
+    if mask is not None and tuple(mask.shape) != (rows, n_agents):
+        raise ValueError(
+            f"mask must be [rows={rows}, n_agents={n_agents}], got {tuple(mask.shape)}"
+        )
     valid = (
         torch.ones(n_agents, rows, dtype=torch.bool, device=device)
         if mask is None
@@ -405,7 +419,8 @@ def fit_ensemble(
             the ensemble as ``.model`` that reads the ``"agents"`` keys.
         optimizer: optimiser over ``loss_module.parameters()`` (paper: Adam, lr 1e-3).
         data: transitions with batch shape ``[N]`` and the loss's keys shaped ``[N, I, *]``
-            (agents with fewer transitions pad with ``mask=False`` rows).
+            (agents with fewer transitions pad with ``mask=False`` rows; every agent needs at
+            least one valid row, ValueError otherwise).
         epochs: passes over the data (> 0), the most that run with a hold-out.
         batch_size: rows per optimisation step (> 0).
         fit_normalizer: refit the per-agent input/output normalisation on ``data`` first (on
@@ -447,6 +462,14 @@ def fit_ensemble(
         batch = loss_module.read_batch(data)
     else:
         batch = read_transitions(data, model, owner=type(loss_module).__name__)
+    mask = batch[3]  # [N, I] or None
+    empty = [] if mask is None else (~mask.any(0)).nonzero().flatten().tolist()
+    if empty:
+        raise ValueError(
+            f"data holds no valid row (mask all False) for agents {empty}: an ensemble cannot "
+            "be fitted on nothing (its training NLL would read 0 and its held-out NLL NaN); "
+            "leave those agents out or give them transitions."
+        )
     if fit_normalizer:
         model.fit_normalizer(*batch)
     rows = data.batch_size[0]

@@ -46,6 +46,7 @@ from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torchrl.modules import ActorCriticWrapper
 
+from mapets_rl.modules.arguments import finite_number
 from mapets_rl.objectives.ddpg import PreactivationRegularisedDDPGLoss
 
 
@@ -66,8 +67,11 @@ def minimax_action_perturbation(
         ``delta`` ``[*, I, I, d]``: ``delta[..., i, j, :] = -epsilon * grad_{a_j} Q_i /
         ||grad_{a_j} Q_i||`` for ``j != i`` and ``0`` for ``j == i``; detached.
     """
-    if not epsilon >= 0:
-        raise ValueError(f"epsilon must be >= 0, got {epsilon}")
+    epsilon = finite_number("epsilon", epsilon, minimum=0)
+    if not bool(torch.isfinite(actions).all()):
+        raise ValueError(
+            "actions must be finite (no NaN or inf): the perturbation follows Q's gradient at them"
+        )
     n = actions.shape[-2]
     with torch.enable_grad():
         replicas = (
@@ -178,9 +182,8 @@ class M3DDPGLoss(PreactivationRegularisedDDPGLoss):
         epsilon_actor: float,
         **kwargs,
     ) -> None:
-        for name, eps in (("epsilon_critic", epsilon_critic), ("epsilon_actor", epsilon_actor)):
-            if not (isinstance(eps, (int, float)) and 0 <= eps < float("inf")):
-                raise ValueError(f"{name} must be a finite number >= 0, got {eps!r}")
+        epsilon_critic = finite_number("epsilon_critic", epsilon_critic, minimum=0)
+        epsilon_actor = finite_number("epsilon_actor", epsilon_actor, minimum=0)
         critic = MinimaxCritic(value_network, action_key=action_key, value_key=value_key)
         super().__init__(actor_network, critic, **kwargs)
         self.epsilon_actor = float(epsilon_actor)

@@ -17,6 +17,8 @@ from collections.abc import Callable
 
 import torch
 
+from mapets_rl.modules.arguments import finite_number
+
 __all__ = ["CEMOptimizer", "ScoreFn", "colored_noise", "kept_elite_count", "sample_sizes"]
 
 #: ``score_fn(candidates [I, M, Q, H, act]) -> scores [I, M, Q]`` (higher is better).
@@ -38,8 +40,9 @@ def colored_noise(
     at frequency index ``k`` (``k = 0`` scaled as ``k = 1``, iCEM's / ``colorednoise``'s low
     cutoff ``1/H``), transformed back with ``irfft`` and divided by the process's exact
     standard deviation: every step has unit variance (the process is stationary and periodic
-    over ``H``).
+    over ``H``). ``beta`` must be a finite number >= 0 (ValueError otherwise).
     """
+    beta = finite_number("beta", beta, minimum=0)
     if beta == 0:
         return torch.randn(shape, generator=generator, device=device)
     n, horizon, act = shape
@@ -69,7 +72,16 @@ def sample_sizes(population: int, elites: int, iterations: int, decay: float) ->
     """Sampled candidates per iteration ``k``: ``max(min(2 X, Q), floor(Q / decay^k))`` (iCEM's
     population decay; ``decay = 1``: ``Q`` at every iteration). Fixed per ``k``: shape-static."""
     floor = min(2 * elites, population)
-    return [max(floor, math.floor(population / decay**k)) for k in range(iterations)]
+    return [max(floor, _decayed(population, decay, k)) for k in range(iterations)]
+
+
+def _decayed(population: int, decay: float, k: int) -> int:
+    """``floor(population / decay^k)``; 0 where ``decay^k`` overflows a float (a decay of
+    ``1e200`` at ``k = 2``: the population has decayed to nothing)."""
+    try:
+        return math.floor(population / decay**k)
+    except OverflowError:
+        return 0
 
 
 class CEMOptimizer:

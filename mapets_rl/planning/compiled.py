@@ -11,19 +11,23 @@ What compiles, when: one graph per distinct (shapes, dtypes, model, reward and t
 functions, propagation) of a step: a run whose batch shape does not change compiles once, at
 its first decision (seconds; the time is kept in :attr:`CompiledStep.compile_seconds`).
 Inductor caches the generated code on disk, so a later process with the same shapes compiles
-faster. Where inductor cannot run (no C++ compiler, or the first compilation fails) the step
-runs eagerly and a warning says why (:attr:`CompiledStep.fallback_reason`).
+faster: in a private directory of the user's own (:mod:`mapets_rl._compile_cache`, decided
+again before the first compilation), never in the shared temporary directory. Where inductor
+cannot run (no C++ compiler, or the first compilation fails) the step runs eagerly and a
+warning says why (:attr:`CompiledStep.fallback_reason`).
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Callable
 from typing import Any
 
 import torch
 
+from mapets_rl._compile_cache import HEADERS_ENV, prepare_compile_cache
 from mapets_rl.planning.trajectory_sampling import propagate_step
 
 __all__ = ["CompiledStep", "compiler_unavailable"]
@@ -70,9 +74,16 @@ class CompiledStep:
         compile_seconds: wall time of the first calls of those signatures (compilation
             included).
         fallback_reason: why the step runs eagerly (``None`` while it compiles).
+        cache_dir: inductor's cache directory (private to this user).
     """
 
     def __init__(self) -> None:
+        """Raises ValueError (one line) when ``TORCHINDUCTOR_CACHE_DIR`` names a directory
+        that cannot hold compiled code safely (see :mod:`mapets_rl._compile_cache`)."""
+        self.cache_dir = prepare_compile_cache()
+        from torch._inductor import config as inductor_config
+
+        inductor_config.cpp_cache_precompile_headers = os.environ.get(HEADERS_ENV) == "1"
         self.compiles = 0
         self.compile_seconds = 0.0
         self.fallback_reason = compiler_unavailable()

@@ -6,17 +6,20 @@ The estimate follows :func:`~mapets_rl.planning.trajectory_sampling_returns`: wi
 ``[H, I, R, A]``, a handful of state-sized tensors ``[I, R, S]`` (state, prediction mean and
 log-variance, noise-scaled next state, reward intermediates) and the MLP's two activation
 buffers ``[I, R, max(hidden)]``; the ensemble holds ``I * B`` MLPs, trained with Adam (two
-moment buffers and a gradient per parameter). It is an order of magnitude, not a measurement:
-the refusal fires only when the estimate exceeds what the device has available.
+moment buffers and a gradient per parameter); every CAV's dataset ``D(i)+`` holds
+``buffer_size`` transitions. It is an order of magnitude, not a measurement: the refusal fires
+only when the estimate exceeds what the device has available
+(:func:`~mapets_rl.modules.memory.available_memory`, which counts ``ulimit -v`` and a cgroup's
+limit too).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
-import torch
+from mapets_rl.modules.memory import available_memory
 
-__all__ = ["available_memory", "ensemble_bytes", "planner_bytes"]
+__all__ = ["available_memory", "dataset_bytes", "ensemble_bytes", "planner_bytes"]
 
 _STATE_COPIES = 12
 """State-sized ``[I, R, S]`` tensors alive at once during a step (generous)."""
@@ -49,19 +52,7 @@ def ensemble_bytes(
     return 4 * 4 * n_agents * ensemble_size * params
 
 
-def available_memory(device: torch.device | str = "cpu") -> int | None:
-    """Bytes the device can still allocate: CUDA's free memory, or the host's
-    ``MemAvailable`` (Linux ``/proc/meminfo``); ``None`` where it cannot be read."""
-    device = torch.device(device)
-    if device.type == "cuda":
-        return int(torch.cuda.mem_get_info(device)[0])
-    if device.type != "cpu":
-        return None
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        return None
-    return None
+def dataset_bytes(n_agents: int, obs_dim: int, action_dim: int, buffer_size: int) -> int:
+    """Bytes of the CAVs' datasets: ``n_agents * buffer_size`` transition slots (observation,
+    action and next observation in fp32, a mask) and their four int64 index entries each."""
+    return n_agents * buffer_size * (4 * (2 * obs_dim + action_dim) + 1 + 4 * 8)

@@ -21,11 +21,13 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
+from mapets_rl.modules.memory import check_memory
 from mapets_rl.modules.tensor_checks import as_mask, check_finite, check_real, get_tensor
 from mapets_rl.planning.cem import CEMOptimizer
 from mapets_rl.planning.compiled import CompiledStep
 from mapets_rl.planning.config import PlannerConfig
 from mapets_rl.planning.cuda_graph import GraphedStep
+from mapets_rl.planning.memory import planner_bytes
 from mapets_rl.planning.precision import resolve_dtype
 from mapets_rl.planning.trajectory_sampling import (
     DynamicsModel,
@@ -190,6 +192,21 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             ) from err
         if not bool((low < high).all()):
             raise ValueError("action_low must be < action_high in every dimension.")
+        check_memory(  # a planner built from the Python API gets the estimate MA-PETS makes
+            planner_bytes(
+                model.n_agents,
+                model.obs_dim,
+                act,
+                tuple(getattr(model, "hidden", ())),
+                max(config.candidates_per_iteration()),
+                config.particles,
+                config.horizon,
+            ),
+            device,
+            f"the tensors of one planner decision (population={config.population} x particles="
+            f"{config.particles} x horizon={config.horizon}, {model.n_agents} agents)",
+            "lower population, particles or horizon",
+        )
         super().__init__()
         self.model = model
         self.reward_fn = reward_fn

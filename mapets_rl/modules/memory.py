@@ -1,0 +1,85 @@
+"""How much memory a device can still allocate, and the refusal of what cannot fit.
+
+On a CPU the bound is the smallest of what the machine and the limits on this process leave:
+the host's ``MemAvailable`` (``/proc/meminfo``), the address-space limit ``RLIMIT_AS``
+(``ulimit -v``) less what the process already maps (``VmSize``), and the cgroup's memory limit
+(v2 ``memory.max``, v1 ``memory.limit_in_bytes``) less its usage: a container's limit or a
+``ulimit -v`` is then a one-line refusal, not an allocator traceback or the OOM killer. On a
+CUDA device it is CUDA's free memory.
+"""
+
+from __future__ import annotations
+
+import resource
+from pathlib import Path
+
+import torch
+
+__all__ = ["available_memory", "check_memory"]
+
+_CGROUP = Path("/sys/fs/cgroup")
+
+
+def _read_int(path: Path) -> int | None:
+    """The integer a one-line file holds, ``None`` when it is absent, ``max`` or unreadable."""
+    try:
+        text = path.read_text().strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None
+
+
+def _meminfo(field: str, path: str = "/proc/meminfo") -> int | None:
+    """``field`` of a ``/proc`` status file in bytes (its values are kB), ``None`` if absent."""
+    try:
+        with open(path) as fh:
+            for line in fh:
+                if line.startswith(f"{field}:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def _address_space_left() -> int | None:
+    """``RLIMIT_AS`` less the process's mapped size, ``None`` without a limit."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft == resource.RLIM_INFINITY:
+        return None
+    mapped = _meminfo("VmSize", "/proc/self/status") or 0
+    return max(soft - mapped, 0)
+
+
+def _cgroup_left(root: Path = _CGROUP) -> int | None:
+    """The cgroup memory limit less its usage (v2, else v1), ``None`` without a limit."""
+    for limit_file, usage_file in (
+        ("memory.max", "memory.current"),
+        ("memory/memory.limit_in_bytes", "memory/memory.usage_in_bytes"),
+    ):
+        limit = _read_int(root / limit_file)
+        if limit is not None and limit < 1 << 60:  # v1 writes a huge number for "no limit"
+            return max(limit - (_read_int(root / usage_file) or 0), 0)
+    return None
+
+
+def available_memory(device: torch.device | str = "cpu") -> int | None:
+    """Bytes the device can still allocate (see the module docstring); ``None`` where nothing
+    can be read (a device that is neither the CPU nor CUDA)."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        return int(torch.cuda.mem_get_info(device)[0])
+    if device.type != "cpu":
+        return None
+    bounds = [b for b in (_meminfo("MemAvailable"), _address_space_left(), _cgroup_left()) if b]
+    return min(bounds) if bounds else None
+
+
+def check_memory(need: int, device: torch.device | str, what: str, fix: str) -> None:
+    """ValueError (one line) when ``need`` bytes of ``what`` exceed :func:`available_memory`
+    of ``device``; ``fix`` says which settings to lower."""
+    free = available_memory(device)
+    if free is not None and need > free:
+        raise ValueError(
+            f"{what} need about {need / 2**30:.1f} GiB on {device}, more than the "
+            f"{free / 2**30:.1f} GiB available: {fix}"
+        )
