@@ -285,3 +285,15 @@ def test_float32_keeps_highway_env_decisions() -> None:
             sim.step(torch.zeros(6, sim.n_cavs, dtype=torch.long))
         stuck.append(sim.episode_metrics()["ramp_stuck"])
     assert torch.equal(stuck[0], stuck[1])
+
+
+def test_kernel_build_directory_must_be_private(tmp_path, monkeypatch) -> None:
+    """The kernel is never loaded from a directory that others may write to."""
+    from mapets_rl.envs.torch_freeway.native import build_directory
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    path = build_directory()
+    assert path.is_relative_to(tmp_path) and (path.stat().st_mode & 0o077) == 0
+    path.chmod(0o777)
+    with pytest.raises(OSError, match="others may write"):
+        build_directory()

@@ -6,10 +6,8 @@ mostly gathers over ``[B, N]`` tensors; their dispatch and memory traffic domina
 step as :meth:`~mapets_rl.envs.torch_freeway.physics.RoadPhysics.substep` (repeated for the
 simulation steps, with their bookkeeping) in one loop per road, vehicle by vehicle in
 highway-env's order. It is compiled with ``torch.utils.cpp_extension`` (a C++ compiler and
-``ninja`` are needed) into a private build directory: ``$MAPETS_RL_CACHE`` or
-``~/.cache/mapets_rl``, then ``torch_extensions/<torch version>``, created with mode 0700 and
-refused when another user owns it or others may write to it (a shared build directory would
-let another user plant the module that every run loads). Where it cannot be built,
+``ninja`` are needed) into a private build directory (:func:`build_directory`; a shared one
+would let another user plant the module that every run loads). Where it cannot be built,
 :func:`load_kernel` says why and the simulator runs its torch program instead.
 """
 
@@ -17,11 +15,12 @@ from __future__ import annotations
 
 import logging
 import os
-import stat
 from pathlib import Path
 from types import ModuleType
 
 import torch
+
+from mapets_rl._compile_cache import cache_dir_problem, private_default
 
 log = logging.getLogger(__name__)
 
@@ -31,18 +30,15 @@ _FAILURE: str | None = None
 
 
 def build_directory() -> Path:
-    """The private directory the kernel is built in (created, owner- and mode-checked)."""
-    root = Path(os.environ.get("MAPETS_RL_CACHE") or Path.home() / ".cache" / "mapets_rl")
+    """The private directory the kernel is built in: ``torch_extensions/<torch version>`` beside
+    torch.compile's private cache (``$XDG_CACHE_HOME/mapets_rl``, ``~/.cache/mapets_rl``),
+    created with mode 0700 and checked as that cache is (:mod:`mapets_rl._compile_cache`)."""
+    root = private_default(os.environ).parent
     path = root / "torch_extensions" / torch.__version__.replace("+", "_")
-    for part in (root, root / "torch_extensions", path):
-        part.mkdir(mode=0o700, exist_ok=True)
-        info = part.lstat()
-        if stat.S_ISLNK(info.st_mode) or not stat.S_ISDIR(info.st_mode):
-            raise OSError(f"{part} must be a directory, not a link or a file")
-        if info.st_uid != os.getuid():
-            raise OSError(f"{part} belongs to another user (uid {info.st_uid})")
-        if info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
-            raise OSError(f"{part} is writable by other users (mode {oct(info.st_mode & 0o777)})")
+    path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    problem = cache_dir_problem(path)
+    if problem is not None:
+        raise OSError(f"the kernel's build directory {path} {problem}")
     return path
 
 
