@@ -17,7 +17,7 @@ Rules (``benchmarks/freeway_headroom.py``): ``keep-lane``, ``greedy`` (overtakin
 
     PYTHONPATH=. python benchmarks/freeway_calibration.py [--episodes 100]
         [--ratios 0.17 0.33 0.5 0.67 0.83 1] [--envs freeway-merge freeway]
-        [--dtype float32] [--out benchmarks/calibration.json]
+        [--dtype float32] [--kernel native] [--out calibration.json]
 """
 
 from __future__ import annotations
@@ -62,7 +62,12 @@ def decide(policy: torch.nn.Module | None, obs: torch.Tensor) -> torch.Tensor:
 
 
 def run(
-    env_class: type[FreewayEnv], ratio: float, rule_name: str, episodes: int, dtype: torch.dtype
+    env_class: type[FreewayEnv],
+    ratio: float,
+    rule_name: str,
+    episodes: int,
+    dtype: torch.dtype,
+    kernel: str,
 ) -> dict:
     """Both simulators on ``episodes`` identical start scenes; per-episode numbers of each."""
     merge = env_class is FreewayMergeEnv
@@ -72,7 +77,7 @@ def run(
         env = env_class(config)
         env.reset(seed=seed)
         envs.append(env)
-    sim = BatchedFreeway(dict(envs[0].config), merge, episodes, dtype=dtype)
+    sim = BatchedFreeway(dict(envs[0].config), merge, episodes, dtype=dtype, kernel=kernel)
     for road, env in enumerate(envs):
         load_scene(sim, road, env)
     policy = rule(rule_name, int(envs[0].config["lanes"]))
@@ -133,6 +138,10 @@ def main() -> None:
                         default=[0.17, 0.33, 0.5, 0.67, 0.83, 1.0])  # fmt: skip
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--dtype", choices=["float32", "float64"], default="float32")
+    parser.add_argument(
+        "--kernel", choices=["native", "torch"], default="native",
+        help="the fused CPU kernel (the default on CPUs) or the torch program",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=None, help="write the per-episode numbers")
     args = parser.parse_args()
     if args.episodes < 2:
@@ -143,7 +152,7 @@ def main() -> None:
     dtype = getattr(torch, args.dtype)
     print(
         f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, CPU "
-        f"capability {torch.backends.cpu.get_cpu_capability()}, {args.dtype}, "
+        f"capability {torch.backends.cpu.get_cpu_capability()}, {args.dtype}, {args.kernel}, "
         f"{args.episodes} episodes (seeds 0..{args.episodes - 1}) per row"
     )
     print(
@@ -158,7 +167,7 @@ def main() -> None:
         rules = ["keep-lane", "greedy"] + (["cooperative"] if name == "freeway-merge" else [])
         for rule_name in rules:
             for ratio in args.ratios:
-                out = run(env_class, ratio, rule_name, args.episodes, dtype)
+                out = run(env_class, ratio, rule_name, args.episodes, dtype, args.kernel)
                 everything[f"{name}/{rule_name}/{ratio}"] = out
                 cells = []
                 for key in METRICS[:3]:
