@@ -297,3 +297,17 @@ def test_kernel_build_directory_must_be_private(tmp_path, monkeypatch) -> None:
     path.chmod(0o777)
     with pytest.raises(OSError, match="others may write"):
         build_directory()
+
+
+@pytest.mark.parametrize("backend", ["highway-env", "torch"])
+def test_devices_and_lengths_are_checked_first(backend: str) -> None:
+    """Devices that do not exist and absurd road lengths get one clear error, on both
+    backends (issue 34: they gave tracebacks or numpy overflows)."""
+    for device in ("bogus", 5, True):
+        with pytest.raises(ValueError, match="device"):
+            make_env("freeway", backend=backend, device=device)
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="no such CUDA device"):
+            make_env("freeway", backend=backend, device="cuda")
+    with pytest.raises(ValueError, match="road_length"):
+        make_env("freeway", backend=backend, road_length=1e300)

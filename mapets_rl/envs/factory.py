@@ -181,6 +181,23 @@ batched torch freeway (``freeway``, ``freeway-merge``)."""
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
+def check_device(device: object) -> None:
+    """ValueError unless ``device`` names a torch device this machine has (``"cpu"``,
+    ``"cuda"`` / ``"cuda:N"`` with a GPU N, ...), before anything is built."""
+    if isinstance(device, bool) or not isinstance(device, (str, torch.device)):
+        raise ValueError(f"device must be a device name such as 'cpu' or 'cuda:0', got {device!r}")
+    try:
+        parsed = torch.device(device)
+    except RuntimeError as err:
+        raise ValueError(f"device must be a torch device name, got {device!r} ({err})") from None
+    if parsed.type == "cuda" and (
+        not torch.cuda.is_available() or (parsed.index or 0) >= torch.cuda.device_count()
+    ):
+        raise ValueError(
+            f"device={device!r}: no such CUDA device here ({torch.cuda.device_count()} GPUs)"
+        )
+
+
 def make_env(
     name: str,
     seed: int | None = None,
@@ -222,6 +239,7 @@ def make_env(
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {list(BACKENDS)}, got {backend!r}")
+    check_device(device)
     if backend == "highway-env":
         if num_envs is not None or dtype != "float32" or kernel != "auto":
             raise ValueError(

@@ -46,6 +46,9 @@ from mapets_rl.envs.vehicles import ACC_MIN, FastIDMVehicle, HumanVehicle, clip
 from mapets_rl.metrics import average_comfort, average_velocity
 
 KL, CL, CR, ES = 0, 1, 2, 3
+MAX_ROAD_LENGTH = 50_000.0
+"""Longest road, spawn region and perception range [m] (a 40-step episode at the speed limit
+covers 1.3 km; larger values only overflow the lane geometry)."""
 ACTION_NAMES = ("KL", "CL", "CR", "ES")
 OBS_DIM = 4 + 6 * 3
 
@@ -197,6 +200,8 @@ class FreewayEnv(MultiAgentTrafficEnv):
         }
         for key, unit in positive.items():
             require_number(config, key, low=0.0, low_open=True, unit=unit)
+        for key in ("road_length", "spawn_length", "perception"):
+            require_number(config, key, high=MAX_ROAD_LENGTH, unit="m")
         require_number(config, "speed_limit", high=PHYSICAL_MAX_SPEED, unit="m/s")
         require_number(config, "min_spacing", low=7.0, unit="m")
         require_number(config, "velocity_weight")
