@@ -55,7 +55,7 @@ def load_kernel() -> ModuleType | None:
         _KERNEL = load(
             name="mapets_rl_freeway_step",
             sources=[str(SOURCE)],
-            extra_cflags=["-O3"],
+            extra_cflags=["-O3", "-fno-math-errno"],
             build_directory=str(build_directory()),
             verbose=False,
         )

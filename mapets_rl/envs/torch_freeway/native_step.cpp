@@ -71,7 +71,7 @@ class Stepper {
       : c_(c), l_(l), obstacle_(obstacle), blen_(body_length), bwid_(body_width), n_(n),
         order_(n), rank_(n), upper_(n), after_((c.n_tables) * (n + 1)),
         before_((c.n_tables) * (n + 1)), front_(3 * n), rear_(3 * n), cos_(n), sin_(n),
-        diag_(n), comfort_(n) {
+        diag_(n), comfort_(n), sorted_table_(n) {
     for (int64_t i = 0; i < n; ++i)
       diag_[i] = std::sqrt(body_length[i] * body_length[i] + body_width[i] * body_width[i]);
   }
@@ -106,15 +106,14 @@ class Stepper {
     for (int64_t p = m - 1; p >= 0; --p)
       upper_[p] = (p == m - 1 || r.x[order_[p + 1]] != r.x[order_[p]]) ? p : upper_[p + 1];
     const int64_t w = n_ + 1;
+    for (int64_t p = 0; p < m; ++p) sorted_table_[p] = l_.table[r.lane[order_[p]]];
     for (int64_t t = 0; t < c_.n_tables; ++t) {
       int64_t* after = &after_[t * w];
       int64_t* before = &before_[t * w];  // before[p + 1]: last position <= p in table t
       after[m] = m;
-      for (int64_t p = m - 1; p >= 0; --p)
-        after[p] = (l_.table[r.lane[order_[p]]] == t) ? p : after[p + 1];
+      for (int64_t p = m - 1; p >= 0; --p) after[p] = sorted_table_[p] == t ? p : after[p + 1];
       before[0] = -1;
-      for (int64_t p = 0; p < m; ++p)
-        before[p + 1] = (l_.table[r.lane[order_[p]]] == t) ? p : before[p];
+      for (int64_t p = 0; p < m; ++p) before[p + 1] = sorted_table_[p] == t ? p : before[p];
     }
     for (int64_t i = 0; i < n_; ++i) {
       for (int k = 0; k < 3; ++k) front_[3 * i + k] = rear_[3 * i + k] = -1;
@@ -233,15 +232,23 @@ class Stepper {
     }
   }
 
-  int64_t closest_lane(double x, double y, double h) const {
-    int64_t best = 0;
-    double best_d = std::numeric_limits<double>::infinity();
+  // the first lane of least |lateral| + distance beyond its ends + |heading difference|,
+  // starting from the current lane (a lane whose |lateral| alone exceeds the best cannot win)
+  int64_t closest_lane(double x, double y, double h, int64_t current) const {
+    auto distance = [&](int64_t k, double s, double lat) {
+      return std::abs(lat) + std::max(s - l_.length[k], 0.0) + std::max(-s, 0.0) +
+             std::abs(wrap_to_pi(h - l_.heading[k]));
+    };
+    double s, lat;
+    local(x, y, current, &s, &lat);
+    int64_t best = current;
+    double best_d = distance(current, s, lat);
     for (int64_t k = 0; k < l_.count; ++k) {
-      double s, lat;
+      if (k == current) continue;
       local(x, y, k, &s, &lat);
-      const double d = std::abs(lat) + std::max(s - l_.length[k], 0.0) + std::max(-s, 0.0) +
-                       std::abs(wrap_to_pi(h - l_.heading[k]));
-      if (d < best_d) best_d = d, best = k;
+      if (std::abs(lat) > best_d) continue;
+      const double d = distance(k, s, lat);
+      if (d < best_d || (d == best_d && k < best)) best_d = d, best = k;
     }
     return best;
   }
@@ -276,7 +283,7 @@ class Stepper {
       r.acc[i] = static_cast<T>(acc);
       r.steer[i] = static_cast<T>(steer);
       r.timer[i] += dt;
-      r.lane[i] = closest_lane(r.x[i], r.y[i], r.heading[i]);
+      r.lane[i] = closest_lane(r.x[i], r.y[i], r.heading[i], r.lane[i]);
     }
   }
 
@@ -441,6 +448,7 @@ class Stepper {
   const double *blen_, *bwid_;
   int64_t n_;
   std::vector<int64_t> order_, rank_, upper_, after_, before_, front_, rear_, pairs_;
+  std::vector<int64_t> sorted_table_;
   std::vector<double> cos_, sin_, diag_, comfort_;
   int64_t m_ = 0;
 };
