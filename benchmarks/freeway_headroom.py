@@ -32,7 +32,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
-from mapets_rl.envs import traffic_env
+from mapets_rl.envs import scenario_config
 from mapets_rl.envs.freeway import CL, CR, KL, OBS_DIM
 from mapets_rl.envs.freeway_merge import OBS_DIM as MERGE_OBS_DIM
 from mapets_rl.experiment import ExperimentConfig, evaluate_scripted, mean_ci95
@@ -154,6 +154,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--yield-rear-gap", type=float, default=15.0, help="m (merge)")
     parser.add_argument("--closing-time", type=float, default=1.5, help="s (merge)")
     parser.add_argument("--env-override", nargs="*", default=[], metavar="KEY=VALUE")
+    parser.add_argument(
+        "--backend", choices=["highway-env", "torch"], default="highway-env",
+        help="the scenario's simulator (benchmarks/freeway_calibration.py compares both on "
+        "identical start scenes)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     if not all(0.0 < r <= 1.0 for r in args.ratios):
         parser.error(f"--ratios must lie in (0, 1] (some CAVs), got {args.ratios}")
@@ -166,12 +171,12 @@ def main(argv: list[str] | None = None) -> None:
 
     def overtaking(env: EnvBase) -> TensorDictModuleBase:
         spec = env.full_action_spec[ACTION]
-        lanes = int(traffic_env(env).config["lanes"])
+        lanes = int(scenario_config(env)["lanes"])
         return GreedyOvertaking(lanes, args.follow_gap, args.gain_gap, args.rear_gap, spec.dtype)
 
     def cooperative(env: EnvBase) -> TensorDictModuleBase:
         spec = env.full_action_spec[ACTION]
-        lanes = int(traffic_env(env).config["lanes"])
+        lanes = int(scenario_config(env)["lanes"])
         return CooperativeMerge(
             lanes,
             args.approach,
@@ -187,7 +192,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.env == "freeway-merge":
         policies["cooperative merge"] = cooperative
 
-    print(f"# env {args.env}, {args.n_vehicles} vehicles, overrides {args.env_override or 'none'}")
+    print(
+        f"# env {args.env} ({args.backend} backend), {args.n_vehicles} vehicles, overrides "
+        f"{args.env_override or 'none'}"
+    )
     print(
         "| CAV ratio | policy | system return | velocity (mph) | comfort | collisions / episode "
         + ("| ramp vehicles stuck / episode " if args.env == "freeway-merge" else "")
@@ -199,7 +207,11 @@ def main(argv: list[str] | None = None) -> None:
         for seed in args.seeds:
             config = ExperimentConfig(
                 env=args.env,
-                env_config={"n_vehicles": args.n_vehicles, "cav_ratio": ratio},
+                env_config={
+                    "n_vehicles": args.n_vehicles,
+                    "cav_ratio": ratio,
+                    **({"backend": "torch"} if args.backend == "torch" else {}),
+                },
                 seed=seed,
                 eval_episodes=args.eval_episodes,
             ).with_overrides([f"env_config.{o}" for o in args.env_override])

@@ -30,7 +30,7 @@ from mapets_rl.envs.registry import (
     registered_scenario,
     scenario_defaults,
 )
-from mapets_rl.envs.scripted import ScriptedCAVPolicy, traffic_env
+from mapets_rl.envs.scripted import ScriptedCAVPolicy, scenario_config, traffic_env
 from mapets_rl.envs.traffic import MultiAgentTrafficEnv
 
 __all__ = [
@@ -57,6 +57,7 @@ __all__ = [
     "make_parallel_env",
     "register_env",
     "registered_scenario",
+    "scenario_config",
     "scenario_defaults",
     "traffic_env",
     "wrap_parallel_env",
