@@ -1,0 +1,208 @@
+"""Learner throughput: frames per second of the model-free recipes on the batched torch freeway,
+and where the time goes.
+
+Each recipe trains through its own ``Experiment.run_iteration`` (collector -> ``train_step``
+-> metrics -> policy weights) on ``make_env(ENV, backend="torch", num_envs=B)``, after a warm-up
+that fills its replay buffer past ``batch_size`` (and ``init_random_frames``) so that every
+measured round updates at the configured ratio. A round is ``--frames`` frames (a frame is one
+step of one road, all its CAVs together); per round we time, in wall-clock seconds of this
+process:
+
+- ``env``: the env's own step and reset (``TorchFreewayEnv._step`` / ``_reset``),
+- ``policy``: the rest of the collector's work (policy forward, tensordict bookkeeping),
+- ``learner``: ``train_step`` (replay writes and samples, losses, backward, optimiser, target
+  updates, observation statistics),
+- ``other``: the loop's metrics and policy-weight sync.
+
+Evaluation, checkpoints and logging are not in the rounds (a run pays them every
+``eval_interval`` / ``checkpoint_interval`` frames; see ``--budget``). The table gives the
+median over rounds and the spread (min..max); ``4M-frame run`` extrapolates the median rate to
+``--budget`` frames. The machine may be shared: the load average is printed before and after.
+
+    PYTHONPATH=. python benchmarks/learner_throughput.py [--recipes maddpg shapley_ac]
+        [--num-envs 256] [--vehicles 30] [--steps 4] [--frames 20480] [--rounds 3]
+        [--threads 2] [--schedule openai] [key=value ...]
+
+``--schedule openai`` applies :data:`recipes.maddpg.OPENAI_MADDPG` (one update per 100
+frames, batch 1024, ...) to every recipe (the Shapley AC and SAC configs share the fields);
+``key=value`` overrides follow it (e.g. ``update_interval=400``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import shutil
+import statistics
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from mapets_rl.experiment.threads import prepare_process
+
+WAIT_POLICY = prepare_process()  # OpenMP threads sleep when idle, as in `mapets-rl`
+
+import torch  # noqa: E402  (after the OpenMP wait policy is set)
+
+RECIPES = ("maddpg", "m3ddpg", "sac", "shapley_ac", "mappo", "coma")
+PHASES = ("env", "policy", "learner", "other")
+
+
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), else what ``platform`` says."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.partition(":")[2].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def load() -> str:
+    """The 1, 5 and 15-minute load averages."""
+    try:
+        return " ".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def build(recipe: str, args: argparse.Namespace, run_dir: Path) -> Any:
+    """The ``recipe`` experiment on ``args.num_envs`` roads of the batched torch freeway."""
+    from mapets_rl.experiment.plugins import load_recipe
+    from recipes.maddpg import OPENAI_MADDPG
+
+    cls = load_recipe(recipe)
+    env_config = {
+        "backend": "torch",
+        "num_envs": args.num_envs,
+        "n_vehicles": args.vehicles,
+        "cav_ratio": args.cav_ratio,
+    }
+    config = cls.Config(
+        env=args.env,
+        env_config=env_config,
+        frames_per_batch=args.num_envs * args.steps,
+        total_frames=10**12,
+        eval_interval=0,
+        checkpoint_interval=0,
+        progress=False,
+        logger="none",
+    )
+    overrides = list(OPENAI_MADDPG) if args.schedule == "openai" else []
+    fields = set(cls.Config.field_names())
+    overrides = [o for o in overrides if o.partition("=")[0] in fields] + args.overrides
+    return cls(config.with_overrides(overrides), run_dir)
+
+
+def timed(owner: Any, name: str, clock: dict[str, float], key: str) -> None:
+    """Replace method ``name`` of ``owner`` by one that adds its wall time to ``clock[key]``."""
+    method: Callable[..., Any] = getattr(owner, name)
+
+    def wrapper(*a: Any, **kw: Any) -> Any:
+        start = time.perf_counter()
+        try:
+            return method(*a, **kw)
+        finally:
+            clock[key] += time.perf_counter() - start
+
+    setattr(owner, name, wrapper)
+
+
+def measure(recipe: str, args: argparse.Namespace, run_dir: Path) -> list[dict[str, float]]:
+    """Per round: frames/s and the seconds of each phase."""
+    exp = build(recipe, args, run_dir)
+    clock = dict.fromkeys(("env", "collect", "learner"), 0.0)
+    exp.start_training()
+    env = exp.collector.env
+    timed(env, "_step", clock, "env")
+    timed(env, "_reset", clock, "env")
+    timed(exp.collector, "next", clock, "collect")
+    timed(exp, "train_step", clock, "learner")
+    cfg = exp.config
+    warm = max(getattr(cfg, "batch_size", 0), getattr(cfg, "init_random_frames", 0))
+    warm = max(warm + cfg.frames_per_batch, args.warmup_frames)
+    while exp.frames < warm:
+        exp.run_iteration()
+    rounds = []
+    for _ in range(args.rounds):
+        for key in clock:
+            clock[key] = 0.0
+        start, frames = time.perf_counter(), exp.frames
+        while exp.frames - frames < args.frames:
+            exp.run_iteration()
+        wall = time.perf_counter() - start
+        rounds.append(
+            {
+                "fps": (exp.frames - frames) / wall,
+                "frames": exp.frames - frames,
+                "wall": wall,
+                "env": clock["env"],
+                "policy": clock["collect"] - clock["env"],
+                "learner": clock["learner"],
+                "other": wall - clock["collect"] - clock["learner"],
+            }
+        )
+    exp.collector.shutdown()
+    exp.close()
+    return rounds
+
+
+def spread(values: list[float], fmt: str = "{:.0f}") -> str:
+    """``median (min..max)``."""
+    med = statistics.median(values)
+    return f"{fmt.format(med)} ({fmt.format(min(values))}..{fmt.format(max(values))})"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--recipes", nargs="+", default=["maddpg", "shapley_ac"], choices=RECIPES)
+    parser.add_argument("--env", default="freeway-merge", choices=["freeway", "freeway-merge"])
+    parser.add_argument("--num-envs", type=int, default=256, help="roads B of the batched env")
+    parser.add_argument("--vehicles", type=int, default=30, help="n_vehicles")
+    parser.add_argument("--cav-ratio", type=float, default=1.0, help="cav_ratio")
+    parser.add_argument("--steps", type=int, default=4, help="steps of every road per batch")
+    parser.add_argument("--frames", type=int, default=20_480, help="frames per measured round")
+    parser.add_argument("--rounds", type=int, default=3, help="measured rounds per recipe")
+    parser.add_argument("--warmup-frames", type=int, default=0, help="frames before round 1")
+    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    parser.add_argument("--schedule", choices=["default", "openai"], default="default")
+    parser.add_argument("--budget", type=int, default=4_000_000, help="frames to extrapolate to")
+    parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
+    args = parser.parse_args()
+    if args.num_envs < 1 or args.steps < 1 or args.frames < 1 or args.rounds < 1:
+        parser.error("--num-envs, --steps, --frames and --rounds must be >= 1")
+    if args.threads < 1:
+        parser.error("--threads must be >= 1")
+    torch.set_num_threads(args.threads)
+    print(f"CPU: {cpu_model()}; torch {torch.__version__}, capability ", end="")
+    print(
+        f"{torch.backends.cpu.get_cpu_capability()}; {torch.get_num_threads()} thread(s), "
+        f"OpenMP wait policy {WAIT_POLICY}"
+    )
+    print(
+        f"{args.env}, {args.vehicles} vehicles (cav_ratio {args.cav_ratio}), B = {args.num_envs} "
+        f"roads x {args.steps} steps per batch; schedule {args.schedule} {' '.join(args.overrides)}"
+    )
+    print(f"load average before: {load()}")
+    header = f"{'recipe':<11} {'frames/s':>20} " + " ".join(f"{p + ' %':>14}" for p in PHASES)
+    print(header + f" {'budget run (h)':>15}")
+    root = Path(tempfile.mkdtemp(prefix="learner_throughput_"))
+    try:
+        for recipe in args.recipes:
+            rounds = measure(recipe, args, root / recipe)
+            shares = {p: [100 * r[p] / r["wall"] for r in rounds] for p in PHASES}
+            fps = [r["fps"] for r in rounds]
+            hours = args.budget / statistics.median(fps) / 3600
+            cells = " ".join(f"{spread(shares[p], '{:.1f}'):>14}" for p in PHASES)
+            print(f"{recipe:<11} {spread(fps):>20} {cells} {hours:>15.2f}")
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+    print(f"load average after: {load()}")
+
+
+if __name__ == "__main__":
+    main()
