@@ -19,6 +19,7 @@ state, the generator's included, so a rollout can branch and replay bit for bit.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -131,6 +132,7 @@ class BatchedFreeway:
         if kernel not in KERNELS:
             raise ValueError(f"kernel must be one of {list(KERNELS)}, got {kernel!r}")
         self.config = dict(config)
+        self.kernel_choice = kernel
         self.merge = merge
         self.device = torch.device(device)
         self.dtype = dtype
@@ -196,6 +198,36 @@ class BatchedFreeway:
         snap.batch_size = []
         snap["rng"] = self.generator.get_state().to(self.device)
         return snap
+
+    def branch(self, road: int, copies: int) -> BatchedFreeway:
+        """A new simulator of ``copies`` roads, each the current state of road ``road`` (same
+        config, device, dtype and kernel): a rollout branches, and every copy can play other
+        actions from here."""
+        if not 0 <= road < self.n_roads:
+            raise ValueError(f"road must be in [0, {self.n_roads - 1}], got {road}")
+        if copies < 1:
+            raise ValueError(f"copies must be >= 1, got {copies}")
+        twin = BatchedFreeway(
+            self.config, self.merge, copies, self.device, self.dtype, kernel=self.kernel_choice
+        )
+        twin.state = self.state[road : road + 1].expand(copies).clone()
+        return twin
+
+    def rollout_returns(self, decide: Callable[[torch.Tensor], torch.Tensor]) -> torch.Tensor:
+        """Step every road to the end of its episode with actions ``decide(observation)``
+        (``[B, I, obs_dim]`` -> ``[B, I]``) and return each road's system return from now on
+        (the CAVs' rewards summed over CAVs and steps) ``[B]``; roads are not reset."""
+        observation = self.observe()
+        total = torch.zeros(self.n_roads, dtype=torch.float64, device=self.device)
+        running = (self.state.get("steps") < int(self.config["horizon"])) & self.state[
+            "agents"
+        ].get("alive").any(1)
+        while bool(running.any()):
+            result = self.step(decide(observation))
+            total += torch.where(running, result.reward.double().sum(1), 0.0)
+            running &= ~(result.truncated | result.terminated)
+            observation = result.observation
+        return total
 
     def restore(self, snapshot: TensorDict) -> None:
         """Return every road to ``snapshot`` (from :meth:`snapshot` of a simulator with the
