@@ -35,7 +35,8 @@ def n_step_transitions(batch: TensorDictBase, gamma: float, n_steps: int) -> Ten
     Args:
         batch: ``[*, T]`` consecutive steps (one collector batch; time last) with
             ``("next", "agents", "reward"|"done"|"terminated")`` ``[*, T, I, 1]`` and root
-            ``("next", "done")`` ``[*, T, 1]``.
+            ``("next", "done")`` ``[*, T, 1]``; every leading index (a road of a batched env)
+            is its own sequence, all of them computed at once.
         gamma: discount in [0, 1].
         n_steps: look-ahead (>= 1; 1 returns the batch with ``steps_to_next_obs = 1``).
 
@@ -46,34 +47,35 @@ def n_step_transitions(batch: TensorDictBase, gamma: float, n_steps: int) -> Ten
         raise ValueError(f"n_steps must be >= 1, got {n_steps}")
     if batch.ndim == 0:
         raise ValueError("batch must have a time batch dim (the last one)")
-    if batch.ndim > 1:  # several envs [*, T]: each row is its own sequence
-        return torch.stack([n_step_transitions(row, gamma, n_steps) for row in batch.unbind(0)])
-    nxt = batch.get("next")
-    reward, done_i, term_i = nxt.get(REWARD), nxt.get(DONE), nxt.get(TERMINATED)
-    episode_end = nxt.get("done").reshape(-1)
-    steps_total = batch.shape[0]
+    lead = batch.shape[:-1]
+    rows = batch.reshape(-1, batch.shape[-1])  # [N, T]: each row (road) its own sequence
+    nxt = rows.get("next")
+    reward, done_i, term_i = nxt.get(REWARD), nxt.get(DONE), nxt.get(TERMINATED)  # [N, T, I, 1]
+    episode_end = nxt.get("done").reshape(rows.shape)  # [N, T]
+    steps_total = rows.shape[1]
     time = torch.arange(steps_total, device=reward.device)
 
     ret, steps = reward.clone(), torch.ones_like(reward)
     done, term = done_i.clone(), term_i.clone()
-    last = time.clone()
-    extend = ~episode_end  # [T] row t may look one step further
+    last = time.expand(rows.shape).clone()  # [N, T] the step whose "next" row t takes
+    extend = ~episode_end  # [N, T] row t may look one step further
     for k in range(1, n_steps):
-        ahead = time + k
+        ahead = time + k  # [T], the same for every row
         extend = extend & (ahead < steps_total)
         ahead = ahead.clamp(max=steps_total - 1)
-        add = extend[:, None, None] & ~done  # [T, I, 1] agents still driving
-        ret = torch.where(add, ret + gamma**k * reward[ahead], ret)
+        add = extend[..., None, None] & ~done  # [N, T, I, 1] agents still driving
+        ret = torch.where(add, ret + gamma**k * reward.index_select(1, ahead), ret)
         steps = steps + add.to(steps.dtype)
-        done = torch.where(add, done_i[ahead], done)
-        term = torch.where(add, term_i[ahead], term)
+        done = torch.where(add, done_i.index_select(1, ahead), done)
+        term = torch.where(add, term_i.index_select(1, ahead), term)
         last = torch.where(extend, ahead, last)
-        extend = extend & ~episode_end[ahead]
+        extend = extend & ~episode_end.index_select(1, ahead)
 
-    out = batch.clone(False)
-    out.set("next", nxt[last].clone())
+    out = rows.clone(False)
+    road = torch.arange(rows.shape[0], device=last.device).unsqueeze(-1)  # [N, 1]
+    out.set("next", nxt[road, last].clone())
     out.set(("next", *REWARD), ret)
     out.set(("next", *DONE), done)
     out.set(("next", *TERMINATED), term)
     out.set(STEPS_TO_NEXT_OBS, steps)
-    return out
+    return out.reshape(*lead, steps_total)
