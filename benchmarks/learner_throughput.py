@@ -92,10 +92,12 @@ def build(recipe: str, args: argparse.Namespace, run_dir: Path) -> Any:
         progress=False,
         logger="none",
     )
-    overrides = list(OPENAI_MADDPG) if args.schedule == "openai" else []
     fields = set(cls.Config.field_names())
-    overrides = [o for o in overrides if o.partition("=")[0] in fields] + args.overrides
-    return cls(config.with_overrides(overrides), run_dir)
+    schedule = OPENAI_MADDPG if args.schedule == "openai" else ()
+    # the recipe's fields of the schedule, then the command line's (which win)
+    overrides = {o.partition("=")[0]: o for o in schedule if o.partition("=")[0] in fields}
+    overrides.update({o.partition("=")[0]: o for o in args.overrides})
+    return cls(config.with_overrides(list(overrides.values())), run_dir)
 
 
 def timed(owner: Any, name: str, clock: dict[str, float], key: str) -> None:
