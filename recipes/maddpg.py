@@ -80,17 +80,24 @@ units, gradient norms clipped at 0.5 (their actor's ``mean(p^2)`` penalty at 1e-
 
 This is an inference, not a setting the Shapley paper (Han et al.) states: the paper gives no
 update schedule, and its software versions match openai/maddpg's release, whose defaults these
-are. What differs from openai/maddpg: one shared actor and one centralised critic update for all
-agents per step (openai/maddpg updates each agent's own pair at every step), updates start once
-the buffer holds ``batch_size`` transitions (theirs wait for 25,600: ``batch_size`` times their
-25-step episodes) after ``init_random_frames`` of uniform random actions, and the replay keeps
-``buffer_size`` (default 100,000) transitions, not 10^6 (about 7 kB each at 30 CAVs).
+are. What differs from openai/maddpg: one shared actor and one centralised critic take one step
+for all agents (openai/maddpg steps each agent's own actor and critic in turn), updates start
+once the buffer holds ``batch_size`` transitions (theirs wait for 25,600: ``batch_size`` times
+their 25-step episodes) after ``init_random_frames`` of uniform random actions (torchrl rounds
+them up to whole collected batches), and the replay keeps ``buffer_size`` (default 100,000)
+transitions, not 10^6 (6.4 kB each at 30 CAVs: a 100,000-transition buffer is a 640 MB
+checkpoint).
 
-Python: ``MADDPGConfig(...).with_overrides(OPENAI_MADDPG)``; command line::
+Python: ``MADDPGConfig(...).with_overrides(OPENAI_MADDPG)``; command line, on 256 roads of the
+batched freeway (give runs of millions of frames ``eval_interval`` and ``checkpoint_interval``
+of their own: the defaults, 1,000 frames, evaluate and checkpoint after every batch)::
 
-    mapets-rl train maddpg --env freeway-merge update_interval=100 updates_per_batch=1 \
-        batch_size=1024 lr_actor=0.01 lr_critic=0.01 gamma=0.95 tau=0.01 \
-        "num_cells=[64, 64]" max_grad_norm=0.5
+    mapets-rl train maddpg --env freeway-merge \
+        "env_config={backend: torch, num_envs: 256, n_vehicles: 30, cav_ratio: 1.0}" \
+        frames_per_batch=1024 total_frames=4000000 eval_interval=100000 \
+        checkpoint_interval=500000 update_interval=100 updates_per_batch=1 batch_size=1024 \
+        lr_actor=0.01 lr_critic=0.01 gamma=0.95 tau=0.01 "num_cells=[64, 64]" \
+        max_grad_norm=0.5
 """
 
 
