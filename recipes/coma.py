@@ -148,8 +148,9 @@ class COMA(SystemRewardMetrics, Experiment):
         )
 
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
-        """TD(lambda) targets on the trajectory batch [T], then ``epochs`` passes of minibatch
-        actor and critic steps (the actor loss sees a detached critic: one backward)."""
+        """TD(lambda) targets on the trajectory batch [*, T] (each road of [B, T] its own
+        sequence), then ``epochs`` passes of minibatch actor and critic steps (the actor loss
+        sees a detached critic: one backward)."""
         cfg = self.config
         batch = self.loss.value_targets(batch)
         self.buffer.empty()

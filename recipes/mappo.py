@@ -126,7 +126,8 @@ class MAPPO(Experiment):
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=config.lr)
 
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
-        """GAE on the batch [T], then ``epochs`` passes of minibatch PPO updates."""
+        """GAE along time on the batch [*, T] (each road of [B, T] its own sequence), then
+        ``epochs`` passes of minibatch PPO updates."""
         with torch.no_grad():
             self.loss.value_estimator(
                 batch,

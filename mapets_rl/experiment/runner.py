@@ -376,8 +376,9 @@ class Experiment:
         raise NotImplementedError
 
     def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
-        """Training metrics of a collected batch [T]: mean reward of the CAVs alive
-        (``("agents", "mask")``) and, on the freeway, the mean traffic velocity and comfort."""
+        """Training metrics of a collected batch [*, T] (time last; [B, T] from B roads): mean
+        reward of the CAVs alive (``("agents", "mask")``) and, on the freeway, the mean traffic
+        velocity and comfort."""
         mask = batch.get(("next", "agents", "mask"), None)
         out = {"reward": masked_mean(batch.get(("next", "agents", "reward")), mask)}
         info = batch.get(("next", "agents", "info"), None)
