@@ -41,7 +41,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from mapets_rl.experiment.threads import prepare_process
+from mapets_rl.experiment.threads import THREADS_ENV, prepare_process
 
 WAIT_POLICY = prepare_process()  # OpenMP threads sleep when idle, as in `mapets-rl`
 
@@ -150,6 +150,8 @@ def measure(recipe: str, args: argparse.Namespace, run_dir: Path) -> list[dict[s
         )
     exp.collector.shutdown()
     exp.close()
+    if torch.get_num_threads() != args.threads:
+        raise RuntimeError(f"ran on {torch.get_num_threads()} threads, not {args.threads}")
     return rounds
 
 
@@ -179,6 +181,8 @@ def main() -> None:
         parser.error("--num-envs, --steps, --frames and --rounds must be >= 1")
     if args.threads < 1:
         parser.error("--threads must be >= 1")
+    # an explicit count: the experiments keep it (they would choose by the load otherwise)
+    os.environ[THREADS_ENV] = str(args.threads)
     torch.set_num_threads(args.threads)
     print(f"CPU: {cpu_model()}; torch {torch.__version__}, capability ", end="")
     print(
