@@ -446,6 +446,22 @@ class BatchedFreeway:
             front, rear, self.frames,
             settings, alive, observation, reward, velocity, comfort, *sums,
         )  # fmt: skip
+        return self._end_step(
+            observation, reward, acting, alive, crashed_now, distance, velocity, comfort
+        )
+
+    def _end_step(
+        self,
+        observation: torch.Tensor,
+        reward: torch.Tensor,
+        acting: torch.Tensor,
+        alive: torch.Tensor,
+        crashed_now: torch.Tensor,
+        distance: torch.Tensor,
+        velocity: torch.Tensor,
+        comfort: torch.Tensor,
+    ) -> StepResult:
+        """Count the step, record the CAVs still driving and say which roads are done."""
         self.state["agents"].set("alive", alive)
         steps = self.state.get("steps") + 1
         self.state.set("steps", steps)
@@ -458,7 +474,7 @@ class BatchedFreeway:
             distance=distance,
             traffic_velocity=velocity,
             traffic_comfort=comfort,
-            truncated=steps >= int(cfg["horizon"]),
+            truncated=steps >= int(self.config["horizon"]),
             terminated=~alive.any(1),
         )
 
@@ -519,23 +535,11 @@ class BatchedFreeway:
             mean = (reward * paid).sum(1, keepdim=True) / paid.sum(1, keepdim=True).clamp(min=1)
             reward = mean.expand_as(reward)
         reward = torch.where(acting, reward, 0.0)
-        alive = acting & ~crashed_now
-        agents.set("alive", alive)
         bodies.set("present", bodies.get("present") & ~bodies.get("crashed"))
-        steps = self.state.get("steps") + 1
-        self.state.set("steps", steps)
-        return StepResult(
-            observation=observation,
-            reward=reward,
-            acting=acting,
-            alive=alive,
-            collided=crashed_now,
-            distance=distance,
-            traffic_velocity=velocity,
-            traffic_comfort=mean_comfort,
-            truncated=steps >= int(cfg["horizon"]),
-            terminated=~alive.any(1),
-        )
+        return self._end_step(
+            observation, reward, acting, acting & ~crashed_now, crashed_now, distance,
+            velocity, mean_comfort,
+        )  # fmt: skip
 
     # --- observation and metrics ---------------------------------------------------------------
     def observe(self, acting: torch.Tensor | None = None) -> torch.Tensor:
