@@ -36,6 +36,7 @@ from mapets_rl.envs.freeway_merge import FreewayMergeParallelEnv
 from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, TrafficParallelEnv
 from mapets_rl.envs.registry import builtin_envs, register_builtin, registered_scenario
 from mapets_rl.envs.torch_freeway.env import TorchFreewayEnv
+from mapets_rl.envs.validation import check_one_hot
 
 TORCH_BACKEND = {
     FreewayParallelEnv: FreewayParallelEnv.env_class,
@@ -145,17 +146,7 @@ class TrafficPettingZooWrapper(PettingZooWrapper):
                 f"got {list(action.shape)}"
             )
         if isinstance(action_spec, OneHot):
-            # within 1e-4 of a one-hot vector: straight-through estimators (hard + soft -
-            # soft.detach()) give 0.99999994 where they mean 1
-            near_binary = ((action.abs() <= 1e-4) | ((action - 1).abs() <= 1e-4)).all(-1)
-            valid = near_binary & ((action.sum(-1) - 1).abs() <= 1e-4)
-            if not valid.all():
-                agent = int((~valid).nonzero()[0, 0])
-                raise ValueError(
-                    "('agents', 'action') must be one-hot per CAV (exactly one 1, zeros "
-                    f"elsewhere, over {action_spec.shape[-1]} actions), got "
-                    f"{action[agent].tolist()} for CAV {agent}"
-                )
+            check_one_hot(action)
         joint = np.asarray(action_spec.to_numpy(action))
         obs, rewards, terminated, truncated, acting, info = self._env.step_joint(joint)
         return self._output(obs, info, acting, terminated, truncated, rewards)

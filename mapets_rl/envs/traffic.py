@@ -81,20 +81,26 @@ class MultiAgentTrafficEnv(AbstractEnv):
     view_centre = np.zeros(2)
 
     def __init__(self, config: dict | None = None, render_mode: str | None = None) -> None:
-        config = dict(config or {})
-        accepted = self.user_keys()
-        unknown = sorted(set(config) - set(accepted))
-        require(
-            not unknown,
-            f"unknown config key(s) {unknown} for {type(self).__name__}; accepted keys: {accepted}",
-        )
-        merged = {**self.default_config(), **config}
-        config.update(self.derived_config(merged))
-        merged.update(config)
-        self.validate_config(merged)
+        config = self.resolved_config(config or {})
         self.cavs: list[Vehicle] = []
         self.alive = np.zeros(0, dtype=bool)
         super().__init__(config, render_mode)
+
+    @classmethod
+    def resolved_config(cls, config: dict) -> dict:
+        """The full config the scenario runs with: its defaults, the user's ``config`` and what
+        :meth:`derived_config` computes from them, validated (ValueError naming an unknown or
+        invalid key). The torch backend of the freeways resolves its config here too."""
+        accepted = cls.user_keys()
+        unknown = sorted(set(config) - set(accepted))
+        require(
+            not unknown,
+            f"unknown config key(s) {unknown} for {cls.__name__}; accepted keys: {accepted}",
+        )
+        merged = {**cls.default_config(), **config}
+        merged.update(cls.derived_config(merged))
+        cls.validate_config(merged)
+        return merged
 
     @classmethod
     def user_keys(cls) -> list[str]:

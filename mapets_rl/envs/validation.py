@@ -7,6 +7,7 @@ import math
 from typing import Any
 
 import numpy as np
+import torch
 
 PHYSICAL_MAX_SPEED = 60.0
 """The highest speed limit a scenario accepts [m/s] (216 km/h): anything above is a typo."""
@@ -127,3 +128,26 @@ def require_rendering(config: dict) -> None:
                 "centering_position must be a pair [x, y] of numbers in [0, 1] (fractions of "
                 f"the screen), got {value!r}"
             )
+
+
+ONE_HOT_TOLERANCE = 1e-4
+"""How far an entry of a one-hot action may be from 0 or 1: straight-through estimators
+(hard + soft - soft.detach()) give 0.99999994 where they mean 1."""
+
+
+def check_one_hot(action: torch.Tensor) -> None:
+    """ValueError unless every CAV's action ``[..., I, A]`` is one-hot (within
+    :data:`ONE_HOT_TOLERANCE`), naming the first CAV whose action is not (and its road, for a
+    batch of roads)."""
+    tol = ONE_HOT_TOLERANCE
+    near_binary = ((action.abs() <= tol) | ((action - 1).abs() <= tol)).all(-1)
+    valid = near_binary & ((action.sum(-1) - 1).abs() <= tol)
+    if bool(valid.all()):
+        return
+    where = [int(i) for i in (~valid).nonzero()[0]]
+    road = f" of road {where[0]}" if len(where) > 1 else ""
+    raise ValueError(
+        "('agents', 'action') must be one-hot per CAV (exactly one 1, zeros elsewhere, over "
+        f"{action.shape[-1]} actions), got {action[tuple(where)].tolist()} for CAV "
+        f"{where[-1]}{road}"
+    )

@@ -29,6 +29,7 @@ from mapets_rl.envs.freeway_merge import FreewayMergeEnv
 from mapets_rl.envs.torch_freeway.highway_state import draw_scene
 from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway, StepResult
 from mapets_rl.envs.traffic import require
+from mapets_rl.envs.validation import check_one_hot
 
 UNSUPPORTED = {"stock_neighbour_search": False}
 """highway-env keys the torch backend cannot honour, with the one value it accepts."""
@@ -44,21 +45,13 @@ def scenario_config(env_class: type[FreewayEnv], config: dict[str, Any]) -> dict
     """The full, validated config of ``env_class`` with the user's ``config`` (the highway-env
     scenario's own checks; ValueError naming the key), refusing what the torch backend cannot
     honour."""
-    accepted = env_class.user_keys()
-    unknown = sorted(set(config) - set(accepted))
-    require(
-        not unknown,
-        f"unknown config key(s) {unknown} for {env_class.__name__}; accepted keys: {accepted}",
-    )
     for key, value in UNSUPPORTED.items():
         if config.get(key, value) != value:
             raise ValueError(
                 f"{key}={config[key]!r} is a highway-env implementation switch the torch "
                 f"backend cannot honour (only {value!r}); use backend='highway-env'"
             )
-    merged = {**env_class.default_config(), **config}
-    merged.update(env_class.derived_config(merged))
-    env_class.validate_config(merged)
+    merged = env_class.resolved_config(config)
     require(
         merged["n_cavs"] >= 1,
         f"cav_ratio={merged['cav_ratio']} with n_vehicles={merged['n_vehicles']} gives no CAV; "
@@ -217,15 +210,9 @@ class TorchFreewayEnv(EnvBase):
             raise ValueError(
                 f"('agents', 'action') must have shape {list(spec.shape)}, got {list(action.shape)}"
             )
-        index = action if self.categorical_actions else action.argmax(-1)
         if not self.categorical_actions:
-            near_binary = ((action.abs() <= 1e-4) | ((action - 1).abs() <= 1e-4)).all(-1)
-            valid = near_binary & ((action.sum(-1) - 1).abs() <= 1e-4)
-            require(
-                bool(valid.all()),
-                "('agents', 'action') must be one-hot per CAV (exactly one 1, zeros elsewhere, "
-                "over 4 actions: KL, CL, CR, ES)",
-            )
+            check_one_hot(action)
+        index = action if self.categorical_actions else action.argmax(-1)
         require(
             bool(((index >= 0) & (index <= 3)).all()),
             "('agents', 'action') values must be integers in [0, 3] (KL, CL, CR, ES)",

@@ -58,8 +58,6 @@ from mapets_rl.envs.vehicles import ACC_MIN
 
 DELTA_RANGE = tuple(IDMVehicle.DELTA_RANGE)
 """Range of a human driver's IDM exponent (``IDMVehicle.randomize_behavior``)."""
-if IDMVehicle.POLITENESS != 0:  # MOBIL's follower terms are dropped below because they weigh 0
-    raise ImportError("the batched freeway assumes highway-env's MOBIL politeness of 0")
 
 KERNELS = ("auto", "native", "torch")
 """How a CPU simulator steps: the fused C++ kernel where it builds (``"auto"``), always
