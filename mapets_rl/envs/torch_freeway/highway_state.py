@@ -130,11 +130,11 @@ def draw_scene(sim: BatchedFreeway, road: int, env: FreewayEnv) -> None:
         made.append(vehicle)
     slots = state.get("agents").get("slot").tolist()
     alive = state.get("agents").get("alive").numpy().copy()
-    env.cavs = [made[s] or _ghost(env, bodies, s) for s in slots]
+    env.cavs = [made[s] or _ghost(bodies, s) for s in slots]
     env.alive = alive
     env.time = int(state.get("steps")) / env.config["policy_frequency"]
 
 
-def _ghost(env: FreewayEnv, bodies: object, k: int) -> Vehicle:
+def _ghost(bodies: object, k: int) -> Vehicle:
     """A vehicle off the road standing for a crashed CAV (its last position)."""
     return Vehicle(None, [float(bodies.get("x")[k]), float(bodies.get("y")[k])])
