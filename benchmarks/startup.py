@@ -26,9 +26,9 @@ REPORT = (
     " [m for m in {heavy!r} if m in sys.modules]]))\n"
 )
 CASES = {
-    "mapets-rl --help": "from mapets_rl.experiment.cli import main\n"
+    "mapets-rl --help": "from mapets_rl.app.cli import main\n"
     "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n",
-    "import mapets_rl.experiment.cli": "import mapets_rl.experiment.cli\n",
+    "import mapets_rl.app.cli": "import mapets_rl.app.cli\n",
     "import mapets_rl.experiment.runner": "import mapets_rl.experiment.runner\n",
     "import mapets_rl.envs": "import mapets_rl.envs\n",
     "runner + envs (a run's imports)": "import mapets_rl.experiment.runner, mapets_rl.envs\n",

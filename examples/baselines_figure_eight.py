@@ -176,7 +176,7 @@ def main(argv: list[str] | None = None) -> None:
                 flush=True,
             )
 
-    from mapets_rl.experiment import compare
+    from mapets_rl.app.comparison import compare
 
     out = compare(
         [job[3] for job in jobs] + args.mapets,

@@ -10,14 +10,14 @@ of agility and safety (mean +- std over seeds), the paper's two claims checked o
 (safety over episodes 13-15; d = 100 ahead of d = 0 over episodes 2-8, with the seeds' spread;
 crashes over episodes 2-15) and writes ``table.md`` (those two tables) to ``--out``.
 
-The runs are a sweep (:func:`mapets_rl.experiment.sweep.run_sweep`, what ``mapets-rl sweep``
+The runs are a sweep (:func:`mapets_rl.app.sweep.run_sweep`, what ``mapets-rl sweep``
 runs): the grid ``env_config.observation`` x ``comm.comm_range`` x seeds, each run a directory
 ``OUT/trials/env_config.observation=<o>__comm.comm_range=<d>__seed=<s>/`` (config.yaml,
 results.json, checkpoints, CSV logs), ``OUT/sweep.json`` their states, run two at a time on this
 machine (``--backend ray`` for a Ray instance or cluster). An interrupted sweep resumes every
 unfinished run from its latest checkpoint when the same command is run again; ``--report-only``
 aggregates what has finished. The per-episode statistics and the plot come from
-:func:`mapets_rl.experiment.compare` on the runs' training episodes, grouped by observation
+:func:`mapets_rl.app.comparison.compare` on the runs' training episodes, grouped by observation
 option and d (``OUT/summary``: ``learning_curves.png``, ``curves.json``, ``summary.json``,
 ``final_metrics.md``).
 
@@ -38,14 +38,14 @@ import json
 import sys
 from pathlib import Path
 
-from mapets_rl.experiment import atomic_write_text, read_results
-from mapets_rl.experiment.sweep import (
+from mapets_rl.app.sweep import (
     SweepSpec,
     plan_trials,
     read_trial_record,
     run_sweep,
     summarise,
 )
+from mapets_rl.experiment import atomic_write_text, read_results
 
 METRICS = ("agility", "safety")
 SCENARIO_DEFAULTS = {

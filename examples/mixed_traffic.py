@@ -52,13 +52,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from mapets_rl.app.comparison import mean_ci95
 from mapets_rl.envs import FreewayEnv, FreewayMergeEnv  # noqa: E402
-from mapets_rl.experiment import (  # noqa: E402
+from mapets_rl.experiment import (
     ExperimentConfig,
     atomic_savefig,
     atomic_write_text,
     evaluate_scripted,
-    mean_ci95,
     mean_metrics,
 )
 from mapets_rl.metrics import MPH_PER_MPS  # noqa: E402

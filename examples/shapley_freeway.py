@@ -33,14 +33,14 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mapets_rl.experiment import (  # noqa: E402
+from mapets_rl.app.comparison import mean_ci95
+from mapets_rl.experiment import (
     ExperimentConfig,
     atomic_savefig,
     atomic_write_text,
     evaluate_scripted,
     latest_checkpoint,
     load_recipe,
-    mean_ci95,
     read_results,
 )
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from mapets_rl.experiment.cli import main
+from mapets_rl.app.cli import main
 
 
 def run_cli(argv: list[str], capsys) -> tuple[int, str, str]:

@@ -30,6 +30,7 @@ FLOORS = {
     "mapets_rl.objectives": 3,
     "mapets_rl.experiment": 4,
     "recipes": 5,
+    "mapets_rl.app": 6,
 }
 """Component -> floor: a component imports only components on its floor or below."""
 

@@ -21,10 +21,10 @@ from tensordict.nn import TensorDictModule
 from toy_recipe import ToyConfig, ToyLearner
 from toy_scenario import ToyAgentsEnv
 
+from mapets_rl.app.cli import main
 from mapets_rl.comm import CommunicationRange, communication_graph
 from mapets_rl.envs import FigureEightEnv, FreewayEnv, make_env, registry
 from mapets_rl.experiment import register_env
-from mapets_rl.experiment.cli import main
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.objectives import COMACritic, COMALoss, EnsembleNLLLoss, ShapleyActorCriticLoss
 from mapets_rl.planning import TrajectorySamplingCEM

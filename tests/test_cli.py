@@ -78,7 +78,7 @@ def test_module_entry_point_errors_without_traceback() -> None:
         [
             sys.executable,
             "-m",
-            "mapets_rl.experiment.cli",
+            "mapets_rl.app.cli",
             "train",
             "nope",
             "--env",
@@ -132,7 +132,7 @@ def test_evaluate_video_prints_only_our_output(tmp_path: Path) -> None:
         if k not in ("XDG_RUNTIME_DIR", "SDL_VIDEODRIVER", "RL_LOGGING_LEVEL")
     }
     proc = subprocess.run(
-        [sys.executable, "-m", "mapets_rl.experiment.cli", "evaluate", str(run), "--video"],
+        [sys.executable, "-m", "mapets_rl.app.cli", "evaluate", str(run), "--video"],
         cwd=ROOT,
         env=env,
         capture_output=True,

@@ -12,7 +12,7 @@ import pytest
 from cli_run import run_cli
 from test_results import ENV_CONFIG, eval_entries, fake_run, train_entries
 
-from mapets_rl.experiment import compare, mean_ci95
+from mapets_rl.app.comparison import compare, mean_ci95
 
 
 # ------------------------------------------------------------------------------- sources
@@ -331,7 +331,7 @@ def test_cli_compare_options(tmp_path: Path, capsys) -> None:
 @pytest.fixture
 def figures(monkeypatch) -> list:
     """The matplotlib figures ``compare`` saves, in order."""
-    from mapets_rl.experiment import comparison
+    from mapets_rl.app import comparison
 
     saved: list = []
     original = comparison.atomic_savefig

@@ -12,19 +12,17 @@ import pytest
 import torch
 from toy_recipe import ToyConfig, ToyLearner
 
+from mapets_rl.app.comparison import compare, mean_ci95, student_t_quantile
 from mapets_rl.experiment import (
     CheckpointError,
     ConfigError,
-    compare,
     digest_path,
     file_sha256,
     latest_checkpoint,
     list_checkpoints,
     load_checkpoint,
-    mean_ci95,
     read_results,
     save_checkpoint,
-    student_t_quantile,
 )
 
 pytestmark = pytest.mark.usefixtures("toy_scenario")

@@ -56,7 +56,7 @@ def test_the_library_never_imports_recipes() -> None:
 def test_help_imports_neither_recipes_nor_torch() -> None:
     code = (
         "import sys\n"
-        "from mapets_rl.experiment.cli import main\n"
+        "from mapets_rl.app.cli import main\n"
         "for argv in (['--help'], ['train', '--help']):\n"
         "    try:\n"
         "        main(argv)\n"

@@ -10,8 +10,8 @@ import pytest
 import torch
 import yaml
 
+from mapets_rl.app.cli import main as cli_main
 from mapets_rl.experiment import ConfigError, latest_checkpoint, load_checkpoint
-from mapets_rl.experiment.cli import main as cli_main
 from recipes.mapets import MAPETS, MAPETSConfig
 
 TINY = dict(

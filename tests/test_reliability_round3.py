@@ -45,7 +45,7 @@ def _env(**extra: str) -> dict[str, str]:
 
 def _cli(args: list[str], cwd: Path, **extra: str) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "mapets_rl.experiment.cli", *args],
+        [sys.executable, "-m", "mapets_rl.app.cli", *args],
         cwd=cwd,
         env=_env(**extra),
         capture_output=True,
@@ -783,7 +783,7 @@ def test_m3ddpg_loss_refuses_a_boolean_epsilon(field):
 def test_a_new_run_under_a_file_size_limit_is_one_line(tmp_path):
     script = (
         "import resource, sys; resource.setrlimit(resource.RLIMIT_FSIZE, (1024, 1024)); "
-        "sys.argv[0] = 'mapets-rl'; from mapets_rl.experiment.cli import main; "
+        "sys.argv[0] = 'mapets-rl'; from mapets_rl.app.cli import main; "
         "sys.exit(main(sys.argv[1:]))"
     )
     argv = ["train", "mappo", "--env", "figure-eight", "--run-dir", str(tmp_path / "run")]
@@ -914,7 +914,7 @@ def test_a_ray_sweep_killed_with_kill_9_leaves_no_ray_agent(tmp_path):
     from sweep_helpers import SLOW_ENV
     from test_sweep import _SWEEP_SCRIPT, TINY
 
-    from mapets_rl.experiment.sweep import RAY_AGENTS
+    from mapets_rl.app.sweep import RAY_AGENTS
 
     out = tmp_path / "sweep"
     argv = ["sweep", "slowtoy", "--env", "toy", "--seeds", "0", *TINY, "--out", str(out)]

@@ -236,7 +236,7 @@ def _cli_with_file_size_limit(argv: list[str], limit: int) -> subprocess.Complet
             "register_env('toy', ToyAgentsEnv)",
             "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)",
             f"resource.setrlimit(resource.RLIMIT_FSIZE, ({limit}, {limit}))",
-            "from mapets_rl.experiment.cli import main",
+            "from mapets_rl.app.cli import main",
             f"sys.exit(main({argv!r}))",
         ]
     )

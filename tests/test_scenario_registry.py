@@ -14,9 +14,9 @@ from toy_scenario import ToyAgentsEnv
 
 import mapets_rl.envs as envs
 import mapets_rl.experiment as experiment
+from mapets_rl.app.sweep import SweepSpec, plan_trials, trial_scenarios
 from mapets_rl.envs import registry
 from mapets_rl.envs.registry import SCENARIO_GROUP
-from mapets_rl.experiment.sweep import SweepSpec, plan_trials, trial_scenarios
 
 TOY_CONFIG = {"n_agents": 2, "horizon": 3}
 

@@ -29,8 +29,8 @@ def _imported_after(code: str) -> list[str]:
 @pytest.mark.parametrize(
     "code",
     [
-        "import mapets_rl.experiment.cli",
-        "from mapets_rl.experiment.cli import main\ntry:\n    main(['--help'])\n"
+        "import mapets_rl.app.cli",
+        "from mapets_rl.app.cli import main\ntry:\n    main(['--help'])\n"
         "except SystemExit:\n    pass",
         "import mapets_rl.experiment.threads",
     ],

@@ -18,6 +18,7 @@ from cli_run import run_cli
 from sweep_helpers import SLOW_ENV
 from toy_recipe import ToyConfig, ToyLearner
 
+from mapets_rl.app.sweep import SweepSpec, parse_grid, plan_trials, trial_id
 from mapets_rl.experiment import (
     ConfigError,
     list_checkpoints,
@@ -25,7 +26,6 @@ from mapets_rl.experiment import (
     verified_checkpoints,
 )
 from mapets_rl.experiment.files import RunDirLock
-from mapets_rl.experiment.sweep import SweepSpec, parse_grid, plan_trials, trial_id
 
 TINY = ["total_frames=20", "frames_per_batch=10", "eval_interval=10", "checkpoint_interval=10"]
 
@@ -280,8 +280,8 @@ def test_model_free_recipe_collects_with_torchrl_collector(kind, tmp_path):
 
 
 def test_overrides_after_seeds_are_overrides(toy_recipe, tmp_path):
-    from mapets_rl.experiment.cli import build_parser
-    from mapets_rl.experiment.sweep import spec_from_args
+    from mapets_rl.app.cli import build_parser
+    from mapets_rl.app.sweep import spec_from_args
 
     argv = ["sweep", "toy", "--env", "toy", "--seeds", "3", "1", "lr=0.1", "--out", str(tmp_path)]
     args, extra = build_parser().parse_known_args(argv)
@@ -309,7 +309,7 @@ metadata.entry_points = _entry_points
 from mapets_rl.experiment import register_env
 from toy_scenario import ToyAgentsEnv
 register_env("toy", ToyAgentsEnv)
-from mapets_rl.experiment.cli import main
+from mapets_rl.app.cli import main
 sys.exit(main({argv!r}))
 """
 
@@ -412,7 +412,7 @@ def test_an_unreachable_ray_address_is_one_line_and_bounded(
     """RAY_ADDRESS naming no cluster: the sweep exits 2 with one line naming the address within
     the connect timeout, instead of Ray's minutes of retries and its own process exit."""
     pytest.importorskip("ray", reason="ray is not installed (pip install 'mapets-rl[ray]')")
-    import mapets_rl.experiment.sweep as sweep
+    import mapets_rl.app.sweep as sweep
 
     monkeypatch.setattr(sweep, "RAY_CONNECT_TIMEOUT_S", 3)
     monkeypatch.setenv("RAY_ADDRESS", "127.0.0.1:1")

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 from test_results import fake_run
 
+from mapets_rl.app.comparison import compare
 from mapets_rl.comm import CommConfig
-from mapets_rl.experiment import compare
 from mapets_rl.metrics import MPH_PER_MPS, format_metric, metric_label, metric_unit
 
 

@@ -1,5 +1,5 @@
 """What the MA-PETS ablation scripts share: the command line, the two scales, running the
-sweep (:func:`mapets_rl.experiment.sweep.run_sweep`), and the table of one swept field.
+sweep (:func:`mapets_rl.app.sweep.run_sweep`), and the table of one swept field.
 
 Every script sweeps one MA-PETS config field on the single-lane figure-eight (8 CAVs) over
 seeds; each trial is a normal run directory under ``OUT/trials`` (an interrupted script resumes
@@ -18,8 +18,9 @@ from typing import Any
 
 import torch
 
-from mapets_rl.experiment import atomic_write_text, mean_ci95, read_results
-from mapets_rl.experiment.sweep import SweepResult, SweepSpec, run_sweep
+from mapets_rl.app.comparison import mean_ci95
+from mapets_rl.app.sweep import SweepResult, SweepSpec, run_sweep
+from mapets_rl.experiment import atomic_write_text, read_results
 
 SCALES: dict[str, list[str]] = {
     # the cpu preset (w=25, Q=32, X=4, Y=2, P=5, B=5, 3x64, 30 epochs), the paper's scenario

@@ -108,7 +108,6 @@ if TYPE_CHECKING:
         verified_checkpoints,
         verify_checkpoint,
     )
-    from mapets_rl.experiment.comparison import compare, mean_ci95, student_t_quantile
     from mapets_rl.experiment.config import ExperimentConfig, RunConfig
     from mapets_rl.experiment.files import atomic_savefig, atomic_write, atomic_write_text
     from mapets_rl.experiment.plugins import available_recipes, load_recipe
@@ -154,7 +153,6 @@ _EXPORTS = {
     "available_recipes": "plugins",
     "build_env": _REGISTRY,
     "checkpoint_problem": "checkpoint",
-    "compare": "comparison",
     "default_run_dir": "runner",
     "digest_path": "checkpoint",
     "evaluate_scripted": "reference",
@@ -166,7 +164,6 @@ _EXPORTS = {
     "load_recipe": "plugins",
     "log_scalars": "results",
     "make_logger": "results",
-    "mean_ci95": "comparison",
     "mean_metrics": "results",
     "read_results": "results",
     "register_env": _REGISTRY,
@@ -176,7 +173,6 @@ _EXPORTS = {
     "save_checkpoint": "checkpoint",
     "seed_everything": "checkpoint",
     "set_rng_state": "checkpoint",
-    "student_t_quantile": "comparison",
     "verified_checkpoints": "checkpoint",
     "verify_checkpoint": "checkpoint",
 }
@@ -218,7 +214,6 @@ __all__ = [
     "build_env",
     "check",
     "checkpoint_problem",
-    "compare",
     "default_run_dir",
     "digest_path",
     "evaluate_scripted",
@@ -230,7 +225,6 @@ __all__ = [
     "load_recipe",
     "log_scalars",
     "make_logger",
-    "mean_ci95",
     "mean_metrics",
     "read_results",
     "register_env",
@@ -240,7 +234,6 @@ __all__ = [
     "save_checkpoint",
     "seed_everything",
     "set_rng_state",
-    "student_t_quantile",
     "verified_checkpoints",
     "verify_checkpoint",
 ]

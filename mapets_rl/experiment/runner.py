@@ -928,7 +928,7 @@ def _ray_collector(
     import ray
     from torchrl.collectors.distributed import RayCollector
 
-    from mapets_rl.experiment.sweep import check_ray_address, ray_init_kwargs
+    from mapets_rl.app.sweep import check_ray_address, ray_init_kwargs
 
     init = ray_init_kwargs()
     if not ray.is_initialized():

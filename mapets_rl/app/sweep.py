@@ -782,7 +782,7 @@ def default_x(run_dirs: Sequence[Path], source: str) -> str:
 
 def summarise(spec: SweepSpec, run_dirs: Sequence[Path]) -> dict[str, Path]:
     """:func:`compare` of ``run_dirs`` grouped by the grid keys into ``OUT/summary``."""
-    from mapets_rl.experiment.comparison import compare
+    from mapets_rl.app.comparison import compare
 
     x = default_x(run_dirs, spec.source) if spec.x == "auto" else spec.x
     title = f"sweep of {spec.recipe} on {spec.env}"

@@ -6,7 +6,7 @@
     mapets-rl resume RUN_DIR [key=value ...]
     mapets-rl evaluate RUN_DIR [--episodes N] [--video]
     mapets-rl sweep RECIPE --env SCENARIO --out DIR [--seeds N ...] [--grid KEY=v1,v2 ...]
-                    [--backend local|ray] [key=value ...]     (see mapets_rl.experiment.sweep)
+                    [--backend local|ray] [key=value ...]     (see mapets_rl.app.sweep)
     mapets-rl compare RUN_DIR... --out DIR [--metrics a,b,...] [--source eval|train]
                       [--group-by FIELD[,FIELD...]] [--x frames|METRIC] [--allow-mixed-env]
                       [--legacy-as eval|train]
@@ -301,7 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="what the entries of a results.json from before training and "
         "evaluation entries were kept apart are (old mapets runs: train)",
     )
-    from mapets_rl.experiment.sweep import add_sweep_parser
+    from mapets_rl.app.sweep import add_sweep_parser
 
     add_sweep_parser(sub)
     return parser
@@ -382,8 +382,8 @@ def _metric_units(names: Sequence[str]) -> dict[str, str]:
 def _train(exp: Any) -> None:
     """``exp.train()``; a file that cannot be written (disk full, file size limit) is one line
     naming it (exit 2); the checkpoints written before it stay valid."""
+    from mapets_rl.app.sweep import RayUnreachable
     from mapets_rl.experiment.files import WriteFailed
-    from mapets_rl.experiment.sweep import RayUnreachable
 
     try:
         exp.train()
@@ -460,7 +460,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from mapets_rl.experiment.comparison import compare
+    from mapets_rl.app.comparison import compare
 
     metrics: list[str] | str | None = None
     if args.metrics is not None:
@@ -494,7 +494,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
-    from mapets_rl.experiment.sweep import cmd_sweep
+    from mapets_rl.app.sweep import cmd_sweep
 
     return cmd_sweep(args)
 
@@ -697,7 +697,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    # `python -m mapets_rl.experiment.cli` puts the working directory first on sys.path: run
+    # `python -m mapets_rl.app.cli` puts the working directory first on sys.path: run
     # inside a run directory from elsewhere, a module or *.dist-info entry point planted there
     # would be imported as a recipe or scenario (the mapets-rl command has no such entry)
     if sys.path and sys.path[0] in ("", os.getcwd()):
