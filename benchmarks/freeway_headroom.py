@@ -32,13 +32,13 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
-from mapets_rl.app.comparison import mean_ci95
 from mapets_rl.envs import scenario_config
 from mapets_rl.envs.freeway import CL, CR, KL, OBS_DIM
 from mapets_rl.envs.freeway_merge import OBS_DIM as MERGE_OBS_DIM
 from mapets_rl.experiment import ExperimentConfig, evaluate_scripted
 from mapets_rl.metrics import MPH_PER_MPS
 from mapets_rl.modules import ACTION, OBS
+from mapets_rl.statistics import mean_ci95
 
 
 class GreedyOvertaking(TensorDictModuleBase):

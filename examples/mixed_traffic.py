@@ -52,7 +52,6 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mapets_rl.app.comparison import mean_ci95
 from mapets_rl.envs import FreewayEnv, FreewayMergeEnv  # noqa: E402
 from mapets_rl.experiment import (
     ExperimentConfig,
@@ -62,6 +61,7 @@ from mapets_rl.experiment import (
     mean_metrics,
 )
 from mapets_rl.metrics import MPH_PER_MPS  # noqa: E402
+from mapets_rl.statistics import mean_ci95
 from recipes.coma import COMA, COMAConfig  # noqa: E402
 from recipes.shapley_ac import ShapleyAC, ShapleyACConfig  # noqa: E402
 

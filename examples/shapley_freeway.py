@@ -33,7 +33,6 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mapets_rl.app.comparison import mean_ci95
 from mapets_rl.experiment import (
     ExperimentConfig,
     atomic_savefig,
@@ -43,6 +42,7 @@ from mapets_rl.experiment import (
     load_recipe,
     read_results,
 )
+from mapets_rl.statistics import mean_ci95
 
 ALGORITHMS = ("shapley_ac", "maddpg", "m3ddpg", "coma", "mappo")
 LABELS = {

@@ -12,7 +12,8 @@ import pytest
 from cli_run import run_cli
 from test_results import ENV_CONFIG, eval_entries, fake_run, train_entries
 
-from mapets_rl.app.comparison import compare, mean_ci95
+from mapets_rl.app.comparison import compare
+from mapets_rl.statistics import mean_ci95
 
 
 # ------------------------------------------------------------------------------- sources

@@ -12,7 +12,7 @@ import pytest
 import torch
 from toy_recipe import ToyConfig, ToyLearner
 
-from mapets_rl.app.comparison import compare, mean_ci95, student_t_quantile
+from mapets_rl.app.comparison import compare
 from mapets_rl.experiment import (
     CheckpointError,
     ConfigError,
@@ -24,6 +24,7 @@ from mapets_rl.experiment import (
     read_results,
     save_checkpoint,
 )
+from mapets_rl.statistics import mean_ci95, student_t_quantile
 
 pytestmark = pytest.mark.usefixtures("toy_scenario")
 

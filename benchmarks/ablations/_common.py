@@ -18,9 +18,9 @@ from typing import Any
 
 import torch
 
-from mapets_rl.app.comparison import mean_ci95
 from mapets_rl.app.sweep import SweepResult, SweepSpec, run_sweep
 from mapets_rl.experiment import atomic_write_text, read_results
+from mapets_rl.statistics import mean_ci95
 
 SCALES: dict[str, list[str]] = {
     # the cpu preset (w=25, Q=32, X=4, Y=2, P=5, B=5, 3x64, 30 epochs), the paper's scenario
