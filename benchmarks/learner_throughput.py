@@ -41,7 +41,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from mapets_rl.experiment.threads import THREADS_ENV, prepare_process
+from mapets_rl.threads import THREADS_ENV, prepare_process
 
 WAIT_POLICY = prepare_process()  # OpenMP threads sleep when idle, as in `mapets-rl`
 
@@ -72,7 +72,7 @@ def load() -> str:
 
 def build(recipe: str, args: argparse.Namespace, run_dir: Path) -> Any:
     """The ``recipe`` experiment on ``args.num_envs`` roads of the batched torch freeway."""
-    from mapets_rl.experiment.plugins import load_recipe
+    from mapets_rl.app.plugins import load_recipe
     from recipes.maddpg import OPENAI_MADDPG
 
     cls = load_recipe(recipe)

@@ -1,6 +1,6 @@
 """Entry points of the installed packages: the one lookup that the scenario registry
 (:mod:`mapets_rl.envs.registry`, group ``mapets_rl.scenarios``) and the recipes
-(:mod:`mapets_rl.experiment.plugins`, group ``mapets_rl.recipes``) share.
+(:mod:`mapets_rl.app.plugins`, group ``mapets_rl.recipes``) share.
 
 Listing names reads only the installed packages' metadata; nothing is imported until a name is
 loaded, so ``mapets-rl --help`` stays fast.

@@ -22,6 +22,8 @@ FLOORS = {
     "mapets_rl.config": 0,
     "mapets_rl.metrics": 0,
     "mapets_rl.statistics": 0,
+    "mapets_rl.ray_runtime": 0,
+    "mapets_rl.threads": 0,
     "mapets_rl.envs": 1,
     "mapets_rl.comm": 2,
     "mapets_rl.models": 2,

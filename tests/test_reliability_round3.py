@@ -23,7 +23,7 @@ from mapets_rl import _compile_cache
 from mapets_rl._compile_cache import CACHE_ENV, HEADERS_ENV, prepare_compile_cache
 from mapets_rl.experiment import checkpoint
 from mapets_rl.experiment.files import LOCK_FILE, RunDirLock, check_run_subdirs
-from mapets_rl.experiment.plugins import load_recipe
+from mapets_rl.app.plugins import load_recipe
 from mapets_rl.experiment.runner import default_run_dir
 from mapets_rl.planning import compiled
 
@@ -914,7 +914,7 @@ def test_a_ray_sweep_killed_with_kill_9_leaves_no_ray_agent(tmp_path):
     from sweep_helpers import SLOW_ENV
     from test_sweep import _SWEEP_SCRIPT, TINY
 
-    from mapets_rl.app.sweep import RAY_AGENTS
+    from mapets_rl.ray_runtime import RAY_AGENTS
 
     out = tmp_path / "sweep"
     argv = ["sweep", "slowtoy", "--env", "toy", "--seeds", "0", *TINY, "--out", str(out)]

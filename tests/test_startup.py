@@ -32,7 +32,7 @@ def _imported_after(code: str) -> list[str]:
         "import mapets_rl.app.cli",
         "from mapets_rl.app.cli import main\ntry:\n    main(['--help'])\n"
         "except SystemExit:\n    pass",
-        "import mapets_rl.experiment.threads",
+        "import mapets_rl.threads",
     ],
 )
 def test_cli_and_help_import_no_heavy_module(code: str) -> None:

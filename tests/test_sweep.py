@@ -412,9 +412,9 @@ def test_an_unreachable_ray_address_is_one_line_and_bounded(
     """RAY_ADDRESS naming no cluster: the sweep exits 2 with one line naming the address within
     the connect timeout, instead of Ray's minutes of retries and its own process exit."""
     pytest.importorskip("ray", reason="ray is not installed (pip install 'mapets-rl[ray]')")
-    import mapets_rl.app.sweep as sweep
+    import mapets_rl.ray_runtime as ray_runtime
 
-    monkeypatch.setattr(sweep, "RAY_CONNECT_TIMEOUT_S", 3)
+    monkeypatch.setattr(ray_runtime, "RAY_CONNECT_TIMEOUT_S", 3)
     monkeypatch.setenv("RAY_ADDRESS", "127.0.0.1:1")
     start = time.monotonic()
     code, _, err = run_cli(

@@ -1,4 +1,4 @@
-"""Thread-count and OpenMP wait-policy choice (mapets_rl.experiment.threads)."""
+"""Thread-count and OpenMP wait-policy choice (mapets_rl.threads)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from mapets_rl.experiment.threads import (
+from mapets_rl.threads import (
     THREADS_ENV,
     choose_threads,
     config_threads,

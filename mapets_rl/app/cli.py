@@ -12,7 +12,7 @@
                       [--legacy-as eval|train]
 
 Recipes are found by name among the entry points of the group ``mapets_rl.recipes`` of the
-installed packages (see :mod:`mapets_rl.experiment.plugins`); nothing is imported until a
+installed packages (see :mod:`mapets_rl.app.plugins`); nothing is imported until a
 command needs it, so ``--help`` stays fast.
 
 Errors in what the user typed (unknown recipe, scenario or config key, a bad value, an unusable
@@ -33,7 +33,7 @@ from typing import Any, NoReturn
 
 from mapets_rl import quiet_dependencies
 from mapets_rl._compile_cache import prepare_compile_cache
-from mapets_rl.experiment.threads import prepare_process
+from mapets_rl.threads import prepare_process
 
 PROG = "mapets-rl"
 
@@ -129,7 +129,7 @@ def _check_action_kind(cls: type, env_name: str) -> None:
 
 def _recipe_names() -> str:
     """The installed recipes for help texts (names only: nothing is imported)."""
-    from mapets_rl.experiment.plugins import available_recipes
+    from mapets_rl.app.plugins import available_recipes
 
     try:
         names = available_recipes()
@@ -301,14 +301,92 @@ def build_parser() -> argparse.ArgumentParser:
         help="what the entries of a results.json from before training and "
         "evaluation entries were kept apart are (old mapets runs: train)",
     )
-    from mapets_rl.app.sweep import add_sweep_parser
-
-    add_sweep_parser(sub)
+    _add_sweep_parser(sub)
     return parser
 
 
+def _add_sweep_parser(sub: argparse._SubParsersAction) -> None:
+    """Register ``mapets-rl sweep`` on the CLI's subparsers (its work is
+    :func:`mapets_rl.app.sweep.cmd_sweep`)."""
+    parser = sub.add_parser(
+        "sweep",
+        help="run a recipe over config grids x seeds, on this machine or on Ray",
+        description="Run RECIPE on SCENARIO for every combination of the --grid values and "
+        "--seeds, each trial a normal run directory under OUT/trials/, then compare them "
+        "grouped by the swept fields (OUT/summary: learning_curves.png with 95% bands, "
+        "final_metrics.md). OUT/sweep.json lists the trials and their state. Running the same "
+        "command again skips finished trials and resumes unfinished ones; failed trials are "
+        "listed (their traceback in error.txt) and make the command exit with 1.",
+        epilog="Example: mapets-rl sweep mapets --env figure-eight --seeds 0 1 2 "
+        "--grid comm.comm_range=0,50,100 --grid comm.p_fail=0,0.25 preset=cpu episodes=5 "
+        "--out runs/d_sweep",
+    )
+    parser.add_argument("recipe", metavar="RECIPE", help="an installed recipe, e.g. mapets")
+    parser.add_argument("--env", required=True, metavar="SCENARIO", help="scenario name")
+    parser.add_argument(
+        "--seeds",
+        nargs="+",
+        default=["0"],
+        metavar="N",
+        help="seeds of the trials (default: 0)",
+    )
+    parser.add_argument(
+        "--grid",
+        action="append",
+        default=[],
+        metavar="KEY=v1,v2,...",
+        help="a config field and its values (dotted for nested fields, e.g. "
+        "comm.comm_range=0,50,100 or env_config.n_cavs=4,8; a YAML list for list values: "
+        "'model.hidden=[[32,32],[64,64]]'); repeat for a cartesian product",
+    )
+    parser.add_argument("--out", required=True, metavar="DIR", help="the sweep directory")
+    parser.add_argument("--config", default=None, metavar="FILE", help="YAML file of config fields")
+    parser.add_argument(
+        "--backend",
+        default="local",
+        metavar="local|ray",
+        help="local (default): a process pool on this machine; ray: Ray tasks on a local Ray "
+        "instance, or on the cluster of --address / RAY_ADDRESS",
+    )
+    parser.add_argument(
+        "--address", default=None, metavar="HOST:PORT", help="Ray cluster to join (ray backend)"
+    )
+    parser.add_argument(
+        "--cpus-per-trial",
+        type=float,
+        default=1.0,
+        metavar="N",
+        help="CPUs per trial, also its torch threads (default 1; the local backend runs "
+        "cpu_count // N trials at once)",
+    )
+    parser.add_argument(
+        "--gpus-per-trial",
+        type=float,
+        default=0.0,
+        metavar="N",
+        help="GPUs per trial (ray backend; pass device=cuda too)",
+    )
+    parser.add_argument("--metrics", default=None, metavar="a,b,...", help="metrics of the summary")
+    parser.add_argument(
+        "--source",
+        choices=["eval", "train"],
+        default="eval",
+        help="what the summary compares (see compare --source)",
+    )
+    parser.add_argument(
+        "--x",
+        default="auto",
+        metavar="NAME",
+        help="x axis of the summary: frames, a metric numbering the entries, or auto "
+        "(default: episode when every entry has one, e.g. mapets, else frames)",
+    )
+    parser.add_argument(
+        "overrides", nargs="*", metavar="key=value", help="config overrides of every trial"
+    )
+
+
 def _recipe_class(name: str) -> type:
-    from mapets_rl.experiment.plugins import load_recipe
+    from mapets_rl.app.plugins import load_recipe
 
     try:
         return load_recipe(name)
@@ -382,8 +460,8 @@ def _metric_units(names: Sequence[str]) -> dict[str, str]:
 def _train(exp: Any) -> None:
     """``exp.train()``; a file that cannot be written (disk full, file size limit) is one line
     naming it (exit 2); the checkpoints written before it stay valid."""
-    from mapets_rl.app.sweep import RayUnreachable
     from mapets_rl.experiment.files import WriteFailed
+    from mapets_rl.ray_runtime import RayUnreachable
 
     try:
         exp.train()

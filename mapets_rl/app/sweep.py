@@ -40,9 +40,9 @@ Backends (neither schedules by hand):
 - ``ray``: every trial is a Ray core task with ``num_cpus=cpus_per_trial``,
   ``num_gpus=gpus_per_trial`` and no retries; Ray queues and places them. Without ``address``
   (nor ``RAY_ADDRESS``) a local Ray instance is started for the sweep; a small reaper
-  process (:func:`reap_ray_agents_on_exit`) ends the Ray agents that would outlive a driver
-  killed with kill -9 (its workers see this
-  process's ``sys.path``) and shut down after it; with one, the sweep joins that cluster, whose
+  process (:func:`mapets_rl.ray_runtime.reap_ray_agents_on_exit`) ends the Ray agents that
+  would outlive a driver killed with kill -9 (its workers see this process's ``sys.path``) and
+  shut down after it; with one, the sweep joins that cluster, whose
   nodes must have the recipe and scenario installed (entry points) and see ``--out`` (a shared
   file system). An already initialised Ray (``ray.init`` in this process) is used as it is.
   Ray core tasks rather than Ray Tune: a trial is already a resumable run directory with its
@@ -68,7 +68,6 @@ import multiprocessing
 import os
 import re
 import signal
-import subprocess
 import sys
 import time
 import traceback
@@ -86,6 +85,12 @@ from mapets_rl.experiment.files import (
     atomic_write_text,
     check_writable_dir,
     make_writable_dir,
+)
+from mapets_rl.ray_runtime import (
+    check_ray_address,
+    import_ray,
+    ray_init_kwargs,
+    reap_ray_agents_on_exit,
 )
 
 MANIFEST = "sweep.json"
@@ -332,8 +337,8 @@ def plan_trials(spec: SweepSpec) -> tuple[type, list[Trial]]:
             scenario, a bad grid key or value, a bad override or config file, or two trials
             whose directory names collide.
     """
+    from mapets_rl.app.plugins import load_recipe
     from mapets_rl.envs.registry import available_envs, build_env
-    from mapets_rl.experiment.plugins import load_recipe
 
     cls = load_recipe(spec.recipe)
     known = available_envs()
@@ -543,70 +548,6 @@ def run_local(payloads: Sequence[Mapping[str, Any]], cpus_per_trial: float) -> O
             yield futures[future], result
 
 
-def import_ray() -> Any:
-    """The ``ray`` module, or a one-line ValueError saying how to install it."""
-    try:
-        import ray
-    except ImportError:
-        raise ValueError(
-            "backend 'ray' needs the ray package: pip install 'mapets-rl[ray]' "
-            "(or use --backend local)"
-        ) from None
-    return ray
-
-
-RAY_CONNECT_TIMEOUT_S = 20
-"""Seconds a Ray cluster named by an address has to answer before a run refuses it."""
-
-
-class RayUnreachable(ValueError):
-    """No Ray cluster answered at the given address (one line, names it)."""
-
-
-def check_ray_address(address: str, timeout_s: int | None = None) -> None:
-    """:class:`RayUnreachable` unless a Ray cluster answers at ``address`` within about
-    ``timeout_s`` seconds. A throwaway interpreter joins and leaves it: ``ray.init`` on an
-    unreachable address retries for minutes and then ends the process from Ray's C++ core,
-    which no ``except`` can turn into one line. ``"local"`` (start a new instance) passes.
-    ``timeout_s`` defaults to :data:`RAY_CONNECT_TIMEOUT_S`."""
-    if address == "local":
-        return
-    timeout_s = RAY_CONNECT_TIMEOUT_S if timeout_s is None else timeout_s
-    code = "import ray, sys; ray.init(address=sys.argv[1], log_to_driver=False); ray.shutdown()"
-    env = {**os.environ, "RAY_gcs_rpc_server_reconnect_timeout_s": str(int(timeout_s))}
-    try:
-        done = subprocess.run(
-            [sys.executable, "-c", code, address],
-            env=env,
-            capture_output=True,
-            timeout=timeout_s + 30,
-        )
-        ok = done.returncode == 0
-    except subprocess.TimeoutExpired:
-        ok = False
-    if not ok:
-        raise RayUnreachable(
-            f"no Ray cluster answered at {address!r} within {timeout_s} s (RAY_ADDRESS or "
-            "the address given): start one there (ray start --head) or leave the address "
-            "unset to run a local instance"
-        )
-
-
-def ray_init_kwargs(address: str | None = None) -> dict[str, Any]:
-    """``ray.init`` keywords: join ``address`` (else ``RAY_ADDRESS``) when one is given, else
-    start a new local instance whose workers see this process's ``sys.path`` (so that they
-    import the same code, e.g. a source checkout or an example folder)."""
-    address = address or os.environ.get("RAY_ADDRESS") or None
-    if address is not None:
-        return {"address": address}
-    path = os.pathsep.join(p for p in sys.path if p and os.path.isdir(p))
-    return {
-        "address": "local",
-        "include_dashboard": False,
-        "runtime_env": {"env_vars": {"PYTHONPATH": path}},
-    }
-
-
 def run_ray(
     payloads: Sequence[Mapping[str, Any]],
     cpus_per_trial: float,
@@ -643,78 +584,6 @@ def run_ray(
         if reaper is not None:
             reaper.stdin.close()  # a normal end: the agents have exited with Ray
             reaper.wait()
-
-
-RAY_AGENTS = ("ray::DashboardAgent", "ray::RuntimeEnvAgent")
-"""Processes of a local Ray instance that outlive its driver after a kill -9 (for about a
-minute: they notice their raylet's death but hang in a call to the dead GCS)."""
-
-_REAPER = """
-import os, signal, sys
-targets = [line.split() for line in sys.argv[1:]]
-sys.stdin.buffer.read()  # end of file: the driver exited, however it exited
-for pid, start in targets:
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            fields = fh.read().rpartition(")")[2].split()
-    except OSError:
-        continue  # gone already
-    if fields[19] == start:  # the same process, not a new one that got its pid
-        os.kill(int(pid), signal.SIGKILL)
-"""
-
-
-def _proc_stat(pid: int) -> list[str] | None:
-    """The fields of ``/proc/<pid>/stat`` after the command name (``[0]`` is the state,
-    ``[1]`` the parent pid, ``[19]`` the start time), ``None`` when it cannot be read."""
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
-    except OSError:
-        return None
-
-
-def ray_agents_of_this_process() -> list[tuple[int, str]]:
-    """``(pid, start time)`` of the :data:`RAY_AGENTS` whose parent (the raylet) is a child of
-    this process: those of the local Ray instance it started. Empty without ``/proc``."""
-    proc = Path("/proc")
-    if not proc.is_dir():
-        return []
-    parents: dict[int, int] = {}
-    for entry in proc.iterdir():
-        stat = _proc_stat(int(entry.name)) if entry.name.isdigit() else None
-        if stat is not None:
-            parents[int(entry.name)] = int(stat[1])
-    children = {pid for pid, parent in parents.items() if parent == os.getpid()}
-    agents = []
-    for pid, parent in parents.items():
-        if parent not in children:
-            continue
-        try:
-            name = (proc / str(pid) / "cmdline").read_bytes().split(b"\0")[0].decode()
-        except (OSError, UnicodeDecodeError):
-            continue
-        stat = _proc_stat(pid)
-        if stat is not None and name.strip() in RAY_AGENTS:
-            agents.append((pid, stat[19]))
-    return agents
-
-
-def reap_ray_agents_on_exit() -> subprocess.Popen | None:
-    """Start a reaper (its own session, so a signal to the driver's process group spares it)
-    that waits for this process to exit, however it exits, and then SIGKILLs the
-    :data:`RAY_AGENTS` of the local Ray instance this process started, if they still run
-    (checked by pid and start time). Closing its ``stdin`` after ``ray.shutdown`` ends it.
-    ``None`` where there are no such agents (no ``/proc``)."""
-    agents = ray_agents_of_this_process()
-    if not agents:
-        return None
-    return subprocess.Popen(
-        [sys.executable, "-c", _REAPER, *(f"{pid} {start}" for pid, start in agents)],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,
-    )
 
 
 # ------------------------------------------------------------------------------ the sweep
@@ -884,86 +753,6 @@ def run_sweep(spec: SweepSpec, echo: Callable[[str], None] = print) -> SweepResu
 
 
 # ------------------------------------------------------------------------------------ CLI
-def add_sweep_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register ``mapets-rl sweep`` on the CLI's subparsers."""
-    parser = sub.add_parser(
-        "sweep",
-        help="run a recipe over config grids x seeds, on this machine or on Ray",
-        description="Run RECIPE on SCENARIO for every combination of the --grid values and "
-        "--seeds, each trial a normal run directory under OUT/trials/, then compare them "
-        "grouped by the swept fields (OUT/summary: learning_curves.png with 95% bands, "
-        "final_metrics.md). OUT/sweep.json lists the trials and their state. Running the same "
-        "command again skips finished trials and resumes unfinished ones; failed trials are "
-        "listed (their traceback in error.txt) and make the command exit with 1.",
-        epilog="Example: mapets-rl sweep mapets --env figure-eight --seeds 0 1 2 "
-        "--grid comm.comm_range=0,50,100 --grid comm.p_fail=0,0.25 preset=cpu episodes=5 "
-        "--out runs/d_sweep",
-    )
-    parser.add_argument("recipe", metavar="RECIPE", help="an installed recipe, e.g. mapets")
-    parser.add_argument("--env", required=True, metavar="SCENARIO", help="scenario name")
-    parser.add_argument(
-        "--seeds",
-        nargs="+",
-        default=["0"],
-        metavar="N",
-        help="seeds of the trials (default: 0)",
-    )
-    parser.add_argument(
-        "--grid",
-        action="append",
-        default=[],
-        metavar="KEY=v1,v2,...",
-        help="a config field and its values (dotted for nested fields, e.g. "
-        "comm.comm_range=0,50,100 or env_config.n_cavs=4,8; a YAML list for list values: "
-        "'model.hidden=[[32,32],[64,64]]'); repeat for a cartesian product",
-    )
-    parser.add_argument("--out", required=True, metavar="DIR", help="the sweep directory")
-    parser.add_argument("--config", default=None, metavar="FILE", help="YAML file of config fields")
-    parser.add_argument(
-        "--backend",
-        choices=list(BACKENDS),
-        default="local",
-        help="local (default): a process pool on this machine; ray: Ray tasks on a local Ray "
-        "instance, or on the cluster of --address / RAY_ADDRESS",
-    )
-    parser.add_argument(
-        "--address", default=None, metavar="HOST:PORT", help="Ray cluster to join (ray backend)"
-    )
-    parser.add_argument(
-        "--cpus-per-trial",
-        type=float,
-        default=1.0,
-        metavar="N",
-        help="CPUs per trial, also its torch threads (default 1; the local backend runs "
-        "cpu_count // N trials at once)",
-    )
-    parser.add_argument(
-        "--gpus-per-trial",
-        type=float,
-        default=0.0,
-        metavar="N",
-        help="GPUs per trial (ray backend; pass device=cuda too)",
-    )
-    parser.add_argument("--metrics", default=None, metavar="a,b,...", help="metrics of the summary")
-    parser.add_argument(
-        "--source",
-        choices=["eval", "train"],
-        default="eval",
-        help="what the summary compares (see compare --source)",
-    )
-    parser.add_argument(
-        "--x",
-        default="auto",
-        metavar="NAME",
-        help="x axis of the summary: frames, a metric numbering the entries, or auto "
-        "(default: episode when every entry has one, e.g. mapets, else frames)",
-    )
-    parser.add_argument(
-        "overrides", nargs="*", metavar="key=value", help="config overrides of every trial"
-    )
-    return parser
-
-
 def spec_from_args(args: argparse.Namespace) -> SweepSpec:
     """A :class:`SweepSpec` from the parsed ``sweep`` arguments (``key=value`` items that
     followed ``--seeds`` are overrides)."""
@@ -1042,7 +831,6 @@ __all__ = [
     "SweepResult",
     "SweepSpec",
     "Trial",
-    "add_sweep_parser",
     "cmd_sweep",
     "parse_grid",
     "plan_trials",

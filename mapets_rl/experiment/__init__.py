@@ -1,5 +1,6 @@
-"""Experiment machinery shared by every recipe: configs, the run loop, checkpoints, results,
-loggers, comparison plots and the ``mapets-rl`` CLI.
+"""The run library every recipe stands on: configs, the run loop, checkpoints, results and
+loggers. The application that drives it (the ``mapets-rl`` command, sweeps, ``compare``) is
+:mod:`mapets_rl.app`, the floor above the recipes.
 
 How a recipe plugs in
 ---------------------
@@ -46,7 +47,8 @@ How a recipe plugs in
        myalgo = "mypackage.myalgo:MyAlgo"
 
    ``mapets-rl train myalgo``, ``resume`` and ``evaluate`` (which find the recipe by the name
-   in ``run.json``) then load it; :func:`load_recipe` does the same in Python.
+   in ``run.json``) then load it; :func:`mapets_rl.app.plugins.load_recipe` does the same in
+   Python.
 
 A recipe whose data flow does not fit a collector (none of ours) can still satisfy the CLI's
 protocol directly: ``Config``, ``__init__(config, run_dir)``, ``train()``,
@@ -55,7 +57,7 @@ protocol directly: ``Config``, ``__init__(config, run_dir)``, ``train()``,
 Run directory layout: ``config.yaml`` (resolved config), ``run.json`` (recipe, scenario, seed),
 ``results.json`` (frames and metrics of every deterministic evaluation under
 ``evaluations`` and of training entries, e.g. MA-PETS's episodes, under ``train``; read by
-:func:`read_results` and :func:`compare`),
+:func:`read_results` and :func:`mapets_rl.app.comparison.compare`),
 ``checkpoints/ckpt_<frames>.pt`` (atomic, the newest ``keep_last`` that verify, each with its
 SHA-256 digest ``ckpt_<frames>.pt.sha256``; replay storages save only their filled rows),
 ``logs/`` (torchrl logger), ``videos/`` (GIFs when ``video=true``), and ``.lock`` (the pid of the
@@ -83,115 +85,43 @@ observation normalisation, one-hot action heads, ...) live in :mod:`mapets_rl.mo
 import them from there, never from each other.
 """
 
-import importlib
-from typing import TYPE_CHECKING, Any
-
 from mapets_rl.config import ConfigError, ConfigSection, check
-
-if TYPE_CHECKING:
-    from mapets_rl.envs.registry import available_envs, build_env, register_env
-    from mapets_rl.experiment.checkpoint import (
-        CheckpointError,
-        atomic_torch_save,
-        checkpoint_problem,
-        digest_path,
-        file_sha256,
-        latest_checkpoint,
-        list_checkpoints,
-        load_checkpoint,
-        load_latest_checkpoint,
-        remove_stale_files,
-        rng_state,
-        save_checkpoint,
-        seed_everything,
-        set_rng_state,
-        verified_checkpoints,
-        verify_checkpoint,
-    )
-    from mapets_rl.experiment.config import ExperimentConfig, RunConfig
-    from mapets_rl.experiment.files import atomic_savefig, atomic_write, atomic_write_text
-    from mapets_rl.experiment.plugins import available_recipes, load_recipe
-    from mapets_rl.experiment.reference import evaluate_scripted
-    from mapets_rl.experiment.results import (
-        ResultsWriter,
-        log_scalars,
-        make_logger,
-        mean_metrics,
-        read_results,
-    )
-    from mapets_rl.experiment.runner import (
-        Experiment,
-        SystemRewardMetrics,
-        default_run_dir,
-        run_recipe_name,
-    )
-    from mapets_rl.experiment.training import ModelFreeConfig, OffPolicyConfig, OnPolicyConfig
-
-# The experiment's own exports are imported on first use, so that `mapets-rl --help` and its
-# error messages do not pay for importing torch and torchrl (checkpoint, results, runner,
-# training, comparison and reference import them: about 3 s). No import circle needs this any
-# more: the layers below (`mapets_rl.config`, imported above, envs, comm, models, planning, ...)
-# never import `mapets_rl.experiment`, and tests/test_architecture.py keeps it so.
-# Name -> the module defining it: a submodule of this package, or the scenario registry of the
-# envs floor (`available_envs`, `build_env`, `register_env` are re-exports of that one registry).
-_REGISTRY = "mapets_rl.envs.registry"
-_EXPORTS = {
-    "CheckpointError": "checkpoint",
-    "Experiment": "runner",
-    "ExperimentConfig": "config",
-    "ModelFreeConfig": "training",
-    "OffPolicyConfig": "training",
-    "OnPolicyConfig": "training",
-    "ResultsWriter": "results",
-    "RunConfig": "config",
-    "SystemRewardMetrics": "runner",
-    "atomic_torch_save": "checkpoint",
-    "atomic_savefig": "files",
-    "atomic_write": "files",
-    "atomic_write_text": "files",
-    "available_envs": _REGISTRY,
-    "available_recipes": "plugins",
-    "build_env": _REGISTRY,
-    "checkpoint_problem": "checkpoint",
-    "default_run_dir": "runner",
-    "digest_path": "checkpoint",
-    "evaluate_scripted": "reference",
-    "file_sha256": "checkpoint",
-    "latest_checkpoint": "checkpoint",
-    "list_checkpoints": "checkpoint",
-    "load_checkpoint": "checkpoint",
-    "load_latest_checkpoint": "checkpoint",
-    "load_recipe": "plugins",
-    "log_scalars": "results",
-    "make_logger": "results",
-    "mean_metrics": "results",
-    "read_results": "results",
-    "register_env": _REGISTRY,
-    "remove_stale_files": "checkpoint",
-    "rng_state": "checkpoint",
-    "run_recipe_name": "runner",
-    "save_checkpoint": "checkpoint",
-    "seed_everything": "checkpoint",
-    "set_rng_state": "checkpoint",
-    "verified_checkpoints": "checkpoint",
-    "verify_checkpoint": "checkpoint",
-}
-
-
-def __getattr__(name: str) -> Any:
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    module = _EXPORTS[name]
-    if module != _REGISTRY:
-        module = f"{__name__}.{module}"
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted([*globals(), *_EXPORTS])
-
+from mapets_rl.envs.registry import available_envs, build_env, register_env
+from mapets_rl.experiment.checkpoint import (
+    CheckpointError,
+    atomic_torch_save,
+    checkpoint_problem,
+    digest_path,
+    file_sha256,
+    latest_checkpoint,
+    list_checkpoints,
+    load_checkpoint,
+    load_latest_checkpoint,
+    remove_stale_files,
+    rng_state,
+    save_checkpoint,
+    seed_everything,
+    set_rng_state,
+    verified_checkpoints,
+    verify_checkpoint,
+)
+from mapets_rl.experiment.config import ExperimentConfig, RunConfig
+from mapets_rl.experiment.files import atomic_savefig, atomic_write, atomic_write_text
+from mapets_rl.experiment.reference import evaluate_scripted
+from mapets_rl.experiment.results import (
+    ResultsWriter,
+    log_scalars,
+    make_logger,
+    mean_metrics,
+    read_results,
+)
+from mapets_rl.experiment.runner import (
+    Experiment,
+    SystemRewardMetrics,
+    default_run_dir,
+    run_recipe_name,
+)
+from mapets_rl.experiment.training import ModelFreeConfig, OffPolicyConfig, OnPolicyConfig
 
 __all__ = [
     "CheckpointError",
@@ -210,7 +140,6 @@ __all__ = [
     "atomic_write",
     "atomic_write_text",
     "available_envs",
-    "available_recipes",
     "build_env",
     "check",
     "checkpoint_problem",
@@ -222,7 +151,6 @@ __all__ = [
     "list_checkpoints",
     "load_checkpoint",
     "load_latest_checkpoint",
-    "load_recipe",
     "log_scalars",
     "make_logger",
     "mean_metrics",

@@ -56,8 +56,8 @@ from mapets_rl.experiment.results import (
     mean_metrics,
     read_json_object,
 )
-from mapets_rl.experiment.threads import config_threads, configure_threads
 from mapets_rl.modules import masked_mean
+from mapets_rl.threads import config_threads, configure_threads
 
 CONFIG_FILE = "config.yaml"
 RUN_FILE = "run.json"
@@ -928,7 +928,7 @@ def _ray_collector(
     import ray
     from torchrl.collectors.distributed import RayCollector
 
-    from mapets_rl.app.sweep import check_ray_address, ray_init_kwargs
+    from mapets_rl.ray_runtime import check_ray_address, ray_init_kwargs
 
     init = ray_init_kwargs()
     if not ray.is_initialized():
