@@ -52,7 +52,7 @@ counterpart here)."""
 
 def _mapets(preset: str, **planner: Any) -> Callable[[argparse.Namespace], Any]:
     def build(args: argparse.Namespace) -> Any:
-        from recipes.mapets import MAPETS, MAPETSConfig
+        from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
         config = MAPETSConfig(
             preset=preset,

@@ -23,7 +23,7 @@ median over rounds and the spread (min..max); ``4M-frame run`` extrapolates the 
         [--num-envs 256] [--vehicles 30] [--steps 4] [--frames 20480] [--rounds 3]
         [--threads 2] [--schedule openai] [key=value ...]
 
-``--schedule openai`` applies :data:`recipes.maddpg.OPENAI_MADDPG` (one update per 100
+``--schedule openai`` applies :data:`mapets_rl.recipes.maddpg.OPENAI_MADDPG` (one update per 100
 frames, batch 1024, ...) to every recipe (the Shapley AC and SAC configs share the fields);
 ``key=value`` overrides follow it (e.g. ``update_interval=400``).
 """
@@ -72,8 +72,9 @@ def load() -> str:
 
 def build(recipe: str, args: argparse.Namespace, run_dir: Path) -> Any:
     """The ``recipe`` experiment on ``args.num_envs`` roads of the batched torch freeway."""
+    from mapets_rl.recipes.maddpg import OPENAI_MADDPG
+
     from mapets_rl.app.plugins import load_recipe
-    from recipes.maddpg import OPENAI_MADDPG
 
     cls = load_recipe(recipe)
     env_config = {

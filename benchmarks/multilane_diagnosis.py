@@ -134,7 +134,7 @@ def oracle_planner(
 def learned_planner(run_dir: str, overrides: tuple[str, ...] = ()) -> TensorDictModuleBase:
     """The planner of MA-PETS run ``run_dir`` at its last checkpoint (loaded once), with
     ``overrides`` of its config (e.g. ``lane_change_time=1``)."""
-    from recipes.mapets import MAPETS
+    from mapets_rl.recipes.mapets import MAPETS
 
     exp = MAPETS.from_run_dir(run_dir, overrides=list(overrides))
     exp.close()  # only its planner is used: release the run directory

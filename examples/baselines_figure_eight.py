@@ -73,8 +73,8 @@ def run_one(
     import torch
 
     torch.set_num_threads(1)
-    from mapets_rl.experiment import latest_checkpoint, read_results
     from mapets_rl.app.plugins import load_recipe
+    from mapets_rl.experiment import latest_checkpoint, read_results
 
     cls = load_recipe(recipe)
     overrides = [

@@ -27,7 +27,7 @@ option and d (``OUT/summary``: ``learning_curves.png``, ``curves.json``, ``summa
     python examples/mapets_figure_eight.py --report-only             # table + plot only
     python examples/mapets_figure_eight.py --set model.epochs=5 --out DIR  # one change
 
-Default sizes are the ``cpu`` preset of :class:`recipes.mapets.MAPETSConfig` (the paper's
+Default sizes are the ``cpu`` preset of :class:`mapets_rl.recipes.mapets.MAPETSConfig` (the paper's
 planner needs a GPU); ``--preset paper`` uses Table II.
 """
 

@@ -33,8 +33,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mapets_rl.experiment import ExperimentConfig, atomic_savefig, atomic_write_text, evaluate_scripted, latest_checkpoint, read_results
 from mapets_rl.app.plugins import load_recipe
+from mapets_rl.experiment import (
+    ExperimentConfig,
+    atomic_savefig,
+    atomic_write_text,
+    evaluate_scripted,
+    latest_checkpoint,
+    read_results,
+)
 from mapets_rl.statistics import mean_ci95
 
 ALGORITHMS = ("shapley_ac", "maddpg", "m3ddpg", "coma", "mappo")

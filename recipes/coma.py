@@ -11,7 +11,7 @@ freeway (one-hot KL/CL/CR/ES); the figure-eight's continuous accelerations are r
 
 Usage::
 
-    from recipes.coma import COMA, COMAConfig
+    from mapets_rl.recipes.coma import COMA, COMAConfig
     COMA(COMAConfig(total_frames=4000, seed=1)).train()
 
 or ``mapets-rl train coma env_config.cav_ratio=0.5``.

@@ -302,7 +302,7 @@ class MADDPG(Experiment):
 
 @dataclasses.dataclass
 class M3DDPGConfig(MADDPGConfig):
-    """MADDPG's hyper-parameters (:class:`~recipes.maddpg.MADDPGConfig`) and the sizes of the
+    """MADDPG's hyper-parameters (:class:`MADDPGConfig`) and the sizes of the
     adversarial steps, in the units of the actions (one-hot vectors on discrete scenarios).
 
     Attributes:

@@ -26,7 +26,7 @@ A run resumes from its latest checkpoint at the next episode (``mapets-rl resume
 
 Usage::
 
-    from recipes.mapets import MAPETS, MAPETSConfig
+    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
     MAPETS(MAPETSConfig(preset="cpu", episodes=5, seed=1)).train()
 
 or ``mapets-rl train mapets --env figure-eight preset=cpu episodes=5 planner.horizon=15``.

@@ -12,7 +12,7 @@ Evaluation uses the grand coalition (all CAVs cooperate), as the paper reports.
 
 Usage::
 
-    from recipes.shapley_ac import ShapleyAC, ShapleyACConfig
+    from mapets_rl.recipes.shapley_ac import ShapleyAC, ShapleyACConfig
     ShapleyAC(ShapleyACConfig(total_frames=4000, seed=1)).train()
 
 or ``mapets-rl train shapley_ac env_config.cav_ratio=0.5``.

@@ -1,7 +1,9 @@
-"""The layer rule of docs/ARCHITECTURE.md: every import of ``mapets_rl`` and ``recipes`` (module
-level, function-local and ``TYPE_CHECKING`` ones alike, read with ``ast``) points to its own
-floor or a lower one; ``mapets_rl/config.py`` imports nothing of the project; recipes never
-import each other."""
+"""The layer rule of docs/ARCHITECTURE.md: every import of ``mapets_rl`` and of the recipes
+(module level, function-local and ``TYPE_CHECKING`` ones alike, read with ``ast``) points to its
+own floor or a lower one; ``mapets_rl/config.py`` imports nothing of the project; recipes never
+import each other and are imported as ``mapets_rl.recipes``; code is loaded by name at run time
+(recipes by name, ``importlib.import_module``, the ``mapets_rl.recipes`` entry points) only by
+the application, ``mapets_rl.app``."""
 
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PROJECT = ("mapets_rl", "recipes")
+"""The source folders; recipes/ installs as ``mapets_rl.recipes`` (``recipes`` is its old name)."""
 
 FLOORS = {
     "mapets_rl": 0,  # the package root (quiet_dependencies)
@@ -32,14 +35,25 @@ FLOORS = {
     "mapets_rl.planning": 3,
     "mapets_rl.objectives": 3,
     "mapets_rl.experiment": 4,
-    "recipes": 5,
+    "mapets_rl.recipes": 5,
     "mapets_rl.app": 6,
 }
 """Component -> floor: a component imports only components on its floor or below."""
 
 
+RUNTIME_LOADERS = ("import_module", "__import__", "load_recipe", "available_recipes")
+"""Functions that load code by name at run time."""
+RECIPE_GROUP = "mapets_rl.recipes"
+OLD_NAME_ALIAS = "mapets_rl.recipes"
+"""recipes/__init__.py, which gives ``recipes.X`` as ``mapets_rl.recipes.X`` (by name) until the
+old name goes: the one load by name outside the application."""
+
+
 def module_name(path: Path, root: Path = ROOT) -> str:
+    """The installed name of a source file: ``recipes/sac.py`` -> ``mapets_rl.recipes.sac``."""
     parts = path.relative_to(root).with_suffix("").parts
+    if parts[0] == "recipes":
+        parts = ("mapets_rl", *parts)
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
@@ -70,6 +84,32 @@ def project_imports(path: Path, root: Path = ROOT) -> Iterator[tuple[int, str]]:
                 yield node.lineno, module
 
 
+def runtime_loads(path: Path) -> Iterator[tuple[int, str]]:
+    """(line, what) of every load of code by name in ``path``: a call of one of
+    :data:`RUNTIME_LOADERS`, or the recipes' entry-point group named outside a docstring."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    docstrings = {
+        id(node.body[0].value)
+        for node in ast.walk(tree)
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+        and node.body
+        and isinstance(node.body[0], ast.Expr)
+        and isinstance(node.body[0].value, ast.Constant)
+    }
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call):
+            func = node.func
+            name = getattr(func, "attr", None) or getattr(func, "id", None)
+            if name in RUNTIME_LOADERS:
+                yield node.lineno, f"{name}()"
+        elif (
+            isinstance(node, ast.Constant)
+            and node.value == RECIPE_GROUP
+            and id(node) not in docstrings
+        ):
+            yield node.lineno, f"the entry-point group {RECIPE_GROUP!r}"
+
+
 def sources(root: Path = ROOT) -> list[Path]:
     return sorted(p for top in PROJECT for p in (root / top).rglob("*.py"))
 
@@ -90,7 +130,9 @@ def violations(root: Path = ROOT) -> list[str]:
                 target = module.rpartition(".")[0]
             if importer == "mapets_rl.config":
                 why = "mapets_rl/config.py imports nothing of the project"
-            elif mine == target == "recipes":
+            elif target == "recipes":
+                why = "the recipes are mapets_rl.recipes: recipes is their old name"
+            elif mine == target == "mapets_rl.recipes":
                 why = "recipes never import each other"
             elif FLOORS.get(target, 0) > FLOORS[mine]:
                 why = f"floor {FLOORS[mine]} imports floor {FLOORS.get(target)}"
@@ -98,6 +140,12 @@ def violations(root: Path = ROOT) -> list[str]:
                 why = ""
             if why:
                 found.append(f"{where}:{line}: {importer} -> {module} ({why})")
+        if mine != "mapets_rl.app" and importer != OLD_NAME_ALIAS:
+            found += [
+                f"{where}:{line}: {importer} loads code by name at run time ({what}): only "
+                "mapets_rl.app does"
+                for line, what in runtime_loads(path)
+            ]
     return found
 
 
@@ -107,26 +155,60 @@ def test_every_import_respects_the_layers() -> None:
 
 
 def test_the_check_sees_a_violation(tmp_path: Path) -> None:
-    """A function-local import of the runner from a lower floor, an import in the config base
-    and one recipe importing another are each reported (the test can fail)."""
-    (tmp_path / "mapets_rl" / "planning").mkdir(parents=True)
+    """A function-local import of the runner from a lower floor, an import in the config base,
+    one recipe importing another (by either name), the library importing the application and
+    loading code by name (a recipe, a module, the recipes' entry points) are each reported,
+    the application's loads are not (the test can fail)."""
+    for folder in ("planning", "experiment", "app"):
+        (tmp_path / "mapets_rl" / folder).mkdir(parents=True)
     (tmp_path / "recipes").mkdir()
     (tmp_path / "mapets_rl" / "config.py").write_text("from . import metrics\n")
     (tmp_path / "mapets_rl" / "planning" / "cem.py").write_text(
         "def f():\n    from mapets_rl.experiment import check\n"
     )
-    (tmp_path / "recipes" / "sac.py").write_text("import recipes.mappo\n")
+    (tmp_path / "recipes" / "sac.py").write_text(
+        "import recipes.mappo\nfrom mapets_rl.recipes import coma\n"
+    )
     (tmp_path / "recipes" / "mappo.py").write_text("from mapets_rl.experiment import check\n")
+    loads = (
+        '"""Names mapets_rl.recipes in a docstring: not a load."""\n'
+        "import importlib\n"
+        "from importlib.metadata import entry_points\n"
+        "def f(name):\n"
+        "    importlib.import_module(name)\n"
+        '    return entry_points(group="mapets_rl.recipes")\n'
+    )
+    (tmp_path / "mapets_rl" / "experiment" / "runner.py").write_text(
+        loads + "def g():\n    from mapets_rl.app.plugins import load_recipe\n"
+    )
+    (tmp_path / "mapets_rl" / "app" / "cli.py").write_text(loads)
     assert violations(tmp_path) == [
         "mapets_rl/config.py:1: mapets_rl.config -> mapets_rl.metrics "
         "(mapets_rl/config.py imports nothing of the project)",
+        "mapets_rl/experiment/runner.py:8: mapets_rl.experiment.runner -> "
+        "mapets_rl.app.plugins.load_recipe (floor 4 imports floor 6)",
+        "mapets_rl/experiment/runner.py:5: mapets_rl.experiment.runner loads code by name at "
+        "run time (import_module()): only mapets_rl.app does",
+        "mapets_rl/experiment/runner.py:6: mapets_rl.experiment.runner loads code by name at "
+        "run time (the entry-point group 'mapets_rl.recipes'): only mapets_rl.app does",
         "mapets_rl/planning/cem.py:2: mapets_rl.planning.cem -> mapets_rl.experiment.check "
         "(floor 3 imports floor 4)",
-        "recipes/sac.py:1: recipes.sac -> recipes.mappo (recipes never import each other)",
+        "recipes/sac.py:1: mapets_rl.recipes.sac -> recipes.mappo (the recipes are "
+        "mapets_rl.recipes: recipes is their old name)",
+        "recipes/sac.py:2: mapets_rl.recipes.sac -> mapets_rl.recipes.coma (recipes never "
+        "import each other)",
     ]
 
 
-@pytest.mark.parametrize("name", ["mapets_rl/experiment/__init__.py", "recipes/mapets.py"])
+@pytest.mark.parametrize(
+    "name", ["mapets_rl/experiment/__init__.py", "recipes/mapets.py", "mapets_rl/app/cli.py"]
+)
 def test_the_check_reads_the_real_imports(name: str) -> None:
     """The parser finds the imports the top floors do hold (it is not blind)."""
     assert list(project_imports(ROOT / name))
+
+
+@pytest.mark.parametrize("name", ["mapets_rl/app/plugins.py", "mapets_rl/app/sweep.py"])
+def test_the_check_sees_the_real_runtime_loads(name: str) -> None:
+    """The application's own loads by name are found (and allowed there only)."""
+    assert list(runtime_loads(ROOT / name))

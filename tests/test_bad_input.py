@@ -16,6 +16,11 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from mapets_rl.recipes.maddpg import MADDPGConfig
+from mapets_rl.recipes.mapets import MAPETSConfig
+from mapets_rl.recipes.mappo import MAPPOConfig
+from mapets_rl.recipes.sac import SACConfig
+from mapets_rl.recipes.shapley_ac import ShapleyACConfig
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from toy_recipe import ToyConfig, ToyLearner
@@ -35,11 +40,6 @@ from mapets_rl.shapley import (
     make_coalition_actor,
     sampled_shapley,
 )
-from recipes.maddpg import MADDPGConfig
-from recipes.mapets import MAPETSConfig
-from recipes.mappo import MAPPOConfig
-from recipes.sac import SACConfig
-from recipes.shapley_ac import ShapleyACConfig
 
 INF, NAN = float("inf"), float("nan")
 NO_CUDA_DEVICE = "cuda" if not torch.cuda.is_available() else f"cuda:{torch.cuda.device_count()}"
@@ -1078,7 +1078,7 @@ def test_predict_still_takes_torch_dtypes_inside_and_outside_frozen_parameters()
 def test_mapets_refuses_a_scenario_or_size_before_writing_the_run_dir(
     env: str, overrides: list[str], match: str, tmp_path: Path
 ) -> None:
-    from recipes.mapets import MAPETS, MAPETSConfig
+    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
     config = MAPETSConfig(env=env, preset="cpu").with_overrides(overrides)
     _refused(lambda: MAPETS(config, tmp_path / "run"), match)
@@ -1088,8 +1088,9 @@ def test_mapets_refuses_a_scenario_or_size_before_writing_the_run_dir(
 def test_mapets_refuses_figure_eight_reward_fields_beside_a_reward_fn(tmp_path: Path) -> None:
     """collision_gap & co. configure the default figure-eight reward; with a reward_fn of the
     user's they were silently ignored."""
+    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
+
     from mapets_rl.envs import figure_eight_reward
-    from recipes.mapets import MAPETS, MAPETSConfig
 
     config = MAPETSConfig(env="figure-eight", preset="cpu", collision_gap=3.0)
     _refused(

@@ -31,7 +31,7 @@ def test_cuda_graph_is_refused_off_cuda():
 
 
 def test_mapets_config_refuses_cuda_graph_on_the_cpu():
-    from recipes.mapets import MAPETSConfig
+    from mapets_rl.recipes.mapets import MAPETSConfig
 
     with pytest.raises(ConfigError, match=r"planner.cuda_graph must be False with device='cpu'"):
         MAPETSConfig(preset="cpu", planner={"cuda_graph": True})

@@ -256,10 +256,10 @@ def test_bad_config_is_refused(config: dict, message: str) -> None:
 def test_freeway_recipes_train_on_freeway_merge(recipe: str, tmp_path) -> None:
     """The recipes that run on ``freeway`` accept ``env="freeway-merge"``: a tiny run trains
     and evaluates, and the evaluation reports the scenario's metrics."""
-    from recipes.coma import COMA, COMAConfig
-    from recipes.maddpg import MADDPG, MADDPGConfig
-    from recipes.mappo import MAPPO, MAPPOConfig
-    from recipes.shapley_ac import ShapleyAC, ShapleyACConfig
+    from mapets_rl.recipes.coma import COMA, COMAConfig
+    from mapets_rl.recipes.maddpg import MADDPG, MADDPGConfig
+    from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
+    from mapets_rl.recipes.shapley_ac import ShapleyAC, ShapleyACConfig
 
     cls, config_cls, extra = {
         "shapley_ac": (ShapleyAC, ShapleyACConfig, {"batch_size": 8, "updates_per_batch": 1}),

@@ -16,10 +16,9 @@ from pathlib import Path
 import pytest
 from cli_run import run_cli
 
+from mapets_rl.app.plugins import RECIPE_GROUP, available_recipes, entry_points, load_recipe
 from mapets_rl.envs.registry import SCENARIO_GROUP
 from mapets_rl.experiment import Experiment, available_envs, build_env, read_results, register_env
-from mapets_rl.app.plugins import available_recipes, load_recipe
-from mapets_rl.app.plugins import RECIPE_GROUP, entry_points
 
 ROOT = Path(__file__).resolve().parents[1]
 

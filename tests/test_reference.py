@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
+from mapets_rl.app.plugins import load_recipe
 from mapets_rl.envs import ScriptedCAVPolicy
 from mapets_rl.experiment import ExperimentConfig, evaluate_scripted
-from mapets_rl.app.plugins import load_recipe
 
 FREEWAY = {"n_vehicles": 6, "cav_ratio": 0.5, "horizon": 8}
 

@@ -21,9 +21,9 @@ from toy_recipe import ToyConfig, ToyLearner
 
 from mapets_rl import _compile_cache
 from mapets_rl._compile_cache import CACHE_ENV, HEADERS_ENV, prepare_compile_cache
+from mapets_rl.app.plugins import load_recipe
 from mapets_rl.experiment import checkpoint
 from mapets_rl.experiment.files import LOCK_FILE, RunDirLock, check_run_subdirs
-from mapets_rl.app.plugins import load_recipe
 from mapets_rl.experiment.runner import default_run_dir
 from mapets_rl.planning import compiled
 
@@ -448,7 +448,7 @@ def test_a_resume_that_asks_for_less_than_was_done_is_refused(finished_toy_run):
 
 def test_a_mapets_resume_to_fewer_episodes_is_refused(tmp_path):
     """It used to rewrite config.yaml to 1 episode, train nothing and exit 0."""
-    from recipes.mapets import MAPETS, MAPETSConfig
+    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
     tiny = dict(
         env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},
@@ -488,7 +488,7 @@ def test_rendering_keys_are_validated_when_the_env_is_built(scenario, key, value
 
 
 def test_a_bad_rendering_key_fails_before_the_run_dir_exists(tmp_path):
-    from recipes.mappo import MAPPO, MAPPOConfig
+    from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
 
     config = MAPPOConfig(video=True, env_config={"screen_width": -5})
     with pytest.raises(ValueError, match="screen_width must be"):
@@ -521,8 +521,9 @@ def test_a_failing_final_evaluation_still_writes_the_final_checkpoint(
     ],
 )
 def test_conflicting_nested_overrides_are_refused(overrides):
+    from mapets_rl.recipes.mapets import MAPETSConfig
+
     from mapets_rl.config import ConfigError
-    from recipes.mapets import MAPETSConfig
 
     with pytest.raises(ConfigError, match="both set (planner|env_config): give it once"):
         MAPETSConfig().with_overrides(overrides)
@@ -531,7 +532,7 @@ def test_conflicting_nested_overrides_are_refused(overrides):
 def test_a_config_file_is_validated_with_the_overrides(tmp_path):
     """total_frames: 20 alone is refused (< frames_per_batch=200); with frames_per_batch=20
     it is a valid config."""
-    from recipes.sac import SACConfig
+    from mapets_rl.recipes.sac import SACConfig
 
     path = tmp_path / "c.yaml"
     path.write_text("total_frames: 20\n")
@@ -540,7 +541,7 @@ def test_a_config_file_is_validated_with_the_overrides(tmp_path):
 
 
 def test_a_config_file_with_a_preset_takes_section_overrides(tmp_path):
-    from recipes.mapets import MAPETSConfig
+    from mapets_rl.recipes.mapets import MAPETSConfig
 
     path = tmp_path / "c.yaml"
     path.write_text("preset: cpu\n")
@@ -551,7 +552,7 @@ def test_a_config_file_with_a_preset_takes_section_overrides(tmp_path):
 
 @pytest.mark.parametrize("text, value", [("1e3", 1000.0), ("3e-4", 3e-4), ("1.5e3", 1500.0)])
 def test_exponent_floats_are_numbers(text, value):
-    from recipes.mappo import MAPPOConfig
+    from mapets_rl.recipes.mappo import MAPPOConfig
 
     config = MAPPOConfig().with_overrides([f"env_config.length={text}"])
     assert config.env_config["length"] == value and isinstance(config.env_config["length"], float)
@@ -589,8 +590,9 @@ def test_a_deeply_nested_config_file_is_one_error(tmp_path):
     "override", ["env_config.x=" + "[" * 5000 + "]" * 5000, "env_config." + "a." * 2000 + "b=1"]
 )
 def test_a_deeply_nested_override_is_one_error(override):
+    from mapets_rl.recipes.mappo import MAPPOConfig
+
     from mapets_rl.config import ConfigError
-    from recipes.mappo import MAPPOConfig
 
     with pytest.raises(ConfigError, match="deeper than 32 levels"):
         MAPPOConfig().with_overrides([override])
@@ -603,7 +605,7 @@ def test_a_run_dir_with_a_deeply_nested_config_yaml_is_one_error(finished_toy_ru
 
 
 def test_a_huge_population_decay_is_no_overflow():
-    from recipes.mapets import MAPETSConfig
+    from mapets_rl.recipes.mapets import MAPETSConfig
 
     config = MAPETSConfig(planner={"population_decay": 1e200, "iterations": 3})
     sizes = config.planner.candidates_per_iteration()
@@ -629,7 +631,7 @@ def test_a_planner_too_large_for_memory_is_refused_at_construction():
 
 
 def test_the_mapets_estimate_counts_the_datasets(tmp_path):
-    from recipes.mapets import MAPETS, MAPETSConfig
+    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
     config = MAPETSConfig(preset="cpu", model={"buffer_size": 10**12})
     with pytest.raises(ValueError, match="model.buffer_size=1000000000000"):
@@ -806,8 +808,9 @@ def test_identical_mapets_runs_write_byte_identical_checkpoints_and_results(tmp_
     results.json of two identical runs are equal byte for byte."""
     import hashlib
 
+    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
+
     from mapets_rl.experiment.results import read_results
-    from recipes.mapets import MAPETS, MAPETSConfig
 
     tiny = dict(
         env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},
@@ -856,8 +859,9 @@ def test_a_resume_keeps_the_timings_of_the_entries_its_checkpoint_holds(tmp_path
 def test_a_resume_hides_no_tensorboard_point_logged_before_its_checkpoint(tmp_path, monkeypatch):
     """MA-PETS logs model/nll by epoch (10 per episode here), ahead of the frames (5 per
     episode): the purge step must lie past the epochs, or TensorBoard hides epochs 6-10."""
+    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
+
     from mapets_rl.experiment import results
-    from recipes.mapets import MAPETS, MAPETSConfig
 
     tiny = dict(
         env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},

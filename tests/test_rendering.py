@@ -213,8 +213,7 @@ def test_the_figure_eight_evaluation_video_carries_colours_legend_and_steps(
     tmp_path: Path,
 ) -> None:
     import imageio.v2 as imageio
-
-    from recipes.mappo import MAPPO, MAPPOConfig
+    from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
 
     config = MAPPOConfig(
         env="figure-eight",

@@ -119,7 +119,7 @@ def test_entries_of_an_old_checkpoint_take_the_kind_of_the_next_entry(
 
 
 def test_mapets_records_training_episodes_as_train_entries(tmp_path: Path) -> None:
-    from recipes.mapets import MAPETS, MAPETSConfig
+    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
     config = MAPETSConfig(
         env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},

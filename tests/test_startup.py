@@ -49,7 +49,7 @@ def test_importing_the_package_changes_no_global_logging_or_warning_state() -> N
     the CLI quiets its dependencies itself."""
     code = (
         "import logging, warnings\n"
-        "import mapets_rl, mapets_rl.experiment, recipes.mapets\n"
+        "import mapets_rl, mapets_rl.experiment, mapets_rl.recipes.mapets\n"
         "def ours():\n"
         "    mine = [f for f in warnings.filters if f[1] and 'PettingZoo' in f[1].pattern]\n"
         "    return mine, list(logging.getLogger('torchrl').filters)\n"

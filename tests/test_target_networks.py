@@ -132,7 +132,7 @@ def test_penalty_keeps_the_actor_out_of_tanh_saturation(coef: float, bounded: bo
 
 
 def test_maddpg_writes_the_preactivation(tmp_path: Path) -> None:
-    from recipes.maddpg import MADDPG, MADDPGConfig
+    from mapets_rl.recipes.maddpg import MADDPG, MADDPGConfig
 
     config = MADDPGConfig(
         env="freeway",

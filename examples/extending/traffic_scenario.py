@@ -54,6 +54,7 @@ import torch
 from highway_env.road.lane import LineType, StraightLane
 from highway_env.road.road import RoadNetwork
 from highway_env.vehicle.kinematics import Vehicle
+from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
@@ -67,7 +68,6 @@ from mapets_rl.metrics import agility, safety
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.objectives import read_transitions
 from mapets_rl.planning import PlannerConfig
-from recipes.mapets import MAPETS, MAPETSConfig
 
 GAP_RANGE = 50.0
 """Gaps beyond this many metres read as ``GAP_RANGE`` (nobody ahead)."""
@@ -240,7 +240,7 @@ def stop_and_go_reward(
 class EnsembleMSELoss(LossModule):
     """Squared error of every member's mean next-state delta (normalised), no bootstrap.
 
-    The contract of :meth:`recipes.mapets.MAPETS.make_loss`: it holds the ensemble as
+    The contract of :meth:`mapets_rl.recipes.mapets.MAPETS.make_loss`: it holds the ensemble as
     ``model`` and reads a batch ``[n]`` of the ``"agents"`` keys (``("agents",
     "observation")``, ``("agents", "action")``, ``("next", "agents", "observation")``
     ``[n, I, *]``, ``("agents", "mask")`` ``[n, I]``), validated by ``read_transitions``.
@@ -268,7 +268,7 @@ class EnsembleMSELoss(LossModule):
 
 @dataclasses.dataclass
 class StopAndGoMAPETSConfig(MAPETSConfig):
-    """MA-PETS on ``stop-and-go`` (see :class:`recipes.mapets.MAPETSConfig`), with the cpu
+    """MA-PETS on ``stop-and-go`` (see :class:`mapets_rl.recipes.mapets.MAPETSConfig`), with the cpu
     preset and mean propagation (the ensemble is deterministic) as defaults."""
 
     env: str = "stop-and-go"
