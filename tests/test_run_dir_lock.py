@@ -207,3 +207,19 @@ def test_run_dir_lock_protocol(tmp_path: Path) -> None:
     RunDirLock.acquire(tmp_path).release()
     with pytest.raises(ValueError, match="cannot be locked"):
         RunDirLock.acquire(tmp_path / "missing")
+
+
+def test_a_run_without_a_run_dir_names_the_one_it_writes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The Python API without ``run_dir`` writes ``./runs/...`` and says so in one line on
+    stderr; with a ``run_dir`` the caller chose, it says nothing."""
+    monkeypatch.chdir(tmp_path)
+    with ToyLearner(ToyConfig(env="toy")) as exp:
+        pass
+    out, err = capsys.readouterr()
+    assert exp.run_dir.parent == Path("runs") and (tmp_path / exp.run_dir).is_dir()
+    assert err == f"toy: writing the run to {exp.run_dir}\n" and out == ""
+    with ToyLearner(ToyConfig(env="toy"), tmp_path / "chosen"):
+        pass
+    assert capsys.readouterr() == ("", "")

@@ -12,6 +12,7 @@ import functools
 import json
 import os
 import re
+import sys
 import time
 from collections.abc import Callable, Iterator, Mapping
 from datetime import datetime, timezone
@@ -223,6 +224,8 @@ class Experiment:
         except BaseException:
             self.close()
             raise
+        if run_dir is None:  # a directory the caller did not name: say where the run goes
+            print(f"{self.name}: writing the run to {self.run_dir}", file=sys.stderr)
         self.collector: BaseCollector | None = None
         self._collector_args: tuple[TensorDictModuleBase, int, dict[str, Any]] | None = None
         self.eval_policy: TensorDictModuleBase | None = None
