@@ -108,7 +108,7 @@ def cache_dir_problem(path: str | os.PathLike) -> str | None:
     return None
 
 
-def _make_private(path: Path) -> str | None:
+def make_private_dir(path: Path) -> str | None:
     """Create ``path`` (mode 0700, parents as usual) unless it exists; then
     :func:`cache_dir_problem` of it. Returns the problem, ``None`` when it is usable."""
     if not os.path.lexists(path):
@@ -158,7 +158,7 @@ def prepare_compile_cache(environ: MutableMapping[str, str] | None = None) -> st
     )
     if chosen_by_user:
         path = Path(os.path.abspath(value))
-        problem = _make_private(path)
+        problem = make_private_dir(path)
         if problem is not None:
             raise ValueError(
                 f"{CACHE_ENV}={value!r} cannot be torch.compile's cache: {problem}; point it "
@@ -170,7 +170,7 @@ def prepare_compile_cache(environ: MutableMapping[str, str] | None = None) -> st
         chosen = value
     else:
         default = private_default(environ)
-        chosen = str(default) if _make_private(default) is None else _process_temp_dir()
+        chosen = str(default) if make_private_dir(default) is None else _process_temp_dir()
         _chosen = chosen
     environ[CACHE_ENV] = chosen
     return chosen

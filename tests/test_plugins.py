@@ -156,7 +156,7 @@ def test_train_mapets_help_lists_sections_units_and_scenarios(capsys) -> None:
     lines = out.splitlines()
     assert "  planner.horizon: int = 25 [steps]" in lines
     assert lines[lines.index("  planner.horizon: int = 25 [steps]") + 1].startswith(
-        "      MPC horizon ``w``"
+        "      MPC horizon w"
     )
     assert "  comm.comm_range: float = 100.0 [m]" in lines
     assert "  model.hidden: list[int] = [300, 300, 300]" in lines  # the paper preset's

@@ -93,33 +93,16 @@ def _check_flag_conflicts(args: argparse.Namespace, overrides: Sequence[str]) ->
         _fail("--run-dir must be a non-empty path, got ''")
 
 
-def _recipe_action_kinds(cls: type) -> tuple[str, ...]:
-    """The action kinds RECIPE ``cls`` takes (``Experiment.action_kinds``)."""
-    return tuple(getattr(cls, "action_kinds", ("continuous", "discrete")))
-
-
-def _scenario_group(env_name: str, env_config: Any) -> tuple[Any, str]:
-    """``(AgentGroupSpec, "discrete" | "continuous")`` of scenario ``env_name`` built with
-    ``env_config`` (the env is closed again)."""
-    from mapets_rl.envs.registry import build_env
-    from mapets_rl.modules import AgentGroupSpec
-
-    env = build_env(env_name, env_config)
-    try:
-        group = AgentGroupSpec.from_env(env)
-    finally:
-        env.close()
-    return group, "discrete" if group.discrete else "continuous"
-
-
 def _check_action_kind(cls: type, env_name: str) -> None:
     """Refuse (exit 2, one line) a recipe on a scenario whose actions it cannot take, before
     its config is read (a recipe's default ``env_config`` is written for the scenarios it
     supports)."""
-    kinds = _recipe_action_kinds(cls)
+    from mapets_rl.app.help import recipe_action_kinds, scenario_group
+
+    kinds = recipe_action_kinds(cls)
     if {"continuous", "discrete"} <= set(kinds):
         return
-    _, kind = _scenario_group(env_name, {})
+    _, kind = scenario_group(env_name, {})
     if kind not in kinds:
         _fail(
             f"{cls.name} needs {' or '.join(kinds)} actions; scenario {env_name!r} has {kind} "
@@ -577,163 +560,6 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     return cmd_sweep(args)
 
 
-def _attribute_docs(cls: type) -> dict[str, str]:
-    """Field name -> first sentence of its entry in the ``Attributes:`` sections of the
-    docstrings of ``cls`` and its bases (the nearest class wins); ``a, b: text`` documents
-    both ``a`` and ``b``."""
-    import inspect
-    import re
-
-    docs: dict[str, str] = {}
-    for klass in cls.__mro__:
-        doc = inspect.getdoc(klass) if klass.__doc__ else None
-        if not doc or "Attributes:" not in doc:
-            continue
-        entries: list[tuple[list[str], list[str]]] = []
-        for line in doc.split("Attributes:", 1)[1].splitlines():
-            if not line.strip():
-                if entries:
-                    break
-                continue
-            head = re.match(r"^    ([A-Za-z_][\w, ]*):(.*)$", line)
-            if head and not line.startswith("     "):
-                names = [n.strip() for n in head.group(1).split(",")]
-                entries.append((names, [head.group(2).strip()]))
-            elif entries and line.startswith("     "):
-                entries[-1][1].append(line.strip())
-            else:
-                break
-        for names, text in entries:
-            sentence = _first_sentence(" ".join(t for t in text if t))
-            for n in names:
-                docs.setdefault(n, sentence)
-    return docs
-
-
-def _first_sentence(text: str, limit: int = 110) -> str:
-    """``text`` up to its first ``". "`` or ``"; "`` outside parentheses (not after ``e.g``,
-    ``i.e``, ``eq``), shortened to ``limit`` characters at a word boundary."""
-    depth, end = 0, len(text)
-    for i, char in enumerate(text):
-        depth += {"(": 1, ")": -1}.get(char, 0)
-        if depth == 0 and char in ".;" and text[i + 1 : i + 2] in (" ", ""):
-            word = text[:i].rsplit(" ", 1)[-1].lower()
-            if word not in ("e.g", "i.e", "eq", "eqs", "sec", "cf"):
-                end = i + (char == ".")
-                break
-    sentence = text[:end]
-    if len(sentence) > limit:
-        sentence = sentence[: limit - 3].rsplit(" ", 1)[0] + " ..."
-    return sentence
-
-
-def _field_unit(cls: type, name: str) -> str:
-    """The ``unit`` metadata of field ``name`` of ``cls``, or of the nearest base declaring
-    it with one (a subclass that only changes a default keeps the unit)."""
-    import dataclasses
-
-    for klass in cls.__mro__:
-        if not dataclasses.is_dataclass(klass):
-            continue
-        for f in dataclasses.fields(klass):
-            if f.name == name and f.metadata.get("unit"):
-                return f.metadata["unit"]
-    return ""
-
-
-def _field_lines(config_cls: type, values: object, prefix: str = "") -> list[str]:
-    """Help lines of every field of ``config_cls`` (nested sections as ``section.field``):
-    ``name: type = default [unit]`` and its one-line description."""
-    import dataclasses
-    import typing
-
-    from mapets_rl.config import ConfigSection
-
-    hints = typing.get_type_hints(config_cls)
-    docs = _attribute_docs(config_cls)
-    lines = []
-    for f in dataclasses.fields(config_cls):
-        if values is not None:
-            value = getattr(values, f.name)
-        elif f.default is not dataclasses.MISSING:
-            value = f.default
-        elif f.default_factory is not dataclasses.MISSING:
-            value = f.default_factory()
-        else:
-            value = dataclasses.MISSING
-        if isinstance(value, ConfigSection):
-            header = f"  {prefix}{f.name}: section {type(value).__name__}"
-            lines.append(header + (f"  -- {docs[f.name]}" if f.name in docs else ""))
-            lines += _field_lines(type(value), value, f"{prefix}{f.name}.")
-            continue
-        tp = hints[f.name]
-        type_name = tp.__name__ if isinstance(tp, type) else str(tp).replace("typing.", "")
-        default = "(required)" if value is dataclasses.MISSING else repr(value)
-        unit = _field_unit(config_cls, f.name)
-        lines.append(
-            f"  {prefix}{f.name}: {type_name} = {default}" + (f" [{unit}]" if unit else "")
-        )
-        if f.name in docs:
-            lines.append(f"      {docs[f.name]}")
-    return lines
-
-
-def _supported_scenarios(cls: type, config: object) -> list[str]:
-    """One line per available scenario: whether RECIPE ``cls`` handles its actions (built with
-    its default config; a scenario that cannot be built says why)."""
-    from mapets_rl.envs.registry import available_envs
-
-    kinds = _recipe_action_kinds(cls)
-    supported, other = [], []
-    for env_name in available_envs():
-        env_config = getattr(config, "env_config", {}) if env_name == config.env else {}
-        try:
-            group, kind = _scenario_group(env_name, env_config)
-        except Exception as err:  # noqa: BLE001 - a broken plug-in must not break --help
-            other.append(f"{env_name} (cannot be built: {str(err).splitlines()[0][:80]})")
-            continue
-        detail = f"{env_name} ({group.n_agents} agents, obs {group.obs_dim}, {kind} actions)"
-        (supported if kind in kinds else other).append(detail)
-    lines = [f"scenarios ({' or '.join(kinds)} actions; --env SCENARIO):"]
-    lines += [f"  {line}" for line in supported] or ["  (none installed)"]
-    if other:
-        lines.append("not supported:")
-        lines += [f"  {line}" for line in other]
-    return lines
-
-
-def _recipe_help(name: str) -> str:
-    """Help of ``mapets-rl train RECIPE --help``: RECIPE's config documentation (first
-    paragraph), the scenarios it supports and every config field, nested sections included,
-    with its type, default, unit and a one-line description (imports the recipe)."""
-    import inspect
-
-    from mapets_rl.config import ConfigError
-
-    cls = _recipe_class(name)
-    config_cls = cls.Config
-    try:
-        config = config_cls()
-    except (ConfigError, ValueError, TypeError):
-        config = None
-    summary = (inspect.getdoc(config_cls) or "").split("\n\n", 1)[0]
-    lines = [
-        f"usage: {PROG} train {name} --env SCENARIO [--seed N] [--config FILE] "
-        "[--run-dir DIR] [key=value ...]",
-        "",
-        summary,
-        "",
-    ]
-    if config is not None:
-        lines += _supported_scenarios(cls, config) + [""]
-    lines.append(
-        f"fields of {config_cls.__name__} (set as key=value, a section's fields as "
-        "section.field=value; values parsed as YAML; [unit]):"
-    )
-    lines += _field_lines(config_cls, config)
-    return "\n".join(lines) + "\n"
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``mapets-rl`` console script."""
     prepare_process()  # the OpenMP wait policy must be set before anything imports torch
@@ -749,7 +575,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         and not argv[1].startswith("-")
         and {"-h", "--help"} & set(argv[2:])
     ):
-        sys.stdout.write(_recipe_help(argv[1]))
+        from mapets_rl.app.help import recipe_help
+
+        try:
+            sys.stdout.write(recipe_help(argv[1], argv[2:]))
+        except ValueError as err:  # an unknown recipe, a bad key=value
+            _fail(str(err))
         return 0
     parser = build_parser()
     # key=value overrides may follow options (argparse does not intermix positionals)
