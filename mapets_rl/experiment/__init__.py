@@ -72,17 +72,9 @@ the run directory as it was. One process writes a run directory at a time: a run
 lock on it (``.lock``, released with the process, kill -9 included), and a second writer is
 refused with one line naming the holder's pid.
 
-Custom scenarios: ``register_env("name", factory)`` makes ``factory(**env_config)`` available
-to every recipe and to ``--env name`` in this process (replacing an existing scenario needs
-``overwrite=True``); an entry point ``name = "mypackage.roads:factory"`` in the group
-``mapets_rl.scenarios`` makes it available to every process, ``mapets-rl`` and ``resume``
-included. Both go to the one scenario registry, :mod:`mapets_rl.envs.registry`, where the
-built-in scenarios are registered too: ``register_env``, :func:`available_envs` and
-:func:`build_env` here are that registry's.
-
-The building blocks recipes share (keys of the ``"agents"`` group, ``AgentGroupSpec``,
-observation normalisation, one-hot action heads, ...) live in :mod:`mapets_rl.modules`; recipes
-import them from there, never from each other.
+Scenarios (``register_env`` here, or the entry-point group ``mapets_rl.scenarios``) and the
+building blocks recipes share (:mod:`mapets_rl.modules`): see "Where new code goes" in
+``docs/ARCHITECTURE.md``.
 """
 
 from mapets_rl.config import ConfigError, ConfigSection, check
