@@ -99,7 +99,8 @@ def test_cli_entry_point_sets_passive_wait_before_torch() -> None:
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", THREADS_ENV)}
     code = (
         "import os, sys, json\n"
-        "from mapets_rl.experiment import cli, threads\n"
+        "from mapets_rl import threads\n"
+        "from mapets_rl.app import cli\n"
         "try:\n    cli.main(['--help'])\nexcept SystemExit:\n    pass\n"
         "print(json.dumps([os.environ.get('OMP_WAIT_POLICY'), 'torch' in sys.modules,"
         " threads._automatic]))\n"

@@ -1,8 +1,9 @@
 """``mapets-rl``: train, resume, evaluate and compare recipes from the command line.
 
     mapets-rl train RECIPE --env SCENARIO [--seed N] [--config FILE] [--run-dir DIR] [key=value ...]
-    mapets-rl train RECIPE --help          (RECIPE's scenarios, and its config fields with
-                                            type, default, unit and a one-line description)
+    mapets-rl train RECIPE [key=value ...] --help
+                                           (RECIPE's scenarios, and its config fields with type,
+                                            value, unit and description; see mapets_rl.app.help)
     mapets-rl resume RUN_DIR [key=value ...]
     mapets-rl evaluate RUN_DIR [--episodes N] [--video]
     mapets-rl sweep RECIPE --env SCENARIO --out DIR [--seeds N ...] [--grid KEY=v1,v2 ...]
@@ -12,8 +13,8 @@
                       [--legacy-as eval|train]
 
 Recipes are found by name among the entry points of the group ``mapets_rl.recipes`` of the
-installed packages (see :mod:`mapets_rl.app.plugins`); nothing is imported until a
-command needs it, so ``--help`` stays fast.
+installed packages (see :mod:`mapets_rl.app.plugins`). The library, the recipes, sweeps and
+``compare`` are imported inside the commands that need them, so ``--help`` imports no torch.
 
 Errors in what the user typed (unknown recipe, scenario or config key, a bad value, an unusable
 run directory or checkpoint) print one line ``mapets-rl: error: ...`` and exit with code 2;

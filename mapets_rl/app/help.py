@@ -34,10 +34,10 @@ from typing import Any
 
 import mapets_rl
 from mapets_rl._compile_cache import make_private_dir, private_default
+from mapets_rl.app.cli import PROG
 from mapets_rl.app.plugins import RECIPE_GROUP, load_recipe
 from mapets_rl.config import ConfigSection
 
-PROG = "mapets-rl"
 WIDTH = 100
 """Columns the descriptions are wrapped at."""
 CACHE_ENTRIES = 64
@@ -219,12 +219,12 @@ def render_recipe_help(name: str, overrides: Sequence[str]) -> str:
     recipe and builds every scenario); ValueError for an unknown recipe or a bad override."""
     cls = load_recipe(name)
     config_cls = cls.Config
-    config = config_cls().with_overrides(list(overrides)) if overrides else None
-    if config is None:
-        try:
-            config = config_cls()
-        except (ValueError, TypeError):  # a config with required fields
-            config = None
+    try:
+        config = config_cls()
+    except (ValueError, TypeError):  # a config that needs fields set: its defaults only
+        config = None
+    if config is not None and overrides:
+        config = config.with_overrides(list(overrides))
     lines = [
         f"usage: {PROG} train {name} --env SCENARIO [--seed N] [--config FILE] "
         "[--run-dir DIR] [key=value ...]",
