@@ -104,9 +104,9 @@ class AgentsPettingZooWrapper(PettingZooWrapper):
             if not group_spec["info"].keys():
                 del group_spec["info"]
             group_spec["position"] = spec
-        elif self.position is not None:
+        elif self.position is not None:  # called once here: a wrong shape fails at once
             group_spec["position"] = Unbounded(
-                shape=(n_agents, 2), dtype=torch.float32, device=self.device
+                shape=self._callable_position().shape, dtype=torch.float32, device=self.device
             )
         if self.position is not None and group_spec["position"].shape != (n_agents, 2):
             raise ValueError(
