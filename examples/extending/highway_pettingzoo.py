@@ -26,7 +26,8 @@ The two lines that make it the torchrl env of every recipe (positions from a cal
 :func:`highway_reward` / :func:`highway_collision` are the known reward and crash test MA-PETS
 plans with (vectorised functions of the normalised ``(obs, action, next_obs)``).
 
-Run it (about 30 s on two cores):
+Run it (about 20 s of CPU time; MA-PETS' speed rose from 23 m/s in the random first episode to
+37 m/s in the third, with one crash, at the defaults and seed 0):
 
     python examples/extending/highway_pettingzoo.py [--episodes 3] [--frames 40] [--duration 10]
 """
