@@ -100,6 +100,11 @@ class AgentsPettingZooWrapper(PettingZooWrapper):
                     f"infos after a reset have the keys {info_keys}"
                 )
             spec = group_spec["info", self.position]
+            if spec.shape != (n_agents, 2):
+                raise ValueError(
+                    f"position={self.position!r} must give each of the {n_agents} agents an "
+                    f"(x, y) position, shape [{n_agents}, 2]; got {list(spec.shape)}"
+                )
             del group_spec["info"][self.position]
             if not group_spec["info"].keys():
                 del group_spec["info"]
@@ -107,11 +112,6 @@ class AgentsPettingZooWrapper(PettingZooWrapper):
         elif self.position is not None:  # called once here: a wrong shape fails at once
             group_spec["position"] = Unbounded(
                 shape=self._callable_position().shape, dtype=torch.float32, device=self.device
-            )
-        if self.position is not None and group_spec["position"].shape != (n_agents, 2):
-            raise ValueError(
-                f"position={self.position!r} must give each of the {n_agents} agents an (x, y) "
-                f"position, shape [{n_agents}, 2]; got {list(group_spec['position'].shape)}"
             )
 
     def _with_position(self, tensordict: TensorDictBase) -> TensorDictBase:
