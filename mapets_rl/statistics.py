@@ -95,13 +95,15 @@ def _check_options(
         raise ValueError(f"resamples must be an integer >= 1, got {resamples!r}")
 
 
-def _scores(scores: ArrayLike, name: str, ndims: tuple[int, ...]) -> np.ndarray:
+def _scores(scores: ArrayLike, shapes: dict[int, str]) -> np.ndarray:
+    """``scores`` as a float array of one of the ``ndim -> shape name`` of ``shapes``."""
     x = np.asarray(scores, dtype=np.float64)
-    if x.ndim not in ndims or x.size == 0:
-        shapes = " or ".join({1: "[runs]", 2: "[runs, tasks]"}[d] for d in ndims)
-        raise ValueError(f"{name} must be a non-empty {shapes} array, got shape {x.shape}")
+    if x.ndim not in shapes or x.size == 0:
+        raise ValueError(
+            f"scores must be a non-empty {' or '.join(shapes.values())} array, got shape {x.shape}"
+        )
     if not np.isfinite(x).all():
-        raise ValueError(f"{name} must be finite")
+        raise ValueError("scores must be finite")
     return x
 
 
@@ -151,7 +153,7 @@ def bootstrap_interval(
         Floats ``(estimate, low, high)``; one run gives ``low == high == estimate``.
     """
     _check_options(statistic, bounds, confidence, resamples)
-    x = _scores(scores, "scores", (1, 2))
+    x = _scores(scores, {1: "[runs]", 2: "[runs, tasks]"})
     x = x.reshape(x.shape[0], -1, 1)  # [runs, tasks, 1 point]
     estimate, low, high = _percentile_interval(x, statistic, bounds, confidence, resamples, seed)
     return IntervalEstimate(float(estimate[0]), float(low[0]), float(high[0]))
@@ -177,5 +179,5 @@ def bootstrap_curve(
         :func:`bootstrap_interval` gives for that point's column.
     """
     _check_options(statistic, bounds, confidence, resamples)
-    x = _scores(scores, "scores", (2,))
+    x = _scores(scores, {2: "[runs, points]"})
     return _percentile_interval(x[:, None, :], statistic, bounds, confidence, resamples, seed)
