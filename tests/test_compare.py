@@ -92,6 +92,84 @@ def test_old_mapets_results_can_be_read_as_training_entries(tmp_path: Path, capl
     assert json.loads(out["summary"].read_text())["mapets"]["safety"]["source"] == "train"
 
 
+def _write_evaluation(run: Path, frames: int, metrics: dict[str, float]) -> None:
+    """``evaluation.json`` as ``mapets-rl evaluate`` writes it."""
+    (run / "evaluation.json").write_text(
+        json.dumps({"frames": frames, "episodes": 10, "metrics": metrics})
+    )
+
+
+def test_the_table_compares_the_final_evaluations_of_mapets_evaluate(
+    tmp_path: Path, caplog
+) -> None:
+    """MA-PETS runs with evaluate's output: the curves are their training episodes, the table
+    their final evaluations, without a warning; a group where one run lacks it (or holds an
+    older one) compares the last entries."""
+    runs = [
+        fake_run(tmp_path / f"mapets{s}", "mapets", s, train=train_entries(0.2, 0.4 + 0.2 * s))
+        for s in (0, 1, 2)
+    ]
+    for seed, run in enumerate(runs):
+        _write_evaluation(run, 41, {"safety": 0.9 + 0.05 * seed, "return": 9.0})
+    with caplog.at_level(logging.WARNING, logger="mapets_rl"):
+        out = compare(runs, tmp_path / "cmp", ["safety"])
+    assert not caplog.records
+    summary = json.loads(out["summary"].read_text())["mapets"]["safety"]
+    assert summary["source"] == "evaluate" and summary["mean"] == pytest.approx(0.95)
+    assert summary["n"] == 3 and summary["frames"] == 41
+    table = out["table"].read_text()
+    assert "or its final evaluation (evaluation.json, written by mapets-rl evaluate)" in table
+    assert "| mapets | final evaluations (evaluate) | 41 | 0.95 [0.9, 1] (n=3) |" in table
+    curves = json.loads(out["curves"].read_text())["groups"]["mapets"]
+    assert curves["source"] == "train"
+    assert curves["metrics"]["safety"]["mean"] == pytest.approx([0.2, 0.6])
+    (runs[2] / "evaluation.json").unlink()
+    _write_evaluation(runs[1], 20, {"safety": 0.0})  # evaluated before the last episode
+    out = compare(runs, tmp_path / "cmp2", ["safety"])
+    summary = json.loads(out["summary"].read_text())["mapets"]["safety"]
+    assert summary["source"] == "train" and summary["mean"] == pytest.approx(0.6)
+    (runs[0] / "evaluation.json").write_text('{"frames": 41}')
+    with pytest.raises(ValueError, match="evaluation.json' is not an evaluation file"):
+        compare(runs, tmp_path / "cmp3", ["safety"])
+    assert not (tmp_path / "cmp3").exists()
+
+
+def test_marl_eval_export(tmp_path: Path) -> None:
+    """marl-eval's raw-data layout: env, task (env_config keys off the scenario's defaults),
+    algorithm (the group), runs, steps with their frames, absolute metrics from evaluate's
+    output or the last entry."""
+    runs = [
+        fake_run(
+            tmp_path / f"d{d}_{s}",
+            "mapets",
+            s,
+            comm={"comm_range": d},
+            train=train_entries(0.1 * s, 0.5),
+        )
+        for d in (0, 100)
+        for s in (0, 1)
+    ]
+    _write_evaluation(runs[0], 41, {"safety": 0.8, "return": 8.0})
+    out = compare(runs, tmp_path / "cmp", ["safety", "return"], group_by="comm.comm_range")
+    assert "marl_eval" not in out and not (tmp_path / "cmp" / "marl_eval.json").exists()
+    out = compare(runs, tmp_path / "cmp2", ["safety"], group_by="comm.comm_range", marl_eval=True)
+    data = json.loads(out["marl_eval"].read_text())
+    assert list(data) == ["figure-eight"]
+    assert list(data["figure-eight"]) == ["horizon=20,n_cavs=4"]  # 8 CAVs, 200 steps by default
+    algorithms = data["figure-eight"]["horizon=20,n_cavs=4"]
+    assert list(algorithms) == ["mapets comm.comm_range=0", "mapets comm.comm_range=100"]
+    assert list(algorithms["mapets comm.comm_range=0"]) == ["run_0", "run_1"]
+    run_0 = algorithms["mapets comm.comm_range=0"]["run_0"]
+    assert run_0 == {
+        "step_0": {"step_count": 20, "safety": [0.0]},
+        "step_1": {"step_count": 41, "safety": [0.5]},
+        "absolute_metrics": {"safety": [0.8]},  # evaluate's output
+    }
+    run_1 = algorithms["mapets comm.comm_range=0"]["run_1"]
+    assert run_1["absolute_metrics"] == {"safety": [0.5]}  # the last entry
+    assert list(run_1)[-1] == "absolute_metrics"  # marl-eval reads it as the last key
+
+
 # ----------------------------------------------------------------------------- scenarios
 def test_runs_on_different_scenarios_are_refused(tmp_path: Path) -> None:
     a = fake_run(tmp_path / "a", evaluations=eval_entries(1.0))
