@@ -40,6 +40,9 @@ BOOTSTRAP_SEED = 0
 """Seed of the bootstrap's generator (reproducible intervals)."""
 CONFIDENCE = 0.95
 """Coverage of the intervals."""
+_MAX_RESAMPLED = 4_000_000
+"""Resampled scores held at once (32 MB): a long curve is bootstrapped a block of points at a
+time."""
 
 
 class IntervalEstimate(NamedTuple):
@@ -69,7 +72,7 @@ def interquartile_mean(scores: ArrayLike, axis: int | None = None) -> float | np
     if n == 0:
         raise ValueError("scores must be non-empty")
     cut = n // 4
-    kept = np.sort(x, axis=axis).take(np.arange(cut, n - cut), axis=axis)
+    kept = np.sort(x, axis=axis).take(np.arange(cut, n - cut), axis=axis) if cut else x
     out = kept.mean(axis=axis)
     return float(out) if out.ndim == 0 else out
 
@@ -123,11 +126,15 @@ def _percentile_interval(
     estimate = reduce(scores.reshape(runs * tasks, points), 0)
     rng = np.random.default_rng(seed)
     picks = rng.integers(0, runs, size=(resamples, runs, tasks))  # [R, runs, tasks]
-    resampled = scores[picks, np.arange(tasks)]  # [R, runs, tasks, points]
-    replicates = reduce(resampled.reshape(resamples, runs * tasks, points), 1)  # [R, points]
     tail = (1.0 - confidence) / 2.0
-    low, high = np.quantile(replicates, [tail, 1.0 - tail], axis=0)
-    return IntervalEstimate(estimate, np.clip(low, *bounds), np.clip(high, *bounds))
+    ends = np.empty((2, points))
+    block = max(1, _MAX_RESAMPLED // (resamples * runs * tasks))
+    for start in range(0, points, block):  # a block of points at a time bounds the memory
+        part = scores[:, :, start : start + block]
+        resampled = part[picks, np.arange(tasks)]  # [R, runs, tasks, block]
+        replicates = reduce(resampled.reshape(resamples, runs * tasks, -1), 1)  # [R, block]
+        ends[:, start : start + block] = np.quantile(replicates, [tail, 1.0 - tail], axis=0)
+    return IntervalEstimate(estimate, np.clip(ends[0], *bounds), np.clip(ends[1], *bounds))
 
 
 def bootstrap_interval(

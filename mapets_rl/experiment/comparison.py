@@ -57,7 +57,7 @@ from mapets_rl.metrics import (
     metric_unit,
 )
 from mapets_rl.plotting import draw_band
-from mapets_rl.statistics import bootstrap_interval
+from mapets_rl.statistics import bootstrap_curve
 
 log = logging.getLogger(__name__)
 
@@ -284,8 +284,8 @@ def compare(
       (n=1)`` for a group of one run: one run has no interval), with the source of every group
       and its ``frames`` (the fewest of its runs' compared entries);
     - ``summary.json``: those numbers, ``{group: {metric: {"mean", "mean_ci95", "iqm",
-      "iqm_ci95", "n", "frames", "source"}}}`` (each ``*_ci95`` ``[low, high]``, null for
-      ``n = 1``);
+      "iqm_ci95", "std", "n", "frames", "source"}}}`` (each ``*_ci95`` ``[low, high]``; the
+      intervals and ``std`` null for ``n = 1``);
     - ``curves.json``: ``{"source": the requested source, "x": x, "groups": {group: ...}}``,
       per group its recipe, ``group_by`` values, scenario, source, runs and, at every ``x``
       value any of its runs reached (``x``, ``n`` runs), ``mean`` / ``std`` / ``mean_ci95``
@@ -525,8 +525,9 @@ def compare(
             )
         summary[label] = {}
         for m in metrics:
+            final = _interval_stats(m, [[e["metrics"][m] for e in last]])
             summary[label][m] = {
-                **_interval_stats(m, [e["metrics"][m] for e in last]),
+                **{key: values[0] for key, values in final.items()},
                 "n": len(last),
                 "frames": min(e["frames"] for e in last),
                 "source": "evaluate" if group["final"] is not None else group["source"],
@@ -536,8 +537,7 @@ def compare(
         counts = [sum(v in bx for bx in by_x) for v in xs]
         stats: dict[str, dict[str, list[Any]]] = {}
         for m in metrics:
-            rows = [_interval_stats(m, [bx[v][m] for bx in by_x if v in bx]) for v in xs]
-            stats[m] = {key: [row[key] for row in rows] for key in rows[0]}
+            stats[m] = _interval_stats(m, [[bx[v][m] for bx in by_x if v in bx] for v in xs])
         curves["groups"][label] = {
             "recipe": group["recipe"],
             "group": group["group"],
@@ -601,21 +601,30 @@ def compare(
     return written
 
 
-def _interval_stats(metric: str, values: Sequence[float]) -> dict[str, Any]:
-    """Mean and IQM of one group's ``values`` (one per run) with their bootstrap 95% intervals
-    clipped to the metric's range (``[low, high]``, ``None`` for one value), and the sample
-    standard deviation (``None`` for one value)."""
-    bounds = metric_range(metric)
-    mean = bootstrap_interval(values, "mean", bounds=bounds)
-    iqm = bootstrap_interval(values, "iqm", bounds=bounds)
-    several = len(values) > 1
-    return {
-        "mean": mean.estimate,
-        "mean_ci95": [mean.low, mean.high] if several else None,
-        "iqm": iqm.estimate,
-        "iqm_ci95": [iqm.low, iqm.high] if several else None,
-        "std": float(np.std(values, ddof=1)) if several else None,
+def _interval_stats(metric: str, points: Sequence[Sequence[float]]) -> dict[str, list[Any]]:
+    """At every point (one value per run, a run missing from a point left out): the mean and
+    the IQM with their bootstrap 95% intervals clipped to the metric's range (``[low, high]``,
+    ``None`` for one value) and the sample standard deviation (``None`` for one value); each
+    key a list over the points. Points with as many values are bootstrapped together
+    (:func:`~mapets_rl.statistics.bootstrap_curve`: the same intervals as one at a time)."""
+    out: dict[str, list[Any]] = {
+        key: [None] * len(points) for key in ("mean", "mean_ci95", "iqm", "iqm_ci95", "std")
     }
+    by_count: dict[int, list[int]] = {}
+    for i, values in enumerate(points):
+        by_count.setdefault(len(values), []).append(i)
+    for count, where in by_count.items():
+        runs = np.array([points[i] for i in where], dtype=float).T  # [runs, points]
+        for statistic in ("mean", "iqm"):
+            estimate, low, high = bootstrap_curve(runs, statistic, bounds=metric_range(metric))
+            for j, i in enumerate(where):
+                out[statistic][i] = float(estimate[j])
+                if count > 1:
+                    out[f"{statistic}_ci95"][i] = [float(low[j]), float(high[j])]
+        if count > 1:
+            for j, std in zip(where, runs.std(axis=0, ddof=1), strict=True):
+                out["std"][j] = float(std)
+    return out
 
 
 def _final_evaluations(
