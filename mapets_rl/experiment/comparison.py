@@ -427,9 +427,10 @@ def compare(
         strict=True,
     ):
         algorithm = " ".join([res["recipe"], *(f"{f}={_fmt(v)}" for f, v in values.items())])
+        label = f"{algorithm} [{scenario}]" if diffs else algorithm
         if mixed_sources:
             algorithm += f" ({src})"
-        label = f"{algorithm} [{scenario}]" if diffs else algorithm
+            label += f" ({src})"
         group = groups.setdefault(
             label,
             {
