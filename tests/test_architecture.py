@@ -21,6 +21,8 @@ FLOORS = {
     "mapets_rl._compile_cache": 0,
     "mapets_rl.config": 0,
     "mapets_rl.metrics": 0,
+    "mapets_rl.statistics": 0,
+    "mapets_rl.plotting": 0,
     "mapets_rl.envs": 1,
     "mapets_rl.comm": 2,
     "mapets_rl.models": 2,
