@@ -6,7 +6,7 @@ with MA-PETS (the MA-PETS paper's Figs. 3-4).
 for 15 episodes (``--episodes``): 3000 environment steps on one lane, 6000 on two. This script
 trains each baseline for that budget (``--budget-multiplier 1``, the default) or a multiple of
 it (``10``: 30 000 steps on one lane), over several seeds, then runs ``mapets-rl compare`` on
-the runs: learning curves with a 95% confidence band over seeds (PNG) and a markdown table of
+the runs: learning curves with a bootstrap 95% band over seeds (PNG) and a markdown table of
 the final agility, safety and reward. ``--mapets RUN_DIR ...`` adds MA-PETS runs (e.g. the
 trials of ``benchmarks/ablations/comm_range.py``) to the same plot, one group per
 communication range; MA-PETS's points are its training episodes (its planner acts the same

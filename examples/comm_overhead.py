@@ -34,6 +34,7 @@ from tensordict import TensorDict  # noqa: E402
 from mapets_rl.comm import CommunicationRange, NeighbourDatasets, clique_cover  # noqa: E402
 from mapets_rl.envs import ScriptedCAVPolicy, make_env  # noqa: E402
 from mapets_rl.experiment import atomic_savefig, atomic_write_text  # noqa: E402
+from mapets_rl.plotting import draw_curve  # noqa: E402
 
 RANGES = (0.0, 50.0, 100.0, 150.0, 200.0)
 PAPER_TABLE_III = {0.0: 0.0, 50.0: 330.13, 100.0: 1866.0, 150.0: 6139.7, 200.0: 10961.06}
@@ -156,10 +157,21 @@ def report(results: dict) -> None:
 
 
 def plot(results: dict, path: Path) -> None:
+    """Transitions exchanged per episode (ours and the paper's Table III) and the clique cover
+    number (every episode's, and their mean) against d; the means with their bootstrap 95%
+    bands over episodes (:func:`mapets_rl.plotting.draw_curve`)."""
     ranges = results["ranges"]
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
-    ours = [_mean_std(results["transitions_per_episode"][f"{d:g}"])[0] for d in ranges]
-    ax1.plot(ranges, ours, "o-", label="ours (scripted CAVs)")
+    # [episodes, ranges] (the ranges in order): every range is scored on the same episodes
+    transitions = torch.tensor(list(results["transitions_per_episode"].values())).T
+    draw_curve(
+        ax1,
+        ranges,
+        transitions,
+        metric="transitions_shared",
+        marker="o",
+        label="ours (scripted CAVs)",
+    )
     paper_d = [d for d in ranges if d in PAPER_TABLE_III]
     ax1.plot(paper_d, [PAPER_TABLE_III[d] for d in paper_d], "s--", label="paper, Table III")
     ax1.set_xlabel("communication range d (m)")
@@ -169,15 +181,15 @@ def plot(results: dict, path: Path) -> None:
     for d in ranges:
         values = results["clique_cover_number"][f"{d:g}"]
         ax2.scatter([d] * len(values), values, alpha=0.25, color="tab:blue", s=12)
-    stats = [_mean_std(results["clique_cover_number"][f"{d:g}"]) for d in ranges]
-    ax2.errorbar(
+    chi = torch.tensor(list(results["clique_cover_number"].values())).T
+    draw_curve(
+        ax2,
         ranges,
-        [m for m, _ in stats],
-        yerr=[s for _, s in stats],
-        fmt="o-",
-        capsize=3,
+        chi,
+        metric="clique_cover_number",
+        marker="o",
         color="tab:red",
-        label="mean +- std",
+        label="mean, bootstrap 95% CI",
     )
     ax2.set_xlabel("communication range d (m)")
     ax2.set_ylabel("minimum clique cover number")

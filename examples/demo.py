@@ -27,15 +27,25 @@ import matplotlib.pyplot as plt  # noqa: E402
 from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig  # noqa: E402
 
 from mapets_rl.experiment import atomic_savefig, default_run_dir  # noqa: E402
+from mapets_rl.plotting import draw_curve  # noqa: E402
 
 
 def plot(history: list[dict[str, float]], path: Path, title: str) -> None:
-    """Agility and safety against the episode, the random-action episodes marked."""
+    """Agility and safety against the episode (one seed: no band;
+    :func:`mapets_rl.plotting.draw_curve`), the random-action episodes marked."""
     episodes = [int(m["episode"]) for m in history]
     fig, (ax_a, ax_s) = plt.subplots(1, 2, figsize=(9, 3.4))
     for ax, key, label in ((ax_a, "agility", "agility [m/step]"), (ax_s, "safety", "safety")):
         values = [m[key] for m in history]
-        ax.plot(episodes, values, marker="o", color="tab:blue", label="MA-PETS (planner)")
+        draw_curve(
+            ax,
+            episodes,
+            [values],
+            metric=key,
+            marker="o",
+            color="tab:blue",
+            label="MA-PETS (planner)",
+        )
         random = [(e, v) for e, v, m in zip(episodes, values, history, strict=True) if m["random"]]
         if random:
             ax.plot(*zip(*random, strict=True), "s", color="tab:gray", label="random actions")

@@ -63,7 +63,8 @@ from mapets_rl.experiment import (
     mean_metrics,
 )
 from mapets_rl.metrics import MPH_PER_MPS  # noqa: E402
-from mapets_rl.statistics import mean_ci95
+from mapets_rl.plotting import draw_curve  # noqa: E402
+from mapets_rl.statistics import mean_ci95  # noqa: E402
 
 RATIOS = (0.0, 0.17, 0.33, 0.5, 0.67, 0.83, 1.0)
 SCALES = {
@@ -196,18 +197,17 @@ def build_table(results: dict[str, Any], args: argparse.Namespace) -> str:
 
 
 def plot_table(results: dict[str, Any], path: Path) -> None:
-    """Velocity (mph) and comfort against the CAV ratio, one line per method with 95%
-    intervals over seeds, and the paper's Shapley and COMA columns dashed."""
+    """Velocity (mph) and comfort against the CAV ratio, one line per method with its
+    bootstrap 95% band over seeds (:func:`mapets_rl.plotting.draw_curve`, inside each metric's
+    range), and the paper's Shapley and COMA columns dashed."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for method, by_ratio in results.items():
         ratios = [float(k) for k in by_ratio]
         for ax, key, scale in zip(
             axes, ("average_velocity", "average_comfort"), (MPH_PER_MPS, 1.0), strict=True
         ):
-            stats = [mean_ci95([r[key] * scale for r in runs]) for runs in by_ratio.values()]
-            ax.errorbar(
-                ratios, [m for m, _ in stats], yerr=[h for _, h in stats], capsize=3, label=method
-            )
+            seeds = np.array([[r[key] * scale for r in runs] for runs in by_ratio.values()])
+            draw_curve(ax, ratios, seeds.T, metric=key, marker="o", ms=3, label=method)
     for name, paper in (("paper Shapley", PAPER_SHAPLEY), ("paper COMA", PAPER_COMA)):
         for ax, k in zip(axes, (0, 1), strict=True):
             ax.plot(list(paper), [v[k] for v in paper.values()], "--", label=name)

@@ -16,7 +16,8 @@ resumable: an interrupted invocation continues from the runs' last checkpoints.
 
 Run:  python examples/shapley_freeway.py [--frames 1600] [--seeds 0 1 2] [--out outputs/...]
       python examples/shapley_freeway.py --env freeway-merge ...   # the on-ramp dilemma
-Writes ``<out>/system_reward.png`` (mean and 95% band over seeds), ``<out>/system_reward.md``
+Writes ``<out>/system_reward.png`` (mean and bootstrap 95% band over seeds,
+:func:`mapets_rl.plotting.draw_curve`), ``<out>/system_reward.md``
 and ``<out>/summary.json``; prints the table.
 """
 
@@ -42,7 +43,8 @@ from mapets_rl.experiment import (
     latest_checkpoint,
     read_results,
 )
-from mapets_rl.statistics import mean_ci95
+from mapets_rl.plotting import draw_curve  # noqa: E402
+from mapets_rl.statistics import mean_ci95  # noqa: E402
 
 ALGORITHMS = ("shapley_ac", "maddpg", "m3ddpg", "coma", "mappo")
 LABELS = {
@@ -224,13 +226,8 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
         frames = runs[0][0]
         length = min(len(r[1]) for r in runs)
         values = np.stack([r[1][:length] for r in runs])  # [seeds, evals]
-        stats = [mean_ci95(values[:, k].tolist()) for k in range(length)]
-        mean = np.array([m for m, _ in stats])
-        half = np.array([h for _, h in stats])
-        episodes = frames[:length] / 40
-        ax.plot(episodes, mean, label=LABELS[algo])
-        ax.fill_between(episodes, mean - half, mean + half, alpha=0.2)
-        first = stats[0]
+        draw_curve(ax, frames[:length] / 40, values, metric="return", label=LABELS[algo])
+        first = mean_ci95(values[:, 0].tolist())
         fields, cells = final_columns(values[:, -1], [r[2] for r in runs], [r[3] for r in runs])
         summary[algo] = {
             "first_mean": first[0],

@@ -108,10 +108,16 @@ METRIC_RANGES: dict[str, tuple[float, float]] = {
     "bytes_shared": (0.0, math.inf),
     "dataset_size": (0.0, math.inf),
     "frames": (0.0, math.inf),
+    "clique_cover_number": (0.0, math.inf),
+    "ramp_stuck": (0.0, math.inf),
+    "nonfinite_rewards": (0.0, math.inf),
+    "random": (0.0, 1.0),
 }
 """Metric name -> ``(low, high)``, the values it can take: safety is a fraction of ``H``,
-comfort a score in ``[0, 3]``, distances, speeds, counts and times are non-negative. Metrics
-not listed (reward, return, losses) are unbounded."""
+comfort a score in ``[0, 3]``, distances, speeds, counts and times are non-negative,
+``random`` (whether an episode's actions were random) a fraction. ``compare``'s intervals and
+every plotted band (:mod:`mapets_rl.plotting`) are clipped to it. Metrics not listed (reward,
+return, losses) are unbounded."""
 
 
 def metric_range(name: str) -> tuple[float, float]:

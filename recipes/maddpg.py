@@ -7,11 +7,15 @@ config -> env -> modules (actors o_i -> a_i; critic Q_i(o_1..o_I, a_1..a_I) as a
 
 Discrete actions (freeway): the actor outputs logits and a Gumbel-softmax head
 (:class:`~mapets_rl.modules.GumbelSoftmaxHead`) turns them into one-hot actions
-that carry gradients — a hard Gumbel sample at temperature ``gumbel_tau`` while collecting (this
-is the exploration; the Gaussian noise applies to continuous actions only) and the greedy
-one-hot with the straight-through softmax gradient in the actor update and evaluation. This is
-the discrete variant of the MADDPG paper (Gumbel-softmax), chosen because it keeps the
-deterministic policy gradient through the centralised critic unchanged.
+that carry gradients — the greedy one-hot with the straight-through softmax gradient in the
+actor update and evaluation. This is the discrete variant of the MADDPG paper (Gumbel-softmax),
+chosen because it keeps the deterministic policy gradient through the centralised critic
+unchanged. While collecting, ``exploration="gumbel"`` (default) draws a hard Gumbel sample at
+temperature ``gumbel_tau`` (this is the exploration; the Gaussian noise applies to continuous
+actions only); ``exploration="epsilon"`` plays the greedy action and replaces it, for each
+agent with a probability annealed from ``epsilon_init`` to ``epsilon_end``, by a uniform draw
+among ``exploration_actions`` (torchrl's ``EGreedyModule`` on the masked action spec; e.g.
+``[0, 1, 2]`` on the freeways: lane changes but no random emergency stop).
 
 M3DDPG (Li et al. 2019, the ``m3ddpg`` recipe, :class:`M3DDPG` below) is MADDPG whose critic
 target and actor objective read each agent's critic at a one-gradient-step worst case of the
@@ -28,7 +32,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import TensorDictReplayBuffer
-from torchrl.modules import AdditiveGaussianModule, MultiAgentMLP, TanhModule
+from torchrl.modules import AdditiveGaussianModule, EGreedyModule, MultiAgentMLP, TanhModule
 from torchrl.objectives import SoftUpdate, ValueEstimators
 
 from mapets_rl.experiment import Experiment, check
@@ -115,6 +119,13 @@ class MADDPGConfig(OffPolicyConfig):
         sigma_anneal_frames: frames (>= 1) over which the exploration std goes from
             ``sigma_init`` to ``sigma_end``.
         gumbel_tau: Gumbel-softmax temperature (> 0; discrete actions).
+        exploration: how discrete actions explore while collecting: ``"gumbel"`` (a hard
+            Gumbel-softmax sample of the actor's logits) or ``"epsilon"`` (epsilon-greedy).
+        epsilon_init, epsilon_end: the epsilon-greedy probability (in [0, 1], end <= init) of
+            a random action per agent, annealed linearly over ``epsilon_anneal_frames``.
+        epsilon_anneal_frames: frames (>= 1) over which epsilon goes from init to end.
+        exploration_actions: the action indices an epsilon-greedy draw picks from (empty:
+            all; the freeways' are 0 KL, 1 CL, 2 CR, 3 ES).
         normalize_obs: standardise observations with running statistics of collected data
             (the target networks always use the current statistics).
         actor_preactivation_coef: weight (>= 0) of the actor pre-activation penalty
@@ -128,6 +139,11 @@ class MADDPGConfig(OffPolicyConfig):
     sigma_end: float = 0.05
     sigma_anneal_frames: int = 3000
     gumbel_tau: float = 1.0
+    exploration: str = "gumbel"
+    epsilon_init: float = 1.0
+    epsilon_end: float = 0.05
+    epsilon_anneal_frames: int = 100_000
+    exploration_actions: list[int] = dataclasses.field(default_factory=list)
     normalize_obs: bool = True
     actor_preactivation_coef: float = 1e-3
     n_steps: int = 1
@@ -135,6 +151,32 @@ class MADDPGConfig(OffPolicyConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         check(self.gumbel_tau > 0, "gumbel_tau", "> 0", self.gumbel_tau)
+        check(
+            self.exploration in ("gumbel", "epsilon"),
+            "exploration",
+            "'gumbel' or 'epsilon'",
+            self.exploration,
+        )
+        check(0 <= self.epsilon_init <= 1, "epsilon_init", "in [0, 1]", self.epsilon_init)
+        check(
+            0 <= self.epsilon_end <= self.epsilon_init,
+            "epsilon_end",
+            "in [0, epsilon_init]",
+            self.epsilon_end,
+        )
+        check(
+            self.epsilon_anneal_frames >= 1,
+            "epsilon_anneal_frames",
+            ">= 1",
+            self.epsilon_anneal_frames,
+        )
+        check(
+            all(a >= 0 for a in self.exploration_actions)
+            and len(set(self.exploration_actions)) == len(self.exploration_actions),
+            "exploration_actions",
+            "distinct action indices >= 0",
+            self.exploration_actions,
+        )
         check(
             self.actor_preactivation_coef >= 0,
             "actor_preactivation_coef",
@@ -180,19 +222,26 @@ class MADDPG(Experiment):
             activation_class=nn.ReLU,
         )
         if spec.discrete:
+            epsilon = config.exploration == "epsilon"
+            head = GumbelSoftmaxHead(config.gumbel_tau, return_logits=True, sample=not epsilon)
             self.actor = TensorDictSequential(
                 *front,
                 TensorDictModule(
-                    nn.Sequential(
-                        actor_mlp, GumbelSoftmaxHead(config.gumbel_tau, return_logits=True)
-                    ),
+                    nn.Sequential(actor_mlp, head),
                     in_keys=[obs_key],
                     out_keys=[PREACTIVATION, ACTION],
                 ),
             )
-            self.exploration = None
-            collection_policy = self.actor
+            self.exploration = self.epsilon_greedy(config, spec) if epsilon else None
+            collection_policy = (
+                TensorDictSequential(self.actor, self.exploration) if epsilon else self.actor
+            )
         else:
+            if config.exploration != "gumbel":
+                raise ValueError(
+                    f"exploration={config.exploration!r} is for discrete actions; "
+                    f"{config.env!r} has continuous ones (their exploration is Gaussian noise)"
+                )
             self.actor = TensorDictSequential(
                 *front,
                 TensorDictModule(actor_mlp, in_keys=[obs_key], out_keys=[PREACTIVATION]),
@@ -235,6 +284,27 @@ class MADDPG(Experiment):
         )
         self.optim_critic = torch.optim.Adam(
             self.loss.value_network_params.values(True, True), lr=config.lr_critic
+        )
+
+    def epsilon_greedy(self, config: MADDPGConfig, spec: AgentGroupSpec) -> EGreedyModule:
+        """torchrl's ``EGreedyModule`` whose random actions are uniform over
+        ``config.exploration_actions`` (all actions when empty)."""
+        allowed = config.exploration_actions or list(range(spec.action_dim))
+        if max(allowed) >= spec.action_dim:
+            raise ValueError(
+                f"exploration_actions must be action indices in [0, {spec.action_dim - 1}], "
+                f"got {allowed}"
+            )
+        action_spec = self.env.full_action_spec_unbatched[ACTION].clone()
+        mask = torch.zeros(spec.action_dim, dtype=torch.bool)
+        mask[allowed] = True
+        action_spec.update_mask(mask.expand(action_spec.shape))
+        return EGreedyModule(
+            action_spec,
+            eps_init=config.epsilon_init,
+            eps_end=config.epsilon_end,
+            annealing_num_steps=config.epsilon_anneal_frames,
+            action_key=ACTION,
         )
 
     def make_loss(

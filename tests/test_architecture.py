@@ -25,6 +25,7 @@ FLOORS = {
     "mapets_rl.config": 0,
     "mapets_rl.metrics": 0,
     "mapets_rl.statistics": 0,
+    "mapets_rl.plotting": 0,
     "mapets_rl.ray_runtime": 0,
     "mapets_rl.threads": 0,
     "mapets_rl.envs": 1,

@@ -13,11 +13,14 @@ from cli_run import run_cli
 from test_results import ENV_CONFIG, eval_entries, fake_run, train_entries
 
 from mapets_rl.app.comparison import compare
-from mapets_rl.statistics import mean_ci95
+from mapets_rl.metrics import metric_range
+from mapets_rl.statistics import bootstrap_interval
 
 
 # ------------------------------------------------------------------------------- sources
 def test_default_source_falls_back_to_training_entries_and_says_so(tmp_path: Path, caplog) -> None:
+    """MA-PETS (no ``eval_interval``: it evaluates on request only) falls back quietly, with a
+    note; a run whose recipe evaluates during training but has not yet gets a warning."""
     runs = [
         fake_run(tmp_path / f"mapets{s}", "mapets", s, train=train_entries(0.2, 0.4))
         for s in (0, 1)
@@ -26,12 +29,21 @@ def test_default_source_falls_back_to_training_entries_and_says_so(tmp_path: Pat
         fake_run(tmp_path / f"mappo{s}", "mappo", s, evaluations=eval_entries(1.0, 2.0))
         for s in (0, 1)
     ]
-    with caplog.at_level(logging.WARNING, logger="mapets_rl"):
+    with caplog.at_level(logging.INFO, logger="mapets_rl"):
         out = compare(runs, tmp_path / "cmp", ["safety"])
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert any(
-        "no evaluations; comparing their training entries instead (groups marked (train))"
-        in r.getMessage()
+        "training entries (the recipe evaluates on request only" in r.getMessage()
         and str(runs[0]) in r.getMessage()
+        for r in caplog.records
+    )
+    early = fake_run(tmp_path / "early", "mappo", 2, eval_interval=100, train=train_entries(0.2))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="mapets_rl"):
+        compare([early], tmp_path / "cmp_early", ["safety"])
+    assert any(
+        "no evaluations; comparing their training entries instead" in r.getMessage()
+        and str(early) in r.getMessage()
         for r in caplog.records
     )
     summary = json.loads(out["summary"].read_text())
@@ -80,6 +92,84 @@ def test_old_mapets_results_can_be_read_as_training_entries(tmp_path: Path, capl
     assert json.loads(out["summary"].read_text())["mapets"]["safety"]["source"] == "train"
 
 
+def _write_evaluation(run: Path, frames: int, metrics: dict[str, float]) -> None:
+    """``evaluation.json`` as ``mapets-rl evaluate`` writes it."""
+    (run / "evaluation.json").write_text(
+        json.dumps({"frames": frames, "episodes": 10, "metrics": metrics})
+    )
+
+
+def test_the_table_compares_the_final_evaluations_of_mapets_evaluate(
+    tmp_path: Path, caplog
+) -> None:
+    """MA-PETS runs with evaluate's output: the curves are their training episodes, the table
+    their final evaluations, without a warning; a group where one run lacks it (or holds an
+    older one) compares the last entries."""
+    runs = [
+        fake_run(tmp_path / f"mapets{s}", "mapets", s, train=train_entries(0.2, 0.4 + 0.2 * s))
+        for s in (0, 1, 2)
+    ]
+    for seed, run in enumerate(runs):
+        _write_evaluation(run, 41, {"safety": 0.9 + 0.05 * seed, "return": 9.0})
+    with caplog.at_level(logging.WARNING, logger="mapets_rl"):
+        out = compare(runs, tmp_path / "cmp", ["safety"])
+    assert not caplog.records
+    summary = json.loads(out["summary"].read_text())["mapets"]["safety"]
+    assert summary["source"] == "evaluate" and summary["mean"] == pytest.approx(0.95)
+    assert summary["n"] == 3 and summary["frames"] == 41
+    table = out["table"].read_text()
+    assert "or its final evaluation (evaluation.json, written by mapets-rl evaluate)" in table
+    assert "| mapets | final evaluations (evaluate) | 41 | 0.95 [0.9, 1] (n=3) |" in table
+    curves = json.loads(out["curves"].read_text())["groups"]["mapets"]
+    assert curves["source"] == "train"
+    assert curves["metrics"]["safety"]["mean"] == pytest.approx([0.2, 0.6])
+    (runs[2] / "evaluation.json").unlink()
+    _write_evaluation(runs[1], 20, {"safety": 0.0})  # evaluated before the last episode
+    out = compare(runs, tmp_path / "cmp2", ["safety"])
+    summary = json.loads(out["summary"].read_text())["mapets"]["safety"]
+    assert summary["source"] == "train" and summary["mean"] == pytest.approx(0.6)
+    (runs[0] / "evaluation.json").write_text('{"frames": 41}')
+    with pytest.raises(ValueError, match="evaluation.json' is not an evaluation file"):
+        compare(runs, tmp_path / "cmp3", ["safety"])
+    assert not (tmp_path / "cmp3").exists()
+
+
+def test_marl_eval_export(tmp_path: Path) -> None:
+    """marl-eval's raw-data layout: env, task (env_config keys off the scenario's defaults),
+    algorithm (the group), runs, steps with their frames, absolute metrics from evaluate's
+    output or the last entry."""
+    runs = [
+        fake_run(
+            tmp_path / f"d{d}_{s}",
+            "mapets",
+            s,
+            comm={"comm_range": d},
+            train=train_entries(0.1 * s, 0.5),
+        )
+        for d in (0, 100)
+        for s in (0, 1)
+    ]
+    _write_evaluation(runs[0], 41, {"safety": 0.8, "return": 8.0})
+    out = compare(runs, tmp_path / "cmp", ["safety", "return"], group_by="comm.comm_range")
+    assert "marl_eval" not in out and not (tmp_path / "cmp" / "marl_eval.json").exists()
+    out = compare(runs, tmp_path / "cmp2", ["safety"], group_by="comm.comm_range", marl_eval=True)
+    data = json.loads(out["marl_eval"].read_text())
+    assert list(data) == ["figure-eight"]
+    assert list(data["figure-eight"]) == ["horizon=20,n_cavs=4"]  # 8 CAVs, 200 steps by default
+    algorithms = data["figure-eight"]["horizon=20,n_cavs=4"]
+    assert list(algorithms) == ["mapets comm.comm_range=0", "mapets comm.comm_range=100"]
+    assert list(algorithms["mapets comm.comm_range=0"]) == ["run_0", "run_1"]
+    run_0 = algorithms["mapets comm.comm_range=0"]["run_0"]
+    assert run_0 == {
+        "step_0": {"step_count": 20, "safety": [0.0]},
+        "step_1": {"step_count": 41, "safety": [0.5]},
+        "absolute_metrics": {"safety": [0.8]},  # evaluate's output
+    }
+    run_1 = algorithms["mapets comm.comm_range=0"]["run_1"]
+    assert run_1["absolute_metrics"] == {"safety": [0.5]}  # the last entry
+    assert list(run_1)[-1] == "absolute_metrics"  # marl-eval reads it as the last key
+
+
 # ----------------------------------------------------------------------------- scenarios
 def test_runs_on_different_scenarios_are_refused(tmp_path: Path) -> None:
     a = fake_run(tmp_path / "a", evaluations=eval_entries(1.0))
@@ -96,14 +186,24 @@ def test_runs_on_different_scenarios_are_refused(tmp_path: Path) -> None:
         env_config={"horizon": 20},
         evaluations=eval_entries(3.0),
     )
+    d = fake_run(
+        tmp_path / "d",
+        seed=3,
+        env="freeway",
+        env_config={"horizon": 20},
+        evaluations=eval_entries(3.0),
+    )
     with pytest.raises(ValueError) as err:
-        compare([a, b, c], tmp_path / "cmp")
+        compare([a, b, c, d], tmp_path / "cmp")
     message = str(err.value)
     assert "\n" not in message and "allow_mixed_env" in message
-    # an unset key is the scenario's default: the freeway's n_cavs is 30
-    assert f"env_config.n_cavs: 4 ({a}) vs 8 ({b}) vs 30 ({c})" in message
-    assert f'env: "figure-eight" ({a}, {b}) vs "freeway" ({c})' in message
-    assert "horizon" not in message  # the same in every run
+    # one short line naming the scenarios: the freeway's other keys are not listed one by one
+    assert message == (
+        f"the runs are on different scenarios: figure-eight, n_cavs=4 (run {a}), "
+        f"figure-eight, n_cavs=8 (run {b}), freeway (run {c} and 1 more); pass "
+        "allow_mixed_env=True (--allow-mixed-env) to compare them anyway, or group_by the "
+        "keys that differ (env, env_config.n_cavs)"
+    )
     assert not (tmp_path / "cmp").exists()
 
 
@@ -128,7 +228,7 @@ def test_a_key_set_to_its_scenario_default_equals_the_key_left_unset(tmp_path: P
         env_config={"n_cavs": 20},
         evaluations=eval_entries(3.0),
     )
-    with pytest.raises(ValueError, match=r"env_config.n_cavs: 22 .* vs 20"):
+    with pytest.raises(ValueError, match=r"figure-eight-multilane, n_cavs=22 .* n_cavs=20"):
         compare([unset, other], tmp_path / "cmp2", ["return"])
 
 
@@ -145,7 +245,7 @@ def test_allow_mixed_env_warns_and_labels_groups_with_their_scenario(
     with caplog.at_level(logging.WARNING, logger="mapets_rl"):
         out = compare([a, b], tmp_path / "cmp", ["return"], allow_mixed_env=True)
     assert any(
-        "different scenarios" in r.getMessage() and "env_config.n_cavs" in r.getMessage()
+        "different scenarios" in r.getMessage() and "n_cavs=8" in r.getMessage()
         for r in caplog.records
     )
     summary = json.loads(out["summary"].read_text())
@@ -172,9 +272,9 @@ def test_group_by_splits_a_sweep_with_bands_per_value(tmp_path: Path) -> None:
     d100 = curves["toy comm_range=100"]
     assert d100["group"] == {"comm_range": 100.0} and d100["x"] == [100, 200]
     assert d100["n"] == [2, 2]
-    mean, half = mean_ci95([3.0, 5.0])
+    mean, low, high = bootstrap_interval([3.0, 5.0])
     assert d100["metrics"]["return"]["mean"][1] == pytest.approx(mean)
-    assert d100["metrics"]["return"]["ci95"][1] == pytest.approx(half)
+    assert d100["metrics"]["return"]["mean_ci95"][1] == pytest.approx([low, high])
     assert d100["metrics"]["return"]["std"][1] == pytest.approx(2**0.5)
     with pytest.raises(ValueError, match="group_by field 'nope' is not in the config"):
         compare(runs, tmp_path / "cmp2", group_by="nope")
@@ -320,7 +420,7 @@ def test_cli_compare_options(tmp_path: Path, capsys) -> None:
     )
     assert code == 0
     assert "mapets-rl: warning: comparing runs on different scenarios" in err
-    assert "no evaluations; comparing their training entries instead\n" in err
+    assert "no evaluations" not in err  # MA-PETS evaluates on request only
     assert "| mapets [n_cavs=4] | training entries |" in out
     code, _, err = run_cli(
         ["compare", runs[0], "--out", str(tmp_path / "cmp4"), "--group-by", ","], capsys
@@ -371,11 +471,11 @@ def test_a_single_run_shows_n_1_and_no_interval(tmp_path: Path, figures) -> None
     out = compare([run], tmp_path / "cmp")
     table = out["table"].read_text()
     assert "| toy | deterministic evaluations | 200 | 22 (49.21 mph) (n=1) | 2 (n=1) |" in table
-    assert "±" not in table.splitlines()[-1]
+    assert "[" not in table.splitlines()[-1]
     summary = json.loads(out["summary"].read_text())["toy"]["return"]
-    assert summary["n"] == 1 and summary["ci95"] is None
+    assert summary["n"] == 1 and summary["mean_ci95"] is None and summary["iqm_ci95"] is None
     curves = json.loads(out["curves"].read_text())["groups"]["toy"]["metrics"]["return"]
-    assert curves["ci95"] == [None, None] and curves["std"] == [None, None]
+    assert curves["mean_ci95"] == [None, None] and curves["std"] == [None, None]
     (fig,) = figures
     assert all(not ax.collections for ax in fig.axes)  # no band
     assert [line.get_label() for line in fig.axes[0].get_lines()] == ["toy (n=1)"]
@@ -399,7 +499,7 @@ def test_runs_of_different_lengths_are_compared_at_the_last_x_all_reached(tmp_pa
     ]
     out = compare(runs, tmp_path / "cmp2", ["episode", "safety"], source="train")
     assert (
-        "| toy | training entries | 41 | 2 ± 0 (n=2) | 0.6 ± 2.5 (n=2) |"
+        "| toy | training entries | 41 | 2 [2, 2] (n=2) | 0.6 [0.4, 0.8] (n=2) |"
         in out["table"].read_text()
     )
     out = compare(runs, tmp_path / "cmp3", ["safety"], source="train", x="episode")
@@ -408,7 +508,8 @@ def test_runs_of_different_lengths_are_compared_at_the_last_x_all_reached(tmp_pa
     same = fake_run(tmp_path / "same", seed=2, evaluations=eval_entries(5.0, 6.0))
     out = compare([short, same], tmp_path / "cmp4", ["return"])
     assert out["table"].read_text().splitlines()[0] == (
-        "Last entry of each run: deterministic evaluations; mean ± 95% CI half-width (n = runs)."
+        "Last entry of each run: deterministic evaluations; over runs, intervals clipped to "
+        "each metric's range (n = runs)."
     )
 
 
@@ -463,7 +564,11 @@ def test_the_default_shows_the_task_metrics_and_all_shows_every_metric(
     assert set(json.loads(out["summary"].read_text())["toy"]) == {"score"}
 
 
-def test_the_band_is_clipped_to_the_range_the_metric_declares(tmp_path: Path, figures) -> None:
+def test_no_plotted_band_leaves_its_metric_range(tmp_path: Path, figures) -> None:
+    """Seeds at the ends of safety's [0, 1] and velocity's [0, inf) (a Student-t band of n = 3
+    reached safety 1.35 and velocity -30 mph): the bands are the bootstrap intervals of
+    curves.json, inside each metric's range; an unbounded metric's band is not cut."""
+    values = [(0.0, 0.0, -9.0), (1.0, 0.0, 1.0), (1.0, 30.0, 2.0)]
     runs = [
         fake_run(
             tmp_path / f"r{s}",
@@ -473,17 +578,22 @@ def test_the_band_is_clipped_to_the_range_the_metric_declares(tmp_path: Path, fi
                 (200, {"safety": safety, "average_velocity": v, "return": r}),
             ],
         )
-        for s, (safety, v, r) in enumerate([(0.05, 1.0, -1.0), (0.95, 30.0, 1.0)])
+        for s, (safety, v, r) in enumerate(values)
     ]
     out = compare(runs, tmp_path / "cmp")
-    half = json.loads(out["summary"].read_text())["toy"]["safety"]["ci95"]
-    assert half > 1  # the interval itself is reported unclipped
+    curves = json.loads(out["curves"].read_text())["groups"]["toy"]["metrics"]
     panels = _panels(figures[-1])
-    safety = _band_ys(panels["safety"])
-    assert min(safety) == pytest.approx(0.0) and max(safety) == pytest.approx(1.0)
-    assert min(_band_ys(panels["average_velocity"])) == pytest.approx(0.0)
-    returns = _band_ys(panels["return"])  # unbounded: not clipped
-    assert min(returns) < -5 and max(returns) > 5
+    for metric, ax in panels.items():
+        low, high = metric_range(metric)
+        ys = _band_ys(ax)
+        assert ys and low <= min(ys) and max(ys) <= high, (metric, min(ys), max(ys))
+        assert min(ys) == pytest.approx(min(i[0] for i in curves[metric]["mean_ci95"]))
+        assert max(ys) == pytest.approx(max(i[1] for i in curves[metric]["mean_ci95"]))
+    assert max(_band_ys(panels["safety"])) == pytest.approx(1.0)
+    assert min(_band_ys(panels["return"])) == pytest.approx(-9.0)
+    summary = json.loads(out["summary"].read_text())["toy"]["safety"]
+    assert summary["mean"] == pytest.approx(2 / 3) and summary["iqm"] == pytest.approx(2 / 3)
+    assert 0.0 <= summary["mean_ci95"][0] < summary["mean_ci95"][1] <= 1.0
 
 
 @pytest.mark.parametrize("x", ["frames", "episode"])

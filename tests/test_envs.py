@@ -27,10 +27,10 @@ from mapets_rl.envs import (
     make_parallel_env,
     traffic_env,
 )
-from mapets_rl.envs.factory import TrafficPettingZooWrapper
 from mapets_rl.envs.figure_eight_road import SEGMENTS, FigureEightGeometry
 from mapets_rl.envs.freeway import CL, ES, KL
 from mapets_rl.envs.lanes import FastCircularLane, FastStraightLane
+from mapets_rl.envs.pettingzoo_wrapper import TrafficPettingZooWrapper
 from mapets_rl.envs.vehicles import FastIDMVehicle, stock_control
 
 MAX_SPEED = 13.89

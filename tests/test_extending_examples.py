@@ -15,6 +15,7 @@ ARGS = {
     "toy_recipe.py": ["--frames", "40"],
     "exact_model_planning.py": ["--steps", "10"],
     "traffic_scenario.py": ["--episodes", "2", "--horizon", "20"],
+    "highway_pettingzoo.py": ["--episodes", "2", "--frames", "20", "--duration", "5"],
 }
 
 
@@ -77,3 +78,26 @@ def test_traffic_scenario_trains_mapets_with_its_reward_and_loss() -> None:
     for _, safety, agility, shared, mse in rows:
         assert 0.0 <= float(safety) <= 1.0 and 0.0 < float(agility) < 1.39  # 13.89 m/s x 0.1 s
         assert int(shared) >= 0 and 0.0 < float(mse) < 10.0  # the MSE loss trained the models
+
+
+def test_highway_pettingzoo_trains_mapets_and_mappo_on_a_stock_highway_env() -> None:
+    """highway-v0 (3 controlled vehicles) through ``wrap_pettingzoo``: MA-PETS plans with the
+    example's reward and shares data within 200 m (positions from the callable); MAPPO trains;
+    both report the adapter's ``last_episode_metrics`` (speed, collisions)."""
+    out = _run("highway_pettingzoo.py")
+    mapets = re.findall(
+        r"^mapets episode (\d+): return (\S+) speed (\S+) m/s collisions (\d+) "
+        r"transitions_shared (\d+)$",
+        out,
+        re.M,
+    )
+    assert [int(r[0]) for r in mapets] == [1, 2]
+    for _, ret, speed, collisions, shared in mapets:
+        assert -3.0 <= float(ret) <= 15.0  # 3 vehicles x 5 steps x [-1, 1]
+        assert 0.0 < float(speed) <= 40.0 and 0 <= int(collisions) <= 3
+        assert int(shared) > 0  # the vehicles are within 200 m of one another
+    mappo = re.findall(
+        r"^mappo frames (\d+): return (\S+) speed (\S+) m/s collisions (\d+)$", out, re.M
+    )
+    assert [int(r[0]) for r in mappo] == [20]
+    assert 0.0 < float(mappo[0][2]) <= 40.0

@@ -218,21 +218,21 @@ def test_builtin_scenarios_win_over_an_installed_one_of_the_same_name(add_entry_
 
 # --------------------------------------------------- the README's traffic-scenario recipe
 def test_readme_traffic_scenario_has_positions_where_mapets_reads_them() -> None:
-    """A MultiAgentTrafficEnv subclass wrapped with ``wrap_parallel_env`` writes the CAVs'
+    """A MultiAgentTrafficEnv subclass wrapped with ``wrap_pettingzoo`` writes the CAVs'
     positions under ``("agents", "position")`` (the stock PettingZooWrapper does not: MA-PETS'
     CommunicationRange failed with KeyError 'position')."""
     from torchrl.envs.utils import check_env_specs
     from traffic_scenario import StopAndGoParallelEnv, make_stop_and_go
 
-    from mapets_rl.envs import wrap_parallel_env
+    from mapets_rl.envs import wrap_pettingzoo
 
     env = make_stop_and_go(n_cavs=2, n_hvs=2, horizon=5)
     check_env_specs(env)
     td = env.rollout(3)
     position = td["next", "agents", "position"]
     assert position.shape == (3, 2, 2) and bool((position[1:, :, 0] > position[:-1, :, 0]).all())
-    with pytest.raises(ValueError, match="parallel_env must be a mapets_rl.envs.TrafficParallel"):
-        wrap_parallel_env(StopAndGoParallelEnv(horizon=5).env)
+    with pytest.raises(ValueError, match="parallel_env must be a pettingzoo.ParallelEnv"):
+        wrap_pettingzoo(StopAndGoParallelEnv(horizon=5).env)
 
 
 TINY_MAPETS = [

@@ -2,6 +2,7 @@
 all-human row, intervals and units in the table."""
 
 import json
+import math
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
@@ -35,6 +36,32 @@ def test_table_smoke(tmp_path: Path, load_script: Callable[[str], ModuleType]) -
     assert (tmp_path / "runs" / "coma" / "ratio0.50" / "seed1" / "results.json").is_file()
     # finished runs are reused: a second call trains nothing and gives the same table
     assert mixed.main(argv) == results
+
+
+def test_the_plot_keeps_every_band_in_its_metric_range(
+    tmp_path: Path, load_script: Callable[[str], ModuleType], monkeypatch
+) -> None:
+    """Seeds at the ends of comfort's [0, 3] and velocity's [0, inf) (Student-t error bars of
+    n = 3 left both): the drawn bands, read from the matplotlib artists, stay inside."""
+    mixed = load_script("examples/mixed_traffic.py")
+    figures: list = []
+    monkeypatch.setattr(mixed, "atomic_savefig", lambda fig, path, **kw: figures.append(fig))
+    seeds = [(0.1, 3.0), (0.2, 3.0), (25.0, 1.0)]  # (m/s, comfort) of 3 seeds
+    results = {
+        "coma": {
+            f"{ratio:.2f}": [{"average_velocity": v, "average_comfort": c} for v, c in seeds]
+            for ratio in (0.5, 1.0)
+        }
+    }
+    mixed.plot_table(results, tmp_path / "plot.png")
+    (fig,) = figures
+    velocity, comfort = fig.axes[:2]
+    for ax, (low, high) in ((velocity, (0.0, math.inf)), (comfort, (0.0, 3.0))):
+        ys = [
+            y for coll in ax.collections for path in coll.get_paths() for y in path.vertices[:, 1]
+        ]
+        assert ys and low <= min(ys) and max(ys) <= high
+    assert max(y for coll in comfort.collections for y in coll.get_paths()[0].vertices[:, 1]) == 3.0
 
 
 def test_bad_arguments(load_script: Callable[[str], ModuleType]) -> None:

@@ -3,7 +3,7 @@ sweep (:func:`mapets_rl.app.sweep.run_sweep`), and the table of one swept field.
 
 Every script sweeps one MA-PETS config field on the single-lane figure-eight (8 CAVs) over
 seeds; each trial is a normal run directory under ``OUT/trials`` (an interrupted script resumes
-when run again), ``OUT/summary`` holds compare's learning curves (95% bands over seeds,
+when run again), ``OUT/summary`` holds compare's learning curves (bootstrap 95% bands over seeds,
 grouped by the swept field) and ``OUT/table.md`` the script's table.
 """
 

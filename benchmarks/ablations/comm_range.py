@@ -13,7 +13,7 @@ device=cuda``). Smoke run: ``--seeds 0 --set episodes=2 env_config.horizon=20``.
 Writes ``OUT/table.md`` (per d: agility and safety over the last three episodes, early
 safety, transitions shared and clique cover number per episode, the paper's Table III),
 ``OUT/comm_overhead.png`` (transitions shared and clique cover number against d) and
-``OUT/summary/learning_curves.png`` (per-episode curves, 95% bands over seeds).
+``OUT/summary/learning_curves.png`` (per-episode curves, bootstrap 95% bands over seeds).
 """
 
 from __future__ import annotations
@@ -25,6 +25,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 from _common import episodes, field_table, parser, run, write_table  # noqa: E402
 
 from mapets_rl.experiment import atomic_savefig  # noqa: E402
+from mapets_rl.plotting import draw_band  # noqa: E402
+from mapets_rl.statistics import bootstrap_interval  # noqa: E402
 
 RANGES = [0, 50, 100, 150, 200]
 PAPER_TABLE_III = {0: 0.0, 50: 330.13, 100: 1866.0, 150: 6139.7, 200: 10961.06}
@@ -32,29 +34,59 @@ PAPER_TABLE_III = {0: 0.0, 50: 330.13, 100: 1866.0, 150: 6139.7, 200: 10961.06}
 
 
 def plot(result, path) -> None:
-    """Transitions shared per episode (ours and the paper's) and clique cover number (mean
-    and per-episode points) against d."""
-    by_d: dict[float, list[dict]] = {}
+    """Transitions shared per episode (ours and the paper's) and clique cover number (every
+    planned episode's, and the mean) against d; the means over seeds (of each seed's mean over
+    its episodes) with their bootstrap 95% bands (:func:`mapets_rl.plotting.draw_band`)."""
+    by_d: dict[float, list[list[dict]]] = {}  # d -> per seed, its episodes' metrics
     for trial in result.trials:
         if result.records[trial.id]["state"] == "done":
-            by_d.setdefault(trial.values["comm.comm_range"], []).extend(
-                episodes(trial.run_dir).values()
+            by_d.setdefault(trial.values["comm.comm_range"], []).append(
+                list(episodes(trial.run_dir).values())
             )
     ds = sorted(by_d)
+
+    def per_seed_means(metric: str, planned_only: bool) -> list[tuple[float, list[float]]]:
+        """``(d, each seed's mean of metric over its (planned) episodes)`` of the ds that have
+        such episodes."""
+        out = []
+        for d in ds:
+            seeds = [
+                [m[metric] for m in eps if not (planned_only and m["random"])] for eps in by_d[d]
+            ]
+            means = [sum(v) / len(v) for v in seeds if v]
+            if means:
+                out.append((d, means))
+        return out
+
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4), layout="constrained")
-    shared = [sum(m["transitions_shared"] for m in by_d[d]) / len(by_d[d]) for d in ds]
-    ax1.plot(ds, shared, "o-", label="ours (learning CAVs)")
+    for ax, metric, planned_only, kwargs in (
+        (ax1, "transitions_shared", False, {"label": "ours (learning CAVs)"}),
+        (
+            ax2,
+            "clique_cover_number",
+            True,
+            {"color": "tab:red", "label": "mean over seeds (planned episodes)"},
+        ),
+    ):
+        points = per_seed_means(metric, planned_only)
+        stats = [bootstrap_interval(seeds) for _, seeds in points]
+        several = all(len(seeds) > 1 for _, seeds in points)
+        draw_band(
+            ax,
+            [d for d, _ in points],
+            [s.estimate for s in stats],
+            [s.low for s in stats] if several else None,
+            [s.high for s in stats] if several else None,
+            metric=metric,
+            marker="o",
+            **kwargs,
+        )
     ax1.plot(list(PAPER_TABLE_III), list(PAPER_TABLE_III.values()), "s--", label="paper Table III")
     ax1.set(xlabel="communication range d [m]", ylabel="transitions shared per episode")
     ax1.legend()
     for d in ds:
-        chi = [m["clique_cover_number"] for m in by_d[d] if not m["random"]]
+        chi = [m["clique_cover_number"] for eps in by_d[d] for m in eps if not m["random"]]
         ax2.scatter([d] * len(chi), chi, s=10, alpha=0.3, color="tab:blue")
-    means = [
-        sum(c := [m["clique_cover_number"] for m in by_d[d] if not m["random"]]) / max(len(c), 1)
-        for d in ds
-    ]
-    ax2.plot(ds, means, "o-", color="tab:red", label="mean over planned episodes")
     ax2.set(xlabel="communication range d [m]", ylabel="minimum clique cover number")
     ax2.legend()
     fig.suptitle("MA-PETS, figure-eight, 8 CAVs: communication overhead (cf. Table III, Fig. 7)")

@@ -10,7 +10,7 @@ episodes, 10 episodes per run: 3 sizes x 3 seeds = 9 runs, about 40-60 min on tw
 Scale ``paper``: Table II sizes (P = 20) with B varied, 15 episodes. Smoke run:
 ``--seeds 0 --set episodes=2 env_config.horizon=20``.
 
-Writes ``OUT/table.md`` and ``OUT/summary/learning_curves.png`` (95% bands over seeds).
+Writes ``OUT/table.md`` and ``OUT/summary/learning_curves.png`` (bootstrap 95% bands over seeds).
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ Scale ``cpu`` (default): the cpu preset with w varied (Q=32, X=4, Y=2, P=5, B=5,
 on two cores (w=40 plans 1.6x longer than w=25). Scale ``paper``: Table II sizes with w varied,
 15 episodes. Smoke run: ``--seeds 0 --set episodes=2 env_config.horizon=20``.
 
-Writes ``OUT/table.md`` and ``OUT/summary/learning_curves.png`` (95% bands over seeds).
+Writes ``OUT/table.md`` and ``OUT/summary/learning_curves.png`` (bootstrap 95% bands over seeds).
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ sizes, 15 episodes. Smoke run:
 
 Writes ``OUT/table.md`` (per p: agility and safety over the last three episodes, early safety,
 transitions shared and clique cover number per episode) and
-``OUT/summary/learning_curves.png`` (per-episode curves, 95% bands over seeds).
+``OUT/summary/learning_curves.png`` (per-episode curves, bootstrap 95% bands over seeds).
 """
 
 from __future__ import annotations

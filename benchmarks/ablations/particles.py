@@ -9,7 +9,7 @@ d = 100, 8 CAVs, 200-step episodes, 10 episodes per run: 3 values x 3 seeds = 9 
 40-70 min on two cores (P=20 plans ~4x longer than P=5). Scale ``paper``: Table II sizes
 with P varied, 15 episodes. Smoke run: ``--seeds 0 --set episodes=2 env_config.horizon=20``.
 
-Writes ``OUT/table.md`` and ``OUT/summary/learning_curves.png`` (95% bands over seeds).
+Writes ``OUT/table.md`` and ``OUT/summary/learning_curves.png`` (bootstrap 95% bands over seeds).
 """
 
 from __future__ import annotations

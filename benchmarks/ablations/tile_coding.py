@@ -13,9 +13,9 @@ episodes, 10 episodes per run: 2 variants x 3 seeds = 6 runs, about 15-25 min on
 Scale ``paper``: Table II sizes, 15 episodes. Smoke run:
 ``--seeds 0 --set episodes=2 env_config.horizon=20``.
 
-Writes ``OUT/table.md`` and ``OUT/summary/learning_curves.png`` (95% bands over seeds). A finer
-grid: ``--set tile_coding.bins=64`` (256 values per feature; the coarse default's 2.5 m gap
-cells are coarser than one 0.1 s step's motion).
+Writes ``OUT/table.md`` and ``OUT/summary/learning_curves.png`` (bootstrap 95% bands over
+seeds). A finer grid: ``--set tile_coding.bins=64`` (256 values per feature; the coarse
+default's 2.5 m gap cells are coarser than one 0.1 s step's motion).
 """
 
 from __future__ import annotations

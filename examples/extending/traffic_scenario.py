@@ -13,7 +13,7 @@ The three pieces an extension writes, in the order of the README:
    (road, spawning, ``observe_agents``, ``agent_rewards``, ``episode_metrics``),
    :class:`StopAndGoParallelEnv` wraps it as a PettingZoo ``TrafficParallelEnv``, and
    :func:`make_stop_and_go` turns that into the torchrl env every recipe uses with
-   ``mapets_rl.envs.wrap_parallel_env`` (which puts the CAVs' positions under
+   ``mapets_rl.envs.wrap_pettingzoo`` (which puts the CAVs' positions under
    ``("agents", "position")``, where MA-PETS' ``CommunicationRange`` reads them);
 2. a reward function for MA-PETS: :func:`stop_and_go_reward` and
    :func:`stop_and_go_collision`, vectorised functions of ``(obs, action, next_obs)`` that the
@@ -59,7 +59,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
 
-from mapets_rl.envs import MultiAgentTrafficEnv, TrafficParallelEnv, wrap_parallel_env
+from mapets_rl.envs import MultiAgentTrafficEnv, TrafficParallelEnv, wrap_pettingzoo
 from mapets_rl.envs.figure_eight import TargetSpeedAction
 from mapets_rl.envs.road import SortedNeighbourRoad
 from mapets_rl.envs.traffic import AgentObservation, require
@@ -211,7 +211,7 @@ class StopAndGoParallelEnv(TrafficParallelEnv):
 
 def make_stop_and_go(**config: Any) -> EnvBase:
     """The scenario factory: ``factory(**env_config)`` -> the torchrl env of the scenario."""
-    return wrap_parallel_env(StopAndGoParallelEnv(**config))
+    return wrap_pettingzoo(StopAndGoParallelEnv(**config))
 
 
 # ------------------------------------------------------------------- 2. reward for MA-PETS

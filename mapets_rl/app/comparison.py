@@ -1,18 +1,27 @@
-"""Compare runs: learning curves (mean and 95% confidence band over seeds) and a final-metrics
-markdown table, from the ``results.json`` of each run directory.
+"""Compare runs: learning curves (mean and bootstrap 95% band over seeds), final-metrics
+markdown tables (mean and interquartile mean, each with its bootstrap 95% interval) and,
+on request, the marl-eval JSON file, from the ``results.json`` of each run directory.
 
 A comparison says what it compares and refuses what would mislead:
 
 - *what is plotted*: deterministic evaluations (``source="eval"``, the default) or training
   entries (``source="train"``, e.g. MA-PETS's training episodes), never a mix without a word:
-  a run without evaluations falls back to its training entries with a logged note and its group
-  is marked ``(train)``; the table and the plot title name the source;
+  a run without evaluations falls back to its training entries and its group is marked
+  ``(train)`` when groups of both kinds are compared; a run whose recipe evaluates during
+  training (its config has ``eval_interval``) but has not yet gets a logged warning, a run
+  whose recipe evaluates on request only (MA-PETS: its planner acts in training as in
+  evaluation) a logged note; the table and the plot title name the source;
+- *the final numbers*: the table compares each run's last entry, or its final evaluation
+  (``evaluation.json``, written by ``mapets-rl evaluate``) where every run of a group has one
+  (``source="eval"``);
 - *on what*: runs whose scenario (``env``) or scenario config (``env_config``) differ are
   refused unless ``allow_mixed_env`` (then each group is labelled with its scenario and a
   warning is logged), except the keys that ``group_by`` names;
 - *grouped how*: by recipe, plus the values of the config fields in ``group_by`` (e.g. a sweep
-  over ``comm.comm_range``), each group a mean and 95% band over its runs (seeds); a group of
-  one run shows its values, ``n = 1``, and no interval;
+  over ``comm.comm_range``), each group a mean and an interquartile mean (IQM) over its runs
+  (seeds) with bootstrap 95% intervals (:mod:`mapets_rl.statistics`: the rliable protocol),
+  clipped to each metric's range; a group of one run shows its values, ``n = 1``, and no
+  interval;
 - *at what point*: the table compares the runs of a group at the last ``x`` all of them
   reached, and its header says so when they end at different ``x``;
 - *which metrics*: by default the task metrics (:data:`mapets_rl.metrics.TASK_METRICS`), every
@@ -39,7 +48,7 @@ from mapets_rl.experiment.files import (
     check_writable_dir,
     make_writable_dir,
 )
-from mapets_rl.experiment.results import ENTRY_LISTS, SOURCES, read_results
+from mapets_rl.experiment.results import ENTRY_LISTS, SOURCES, read_evaluation, read_results
 from mapets_rl.metrics import (
     MPH_PER_MPS,
     is_task_metric,
@@ -47,11 +56,25 @@ from mapets_rl.metrics import (
     metric_range,
     metric_unit,
 )
-from mapets_rl.statistics import mean_ci95, mean_std_ci95
+from mapets_rl.plotting import draw_band
+from mapets_rl.statistics import bootstrap_curve
 
 log = logging.getLogger(__name__)
 
-SOURCE_NAMES = {"eval": "deterministic evaluations", "train": "training entries"}
+SOURCE_NAMES = {
+    "eval": "deterministic evaluations",
+    "train": "training entries",
+    "evaluate": "final evaluations (evaluate)",
+}
+"""What a group's numbers come from: results.json's evaluations or training entries, or the
+runs' ``evaluation.json`` (the table only)."""
+STATISTIC_NAMES = {
+    "mean": "mean [95% bootstrap CI]",
+    "iqm": "interquartile mean (IQM) [95% stratified bootstrap CI]",
+}
+"""The statistics over a group's runs that ``compare`` reports."""
+MARL_EVAL_FILE = "marl_eval.json"
+"""The file ``compare(..., marl_eval=True)`` writes (InstaDeep's marl-eval raw-data format)."""
 
 
 def _fmt(value: Any) -> str:
@@ -142,10 +165,59 @@ def _scenario_differences(
     return diffs
 
 
-def _describe(diffs: Mapping[str, Mapping[str, list[str]]]) -> str:
-    return "; ".join(
-        f"{key}: " + " vs ".join(f"{value} ({', '.join(runs)})" for value, runs in by_value.items())
-        for key, by_value in diffs.items()
+def _scenario_labels(
+    results: Sequence[Mapping[str, Any]],
+    diffs: Mapping[str, Mapping[str, list[str]]],
+    name_env: bool = False,
+) -> list[str]:
+    """Per run, its scenario in a few words: the scenario's name when the runs' ``env`` differ
+    (or ``name_env``), and ``key=value`` of the ``env_config`` keys that differ between runs of
+    the same ``env`` (``"figure-eight, n_cavs=8"``; two scenarios differ in most of their keys,
+    which would say nothing)."""
+    scenarios = [_scenario(res) for res in results]
+    by_env = _by_env(scenarios)
+    labels = []
+    for scenario in scenarios:
+        same_env = by_env[scenario["env"]]
+        parts = [_fmt(json.loads(scenario["env"]))] if "env" in diffs or name_env else []
+        for key in diffs:
+            if key != "env" and len({s.get(key) for s in same_env}) > 1:
+                value = _fmt(json.loads(scenario[key])) if key in scenario else "unset"
+                parts.append(f"{key.removeprefix('env_config.')}={value}")
+        labels.append(", ".join(parts) or _fmt(json.loads(scenario["env"])))
+    return labels
+
+
+def _by_env(scenarios: Sequence[Mapping[str, str]]) -> dict[str, list[Mapping[str, str]]]:
+    """The runs' :func:`_scenario` dicts by their ``env``."""
+    by_env: dict[str, list[Mapping[str, str]]] = {}
+    for scenario in scenarios:
+        by_env.setdefault(scenario["env"], []).append(scenario)
+    return by_env
+
+
+def _keys_to_group_by(
+    results: Sequence[Mapping[str, Any]], diffs: Mapping[str, Mapping[str, list[str]]]
+) -> list[str]:
+    """The scenario keys that split the runs: ``env`` when it differs, and the ``env_config``
+    keys that differ between runs of the same ``env``."""
+    by_env = _by_env([_scenario(res) for res in results])
+    return [
+        key
+        for key in diffs
+        if key == "env" or any(len({s.get(key) for s in same}) > 1 for same in by_env.values())
+    ]
+
+
+def _describe_scenarios(runs: Sequence[str], labels: Sequence[str]) -> str:
+    """``"figure-eight, n_cavs=4 (run a), freeway (run b and 2 more)"``: each scenario and a
+    run on it."""
+    by_label: dict[str, list[str]] = {}
+    for run, label in zip(runs, labels, strict=True):
+        by_label.setdefault(label, []).append(run)
+    return ", ".join(
+        f"{label} (run {mine[0]}" + (f" and {len(mine) - 1} more)" if len(mine) > 1 else ")")
+        for label, mine in by_label.items()
     )
 
 
@@ -161,31 +233,49 @@ def compare(
     allow_mixed_env: bool = False,
     legacy_as: str = "eval",
     title: str | None = None,
+    marl_eval: bool = False,
 ) -> dict[str, Path]:
     """Group runs by recipe (and the values of ``group_by`` fields), and write to ``out_dir``:
 
     - ``learning_curves.png``: one panel per metric against ``x``, the mean over the group's
-      runs with a shaded 95% Student-t confidence band, at the ``x`` values every run of the
-      group reached; the title names the source;
-    - ``final_metrics.md``: markdown table of each run's last entry, ``mean ± half-width
-      (n=runs)`` (``value (n=1)`` for a group of one run: one run has no interval), with the
-      source of every group and its ``frames`` (the fewest of its runs' compared entries);
-    - ``summary.json``: those numbers, ``{group: {metric: {"mean", "ci95", "n", "frames",
-      "source"}}}`` (``ci95`` null for ``n = 1``);
+      runs with a shaded bootstrap 95% band clipped to the metric's range
+      (:func:`mapets_rl.plotting.draw_band`), at the ``x`` values every run of the group
+      reached; the title names the source;
+    - ``final_metrics.md``: two markdown tables of each run's final numbers, ``mean [low,
+      high] (n=runs)`` and the interquartile mean ``iqm [low, high] (n=runs)`` (``value
+      (n=1)`` for a group of one run: one run has no interval), with the source of every group
+      and its ``frames`` (the fewest of its runs' compared entries);
+    - ``summary.json``: those numbers, ``{group: {metric: {"mean", "mean_ci95", "iqm",
+      "iqm_ci95", "std", "n", "frames", "source"}}}`` (each ``*_ci95`` ``[low, high]``; the
+      intervals and ``std`` null for ``n = 1``);
     - ``curves.json``: ``{"source": the requested source, "x": x, "groups": {group: ...}}``,
       per group its recipe, ``group_by`` values, scenario, source, runs and, at every ``x``
-      value any of its runs reached (``x``, ``n`` runs), ``mean`` / ``std`` / ``ci95`` of
-      every metric (``std`` and ``ci95`` null where ``n = 1``).
+      value any of its runs reached (``x``, ``n`` runs), ``mean`` / ``std`` / ``mean_ci95``
+      / ``iqm`` / ``iqm_ci95`` of every metric (``std`` and the intervals null where
+      ``n = 1``);
+    - with ``marl_eval``, ``marl_eval.json``: every run's entries in InstaDeep's marl-eval
+      raw-data format, ``{env: {task: {algorithm: {"run_<i>": {"step_<k>": {"step_count":
+      frames, metric: [value]}, ..., "absolute_metrics": {metric: [value]}}}}}}``: the
+      scenario's name, its ``env_config`` keys that differ from the scenario's defaults
+      (``"n_cavs=8"``; ``"default"`` when none), the group (recipe and ``group_by`` values),
+      the runs of the group in order, the run's compared entries in ``x`` order (``step_count``
+      their environment frames) and its final evaluation (``evaluation.json``) or, without
+      one, its last entry.
 
-    The plot's bands are clipped to the values the metric can take
-    (:data:`mapets_rl.metrics.METRIC_RANGES`: safety in [0, 1], speeds and counts >= 0); the
-    numbers in the files are not. Frames and other integer ``x`` get integer ticks.
+    The intervals are percentile-bootstrap intervals over the group's runs (the mean's) and
+    stratified-bootstrap intervals of the interquartile mean (Agarwal et al. 2021; see
+    :mod:`mapets_rl.statistics`), clipped to the values the metric can take
+    (:data:`mapets_rl.metrics.METRIC_RANGES`: safety in [0, 1], speeds and counts >= 0). Frames
+    and other integer ``x`` get integer ticks.
 
-    Runs of one group that end at different ``x`` (a run still training, a resumed one, seeds
-    whose episodes end at different frames) are compared, in the table and ``summary.json``,
-    at the last ``x`` all of them reached: each run's last entry at or before it, and the
-    table's header line names the group, that ``x`` and where its runs end. Aligning, rather
-    than refusing, keeps the comparison of a run in progress (or of runs that log at slightly
+    The table compares each run's final evaluation (``evaluation.json``, written by
+    ``mapets-rl evaluate``, at or after the run's last entry and holding every compared metric)
+    where every run of a group has one and ``source`` is ``"eval"``. Otherwise runs of one
+    group that end at different ``x`` (a run still training, a resumed one, seeds whose
+    episodes end at different frames) are compared, in the table and ``summary.json``, at the
+    last ``x`` all of them reached: each run's last entry at or before it, and the table's
+    header line names the group, that ``x`` and where its runs end. Aligning, rather than
+    refusing, keeps the comparison of a run in progress (or of runs that log at slightly
     different frames) possible while never averaging entries of different training progress
     without a word; a group whose runs share no such ``x`` (one run ends before another's first
     entry) is refused, pointing at ``x_grid``. Different groups are not aligned with each
@@ -199,10 +289,11 @@ def compare(
             (:data:`mapets_rl.metrics.TASK_METRICS`: agility, safety, velocity, comfort,
             collisions, length, reward, return), not the bookkeeping (timings, counters,
             losses), or all of them when none is a task metric.
-        source: ``"eval"``: deterministic evaluations; a run without any (e.g. MA-PETS, which
-            records training episodes) falls back to its training entries, with a logged note,
-            and its group is marked ``(train)``. ``"train"``: training entries, every run must
-            have some.
+        source: ``"eval"``: deterministic evaluations; a run without any falls back to its
+            training entries (a note when its recipe evaluates on request only, as MA-PETS,
+            a warning when it evaluates during training but has not yet), and its group is
+            marked ``(train)`` beside groups of evaluations. ``"train"``: training entries,
+            every run must have some.
         group_by: config fields (dotted for nested ones, e.g. ``"comm.comm_range"``,
             ``"env_config.observation"``) whose values split each recipe's runs into groups;
             a recipe none of whose runs has a field is not split by it (MA-PETS by range
@@ -222,15 +313,18 @@ def compare(
             entries were kept apart go (``"eval"`` or ``"train"``; see :func:`read_results`);
             such runs are named in a logged note.
         title: prefix of the plot title (e.g. the experiment's name).
+        marl_eval: also write ``marl_eval.json`` (the input of InstaDeep's marl-eval tools).
     Returns:
-        ``{"plot": Path, "table": Path, "summary": Path, "curves": Path}``.
+        ``{"plot": Path, "table": Path, "summary": Path, "curves": Path}``, and
+        ``"marl_eval": Path`` with ``marl_eval``.
     Raises:
-        ValueError: one line, before anything is written, when a run has no usable results,
-            a run is given twice (paths resolved), ``out_dir`` is inside a run directory, runs
-            of different scenarios are mixed without ``allow_mixed_env``, a ``group_by`` field
-            or the ``x`` metric is missing, the runs of a group share no ``x``, a metric is
-            unknown, ``metrics`` is empty, an option is not one of its choices or ``out_dir``
-            cannot be written.
+        ValueError: one line, before anything is written, when a run has no usable results
+            (or a malformed ``evaluation.json``), a run is given twice (paths resolved),
+            ``out_dir`` is inside a run directory, runs of different scenarios are mixed
+            without ``allow_mixed_env`` (the message names the scenarios), a ``group_by``
+            field or the ``x`` metric is missing, the runs of a group share no ``x``, a metric
+            is unknown, ``metrics`` is empty, an option is not one of its choices or
+            ``out_dir`` cannot be written.
     """
     if not run_dirs:
         raise ValueError("run_dirs must name at least one run directory")
@@ -250,10 +344,11 @@ def compare(
     check_writable_dir(out_dir, "out_dir")
     runs = [str(d) for d in run_dirs]
     results = [read_results(d, legacy_as=legacy_as) for d in run_dirs]
+    evaluations = [read_evaluation(d) for d in run_dirs]
 
     # what each run contributes
     sources: list[str] = []
-    fallback = []
+    fallback, on_request = [], []
     for run, res in zip(runs, results, strict=True):
         if res[ENTRY_LISTS[source]]:
             sources.append(source)
@@ -264,52 +359,57 @@ def compare(
             )
         elif res["train"]:
             sources.append("train")
-            fallback.append(run)
+            evaluates = "eval_interval" in res.get("config", {})
+            (fallback if evaluates else on_request).append(run)
         else:
             raise ValueError(f"run_dir {run!r} has no evaluations yet")
     legacy = [run for run, res in zip(runs, results, strict=True) if res["legacy"]]
 
     # on what: one scenario unless told otherwise
     diffs = _scenario_differences(runs, results, fields)
+    scenario_labels = _scenario_labels(results, diffs)
     if diffs and not allow_mixed_env:
         raise ValueError(
-            f"the runs are on different scenarios ({_describe(diffs)}); pass "
-            "allow_mixed_env=True (--allow-mixed-env) to compare them anyway, "
-            "or group_by the differing keys"
+            "the runs are on different scenarios: "
+            f"{_describe_scenarios(runs, _scenario_labels(results, diffs, name_env=True))}; "
+            "pass allow_mixed_env=True (--allow-mixed-env) to compare them anyway, or group_by "
+            f"the keys that differ ({', '.join(_keys_to_group_by(results, diffs))})"
         )
 
     # groups: recipe + group_by values (+ scenario when mixed, + source when mixed)
     mixed_sources = len(set(sources)) > 1
     groups: dict[str, dict[str, Any]] = {}
-    for run, res, src, values in zip(
-        runs, results, sources, _group_values(runs, results, fields), strict=True
+    for run, res, src, values, scenario, evaluation in zip(
+        runs,
+        results,
+        sources,
+        _group_values(runs, results, fields),
+        scenario_labels,
+        evaluations,
+        strict=True,
     ):
-        label = " ".join([res["recipe"], *(f"{f}={_fmt(v)}" for f, v in values.items())])
-        if diffs:
-            scenario = _scenario(res)
-            parts = [
-                _fmt(json.loads(scenario[k]))
-                if k == "env"
-                else f"{k.removeprefix('env_config.')}="
-                + (_fmt(json.loads(scenario[k])) if k in scenario else "unset")
-                for k in diffs
-            ]
-            label += f" [{', '.join(parts)}]"
+        algorithm = " ".join([res["recipe"], *(f"{f}={_fmt(v)}" for f, v in values.items())])
+        label = f"{algorithm} [{scenario}]" if diffs else algorithm
         if mixed_sources:
+            algorithm += f" ({src})"
             label += f" ({src})"
         group = groups.setdefault(
             label,
             {
                 "recipe": res["recipe"],
+                "algorithm": algorithm,
                 "group": values,
                 "env": res["env"],
+                "task": _task_name(res),
                 "source": src,
                 "runs": [],
                 "entries": [],
+                "evaluations": [],
             },
         )
         group["runs"].append(run)
         group["entries"].append(res[ENTRY_LISTS[src]])
+        group["evaluations"].append(evaluation)
 
     all_entries = [e for g in groups.values() for entries in g["entries"] for e in entries]
     common = set.intersection(*(set(e["metrics"]) for e in all_entries))
@@ -343,7 +443,11 @@ def compare(
         group["by_entry"] = [{_x_value(e, x): e for e in entries} for entries in group["entries"]]
         if x_grid is not None:
             group["by_entry"] = [_on_grid(be, x_grid) for be in group["by_entry"]]
-        group["last"], group["ends"] = _aligned_last(label, group["runs"], group["by_entry"], x)
+        group["final"] = _final_evaluations(group, metrics) if source == "eval" else None
+        if group["final"] is None:
+            group["last"], group["ends"] = _aligned_last(label, group["runs"], group["by_entry"], x)
+        else:
+            group["last"], group["ends"] = group["final"], []
 
     out_dir = make_writable_dir(out_dir, "out_dir")
     if legacy:
@@ -360,10 +464,17 @@ def compare(
             ", ".join(fallback),
             " (groups marked (train))" if mixed_sources else "",
         )
+    if on_request:
+        log.info(
+            "%s: training entries (the recipe evaluates on request only, "
+            "with mapets-rl evaluate)%s",
+            ", ".join(on_request),
+            " (groups marked (train))" if mixed_sources else "",
+        )
     if diffs:
         log.warning(
             "comparing runs on different scenarios (%s); each group is labelled with its scenario",
-            _describe(diffs),
+            _describe_scenarios(runs, _scenario_labels(results, diffs, name_env=True)),
         )
     summary: dict[str, dict[str, dict[str, Any]]] = {}
     curves: dict[str, Any] = {"source": source, "x": x, "groups": {}}
@@ -377,25 +488,19 @@ def compare(
             )
         summary[label] = {}
         for m in metrics:
-            mean, half = mean_ci95([e["metrics"][m] for e in last])
+            final = _interval_stats(m, [[e["metrics"][m] for e in last]])
             summary[label][m] = {
-                "mean": mean,
-                "ci95": half if len(last) > 1 else None,
+                **{key: values[0] for key, values in final.items()},
                 "n": len(last),
                 "frames": min(e["frames"] for e in last),
-                "source": group["source"],
+                "source": "evaluate" if group["final"] is not None else group["source"],
             }
         by_x = [{v: e["metrics"] for v, e in be.items()} for be in by_entry]
         xs = sorted(set().union(*by_x))
         counts = [sum(v in bx for bx in by_x) for v in xs]
-        stats: dict[str, dict[str, list[float | None]]] = {}
+        stats: dict[str, dict[str, list[Any]]] = {}
         for m in metrics:
-            rows = [mean_std_ci95([bx[v][m] for bx in by_x if v in bx]) for v in xs]
-            stats[m] = {
-                "mean": [r[0] for r in rows],
-                "std": [r[1] if k > 1 else None for r, k in zip(rows, counts, strict=True)],
-                "ci95": [r[2] if k > 1 else None for r, k in zip(rows, counts, strict=True)],
-            }
+            stats[m] = _interval_stats(m, [[bx[v][m] for bx in by_x if v in bx] for v in xs])
         curves["groups"][label] = {
             "recipe": group["recipe"],
             "group": group["group"],
@@ -421,41 +526,146 @@ def compare(
         if cut
         else ""
     )
+    evaluated = (
+        ", or its final evaluation (evaluation.json, written by mapets-rl evaluate) for the "
+        f"groups of source {SOURCE_NAMES['evaluate']!r}"
+        if any(group["final"] is not None for group in groups.values())
+        else ""
+    )
     lines = [
-        f"Last entry of each run: {described}; mean ± 95% CI half-width (n = runs).{aligned}",
-        "",
-        "| group | source | frames | " + " | ".join(map(metric_label, metrics)) + " |",
-        "|" + "---|" * (len(metrics) + 3),
+        f"Last entry of each run: {described}{evaluated}; over runs, intervals clipped to "
+        f"each metric's range (n = runs).{aligned}",
     ]
-    for label, row in summary.items():
-        cells = [_cell(m, row[m]) for m in metrics]
-        first = row[metrics[0]]
-        lines.append(
-            f"| {label} | {SOURCE_NAMES[first['source']]} | {first['frames']} | "
-            + " | ".join(cells)
-            + " |"
-        )
+    for statistic, name in STATISTIC_NAMES.items():
+        lines += [
+            "",
+            f"{name[0].upper()}{name[1:]}:",
+            "",
+            "| group | source | frames | " + " | ".join(map(metric_label, metrics)) + " |",
+            "|" + "---|" * (len(metrics) + 3),
+        ]
+        for label, row in summary.items():
+            cells = [_cell(m, row[m], statistic) for m in metrics]
+            first = row[metrics[0]]
+            lines.append(
+                f"| {label} | {SOURCE_NAMES[first['source']]} | {first['frames']} | "
+                + " | ".join(cells)
+                + " |"
+            )
     atomic_write_text(table, "\n".join(lines) + "\n")
     summary_path = out_dir / "summary.json"
     atomic_write_text(summary_path, json.dumps(summary, indent=1))
     curves_path = out_dir / "curves.json"
     atomic_write_text(curves_path, json.dumps(curves, indent=1))
-    return {"plot": plot, "table": table, "summary": summary_path, "curves": curves_path}
+    written = {"plot": plot, "table": table, "summary": summary_path, "curves": curves_path}
+    if marl_eval:
+        written["marl_eval"] = out_dir / MARL_EVAL_FILE
+        atomic_write_text(written["marl_eval"], json.dumps(_marl_eval(groups, metrics), indent=1))
+    return written
 
 
-def _cell(metric: str, stats: Mapping[str, Any]) -> str:
-    """A table cell: mean ± 95% CI half-width (n), speeds in m/s also in mph; the value alone
-    for one run (``n=1``), which has no interval."""
-    mph = metric_unit(metric) == "m/s"
-    if stats["ci95"] is None:
-        text = f"{stats['mean']:.4g}"
-        if mph:
-            text += f" ({MPH_PER_MPS * stats['mean']:.4g} mph)"
-    else:
-        text = f"{stats['mean']:.4g} ± {stats['ci95']:.2g}"
-        if mph:
-            text += f" ({MPH_PER_MPS * stats['mean']:.4g} ± {MPH_PER_MPS * stats['ci95']:.2g} mph)"
-    return f"{text} (n={stats['n']})"
+def _interval_stats(metric: str, points: Sequence[Sequence[float]]) -> dict[str, list[Any]]:
+    """At every point (one value per run, a run missing from a point left out): the mean and
+    the IQM with their bootstrap 95% intervals clipped to the metric's range (``[low, high]``,
+    ``None`` for one value) and the sample standard deviation (``None`` for one value); each
+    key a list over the points. Points with as many values are bootstrapped together
+    (:func:`~mapets_rl.statistics.bootstrap_curve`: the same intervals as one at a time)."""
+    out: dict[str, list[Any]] = {
+        key: [None] * len(points) for key in ("mean", "mean_ci95", "iqm", "iqm_ci95", "std")
+    }
+    by_count: dict[int, list[int]] = {}
+    for i, values in enumerate(points):
+        by_count.setdefault(len(values), []).append(i)
+    for count, where in by_count.items():
+        runs = np.array([points[i] for i in where], dtype=float).T  # [runs, points]
+        for statistic in ("mean", "iqm"):
+            estimate, low, high = bootstrap_curve(runs, statistic, bounds=metric_range(metric))
+            for j, i in enumerate(where):
+                out[statistic][i] = float(estimate[j])
+                if count > 1:
+                    out[f"{statistic}_ci95"][i] = [float(low[j]), float(high[j])]
+        if count > 1:
+            for j, std in zip(where, runs.std(axis=0, ddof=1), strict=True):
+                out["std"][j] = float(std)
+    return out
+
+
+def _final_evaluations(
+    group: Mapping[str, Any], metrics: Sequence[str]
+) -> list[dict[str, Any]] | None:
+    """The group's runs' final evaluations (``evaluation.json``) as entries, when every run
+    has one at or after its last entry holding every metric; else ``None`` (with a note
+    when some runs have a usable one)."""
+    usable = [
+        evaluation is not None
+        and evaluation["frames"] >= max(e["frames"] for e in entries)
+        and all(m in evaluation["metrics"] for m in metrics)
+        for evaluation, entries in zip(group["evaluations"], group["entries"], strict=True)
+    ]
+    if all(usable):
+        return [{"frames": e["frames"], "metrics": e["metrics"]} for e in group["evaluations"]]
+    if any(usable):
+        log.info(
+            "%s: not every run has a final evaluation (evaluation.json at or after its last "
+            "entry, with every compared metric); the table compares their last entries",
+            ", ".join(run for run, ok in zip(group["runs"], usable, strict=True) if not ok),
+        )
+    return None
+
+
+def _task_name(res: Mapping[str, Any]) -> str:
+    """marl-eval's task of a run: its ``env_config`` keys that differ from the scenario's
+    defaults, ``"key=value"`` comma-joined, lower case (``"default"`` when none)."""
+    from mapets_rl.envs.registry import scenario_defaults
+
+    defaults = scenario_defaults(res["env"])
+    env_config = res.get("config", {}).get("env_config") or {}
+    changed = [
+        f"{key}={_fmt(value)}"
+        for key, value in sorted(env_config.items())
+        if key not in defaults or defaults[key] != value
+    ]
+    return ",".join(changed).lower() or "default"
+
+
+def _marl_eval(groups: Mapping[str, Mapping[str, Any]], metrics: Sequence[str]) -> dict[str, Any]:
+    """The groups' runs in marl-eval's raw-data format (see :func:`compare`)."""
+    data: dict[str, Any] = {}
+    for group in groups.values():
+        algorithms = data.setdefault(group["env"].lower(), {}).setdefault(group["task"], {})
+        runs = algorithms.setdefault(group["algorithm"], {})
+        for by_entry, evaluation in zip(group["by_entry"], group["evaluations"], strict=True):
+            steps = [by_entry[v] for v in sorted(by_entry)]
+            run = {
+                f"step_{k}": {
+                    "step_count": entry["frames"],
+                    **{m: [entry["metrics"][m]] for m in metrics},
+                }
+                for k, entry in enumerate(steps)
+            }
+            final = evaluation if evaluation is not None else steps[-1]
+            run["absolute_metrics"] = {
+                m: [final["metrics"][m]] for m in metrics if m in final["metrics"]
+            }
+            runs[f"run_{len(runs)}"] = run
+    return data
+
+
+def _cell(metric: str, stats: Mapping[str, Any], statistic: str) -> str:
+    """A table cell: the ``statistic`` (``"mean"`` or ``"iqm"``) with its 95% interval
+    ``[low, high]`` (n), speeds in m/s also in mph; the value alone for one run (``n=1``),
+    which has no interval."""
+    value, interval = stats[statistic], stats[f"{statistic}_ci95"]
+
+    def text(scale: float) -> str:
+        if interval is None:
+            return f"{scale * value:.4g}"
+        return f"{scale * value:.4g} [{scale * interval[0]:.4g}, {scale * interval[1]:.4g}]"
+
+    out = text(1.0)
+    if metric_unit(metric) == "m/s":
+        out += f" ({text(MPH_PER_MPS)} mph)"
+    return f"{out} (n={stats['n']})"
 
 
 def _check_distinct(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.PathLike) -> None:
@@ -525,8 +735,9 @@ def _x_value(entry: Mapping[str, Any], x: str) -> float:
 def _plot(
     groups: Mapping[str, Mapping[str, Any]], metrics: Sequence[str], x: str, path: Path, title: str
 ) -> None:
-    """One panel per metric: every group's mean and 95% band (none for one run; clipped to the
-    metric's range) at the x values all its runs reached (a group whose runs share none is left
+    """One panel per metric: every group's mean and bootstrap 95% band
+    (:func:`mapets_rl.plotting.draw_band`: none for one run; clipped to the metric's range) at
+    the x values all its runs reached (a group whose runs share none is left
     out, with a logged note); integer ticks when every x is an integer (frames, episodes)."""
     import matplotlib
 
@@ -557,18 +768,19 @@ def _plot(
             if not full:
                 continue
             xs = [group["x"][i] for i in full]
-            mean = np.array([group["metrics"][m]["mean"][i] for i in full])
-            half = np.array([group["metrics"][m]["ci95"][i] for i in full])
-            (line,) = ax.plot(xs, mean, marker="o", ms=3, label=f"{label} (n={len(group['runs'])})")
-            if len(group["runs"]) > 1:  # one run has no interval
-                low, high = metric_range(m)
-                ax.fill_between(
-                    xs,
-                    np.clip(mean - half, low, high),
-                    np.clip(mean + half, low, high),
-                    alpha=0.2,
-                    color=line.get_color(),
-                )
+            stats = group["metrics"][m]
+            several = len(group["runs"]) > 1  # one run has no interval
+            draw_band(
+                ax,
+                xs,
+                [stats["mean"][i] for i in full],
+                [stats["mean_ci95"][i][0] for i in full] if several else None,
+                [stats["mean_ci95"][i][1] for i in full] if several else None,
+                metric=m,
+                marker="o",
+                ms=3,
+                label=f"{label} (n={len(group['runs'])})",
+            )
         ax.set_title(metric_label(m), fontsize=9)
         ax.set_xlabel("environment frames [env steps]" if x == "frames" else metric_label(x))
         if integer_x:
@@ -577,6 +789,8 @@ def _plot(
     for ax in list(axes.flat)[n:]:
         ax.set_visible(False)
     axes.flat[0].legend(fontsize=8)
-    fig.suptitle(textwrap.fill(f"{title}: mean and 95% CI over runs", 55 * cols), fontsize=10)
+    fig.suptitle(
+        textwrap.fill(f"{title}: mean and bootstrap 95% CI over runs", 55 * cols), fontsize=10
+    )
     atomic_savefig(fig, path, dpi=110)
     plt.close(fig)

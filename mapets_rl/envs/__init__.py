@@ -4,14 +4,10 @@ scenarios up in."""
 
 from types import MappingProxyType
 
+import pettingzoo
 from gymnasium.envs import registration
 
-from mapets_rl.envs.factory import (
-    TrafficPettingZooWrapper,
-    make_env,
-    make_parallel_env,
-    wrap_parallel_env,
-)
+from mapets_rl.envs.factory import make_env, make_parallel_env
 from mapets_rl.envs.figure_eight import (
     FigureEightEnv,
     figure_eight_collision,
@@ -21,6 +17,12 @@ from mapets_rl.envs.figure_eight import (
 from mapets_rl.envs.freeway import ACTION_NAMES, FreewayEnv
 from mapets_rl.envs.freeway_merge import FreewayMergeEnv, FreewayMergeParallelEnv
 from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, TrafficParallelEnv
+from mapets_rl.envs.pettingzoo_wrapper import (
+    AgentsPettingZooWrapper,
+    TrafficPettingZooWrapper,
+    wrap_parallel_env,
+    wrap_pettingzoo,
+)
 from mapets_rl.envs.registry import (
     Scenario,
     available_envs,
@@ -35,6 +37,7 @@ from mapets_rl.envs.traffic import MultiAgentTrafficEnv
 
 __all__ = [
     "ACTION_NAMES",
+    "AgentsPettingZooWrapper",
     "GYM_IDS",
     "Scenario",
     "ScriptedCAVPolicy",
@@ -61,18 +64,28 @@ __all__ = [
     "scenario_defaults",
     "traffic_env",
     "wrap_parallel_env",
+    "wrap_pettingzoo",
 ]
 
 GYM_IDS = MappingProxyType({name: registered_scenario(name).gym_id for name in builtin_envs()})
 """Built-in scenario name -> gymnasium id of its raw (array-valued) highway-env environment
-(derived from the scenario registry when ``mapets_rl.envs`` is imported)."""
+(derived from the scenario registry when ``mapets_rl.envs`` is imported). The same ids name the
+scenarios' PettingZoo ``ParallelEnv`` in PettingZoo's registry:
+``pettingzoo.make("parallel", "mapets_rl/Freeway-v0", n_vehicles=10)``."""
 
 for _name, _id in GYM_IDS.items():
+    _scenario = registered_scenario(_name)
+    _parallel = _scenario.parallel_env
     if _id not in registration.registry:
-        _scenario = registered_scenario(_name)
-        _cls = _scenario.parallel_env.env_class
         registration.register(
             id=_id,
-            entry_point=f"{_cls.__module__}:{_cls.__name__}",
+            entry_point=f"{_parallel.env_class.__module__}:{_parallel.env_class.__name__}",
             kwargs={"config": dict(_scenario.changes)},
+        )
+    if _id not in pettingzoo.parallel_registry:
+        pettingzoo.register(
+            "parallel",
+            _id,
+            entry_point=f"{_parallel.__module__}:{_parallel.__name__}",
+            kwargs=dict(_scenario.changes),
         )

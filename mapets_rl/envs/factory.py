@@ -4,19 +4,11 @@ The built-in scenarios are declared at the end of this module, where they regist
 in the scenario registry (:mod:`mapets_rl.envs.registry`) with their PettingZoo env class, what
 they change from its defaults and their gymnasium id.
 
-The PettingZoo envs are wrapped by torchrl's ``PettingZooWrapper`` (specs, seeding, group map)
-with one group ``"agents"`` and ``use_mask=True``: crashed CAVs stay in the batch with
-``("agents", "mask") = False`` and ``("agents", "terminated") = True``. Per-agent infos go to
-``("agents", "info", key)``, except the positions, which go to ``("agents", "position")``
-``[*, I, 2]`` (metres), where the communication transform reads them. A crashed CAV's position
-stays where it last drove (the crash site), not zero: ``(0, 0)`` is the crossing.
-
-``TrafficPettingZooWrapper`` replaces the wrapper's data path: the stock ``_step``/``_reset``
-build every agent's entries with a Python loop of small tensor copies (and deep-copy the info
-dicts), which costs more than a highway-env step with 8 agents; here one array per key is copied
-from the scenario. The entries are the same as the stock wrapper's (dead agents: zero entries
-except the position,
-``terminated = truncated = done = True``, ``mask = False``; root flags = all agents').
+The highway-env backend wraps each scenario's PettingZoo env with
+:func:`~mapets_rl.envs.pettingzoo_wrapper.wrap_pettingzoo` (the layout and its conventions are
+described there): crashed CAVs stay in the batch with ``("agents", "mask") = False``, positions
+under ``("agents", "position")`` ``[*, I, 2]`` (metres); a crashed CAV's position stays where it
+last drove (the crash site), not zero: ``(0, 0)`` is the crossing.
 """
 
 from __future__ import annotations
@@ -24,19 +16,15 @@ from __future__ import annotations
 import functools
 from typing import Any
 
-import numpy as np
 import torch
-from tensordict import TensorDict, TensorDictBase
-from torchrl.data import OneHot
 from torchrl.envs import EnvBase
-from torchrl.envs.libs.pettingzoo import PettingZooWrapper
 
 from mapets_rl.envs.figure_eight import figure_eight_collision, figure_eight_reward
 from mapets_rl.envs.freeway_merge import FreewayMergeParallelEnv
 from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, TrafficParallelEnv
+from mapets_rl.envs.pettingzoo_wrapper import wrap_pettingzoo
 from mapets_rl.envs.registry import builtin_envs, register_builtin, registered_scenario
 from mapets_rl.envs.torch_freeway.env import TorchFreewayEnv
-from mapets_rl.envs.validation import check_one_hot
 
 TORCH_BACKEND = {
     FreewayParallelEnv: FreewayParallelEnv.env_class,
@@ -45,116 +33,6 @@ TORCH_BACKEND = {
 """PettingZoo env class of a scenario -> the highway-env scenario class the torch backend
 simulates."""
 TORCH_NAMES = ("freeway", "freeway-merge")
-
-
-class TrafficPettingZooWrapper(PettingZooWrapper):
-    """``PettingZooWrapper`` for ``TrafficParallelEnv`` with a vectorised data path.
-
-    Every output entry is one NumPy array of the scenario turned into a tensor without a copy
-    (``torch.from_numpy``; on another device, one transfer), and the output TensorDicts are
-    built without re-validating entries whose shapes, dtypes and device this class guarantees.
-    Since ``_step`` always returns every reward and done key with its spec's shape and dtype,
-    torchrl's per-step completion of missing done keys is skipped (it still runs, with the
-    type checks, when ``run_type_checks`` is set).
-    """
-
-    def _init_env(self) -> None:
-        super()._init_env()
-        group_spec = self.observation_spec["agents"]
-        position = group_spec["info", "position"]
-        del group_spec["info"]["position"]
-        group_spec["position"] = position
-        self._info_dtypes = {
-            key: torch.empty((), dtype=group_spec["info", key].dtype).numpy().dtype
-            for key in group_spec["info"]
-        }
-        self._agents_action_spec = self.input_spec["full_action_spec", "agents", "action"]
-        self._group_size = torch.Size([len(self._env.possible_agents)])
-
-    def _output(
-        self,
-        obs: np.ndarray,
-        info: dict,
-        acting: np.ndarray,
-        terminated: np.ndarray,
-        truncated: np.ndarray,
-        reward: np.ndarray | None = None,
-    ) -> TensorDict:
-        """Output TensorDict from the scenario's arrays (all ``[I, ...]``, ``I`` CAVs; no reward
-        entry at a reset); entries of agents that did not act are zeroed, except the position."""
-        device, batch = self.device, self._group_size
-        if device is None or device.type == "cpu":
-            tensor = torch.from_numpy  # fresh arrays that nobody else writes to: no copy
-        else:
-
-            def tensor(array: np.ndarray) -> torch.Tensor:
-                return torch.from_numpy(array).to(device)
-
-        column = acting[:, None]
-        done = terminated | truncated
-        info_out = {}
-        for key, value in self._env.info_arrays(info).items():
-            if key != "position":
-                value = (value * acting.reshape(-1, *([1] * (value.ndim - 1)))).astype(
-                    self._info_dtypes[key], copy=False
-                )
-                info_out[key] = tensor(value)
-            else:
-                position = tensor(np.array(value, dtype=np.float32))
-        group = {
-            "observation": tensor(obs * column),
-            "mask": tensor(~done),
-            "position": position,
-            "done": tensor(done[:, None]),
-            "terminated": tensor(terminated[:, None]),
-            "truncated": tensor(truncated[:, None]),
-            "info": TensorDict._new_unsafe(info_out, batch_size=batch, device=device),
-        }
-        if reward is not None:
-            group["reward"] = tensor(reward[:, None])
-        return TensorDict._new_unsafe(
-            {
-                "agents": TensorDict._new_unsafe(group, batch_size=batch, device=device),
-                "done": tensor(done.all(keepdims=True)),
-                "terminated": tensor(terminated.all(keepdims=True)),
-                "truncated": tensor(truncated.all(keepdims=True)),
-            },
-            batch_size=torch.Size(()),
-            device=device,
-        )
-
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
-        if tensordict is not None:
-            reset = tensordict.get("_reset", None)
-            if reset is not None and not reset.all():
-                raise RuntimeError("TrafficPettingZooWrapper resets all agents at once.")
-        obs, info = self._env.reset_joint(**kwargs)
-        n = len(self._env.possible_agents)
-        false = np.zeros(n, dtype=bool)
-        return self._output(obs, info, np.ones(n, dtype=bool), false, false.copy())
-
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action_spec = self._agents_action_spec
-        action = tensordict.get(("agents", "action"), None)
-        if action is None:
-            raise ValueError(
-                "step needs the CAVs' actions under ('agents', 'action'); the tensordict has none"
-            )
-        if action.shape != action_spec.shape:
-            raise ValueError(
-                f"('agents', 'action') must have shape {list(action_spec.shape)}, "
-                f"got {list(action.shape)}"
-            )
-        if isinstance(action_spec, OneHot):
-            check_one_hot(action)
-        joint = np.asarray(action_spec.to_numpy(action))
-        obs, rewards, terminated, truncated, acting, info = self._env.step_joint(joint)
-        return self._output(obs, info, acting, terminated, truncated, rewards)
-
-    def _step_proc_data(self, next_tensordict_out: TensorDictBase) -> TensorDictBase:
-        if self.run_type_checks:
-            return super()._step_proc_data(next_tensordict_out)
-        return next_tensordict_out
 
 
 def make_parallel_env(name: str, **config: Any) -> TrafficParallelEnv:
@@ -237,7 +115,7 @@ def make_env(
                 "num_envs, dtype and kernel need backend='torch' (the highway-env backend "
                 "simulates one road; batch it with torchrl's SerialEnv / ParallelEnv)"
             )
-        return wrap_parallel_env(
+        return wrap_pettingzoo(
             make_parallel_env(name, **config),
             seed=seed,
             device=device,
@@ -262,43 +140,6 @@ def make_env(
         categorical_actions=categorical_actions,
         render_mode=render_mode,
         kernel=kernel,
-    )
-
-
-def wrap_parallel_env(
-    parallel_env: TrafficParallelEnv,
-    seed: int | None = None,
-    device: str = "cpu",
-    categorical_actions: bool = False,
-) -> EnvBase:
-    """The TorchRL env of a traffic ``ParallelEnv``: what :func:`make_env` returns for the
-    built-in scenarios, and what a custom scenario's factory returns (``register_env`` or an
-    entry point of ``mapets_rl.scenarios``).
-
-    One group ``"agents"``, crashed CAVs masked (``("agents", "mask")``), positions under
-    ``("agents", "position")`` ``[*, I, 2]`` where :class:`~mapets_rl.comm.CommunicationRange`
-    reads them (torchrl's stock ``PettingZooWrapper`` leaves them in
-    ``("agents", "info", "position")``, so MA-PETS' communication cannot find them).
-
-    Args:
-        parallel_env: a :class:`~mapets_rl.envs.TrafficParallelEnv` (any subclass).
-        seed: seed of the first reset.
-        device: torch device of the output tensors.
-        categorical_actions: discrete actions as indices instead of one-hot.
-    """
-    if not isinstance(parallel_env, TrafficParallelEnv):
-        raise ValueError(
-            "parallel_env must be a mapets_rl.envs.TrafficParallelEnv (wrap your "
-            f"MultiAgentTrafficEnv in one first), got {type(parallel_env).__name__}"
-        )
-    return TrafficPettingZooWrapper(
-        env=parallel_env,
-        group_map={"agents": list(parallel_env.possible_agents)},
-        use_mask=True,
-        categorical_actions=categorical_actions,
-        done_on_any=False,
-        seed=seed,
-        device=device,
     )
 
 

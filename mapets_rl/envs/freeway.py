@@ -134,11 +134,22 @@ class FreewayEnv(MultiAgentTrafficEnv):
     (70 mph), ``velocity_weight=0.1`` (w), ``comfort_threshold=1.5`` m/s^2 (Theta),
     ``collision_reward=-10``, ``perception=100`` m, ``team_reward=False`` (True: every CAV is
     paid the mean reward of the CAVs driving that step instead of its own, the fully cooperative
-    reward; the system reward, the sum over CAVs, is the same).
+    reward; the system reward, the sum over CAVs, is the same), ``shield=False`` (True: a
+    model-predictive shield replaces every decision predicted to crash in the next step; the
+    torch backend only, see ``BatchedFreeway.shield``), ``shield_horizon=3`` (policy steps the
+    shield looks ahead).
     """
 
     obs_dim = OBS_DIM
     min_cavs = 0
+
+    def __init__(self, config: dict | None = None, render_mode: str | None = None) -> None:
+        require(
+            not (config or {}).get("shield", False),
+            "shield=True needs backend='torch' (the check steps a copy of the road, which "
+            "highway-env cannot do cheaply)",
+        )
+        super().__init__(config, render_mode)
 
     @classmethod
     def derived_config(cls, config: dict) -> dict:
@@ -174,6 +185,8 @@ class FreewayEnv(MultiAgentTrafficEnv):
                 "speed_limit": 31.3,
                 "velocity_weight": 0.1,
                 "team_reward": False,
+                "shield": False,
+                "shield_horizon": 3,
                 "comfort_threshold": 1.5,
                 "perception": 100.0,
                 "screen_width": 900,
@@ -206,9 +219,13 @@ class FreewayEnv(MultiAgentTrafficEnv):
         require_number(config, "min_spacing", low=7.0, unit="m")
         require_number(config, "velocity_weight")
         require(
-            isinstance(config["team_reward"], bool),
-            f"team_reward must be True or False, got {config['team_reward']!r}",
+            is_integer(config["shield_horizon"]) and 1 <= config["shield_horizon"] <= 40,
+            f"shield_horizon must be an integer in [1, 40], got {config['shield_horizon']!r}",
         )
+        for key in ("team_reward", "shield"):
+            require(
+                isinstance(config[key], bool), f"{key} must be True or False, got {config[key]!r}"
+            )
         require_range(config, "initial_speed", low=0.0, high=config["speed_limit"], unit="m/s")
         cls.validate_target_speeds(config)
         capacity = cls.capacity(config)

@@ -22,6 +22,9 @@ RESULTS_FILE = "results.json"
 TIMINGS_FILE = "timings.json"
 """Beside ``results.json``: the wall-clock metrics (:data:`mapets_rl.metrics.TIMING_METRICS`)
 of its entries, which ``results.json`` and the checkpoints leave out."""
+EVALUATION_FILE = "evaluation.json"
+"""Beside ``results.json``: the standalone evaluation of the run's policy that ``mapets-rl
+evaluate`` writes, ``{"frames": int, "episodes": int, "metrics": {name: float}}``."""
 UNITS_FILE = "units.json"
 """Written beside the logger's files (``RUN_DIR/logs/units.json``): metric name -> unit."""
 
@@ -409,6 +412,32 @@ def read_results(run_dir: str | os.PathLike, legacy_as: str = "eval") -> dict[st
     if data["legacy"]:
         entries = data.pop("evaluations")
         data["train"], data["evaluations"] = ([], entries) if legacy_as == "eval" else (entries, [])
+    return data
+
+
+def read_evaluation(run_dir: str | os.PathLike) -> dict[str, Any] | None:
+    """Read ``run_dir/evaluation.json`` (:data:`EVALUATION_FILE`, written by ``mapets-rl
+    evaluate``): ``{"frames": int, "episodes": int, "metrics": {name: float}}``, or ``None``
+    when the run has none.
+
+    Raises:
+        ValueError: naming the file, when it is not such an object.
+    """
+    path = Path(run_dir) / EVALUATION_FILE
+    if not path.is_file():
+        return None
+    data = read_json_object(path)
+    metrics = data.get("metrics")
+    if not (
+        isinstance(data.get("frames"), int)
+        and isinstance(data.get("episodes"), int)
+        and isinstance(metrics, dict)
+        and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in metrics.values())
+    ):
+        raise ValueError(
+            f"{str(path)!r} is not an evaluation file: it must hold "
+            "{'frames': int, 'episodes': int, 'metrics': {name: number}}"
+        )
     return data
 
 

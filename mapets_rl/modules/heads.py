@@ -29,18 +29,20 @@ class GumbelSoftmaxHead(nn.Module):
     update) the greedy one-hot ``argmax`` with the straight-through softmax gradient.
 
     With ``return_logits=True`` it returns ``(logits, action)``, so that a ``TensorDictModule``
-    can also write the logits (MADDPG's actor penalty reads them).
+    can also write the logits (MADDPG's actor penalty reads them). With ``sample=False`` it is
+    greedy while collecting too (the exploration is then another module's, e.g. epsilon-greedy).
     """
 
-    def __init__(self, tau: float = 1.0, return_logits: bool = False) -> None:
+    def __init__(self, tau: float = 1.0, return_logits: bool = False, sample: bool = True) -> None:
         super().__init__()
         if tau <= 0:
             raise ValueError(f"tau must be > 0, got {tau}")
         self.tau = tau
         self.return_logits = return_logits
+        self.sample = sample
 
     def forward(self, logits: torch.Tensor) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-        if exploration_type() is ExplorationType.RANDOM:
+        if self.sample and exploration_type() is ExplorationType.RANDOM:
             action = gumbel_one_hot(logits, self.tau)
         else:
             soft = logits.softmax(-1)

@@ -120,6 +120,7 @@ class TorchFreewayEnv(EnvBase):
             kernel=kernel,
         )
         self.categorical_actions = categorical_actions
+        self.info_keys = INFO_KEYS + (("shielded",) if self.config["shield"] else ())
         self.last_episode_metrics: dict[str, float] = {}
         self._finished: list[dict[str, float]] = []
         self._viewer_env: FreewayEnv | None = None
@@ -140,7 +141,9 @@ class TorchFreewayEnv(EnvBase):
             return Categorical(2, shape=torch.Size(shape), dtype=torch.bool, device=dev)
 
         info = Composite(
-            {key: unbounded(*group) for key in INFO_KEYS}, shape=torch.Size(group), device=dev
+            {key: unbounded(*group) for key in self.info_keys},
+            shape=torch.Size(group),
+            device=dev,
         )
         self.observation_spec = Composite(
             agents=Composite(
@@ -195,7 +198,7 @@ class TorchFreewayEnv(EnvBase):
         false = torch.zeros_like(acting)
         zeros = torch.zeros(acting.shape, dtype=torch.float32, device=self.device)
         speed = self.sim.state["bodies"].get("speed").gather(1, self.sim.state["agents"]["slot"])
-        info = {key: zeros for key in INFO_KEYS}
+        info = {key: zeros for key in self.info_keys}
         info["speed"] = speed.float()
         return self._output(self.sim.observe(acting), info, acting, false, false)
 
@@ -230,6 +233,8 @@ class TorchFreewayEnv(EnvBase):
             "traffic_velocity": result.traffic_velocity.float().unsqueeze(-1) * acting,
             "traffic_comfort": result.traffic_comfort.float().unsqueeze(-1) * acting,
         }
+        if self.config["shield"]:
+            info["shielded"] = result.shielded.float() * acting
         return self._output(
             result.observation, info, result.acting, terminated, truncated, result.reward
         )
@@ -282,9 +287,9 @@ class TorchFreewayEnv(EnvBase):
         metrics = {k: v.cpu() for k, v in self.sim.episode_metrics().items()}
         for road in ended:
             episode = {key: float(value[road]) for key, value in metrics.items()}
-            episode["collisions"] = int(episode["collisions"])
-            if "ramp_stuck" in episode:
-                episode["ramp_stuck"] = int(episode["ramp_stuck"])
+            for key in ("collisions", "ramp_stuck", "shielded"):
+                if key in episode:
+                    episode[key] = int(episode[key])
             self._finished.append(episode)
         self.last_episode_metrics = self._finished[-1]
         del self._finished[: -max(self.sim.n_roads * 16, 1024)]
@@ -312,7 +317,7 @@ class TorchFreewayEnv(EnvBase):
         terminated = ~alive
         truncated = torch.where(alive, truncated_road.unsqueeze(-1), True)
         zeros = torch.zeros(alive.shape, dtype=torch.float32, device=self.device)
-        info = {key: zeros for key in INFO_KEYS}
+        info = {key: zeros for key in self.info_keys}
         return self._output(self.sim.observe(alive), info, alive, terminated, truncated)
 
     # --- rendering ----------------------------------------------------------------------------

@@ -87,6 +87,8 @@ class StepResult:
         traffic_velocity, traffic_comfort: ``[B]`` means over all vehicles on the road.
         truncated: ``[B]`` the horizon is reached.
         terminated: ``[B]`` every CAV has crashed.
+        shielded: ``[B, I]`` the CAVs whose decision the shield replaced (all False without
+            ``config["shield"]``).
     """
 
     observation: torch.Tensor
@@ -99,6 +101,7 @@ class StepResult:
     traffic_comfort: torch.Tensor
     truncated: torch.Tensor
     terminated: torch.Tensor
+    shielded: torch.Tensor | None = None
 
 
 class BatchedFreeway:
@@ -178,6 +181,7 @@ class BatchedFreeway:
             "speed_sum": torch.zeros(b, dtype=torch.float64, device=dev),
             "comfort_sum": torch.zeros(b, dtype=torch.float64, device=dev),
             "samples": torch.zeros(b, dtype=torch.float64, device=dev),
+            "shielded": torch.zeros(b, dtype=torch.long, device=dev),
         }
         return TensorDict(
             {
@@ -244,6 +248,27 @@ class BatchedFreeway:
         state.batch_size = [self.n_roads]
         self.state = state.to(self.device)
         self.generator.set_state(snapshot.get("rng").cpu())
+
+    def shield(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """A model-predictive shield (the Shapley paper's "safe learning process"): the CAVs'
+        decisions ``[B, I]`` with every lane change or emergency stop that this simulator
+        predicts to end in a crash replaced by Keep Lane, and which were replaced ``[B, I]``
+        (bool). The roads' state is the same afterwards.
+
+        The check steps a copy of every road with the decisions, then ``shield_horizon - 1``
+        more steps in which every CAV keeps its lane (the backup policy): a lane change takes
+        several policy steps, so a crash it causes may come after the first. A CAV that crashes
+        in the copy and did not keep its lane is given Keep Lane. (A crash that Keep Lane does
+        not avoid stays, as it would for a human driver.)"""
+        action = action.to(self.device).long()
+        saved = self.state.clone()
+        keep = torch.full_like(action, KL)
+        crashed = self._advance(action).collided
+        for _ in range(int(self.config["shield_horizon"]) - 1):
+            crashed |= self._advance(keep).collided
+        self.state = saved
+        safe = torch.where(crashed & (action != KL), KL, action)
+        return safe, safe != action
 
     # --- reset ---------------------------------------------------------------------------------
     def _uniform(self, low_high: tuple[float, float], shape: tuple[int, ...]) -> torch.Tensor:
@@ -329,16 +354,30 @@ class BatchedFreeway:
         agents.set("slot", order[:, : self.n_cavs])
         agents.set("alive", torch.ones(k, self.n_cavs, dtype=torch.bool, device=self.device))
         self.state["agents"][idx] = agents
-        for key in ("steps", "speed_sum", "comfort_sum", "samples"):
+        for key in ("steps", "speed_sum", "comfort_sum", "samples", "shielded"):
             self.state.get(key)[idx] = 0
 
     # --- one policy step -----------------------------------------------------------------------
     def step(self, action: torch.Tensor) -> StepResult:
         """Apply the CAVs' decisions ``[B, I]`` (0..3: KL, CL, CR, ES; ignored for CAVs no
-        longer driving) and advance every road by one policy step."""
+        longer driving), corrected by :meth:`shield` where ``config["shield"]`` is set, and
+        advance every road by one policy step."""
+        action = action.to(self.device).long()
+        if not self.config["shield"]:
+            result = self._advance(action)
+            result.shielded = torch.zeros_like(result.acting)
+            return result
+        safe, shielded = self.shield(action)
+        shielded &= self.state["agents"].get("alive")
+        self.state.set("shielded", self.state.get("shielded") + shielded.sum(1))
+        result = self._advance(safe)
+        result.shielded = shielded
+        return result
+
+    def _advance(self, action: torch.Tensor) -> StepResult:
+        """One policy step of every road with the decisions ``action [B, I]`` (long)."""
         geo, bodies, agents = self.geometry, self.state["bodies"], self.state["agents"]
         slot, acting = agents.get("slot"), agents.get("alive")
-        action = action.to(self.device).long()
         lane, target = bodies.get("lane"), bodies.get("target")
         cav_lane = lane.gather(1, slot)
         if self.merge:  # CL / CR on the slanted ramp lane count as KL
@@ -593,14 +632,16 @@ class BatchedFreeway:
     def episode_metrics(self) -> dict[str, torch.Tensor]:
         """The episode so far of every road, as ``FreewayEnv.episode_metrics`` reports it:
         ``average_velocity`` [m/s] and ``average_comfort`` over all vehicles and steps,
-        ``collisions`` (CAVs crashed) and, with the ramp, ``ramp_stuck`` (vehicles still on
-        it); each ``[B]``."""
+        ``collisions`` (CAVs crashed), with the ramp ``ramp_stuck`` (vehicles still on it) and
+        with the shield ``shielded`` (decisions it replaced); each ``[B]``."""
         samples = self.state.get("samples").clamp(min=1)
         metrics = {
             "average_velocity": self.state.get("speed_sum") / samples,
             "average_comfort": self.state.get("comfort_sum") / samples,
             "collisions": (~self.state["agents"].get("alive")).sum(1).double(),
         }
+        if self.config["shield"]:
+            metrics["shielded"] = self.state.get("shielded").double()
         if self.merge:
             bodies = self.state["bodies"]
             on_ramp = self.geometry.table[bodies.get("lane")] == self.geometry.ramp_table

@@ -1,0 +1,293 @@
+"""The positive control of the Shapley paper's claim (issue 32): with the ideal credit signal
+(``team_reward``: every CAV is paid the CAVs' mean reward), can a learner find the cooperative
+merge on ``freeway-merge`` at all?
+
+Each variant is one controlled change (or one more) from the baseline: MADDPG with the
+openai/maddpg schedule (``mapets_rl.recipes.maddpg.OPENAI_MADDPG``), the team reward, 30 CAVs
+(ratio 1), trained on the batched freeway (``backend=torch``). The changes:
+
+- ``epsilon``: epsilon-greedy exploration among Keep Lane / Change Left / Change Right (no
+  random emergency stop), epsilon annealed 1 -> 0.05 over ``--anneal-frames``, instead of the
+  Gumbel-softmax samples (which brake 21-25% of the time while the logits are flat);
+- ``shield``: the model-predictive shield of the torch backend (``env_config.shield``: a lane
+  change or stop that a copy of the road predicts to crash within 3 s is replaced by Keep Lane),
+  in training and in evaluation;
+- ``gamma99``: gamma 0.99 and 5-step returns (the gain of a yield comes steps later);
+- ``mappo``: MAPPO (GAE, gamma 0.99) with the team reward, the on-policy reference.
+
+Every trained policy is scored greedily on ``--eval-roads`` roads of the same evaluation seeds
+as the scripted keep-lane policy and the cooperative merge rule
+(``benchmarks/freeway_headroom.py``'s ``CooperativeMerge``), each with the variant's shield
+setting. The system reward of a road is the CAVs' rewards summed over CAVs and the 40 steps
+(the same under the team and the individual reward).
+
+Run (resumable: finished runs and evaluations are kept under ``--out``):
+
+    OMP_NUM_THREADS=1 python benchmarks/cooperation_control.py \\
+        --variants maddpg maddpg_epsilon maddpg_shield maddpg_epsilon_shield mappo \\
+        --seeds 0 1 2 3 4 --frames 400000 --out outputs/cooperation_control
+
+Prints a markdown table (per variant: system reward relative to keep-lane, per seed and mean
+with a bootstrap 95% interval over seeds; ramp vehicles stuck, collisions, shield
+interventions and comfort per episode) and writes it with the per-seed numbers to
+``<out>/control.md`` and ``<out>/control.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from freeway_headroom import CooperativeMerge
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from mapets_rl.app.plugins import load_recipe
+from mapets_rl.envs import make_env
+from mapets_rl.experiment import atomic_write_text, latest_checkpoint
+from mapets_rl.modules import ACTION
+from mapets_rl.statistics import bootstrap_interval
+
+ENV = "freeway-merge"
+EVAL_SEED_OFFSET = 10_000
+"""Evaluation roads are drawn with seed ``EVAL_SEED_OFFSET + seed``: the same for every
+variant and the scripted rules."""
+
+CHANGES: dict[str, list[str]] = {
+    "epsilon": ["exploration=epsilon", "exploration_actions=[0, 1, 2]"],
+    "shield": ["env_config.shield=true"],
+    "gamma99": ["gamma=0.99", "n_steps=5"],
+}
+"""The controlled changes, as config overrides of the MADDPG recipe."""
+
+OPENAI_SCHEDULE = [
+    "update_interval=100",
+    "updates_per_batch=1",
+    "batch_size=1024",
+    "lr_actor=0.01",
+    "lr_critic=0.01",
+    "gamma=0.95",
+    "tau=0.01",
+    "num_cells=[64, 64]",
+    "max_grad_norm=0.5",
+]
+"""``mapets_rl.recipes.maddpg.OPENAI_MADDPG`` (repeated here so that a benchmark reads no recipe
+module by path)."""
+
+
+def variant_overrides(variant: str, args: argparse.Namespace) -> tuple[str, list[str]]:
+    """The recipe and config overrides of ``variant`` (``maddpg[_change...]`` or
+    ``mappo[_shield]``); ValueError naming the variant otherwise."""
+    recipe, *changes = variant.split("_")
+    unknown = [c for c in changes if c not in CHANGES or (recipe == "mappo" and c != "shield")]
+    if recipe not in ("maddpg", "mappo") or unknown:
+        raise ValueError(
+            f"--variants: {variant!r} is not maddpg[_{'|_'.join(CHANGES)}...] or mappo[_shield]"
+        )
+    roads = args.train_roads
+    overrides = [
+        "env_config.backend=torch",
+        f"env_config.num_envs={roads}",
+        f"env_config.n_vehicles={args.n_vehicles}",
+        "env_config.cav_ratio=1.0",
+        "env_config.team_reward=true",
+        f"total_frames={args.frames}",
+        f"eval_interval={args.frames}",
+        f"checkpoint_interval={max(args.frames // 4, 1)}",
+        "logger=csv",
+        "progress=false",
+        "keep_last=1",
+    ]
+    if recipe == "maddpg":
+        overrides += [*OPENAI_SCHEDULE, f"frames_per_batch={4 * roads}"]
+        overrides.append(f"epsilon_anneal_frames={args.anneal_frames}")
+    else:
+        overrides += [f"frames_per_batch={40 * roads}", "gamma=0.99"]
+    for change in changes:
+        overrides += CHANGES[change]
+    return recipe, overrides
+
+
+def train(variant: str, seed: int, args: argparse.Namespace) -> Path:
+    """Train (or finish training) one run; returns its run directory."""
+    recipe, overrides = variant_overrides(variant, args)
+    cls = load_recipe(recipe)
+    run_dir = Path(args.out) / "runs" / f"{variant}_seed{seed}"
+    if latest_checkpoint(run_dir) is not None:
+        exp = cls.from_run_dir(run_dir, overrides=[f"total_frames={args.frames}"])
+        if exp.frames >= args.frames:
+            exp.close()
+            return run_dir
+    else:
+        config = cls.Config(env=ENV, seed=seed).with_overrides(overrides)
+        exp = cls(config, run_dir)
+    exp.train()
+    return run_dir
+
+
+@torch.no_grad()
+def score(
+    policy: TensorDictModuleBase | None, shield: bool, seed: int, args: argparse.Namespace
+) -> dict[str, np.ndarray]:
+    """Greedy episodes of ``policy`` (None: keep lane) on ``--eval-roads`` roads of the
+    evaluation seed of ``seed``: per road, the system reward and the scenario's episode
+    metrics (``[roads]`` each)."""
+    env = make_env(
+        ENV,
+        backend="torch",
+        num_envs=args.eval_roads,
+        n_vehicles=args.n_vehicles,
+        cav_ratio=1.0,
+        shield=shield,
+    )
+    env.set_seed(EVAL_SEED_OFFSET + seed)
+    td = env.reset()
+    system = torch.zeros(args.eval_roads, dtype=torch.float64)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        for _ in range(int(env.config["horizon"])):
+            if policy is None:
+                action = torch.zeros(env.full_action_spec[ACTION].shape, dtype=torch.long)
+                action[..., 0] = 1
+                td.set(ACTION, action)
+            else:
+                td = policy(td)
+            td = env.step(td)
+            system += td.get(("next", "agents", "reward")).double().sum((-2, -1))
+            td = td.get("next")
+    episodes = env.pop_finished_episodes()
+    env.close()
+    out = {"system_reward": system.numpy()}
+    for key in episodes[0]:
+        out[key] = np.array([e[key] for e in episodes], dtype=float)
+    return out
+
+
+def scripted(seed: int, shield: bool, args: argparse.Namespace) -> dict[str, dict]:
+    """Keep lane and the cooperative merge rule on the evaluation roads of ``seed``."""
+    env = make_env(ENV, backend="torch", num_envs=1, n_vehicles=args.n_vehicles)
+    rule = CooperativeMerge(
+        int(env.config["lanes"]), float("inf"), 60.0, 30.0, 15.0, 15.0, 1.5, torch.int64
+    )
+    env.close()
+    return {
+        "keep lane": score(None, shield, seed, args),
+        "cooperative merge": score(rule, shield, seed, args),
+    }
+
+
+def evaluate(variant: str, seed: int, run_dir: Path, args: argparse.Namespace) -> dict:
+    """The greedy scores of the trained run, cached in ``<out>/evals/``."""
+    path = Path(args.out) / "evals" / f"{variant}_seed{seed}_{args.eval_roads}roads.json"
+    if path.is_file():
+        return json.loads(path.read_text())
+    recipe, _ = variant_overrides(variant, args)
+    exp = load_recipe(recipe).from_run_dir(run_dir)
+    try:
+        shield = bool(exp.config.env_config.get("shield", False))
+        result = {k: v.tolist() for k, v in score(exp.eval_policy, shield, seed, args).items()}
+    finally:
+        exp.close()
+    atomic_write_text(path, json.dumps(result))
+    return result
+
+
+def summarise(name: str, runs: list[dict], references: list[dict]) -> tuple[dict, str]:
+    """Summary fields and the table row of ``runs`` (one per seed) against keep lane on the
+    same roads (``references``)."""
+    gains = np.array(
+        [
+            100 * (np.mean(r["system_reward"]) / np.mean(k["system_reward"]) - 1)
+            for r, k in zip(runs, references, strict=True)
+        ]
+    )
+    _, low, high = bootstrap_interval(gains)
+
+    def per_episode(key: str) -> float:
+        return float(np.mean([np.mean(r[key]) for r in runs])) if key in runs[0] else 0.0
+
+    fields = {
+        "gain_percent_per_seed": gains.tolist(),
+        "gain_percent_mean": float(gains.mean()),
+        "gain_percent_ci95": [low, high],
+        "system_reward": float(np.mean([np.mean(r["system_reward"]) for r in runs])),
+        **{key: per_episode(key) for key in ("ramp_stuck", "collisions", "shielded")},
+        "average_comfort": per_episode("average_comfort"),
+    }
+    row = (
+        f"| {name} | {fields['system_reward']:.1f} | {gains.mean():+.1f}% [{low:+.1f}, "
+        f"{high:+.1f}] | {', '.join(f'{g:+.1f}' for g in gains)} | {fields['ramp_stuck']:.1f} "
+        f"| {fields['collisions']:.2f} | {fields['shielded']:.1f} "
+        f"| {fields['average_comfort']:.3f} |"
+    )
+    return fields, row
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--variants", nargs="+", default=["maddpg"])
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3, 4])
+    parser.add_argument("--frames", type=int, default=400_000)
+    parser.add_argument("--anneal-frames", type=int, default=200_000)
+    parser.add_argument("--train-roads", type=int, default=256)
+    parser.add_argument("--eval-roads", type=int, default=256)
+    parser.add_argument("--n-vehicles", type=int, default=30)
+    parser.add_argument("--out", default="outputs/cooperation_control")
+    args = parser.parse_args(argv)
+    for name in ("frames", "anneal_frames", "train_roads", "eval_roads", "n_vehicles"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    for variant in args.variants:  # a bad name fails before any training
+        variant_overrides(variant, args)
+    print(
+        f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, "
+        f"CPU capability {torch.backends.cpu.get_cpu_capability()}"
+    )
+    references = {
+        shield: [scripted(seed, shield, args) for seed in args.seeds] for shield in (False, True)
+    }
+    summary: dict[str, Any] = {"args": vars(args)}
+    header = [
+        f"{ENV}, {args.n_vehicles} CAVs (ratio 1), team reward, {args.frames} training frames "
+        f"per run, greedy evaluation on {args.eval_roads} roads per seed (seeds "
+        f"{' '.join(map(str, args.seeds))}); gain = system reward vs keep lane on the same "
+        "roads, mean over seeds [bootstrap 95% interval]",
+        "",
+        "| policy | system reward / episode | vs keep lane | per seed | ramp vehicles stuck "
+        "| collisions | shield interventions | comfort |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    rows = []
+    for shield in (False, True):
+        keep = [r["keep lane"] for r in references[shield]]
+        for name in ("keep lane", "cooperative merge"):
+            label = f"{name} (scripted{', shield' if shield else ''})"
+            fields, row = summarise(label, [r[name] for r in references[shield]], keep)
+            summary[label] = fields
+            rows.append(row)
+    for variant in args.variants:
+        shield = "shield" in variant.split("_")
+        runs = []
+        for seed in args.seeds:
+            print(f"{variant} seed {seed} ...", flush=True)
+            runs.append(evaluate(variant, seed, train(variant, seed, args), args))
+        keep = [r["keep lane"] for r in references[shield]]
+        summary[variant], row = summarise(variant, runs, keep)
+        rows.append(row)
+    table = "\n".join([*header, *rows])
+    out = Path(args.out)
+    atomic_write_text(out / "control.md", table + "\n")
+    atomic_write_text(out / "control.json", json.dumps(summary, indent=1))
+    print(table)
+    return summary
+
+
+if __name__ == "__main__":
+    from mapets_rl import quiet_dependencies
+
+    quiet_dependencies()
+    main()

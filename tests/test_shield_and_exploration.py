@@ -1,0 +1,158 @@
+"""The tools of issue 32's positive control: the batched freeway's model-predictive shield
+(``env_config.shield``) and MADDPG's epsilon-greedy exploration without random braking."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+from mapets_rl.recipes.maddpg import MADDPG, MADDPGConfig
+from torchrl.envs.utils import check_env_specs
+
+from mapets_rl.envs import make_env
+from mapets_rl.envs.freeway import ES, KL
+from mapets_rl.experiment import ConfigError
+
+ROADS = 16
+
+
+def _random_episode(shield: bool, seed: int = 0) -> list[dict[str, float]]:
+    """One 40-step episode of uniformly random decisions on ``ROADS`` roads of 30 CAVs."""
+    env = make_env("freeway-merge", backend="torch", num_envs=ROADS, shield=shield)
+    env.set_seed(seed)
+    td = env.reset()
+    generator = torch.Generator().manual_seed(seed)
+    for _ in range(40):
+        index = torch.randint(0, 4, (ROADS, 30), generator=generator)
+        td.set(("agents", "action"), torch.nn.functional.one_hot(index, 4))
+        td = env.step(td).get("next")
+    return env.pop_finished_episodes()
+
+
+def test_the_shield_leaves_the_roads_as_they_were_and_replaces_only_moves() -> None:
+    env = make_env("freeway-merge", backend="torch", num_envs=ROADS, shield=True)
+    env.set_seed(3)
+    env.reset()
+    sim = env.sim
+    generator = torch.Generator().manual_seed(3)
+    replaced_any = False
+    for _ in range(12):
+        action = torch.randint(0, 4, (ROADS, sim.n_cavs), generator=generator)
+        before = sim.snapshot()
+        safe, replaced = sim.shield(action)
+        after = sim.snapshot()
+        for key in before.keys(True, True):
+            assert torch.equal(before.get(key), after.get(key)), key
+        assert torch.equal(replaced, safe != action)
+        assert bool((safe[replaced] == KL).all())  # a replaced decision becomes Keep Lane
+        assert not bool((replaced & (action == KL)).any())  # Keep Lane is never replaced
+        replaced_any |= bool(replaced.any())
+        sim.step(action)
+    assert replaced_any
+
+
+def test_the_shield_prevents_most_crashes_of_random_decisions_and_counts_itself() -> None:
+    unshielded = _random_episode(shield=False)
+    shielded = _random_episode(shield=True)
+    crashes = sum(e["collisions"] for e in unshielded)
+    crashes_shielded = sum(e["collisions"] for e in shielded)
+    assert crashes_shielded < 0.5 * crashes, (crashes_shielded, crashes)
+    assert all(e["shielded"] > 0 for e in shielded)
+    assert "shielded" not in unshielded[0]
+
+
+def test_a_shielded_env_reports_its_interventions_in_the_specs() -> None:
+    env = make_env("freeway-merge", backend="torch", num_envs=2, n_vehicles=8, shield=True)
+    check_env_specs(env)
+    td = env.rollout(3)
+    assert td.get(("next", "agents", "info", "shielded")).shape == (2, 3, 8)
+
+
+@pytest.mark.parametrize(
+    ("backend", "config", "match"),
+    [
+        ("highway-env", {"shield": True}, "backend='torch'"),
+        ("torch", {"shield": "yes"}, "shield"),
+        ("torch", {"shield": True, "shield_horizon": 0}, "shield_horizon"),
+        ("torch", {"shield": True, "shield_horizon": 2.5}, "shield_horizon"),
+    ],
+)
+def test_a_bad_shield_is_refused(backend: str, config: dict, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        make_env("freeway-merge", backend=backend, n_vehicles=8, **config)
+
+
+def _maddpg(tmp_path: Path, **changes) -> MADDPG:
+    config = MADDPGConfig(
+        env="freeway-merge",
+        env_config={"backend": "torch", "num_envs": 8, "n_vehicles": 8, "cav_ratio": 1.0},
+        frames_per_batch=160,
+        total_frames=320,
+        eval_interval=0,
+        checkpoint_interval=0,
+        num_cells=[16],
+        batch_size=16,
+        init_random_frames=0,
+        progress=False,
+        logger="none",
+        **changes,
+    )
+    return MADDPG(config, tmp_path)
+
+
+def test_epsilon_greedy_exploration_draws_only_the_allowed_actions_and_anneals(
+    tmp_path: Path,
+) -> None:
+    exp = _maddpg(
+        tmp_path,
+        exploration="epsilon",
+        exploration_actions=[0, 1, 2],
+        epsilon_init=1.0,
+        epsilon_end=0.5,
+        epsilon_anneal_frames=320,
+    )
+    batch = next(iter(exp.collector))
+    drawn = batch.get(("agents", "action")).argmax(-1)
+    assert not bool((drawn == ES).any())
+    assert set(drawn.unique().tolist()) == {0, 1, 2}  # epsilon 1: uniform over the three
+    exp.train()
+    assert float(exp.exploration.eps) == pytest.approx(0.5, abs=1e-4)
+
+
+def test_gumbel_exploration_stays_the_default(tmp_path: Path) -> None:
+    exp = _maddpg(tmp_path)
+    assert exp.exploration is None  # the actor's Gumbel samples explore
+
+
+@pytest.mark.parametrize(
+    ("changes", "field"),
+    [
+        ({"exploration": "boltzmann"}, "exploration"),
+        ({"epsilon_init": 1.5}, "epsilon_init"),
+        ({"epsilon_init": 0.1, "epsilon_end": 0.2}, "epsilon_end"),
+        ({"epsilon_anneal_frames": 0}, "epsilon_anneal_frames"),
+        ({"exploration_actions": [0, 0]}, "exploration_actions"),
+        ({"exploration_actions": [-1]}, "exploration_actions"),
+    ],
+)
+def test_bad_exploration_settings_are_refused(changes: dict, field: str) -> None:
+    with pytest.raises(ConfigError, match=field):
+        MADDPGConfig(env="freeway-merge", **changes)
+
+
+def test_exploration_actions_beyond_the_action_space_are_refused(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="exploration_actions"):
+        _maddpg(tmp_path, exploration="epsilon", exploration_actions=[0, 4])
+
+
+def test_epsilon_greedy_is_refused_for_continuous_actions(tmp_path: Path) -> None:
+    config = MADDPGConfig(
+        env="figure-eight",
+        env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},
+        exploration="epsilon",
+        progress=False,
+        logger="none",
+    )
+    with pytest.raises(ValueError, match="exploration"):
+        MADDPG(config, tmp_path)

@@ -1,0 +1,102 @@
+"""Known answers of the interval estimates: the IQM of constructed samples, the coverage of the
+bootstrap interval on simulated normal samples, stratification, clipping, reproducibility."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mapets_rl.statistics import (
+    bootstrap_curve,
+    bootstrap_interval,
+    interquartile_mean,
+)
+
+
+def test_interquartile_mean_drops_the_lowest_and_highest_quarter() -> None:
+    assert interquartile_mean(np.arange(1.0, 9.0)) == pytest.approx(4.5)  # mean of 3, 4, 5, 6
+    # the outliers are the dropped quarters: mean of 2, 3, 4, 5
+    assert interquartile_mean([1000.0, 2.0, -100.0, 5.0, 3.0, 1.0, 4.0, 6.0]) == pytest.approx(3.5)
+    # n = 10: floor(10 / 4) = 2 dropped on each side, as scipy.stats.trim_mean(x, 0.25)
+    assert interquartile_mean(np.arange(10.0)) == pytest.approx(4.5)
+    assert interquartile_mean([1.0, 2.0, 9.0]) == pytest.approx(4.0)  # < 4 scores: the mean
+    rows = np.array([np.arange(1.0, 9.0), np.arange(1.0, 9.0) * 2])
+    assert interquartile_mean(rows, axis=1) == pytest.approx([4.5, 9.0])
+    assert interquartile_mean(rows) == pytest.approx(interquartile_mean(rows.reshape(-1)))
+    with pytest.raises(ValueError, match="non-empty"):
+        interquartile_mean([])
+
+
+@pytest.mark.parametrize("statistic", ["mean", "iqm"])
+def test_the_interval_covers_the_true_value_about_95_percent_of_the_time(statistic: str) -> None:
+    """400 normal samples of 30 runs: the true centre (mean = IQM = 0 for a symmetric law) lies
+    in the interval 90-98% of the time (the percentile bootstrap under-covers a little)."""
+    rng = np.random.default_rng(1)
+    hits = 0
+    for k in range(400):
+        sample = rng.normal(0.0, 1.0, size=30)
+        _, low, high = bootstrap_interval(sample, statistic, resamples=1000, seed=k)
+        hits += low <= 0.0 <= high
+    assert 0.90 <= hits / 400 <= 0.98, hits / 400
+
+
+def test_the_estimate_is_the_statistic_and_one_run_has_no_width() -> None:
+    values = [0.1, 0.5, 0.6, 0.9, 4.0]
+    assert bootstrap_interval(values).estimate == pytest.approx(np.mean(values))
+    assert bootstrap_interval(values, "iqm").estimate == pytest.approx(np.mean([0.5, 0.6, 0.9]))
+    assert tuple(bootstrap_interval([0.7])) == (0.7, 0.7, 0.7)
+
+
+def test_the_stratified_bootstrap_resamples_runs_within_each_task() -> None:
+    """Task 0 scores 0 on every run, task 1 scores 10: every replicate resamples 3 runs of each,
+    so its mean is 5 exactly (pooling the 6 scores would let it wander from 0 to 10)."""
+    scores = np.array([[0.0, 10.0], [0.0, 10.0], [0.0, 10.0]])  # [runs, tasks]
+    assert tuple(bootstrap_interval(scores)) == pytest.approx((5.0, 5.0, 5.0))
+    pooled = bootstrap_interval(scores.reshape(-1))
+    assert pooled.low < 3.0 and pooled.high > 7.0
+
+
+def test_the_interval_is_clipped_to_the_bounds() -> None:
+    # a safety sample out of range (as a faulty metric would give) still yields an interval in
+    # [0, 1]; a Student-t interval of [0.0, 1.0, 1.0] would reach 1.77
+    assert bootstrap_interval([-0.5, -0.2, 0.4], bounds=(0.0, 1.0)).low == 0.0
+    _, low, high = bootstrap_interval([0.0, 1.0, 1.0], bounds=(0.0, 1.0))
+    assert 0.0 <= low < high <= 1.0
+    curve = bootstrap_curve([[0.0, 2.0], [1.0, 3.0]], bounds=(0.0, 2.5))
+    assert curve.high == pytest.approx([1.0, 2.5]) and curve.low == pytest.approx([0.0, 2.0])
+
+
+def test_intervals_are_reproducible_and_a_curve_is_its_points() -> None:
+    rng = np.random.default_rng(3)
+    runs = rng.normal(size=(4, 6))  # [runs, points]
+    assert bootstrap_interval(runs[:, 2]) == bootstrap_interval(runs[:, 2])
+    many = rng.normal(size=20)  # (4 runs have few distinct resamples: seeds agree)
+    assert bootstrap_interval(many, seed=1) != bootstrap_interval(many)
+    curve = bootstrap_curve(runs, "iqm")
+    for point in range(6):
+        assert tuple(bootstrap_interval(runs[:, point], "iqm")) == pytest.approx(
+            (curve.estimate[point], curve.low[point], curve.high[point])
+        )
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"statistic": "median"}, "statistic must be one of"),
+        ({"bounds": (1.0, 0.0)}, "bounds must be"),
+        ({"bounds": (math.nan, 1.0)}, "bounds must be"),
+        ({"confidence": 1.0}, r"confidence must be in \(0, 1\)"),
+        ({"resamples": 0}, "resamples must be an integer >= 1"),
+        ({"scores": [1.0, math.nan]}, "scores must be finite"),
+        ({"scores": []}, r"non-empty \[runs\] or \[runs, tasks\]"),
+        ({"scores": np.zeros((2, 2, 2))}, "got shape"),
+    ],
+)
+def test_bad_input_names_the_parameter(kwargs: dict, message: str) -> None:
+    kwargs = {"scores": [0.1, 0.2], **kwargs}
+    with pytest.raises(ValueError, match=message):
+        bootstrap_interval(**kwargs)
+    with pytest.raises(ValueError, match=r"\[runs, points\]"):
+        bootstrap_curve([0.1, 0.2])
