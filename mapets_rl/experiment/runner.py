@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from mapets_rl._entry_points import check_name
 from mapets_rl.config import ConfigError, parse_override, read_yaml_mapping
+from mapets_rl.envs import scenario_config
 from mapets_rl.envs.registry import build_env
 from mapets_rl.experiment.checkpoint import (
     first_line,
@@ -567,7 +568,9 @@ class Experiment:
     def evaluate(self, episodes: int | None = None, video: bool | None = None) -> dict[str, float]:
         """Mean metrics over ``episodes`` deterministic episodes (default
         ``config.eval_episodes``) on the evaluation env, re-seeded identically every call.
-        With ``video`` the first episode is saved as ``videos/eval_<frames>.gif``."""
+        With ``video`` the first episode is saved as ``videos/eval_<frames>.gif``. A progress
+        bar counts the episodes on stderr (with ``config.progress``; it is removed when the
+        evaluation ends)."""
         episodes = self.config.eval_episodes if episodes is None else episodes
         if episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -580,7 +583,13 @@ class Experiment:
             self.env.set_seed(self.config.seed + EVAL_SEED_OFFSET)
             per_episode = []
             with set_exploration_type(ExplorationType.DETERMINISTIC):
-                for ep in range(episodes):
+                for ep in tqdm(
+                    range(episodes),
+                    desc=f"evaluate {self.name} {self.config.env} seed {self.config.seed}",
+                    unit="episode",
+                    disable=not self.config.progress,
+                    leave=False,
+                ):
                     frames: list[Any] | None = [] if (video and ep == 0) else None
                     rollout = self._eval_episode(frames)
                     per_episode.append(self.episode_metrics(rollout))
@@ -648,21 +657,12 @@ class Experiment:
         render = getattr(self.env, "render", None)
         return render() if callable(render) else None
 
-    def _policy_frequency(self) -> float:
-        """Policy steps per second of the video env's scenario (``policy_frequency`` of a
-        highway-env scenario, or of the torch freeway's config; 10 when the env does not
-        say)."""
-        base = getattr(self._video_env, "base_env", self._video_env)
-        scenario = getattr(getattr(base, "_env", None), "env", None)
-        config = getattr(scenario, "config", None) or getattr(base, "config", None)
-        return float((config if isinstance(config, Mapping) else {}).get("policy_frequency", 10))
-
     def _write_video(self, frames: list[Any]) -> Path:
         """An animated GIF of ``frames``, one per policy step, played in real time (imageio's
         GIF writer reads ``duration`` in milliseconds per frame)."""
         import imageio.v2 as imageio
 
-        delay_ms = 1000.0 / self._policy_frequency()
+        delay_ms = 1000.0 / policy_frequency(self._video_env)
         path = self.run_dir / "videos" / f"eval_{self.frames:012d}.gif"
         atomic_write(path, lambda tmp: imageio.mimsave(tmp, frames, duration=delay_ms))
         return path
@@ -972,6 +972,23 @@ def _ray_collector(
         ray_init_config=init,
         remote_configs={"num_cpus": 1},
     )
+
+
+VIDEO_FALLBACK_FREQUENCY = 10.0
+"""Frames per second of an evaluation GIF whose scenario has no ``policy_frequency`` (a
+registered scenario that is not a traffic scenario of ours)."""
+
+
+def policy_frequency(env: EnvBase) -> float:
+    """Policy steps per second of ``env``'s scenario, the frame rate of its evaluation GIFs:
+    ``policy_frequency`` of its config (a highway-env scenario of ours or the torch freeway,
+    transformed or not: 1 on the freeways, 10 on the figure-eights);
+    :data:`VIDEO_FALLBACK_FREQUENCY` for another env."""
+    try:
+        config = scenario_config(env)
+    except ValueError:
+        return VIDEO_FALLBACK_FREQUENCY
+    return float(config["policy_frequency"])
 
 
 def purge_step(frames: int, log_steps: Mapping[str, int] | None) -> int | None:
