@@ -175,6 +175,20 @@ def test_training_entries_and_checkpoints_of_a_recipe_loop(tmp_path: Path) -> No
     assert exp.latest_metrics == seen[-1]
 
 
+@pytest.mark.parametrize(
+    "intervals, name",
+    [
+        ({"eval_interval": -1, "checkpoint_interval": 1}, "eval_interval"),
+        ({"eval_interval": None, "checkpoint_interval": -5}, "checkpoint_interval"),
+    ],
+)
+def test_training_loop_refuses_a_negative_interval(intervals, name, tmp_path: Path) -> None:
+    exp = ToyLearner(ToyConfig(), tmp_path / "run")
+    with pytest.raises(ValueError, match=f"{name} must be >= 0"):
+        with exp.training_loop(**intervals):
+            pass
+
+
 # -------------------------------------------------------------------------------- compare
 @pytest.mark.parametrize("df, expected", [(1, 12.7062), (2, 4.3027), (4, 2.7764), (30, 2.0423)])
 def test_student_t_quantile_known_values(df: int, expected: float) -> None:

@@ -502,7 +502,12 @@ class Experiment:
         the frames per second and the latest evaluation's metrics). What a resumed run
         deferred is written after its first iteration (and at the end, when nothing was left
         to do). The run directory's lock is taken on entry (another writer is refused before
-        anything runs) and released on exit, normally or not (see :meth:`close`)."""
+        anything runs) and released on exit, normally or not (see :meth:`close`); ValueError
+        for a negative interval."""
+        if eval_interval is not None and eval_interval < 0:
+            raise ValueError(f"eval_interval must be >= 0 or None, got {eval_interval}")
+        if checkpoint_interval < 0:
+            raise ValueError(f"checkpoint_interval must be >= 0, got {checkpoint_interval}")
         self._hold_lock()
         try:
             done, total = self.progress()
