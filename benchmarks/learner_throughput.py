@@ -1,8 +1,9 @@
 """Learner throughput: frames per second of the model-free recipes on the batched torch freeway,
 and where the time goes.
 
-Each recipe trains through its own ``Experiment.run_iteration`` (collector -> ``train_step``
--> metrics -> policy weights) on ``make_env(ENV, backend="torch", num_envs=B)``, after a warm-up
+Each recipe trains through the iteration of ``Experiment.train`` (``_train_on_batch``:
+collector -> ``train_step`` -> metrics -> policy weights) on
+``make_env(ENV, backend="torch", num_envs=B)``, after a warm-up
 that fills its replay buffer past ``batch_size`` (and ``init_random_frames``) so that every
 measured round updates at the configured ratio. A round is ``--frames`` frames (a frame is one
 step of one road, all its CAVs together); per round we time, in wall-clock seconds of this
@@ -119,7 +120,7 @@ def measure(recipe: str, args: argparse.Namespace, run_dir: Path) -> list[dict[s
     """Per round: frames/s and the seconds of each phase."""
     exp = build(recipe, args, run_dir)
     clock = dict.fromkeys(("env", "collect", "learner"), 0.0)
-    exp.start_training()
+    exp._reset_collector()
     env = exp.collector.env
     timed(env, "_step", clock, "env")
     timed(env, "_reset", clock, "env")
@@ -129,14 +130,14 @@ def measure(recipe: str, args: argparse.Namespace, run_dir: Path) -> list[dict[s
     warm = max(getattr(cfg, "batch_size", 0), getattr(cfg, "init_random_frames", 0))
     warm = max(warm + cfg.frames_per_batch, args.warmup_frames)
     while exp.frames < warm:
-        exp.run_iteration()
+        exp._train_on_batch()
     rounds = []
     for _ in range(args.rounds):
         for key in clock:
             clock[key] = 0.0
         start, frames = time.perf_counter(), exp.frames
         while exp.frames - frames < args.frames:
-            exp.run_iteration()
+            exp._train_on_batch()
         wall = time.perf_counter() - start
         rounds.append(
             {

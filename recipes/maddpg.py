@@ -252,7 +252,7 @@ class MADDPG(Experiment):
                 sigma_init=config.sigma_init,
                 sigma_end=config.sigma_end,
                 annealing_num_steps=config.sigma_anneal_frames,
-                std=spec.action_half_range,
+                std=spec.action_half_range.tolist(),  # torchrl builds its buffer from a list
                 action_key=ACTION,
             )
             collection_policy = TensorDictSequential(self.actor, self.exploration)

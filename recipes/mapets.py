@@ -2,8 +2,8 @@
 
 Reads top to bottom: config -> env (+ :class:`~mapets_rl.comm.CommunicationRange`) -> per-agent
 ensembles -> NLL loss + Adam -> batched CEM planner -> per-agent datasets ``D(i)+`` -> the episode
-loop of :meth:`MAPETS.train` (the shared :meth:`Experiment.train` loop with one episode per
-iteration, :meth:`MAPETS.run_iteration`):
+loop of :meth:`MAPETS.train` (one loop on :meth:`Experiment.training_loop`, one episode per
+iteration):
 
 1. episode ``k <= random_episodes`` drives every CAV with uniformly random actions (line 2);
    later episodes let the planner drive all CAVs, each re-planning every step with its own
@@ -17,8 +17,8 @@ iteration, :meth:`MAPETS.run_iteration`):
 3. every CAV's ensemble is refit on its ``D(i)+`` (line 4: normaliser refit, ``model.epochs`` passes
    of 128-row minibatches, Adam): one vectorised optimisation over all ``I`` agents and ``B``
    members per minibatch; the per-epoch NLL curve is logged under ``model/nll``;
-4. the episode's metrics (agility, safety, reward, transitions shared, model NLL) go to the
-   logger and ``results.json`` and a checkpoint is written atomically.
+4. ``loop.end_iteration`` sends the episode's metrics (agility, safety, reward, transitions
+   shared, model NLL) to the logger and ``results.json`` and writes a checkpoint atomically.
 
 A run resumes from its latest checkpoint at the next episode (``mapets-rl resume RUN_DIR``, or
 ``MAPETS.from_run_dir(run_dir).train()``); every random stream is re-seeded from
@@ -146,9 +146,10 @@ class MAPETSConfig(RunConfig):
 
     - ``"paper"`` (Table II): ``w=25, Q=400, X=40, Y=5, P=20, B=5``, 3x300 hidden units, 5
       training epochs. About 0.37 TFLOP per agent and decision: a GPU workload.
-    - ``"cpu"``: ``w=25, Q=32, X=4, Y=2, P=5, B=5``, 3x64 hidden units
+    - ``"cpu"``: ``w=25, Q=8, X=4, Y=2, P=5, B=5``, 3x64 hidden units
       (:data:`mapets_rl.planning.CPU_PRESET`): the paper's horizon (a CAV must see 2.3 s ahead
-      to brake from top speed), a narrower CEM, 30 training epochs.
+      to brake from top speed), a narrower CEM with iCEM's anchor candidates and keep-best,
+      each rollout step compiled, 30 training epochs.
 
     A field set explicitly wins over the preset (``preset=cpu planner.horizon=15``); a section
     passed as a :class:`PlannerConfig` / :class:`EnsembleConfig` instance is taken whole. The
@@ -565,9 +566,9 @@ class MAPETS(Experiment):
         Each episode is drawn from its own seeds (so a resumed run continues as an
         uninterrupted one), driven by the planner (or with random actions for the first
         ``random_episodes``), stored in every CAV's ``D(i)+`` and shared within ``d``; then
-        every CAV's ensemble is refitted for the next episode. The episode's metrics go to
-        ``results.json`` (training entries), the logger and ``on_episode_end``, and a
-        checkpoint is written after each episode.
+        every CAV's ensemble is refitted for the next episode. ``loop.end_iteration`` then
+        sends the episode's metrics to ``results.json`` (training entries), the logger and
+        ``on_episode_end``, and writes a checkpoint (after every episode).
 
         Returns:
             the run's per-episode entries ``{"frames", "metrics"}`` (as in ``results.json``).
@@ -575,6 +576,9 @@ class MAPETS(Experiment):
         cfg = self.config
         with self.training_loop(
             on_episode_end,
+            eval_interval=None,
+            checkpoint_interval=1,
+            train_entries=True,
             label=f"{self.name} {cfg.env} d={cfg.comm.comm_range:g} seed {cfg.seed}",
             postfix=lambda m, fps: {k: f"{m[k]:.3g}" for k in ("agility", "safety") if k in m},
         ) as loop:
@@ -595,10 +599,6 @@ class MAPETS(Experiment):
                 metrics["step_time"] = act_time / rollout.shape[0]
                 self.frames += rollout.shape[0]
                 self.counters.episode = episode
-                loop.record(metrics)
-                self.results.add_train(self.frames, metrics)
-                self.latest_metrics = dict(metrics)
-                self.save_checkpoint()
                 loop.end_iteration(metrics)
         return self.results.train
 

@@ -154,7 +154,6 @@ def test_legacy_config_without_update_interval_reads_as_per_batch_updates() -> N
 
 # ----------------------------------------------------------------------- one sequence per road
 def _batch(exp) -> TensorDictBase:
-    exp.start_training()
     batch = exp.collector.next()
     exp.collector.shutdown()
     return batch

@@ -137,6 +137,57 @@ def test_resume_reproduces_uninterrupted_run(tmp_path: Path) -> None:
     assert torch.equal(_params(resumed), _params(full))
 
 
+@pytest.mark.parametrize("progress", [True, False])
+def test_evaluate_counts_its_episodes_on_stderr_unless_quiet(
+    progress: bool, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    exp = ToyLearner(ToyConfig(progress=progress), tmp_path / "run")
+    capsys.readouterr()
+    exp.evaluate(episodes=3)
+    out, err = capsys.readouterr()
+    assert out == ""
+    if progress:
+        assert "evaluate toy toy seed 0" in err and "0/3 " in err and "episode/s" in err
+    else:
+        assert err == ""
+
+
+def test_training_entries_and_checkpoints_of_a_recipe_loop(tmp_path: Path) -> None:
+    """A loop written in the recipe (as MA-PETS's): ``end_iteration`` alone keeps each
+    iteration's metrics as a training entry, checkpoints when due and calls back."""
+    exp = ToyLearner(ToyConfig(), tmp_path / "run")
+    seen = []
+    with exp.training_loop(
+        seen.append, eval_interval=None, checkpoint_interval=20, train_entries=True
+    ) as loop:
+        exp.collector.reset()
+        while not loop.finished:
+            metrics = exp._train_on_batch()
+            loop.end_iteration(metrics)
+    assert [entry["frames"] for entry in exp.results.train] == list(range(10, 61, 10))
+    assert [entry["metrics"] for entry in exp.results.train] == seen
+    assert exp.results.evaluations == []
+    assert [path.name for path in list_checkpoints(tmp_path / "run")][-2:] == [
+        "ckpt_000000000040.pt",
+        "ckpt_000000000060.pt",
+    ]
+    assert exp.latest_metrics == seen[-1]
+
+
+@pytest.mark.parametrize(
+    "intervals, name",
+    [
+        ({"eval_interval": -1, "checkpoint_interval": 1}, "eval_interval"),
+        ({"eval_interval": None, "checkpoint_interval": -5}, "checkpoint_interval"),
+    ],
+)
+def test_training_loop_refuses_a_negative_interval(intervals, name, tmp_path: Path) -> None:
+    exp = ToyLearner(ToyConfig(), tmp_path / "run")
+    with pytest.raises(ValueError, match=f"{name} must be >= 0"):
+        with exp.training_loop(**intervals):
+            pass
+
+
 # -------------------------------------------------------------------------------- compare
 @pytest.mark.parametrize("df, expected", [(1, 12.7062), (2, 4.3027), (4, 2.7764), (30, 2.0423)])
 def test_student_t_quantile_known_values(df: int, expected: float) -> None:

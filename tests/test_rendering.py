@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapets_rl.envs import FigureEightParallelEnv, FreewayParallelEnv
+from mapets_rl.envs import FigureEightParallelEnv, FreewayParallelEnv, scenario_config
 from mapets_rl.envs.rendering import (
     CAV_COLOR,
     CRASH_COLOR,
@@ -240,3 +240,51 @@ def test_the_figure_eight_evaluation_video_carries_colours_legend_and_steps(
             for s, c in zip(swatches, (CAV_COLOR, HV_COLOR, CRASH_COLOR), strict=True)
         )
     assert not np.array_equal(_step_counter(frames[0]), _step_counter(frames[1]))
+
+
+class _StepCountingMAPPO:
+    """A MAPPO whose evaluation env carries an observation transform (as MA-PETS's tile-coded
+    variant does): the GIF's frame rate must still be read from the scenario inside."""
+
+    def observation_transforms(self) -> list:
+        from torchrl.envs import StepCounter
+
+        return [StepCounter()]
+
+
+@pytest.mark.parametrize(
+    ("scenario", "backend", "transformed", "period_ms"),
+    [
+        ("freeway", "highway", False, 1000),
+        ("freeway", "torch", False, 1000),
+        ("freeway", "highway", True, 1000),
+        ("freeway-merge", "highway", False, 1000),
+        ("figure-eight", "highway", False, 100),
+    ],
+)
+def test_evaluation_gif_plays_one_frame_per_policy_step(
+    scenario: str, backend: str, transformed: bool, period_ms: int, tmp_path: Path
+) -> None:
+    from PIL import Image
+
+    from recipes.mappo import MAPPO, MAPPOConfig
+
+    if scenario == "figure-eight":
+        env_config = {"n_cavs": 2, "n_hvs": 1, "horizon": 3}
+    else:
+        env_config = {"n_vehicles": 4, "cav_ratio": 0.5, "horizon": 3, "spawn_length": 100.0}
+        if backend == "torch":
+            env_config["backend"] = "torch"
+    config = MAPPOConfig(env=scenario, env_config=env_config, progress=False, logger="none")
+    recipe = type("Transformed", (_StepCountingMAPPO, MAPPO), {}) if transformed else MAPPO
+    exp = recipe(config, tmp_path)
+    exp.evaluate(episodes=1, video=True)
+    # the scenario's own step (freeways 1 s, figure-eight 0.1 s) sets the frame duration
+    assert scenario_config(exp._video_env)["policy_frequency"] * period_ms == 1000
+    with Image.open(tmp_path / "videos" / "eval_000000000000.gif") as gif:
+        assert gif.n_frames == 3
+        durations = []
+        for index in range(gif.n_frames):
+            gif.seek(index)
+            durations.append(gif.info["duration"])
+    assert durations == [period_ms] * 3

@@ -28,6 +28,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage
 
+from mapets_rl._console import torchrl_info_dropped
+
 __all__ = ["ExchangeStats", "NeighbourDatasets"]
 
 
@@ -217,7 +219,8 @@ class NeighbourDatasets:
         slots = torch.nonzero(self._refcount == 0).squeeze(1)[: item.numel()]
         uid = torch.arange(self._next_uid, self._next_uid + item.numel(), device=self.device)
         self._next_uid += item.numel()
-        self.storage.set(slots, flat[item])
+        with torchrl_info_dropped():  # the first write allocates the storage
+            self.storage.set(slots, flat[item])
         self._owner[slots] = owner[item]
         self._uid[slots] = uid
         self._write(agent, position, slots, count)
@@ -412,7 +415,8 @@ class NeighbourDatasets:
         slots = state["slots"].to(self.device)
         data = TensorDict(state["data"], batch_size=slots.shape).to(self.device)
         if slots.numel():
-            self.storage.set(slots, data)
+            with torchrl_info_dropped():
+                self.storage.set(slots, data)
 
     def __repr__(self) -> str:
         return (

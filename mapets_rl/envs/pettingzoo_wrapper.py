@@ -67,6 +67,7 @@ from torchrl.data import OneHot, Unbounded
 from torchrl.envs import EnvBase
 from torchrl.envs.libs.pettingzoo import PettingZooWrapper
 
+from mapets_rl._console import pettingzoo_version_warning_ignored
 from mapets_rl.envs.parallel import TrafficParallelEnv
 from mapets_rl.envs.validation import check_one_hot
 
@@ -87,6 +88,12 @@ class AgentsPettingZooWrapper(PettingZooWrapper):
     def __init__(self, env: ParallelEnv, position: Position, **kwargs: Any) -> None:
         self.position = position
         super().__init__(env=env, **kwargs)
+
+    def _build_env(self, env: ParallelEnv) -> ParallelEnv:
+        """torchrl's, without its warning that it was tested with another PettingZoo version
+        (``pyproject.toml`` pins the version our tests run with)."""
+        with pettingzoo_version_warning_ignored():
+            return super()._build_env(env)
 
     def _init_env(self) -> None:
         super()._init_env()

@@ -33,11 +33,11 @@ How a recipe plugs in
    (resume / evaluate a saved run). Override ``episode_metrics`` / ``batch_metrics`` only to
    add metrics.
    A recipe whose unit of training is not a collected batch (MA-PETS: one episode of its
-   Algorithm 1) writes its own ``train()`` as one loop on ``self.training_loop(...)``, the
-   bookkeeping every loop shares (progress bar, ``train``/``timers`` logging, deferred writes
-   of a resumed run, the ``on_iteration_end`` callback): ``loop.record(metrics)`` after each
-   iteration, then its results (``self.results.add_train(frames, metrics)``) and checkpoint,
-   then ``loop.end_iteration(metrics)`` (see ``recipes/mapets.py``). Training entries
+   Algorithm 1) writes its own ``train()`` as one loop on ``self.training_loop(...)`` (and
+   overrides ``progress()``), the bookkeeping every loop shares: one call after each
+   iteration, ``loop.end_iteration(metrics)``, logs the metrics, keeps them in
+   ``results.json``, evaluates and checkpoints when due, calls the ``on_iteration_end``
+   callback and advances the progress bar (see ``recipes/mapets.py``). Training entries
    (``add_train``) and deterministic evaluations (``add_evaluation``) are kept apart;
    ``compare`` never mixes the two.
 4. Register it for the CLI with an entry point in the ``pyproject.toml`` of the package that

@@ -29,6 +29,7 @@ from tqdm import tqdm
 
 from mapets_rl._entry_points import check_name
 from mapets_rl.config import ConfigError, parse_override, read_yaml_mapping
+from mapets_rl.envs import scenario_config
 from mapets_rl.envs.registry import build_env
 from mapets_rl.experiment.checkpoint import (
     first_line,
@@ -80,49 +81,89 @@ def default_run_dir(recipe: str, env: str, seed: int, root: str | os.PathLike = 
 
 
 class TrainingLoop:
-    """The per-iteration bookkeeping of a training loop (see :meth:`Experiment.training_loop`):
-    ``finished`` is whether ``progress()`` (``(done, total)``) has reached its total."""
+    """The bookkeeping of a training loop (see :meth:`Experiment.training_loop`), done by
+    :meth:`end_iteration` after each iteration; ``finished`` is whether
+    :meth:`Experiment.progress` (``(done, total)``) has reached its total.
+
+    Args:
+        experiment: the experiment being trained.
+        bar: the progress bar, counting ``progress()`` units.
+        on_iteration_end: called with each iteration's metrics (or ``None``).
+        postfix: ``(metrics, fps) -> {name: text}``, what the bar shows after an iteration.
+        eval_interval: evaluate every this many ``progress()`` units and after the last
+            iteration (0: only after the last; ``None``: never).
+        checkpoint_interval: checkpoint every this many ``progress()`` units and after the
+            last iteration (0: only after the last).
+        train_entries: keep each iteration's metrics in ``results.json`` as a training entry
+            (and show them as the latest metrics).
+    """
 
     def __init__(
         self,
         experiment: Experiment,
         bar: tqdm,
-        progress: Callable[[], tuple[int, int]],
         on_iteration_end: Callable[[dict[str, float]], None] | None,
         postfix: Callable[[Mapping[str, float], float], dict[str, str]],
+        *,
+        eval_interval: int | None,
+        checkpoint_interval: int,
+        train_entries: bool,
     ) -> None:
         self.experiment = experiment
         self.bar = bar
-        self.progress = progress
         self.on_iteration_end = on_iteration_end
         self.postfix = postfix
-        self.done, self.total = progress()
-        self.previous = self.done
+        self.eval_interval = eval_interval
+        self.checkpoint_interval = checkpoint_interval
+        self.train_entries = train_entries
+        self.done, self.total = experiment.progress()
         self.start, self.start_frames = time.perf_counter(), experiment.frames
-        self.fps = 0.0
 
     @property
     def finished(self) -> bool:
         return self.done >= self.total
 
-    def record(self, metrics: Mapping[str, float]) -> None:
-        """After an iteration: write what a resumed run deferred, log ``metrics`` under
-        ``train`` and the frames per second under ``timers``, read the progress."""
+    def end_iteration(self, metrics: dict[str, float]) -> None:
+        """After an iteration that advanced :meth:`Experiment.progress`, in this order: write
+        what a resumed run deferred; log ``metrics`` under ``train`` and the frames per second
+        under ``timers``; keep ``metrics`` as a training entry (with ``train_entries``);
+        evaluate and checkpoint when due (see the class docstring); call
+        ``on_iteration_end(metrics)``; advance the progress bar.
+
+        An evaluation that fails (e.g. its video cannot be written) first writes the
+        checkpoint due at this iteration, without that evaluation, so the training done is
+        kept; then its error propagates."""
         exp = self.experiment
         exp._start_writing()
         elapsed = max(time.perf_counter() - self.start, 1e-9)
-        self.fps = (exp.frames - self.start_frames) / elapsed
+        fps = (exp.frames - self.start_frames) / elapsed
         log_scalars(exp.logger, "train", metrics, exp.frames)
-        log_scalars(exp.logger, "timers", {"fps": self.fps}, exp.frames)
-        self.previous = self.done
-        self.done, self.total = self.progress()
-
-    def end_iteration(self, metrics: dict[str, float]) -> None:
-        """Call ``on_iteration_end(metrics)`` and advance the progress bar."""
+        log_scalars(exp.logger, "timers", {"fps": fps}, exp.frames)
+        previous = self.done
+        self.done, self.total = exp.progress()
+        last = self.finished
+        if self.train_entries:
+            exp.results.add_train(exp.frames, metrics)
+            exp.latest_metrics = dict(metrics)
+        checkpoint_due = last or _crossed(previous, self.done, self.checkpoint_interval)
+        if self.eval_interval is not None and (
+            last or _crossed(previous, self.done, self.eval_interval)
+        ):
+            try:
+                evaluation = exp.evaluate()
+            except Exception:
+                if checkpoint_due:
+                    exp._save_boundary_checkpoint(last)
+                raise
+            exp.results.add_evaluation(exp.frames, evaluation)
+            log_scalars(exp.logger, "eval", evaluation, exp.frames)
+            exp.latest_metrics = evaluation
+        if checkpoint_due:
+            exp._save_boundary_checkpoint(last)
         if self.on_iteration_end is not None:
             self.on_iteration_end(metrics)
-        self.bar.update(self.done - self.previous)
-        self.bar.set_postfix(self.postfix(metrics, self.fps))
+        self.bar.update(self.done - previous)
+        self.bar.set_postfix(self.postfix(metrics, fps))
 
 
 class Experiment:
@@ -139,8 +180,9 @@ class Experiment:
     every ``eval_interval`` and checkpoints every ``checkpoint_interval`` frames. A recipe
     with another unit of work (MA-PETS: one episode of its Algorithm 1 per iteration, on a
     :class:`RunConfig` without a frame budget) writes its own ``train`` as one loop on
-    :meth:`training_loop`, the bookkeeping both loops share (progress bar, logging, deferred
-    writes of a resumed run, the ``on_iteration_end`` callback).
+    :meth:`training_loop` and overrides :meth:`progress`; both loops end each iteration with
+    one call, :meth:`TrainingLoop.end_iteration` (logging, results, evaluation and checkpoint
+    when due, the ``on_iteration_end`` callback, the progress bar).
 
     An experiment is the only writer of its run directory: it takes the directory's
     :class:`~mapets_rl.experiment.files.RunDirLock` before it writes anything there (a second
@@ -193,9 +235,11 @@ class Experiment:
         run_dir: str | os.PathLike | None = None,
         env: EnvBase | None = None,
     ) -> None:
-        """``env`` is the environment to train on (default :meth:`make_env`); a recipe that
-        transforms the scenario (MA-PETS appends its communication transform) builds it in its
-        own ``__init__`` and passes it here."""
+        """``env`` is the environment to train on, evaluate on and read the specs of (default:
+        ``config.env`` with ``config.env_config``, one road of it when ``env_config.num_envs``
+        batches the env; the collector builds the batched one); a recipe that transforms the
+        scenario (MA-PETS appends its communication transform) builds it in its own
+        ``__init__`` and passes it here."""
         if not isinstance(config, self.Config):
             raise ValueError(
                 f"config must be a {self.Config.__name__}, got {type(config).__name__}"
@@ -217,7 +261,7 @@ class Experiment:
         self.batches = 0
         self.boundaries = 0
         # a bad env_config fails here, before the run directory is touched
-        self.env = self.make_env() if env is None else env
+        self.env = build_env(config.env, config.unbatched_env_config()) if env is None else env
         make_writable_dir(self.run_dir)
         try:
             self._init_run_dir(restoring)
@@ -315,12 +359,6 @@ class Experiment:
         self.close()
 
     # ------------------------------------------------------------------ recipe-facing helpers
-    def make_env(self) -> EnvBase:
-        """A fresh environment of ``config.env`` with ``config.env_config``, one road of it
-        when ``env_config.num_envs`` batches the env (this is the env that evaluation and the
-        recipe's specs use; the collector builds the batched one)."""
-        return build_env(self.config.env, self.config.unbatched_env_config())
-
     def modules_to_device(self) -> None:
         """Move every torch module this experiment holds (policies, critics, normalisers,
         exploration modules; not the environments, which step on the CPU) to
@@ -414,66 +452,85 @@ class Experiment:
     def train(
         self, on_iteration_end: Callable[[dict[str, float]], None] | None = None
     ) -> list[dict[str, Any]]:
-        """Run (or continue) training until :meth:`progress` reaches its total (by default
-        ``config.total_frames``): each iteration is :meth:`run_iteration`, its metrics logged
-        under ``train`` (and the frames per second under ``timers``), then
-        :meth:`end_iteration` (evaluation, checkpoint, results) and
-        ``on_iteration_end(metrics)``. Returns :meth:`finish_training`'s entries (by default the
-        evaluations).
+        """Run (or continue) training until :meth:`progress` reaches ``config.total_frames``:
+        each iteration collects a batch and passes it to :meth:`train_step`; then
+        :meth:`TrainingLoop.end_iteration` logs its metrics, evaluates every
+        ``eval_interval`` frames, checkpoints every ``checkpoint_interval`` frames (both after
+        the last iteration too) and calls ``on_iteration_end(metrics)``. Returns the
+        evaluations (``results.json``'s ``evaluations`` entries).
 
         The run directory's lock is held for the whole loop and released when it ends,
         normally or not (see :meth:`training_loop`)."""
-        with self.training_loop(on_iteration_end) as loop:
-            self.start_training()
+        cfg = self.config
+        with self.training_loop(
+            on_iteration_end,
+            eval_interval=cfg.eval_interval,
+            checkpoint_interval=cfg.checkpoint_interval,
+        ) as loop:
+            if self.collector is None or self.eval_policy is None:
+                raise RuntimeError(
+                    f"{type(self).__name__}.__init__ must set self.collector and self.eval_policy"
+                )
+            self._reset_collector()
             while not loop.finished:
-                prev_frames = self.frames
-                metrics = self.run_iteration()
-                loop.record(metrics)
-                self.end_iteration(metrics, prev_frames, last=loop.finished)
-                loop.end_iteration(metrics)
-        return self.finish_training()
+                loop.end_iteration(self._train_on_batch())
+        self.collector.shutdown()
+        return self.results.evaluations
 
     @contextlib.contextmanager
     def training_loop(
         self,
         on_iteration_end: Callable[[dict[str, float]], None] | None = None,
         *,
-        progress: Callable[[], tuple[int, int]] | None = None,
+        eval_interval: int | None,
+        checkpoint_interval: int,
+        train_entries: bool = False,
         label: str | None = None,
-        unit: str | None = None,
         postfix: Callable[[Mapping[str, float], float], dict[str, str]] | None = None,
     ) -> Iterator[TrainingLoop]:
         """The bookkeeping every training loop shares, for a loop written in the recipe (MA-PETS
-        writes Algorithm 1 this way; :meth:`train`'s own loop uses it too)::
+        writes Algorithm 1 this way, one episode per iteration; :meth:`train`'s own loop uses
+        it too)::
 
-            with self.training_loop(on_iteration_end) as loop:
+            with self.training_loop(on_episode_end, eval_interval=None,
+                                    checkpoint_interval=1, train_entries=True) as loop:
                 while not loop.finished:
-                    metrics = ...            # one iteration; it advances self.progress()
-                    loop.record(metrics)     # log under "train" and "timers"
-                    ...                      # results, evaluation, checkpoint
-                    loop.end_iteration(metrics)  # the callback, the progress bar
+                    metrics = ...              # one iteration; it advances self.progress()
+                    loop.end_iteration(metrics)  # log, results, evaluation, checkpoint, bar
 
-        ``progress()`` returns ``(done, total)`` in ``unit`` s (default :meth:`progress`, frames);
-        ``label`` and ``postfix(metrics, fps)`` are the progress bar's description and what it
-        shows after an iteration (default :meth:`progress_label`, :meth:`progress_postfix`).
-        What a resumed run deferred is written after its first iteration (and at the end, when
-        nothing was left to do). The run directory's lock is taken on entry (another writer is
-        refused before anything runs) and released on exit, normally or not (see
-        :meth:`close`)."""
+        ``eval_interval``, ``checkpoint_interval`` and ``train_entries`` are those of
+        :class:`TrainingLoop`, counted in :meth:`progress` units (:attr:`progress_unit`).
+        ``label`` and ``postfix(metrics, fps)`` are the progress bar's description (default
+        ``"<recipe> <scenario> seed <seed>"``) and what it shows after an iteration (default:
+        the frames per second and the latest evaluation's metrics). What a resumed run
+        deferred is written after its first iteration (and at the end, when nothing was left
+        to do). The run directory's lock is taken on entry (another writer is refused before
+        anything runs) and released on exit, normally or not (see :meth:`close`); ValueError
+        for a negative interval."""
+        if eval_interval is not None and eval_interval < 0:
+            raise ValueError(f"eval_interval must be >= 0 or None, got {eval_interval}")
+        if checkpoint_interval < 0:
+            raise ValueError(f"checkpoint_interval must be >= 0, got {checkpoint_interval}")
         self._hold_lock()
         try:
-            progress = progress or self.progress
-            done, total = progress()
+            done, total = self.progress()
             bar = tqdm(
                 total=total,
                 initial=done,
                 disable=not self.config.progress,
-                desc=label or self.progress_label(),
-                unit=unit or self.progress_unit,
+                desc=label or f"{self.name} {self.config.env} seed {self.config.seed}",
+                unit=self.progress_unit,
             )
-            postfix = postfix or self.progress_postfix
             try:
-                yield TrainingLoop(self, bar, progress, on_iteration_end, postfix)
+                yield TrainingLoop(
+                    self,
+                    bar,
+                    on_iteration_end,
+                    postfix or self._evaluation_postfix,
+                    eval_interval=eval_interval,
+                    checkpoint_interval=checkpoint_interval,
+                    train_entries=train_entries,
+                )
             finally:
                 bar.close()
             self._start_writing()
@@ -481,30 +538,17 @@ class Experiment:
             self.close()
 
     def progress(self) -> tuple[int, int]:
-        """``(done, total)`` in :attr:`progress_unit`: the loop of :meth:`train` runs while
-        ``done < total``."""
+        """``(done, total)`` in :attr:`progress_unit`: a training loop runs while
+        ``done < total`` (default: frames, up to ``config.total_frames``)."""
         return self.frames, self.config.total_frames
 
-    def progress_label(self) -> str:
-        """The progress bar's description."""
-        return f"{self.name} {self.config.env} seed {self.config.seed}"
-
-    def progress_postfix(self, metrics: Mapping[str, float], fps: float) -> dict[str, str]:
-        """What the progress bar shows after an iteration with training ``metrics``."""
+    def _evaluation_postfix(self, metrics: Mapping[str, float], fps: float) -> dict[str, str]:
+        """The progress bar's default postfix: frames per second and the latest metrics."""
         return {"fps": f"{fps:.0f}", **{k: f"{v:.3g}" for k, v in self.latest_metrics.items()}}
 
-    def start_training(self) -> None:
-        """Before the first iteration: check the collector and reset its envs."""
-        if self.collector is None or self.eval_policy is None:
-            raise RuntimeError(
-                f"{type(self).__name__}.__init__ must set self.collector and self.eval_policy"
-            )
-        self._reset_collector()
-
-    def run_iteration(self) -> dict[str, float]:
-        """One unit of training that advances :meth:`progress` (by default: collect a batch,
-        :meth:`train_step` on it); returns its training metrics. It counts its environment
-        steps in ``self.frames``."""
+    def _train_on_batch(self) -> dict[str, float]:
+        """One iteration of :meth:`train`: collect a batch (its environment steps counted in
+        ``self.frames``), :meth:`train_step` on it; returns its training metrics."""
         batch = self.collector.next()
         self.frames += batch.numel()
         self.batches += 1
@@ -512,35 +556,14 @@ class Experiment:
         self.collector.update_policy_weights_()
         return {**self.batch_metrics(batch), **losses}
 
-    def end_iteration(self, metrics: Mapping[str, float], prev_frames: int, last: bool) -> None:
-        """After an iteration that advanced the frames from ``prev_frames`` (``last``: the
-        final one): evaluate every ``eval_interval`` frames and checkpoint every
-        ``checkpoint_interval`` frames, both at the end. An evaluation that fails (e.g. its
-        video cannot be written) first writes the checkpoint due at this iteration, without
-        that evaluation, so the training done is kept; then its error propagates."""
-        cfg = self.config
-        checkpoint_due = last or _crossed(prev_frames, self.frames, cfg.checkpoint_interval)
-        if last or _crossed(prev_frames, self.frames, cfg.eval_interval):
-            try:
-                evaluation = self.evaluate()
-            except Exception:
-                if checkpoint_due:
-                    self.boundaries += 1
-                    self.save_checkpoint()
-                raise
-            self.results.add_evaluation(self.frames, evaluation)
-            log_scalars(self.logger, "eval", evaluation, self.frames)
-            self.latest_metrics = evaluation
-        if checkpoint_due:
-            self.boundaries += 1
-            self.save_checkpoint()
-            if not last:
-                self._reset_collector()
-
-    def finish_training(self) -> list[dict[str, Any]]:
-        """After the last iteration: stop the collector; returns the evaluations."""
-        self.collector.shutdown()
-        return self.results.evaluations
+    def _save_boundary_checkpoint(self, last: bool) -> None:
+        """The checkpoint of a training loop: one more boundary, then the checkpoint; unless
+        it is the ``last``, the collector (when the recipe has one) is then re-seeded from
+        (seed, boundary), so a resumed run sees the episodes an uninterrupted one sees."""
+        self.boundaries += 1
+        self.save_checkpoint()
+        if not last and self.collector is not None:
+            self._reset_collector()
 
     def _reset_collector(self) -> None:
         """Re-seed and reset the collector's envs: a function of (seed, boundary) only, so a
@@ -553,7 +576,9 @@ class Experiment:
     def evaluate(self, episodes: int | None = None, video: bool | None = None) -> dict[str, float]:
         """Mean metrics over ``episodes`` deterministic episodes (default
         ``config.eval_episodes``) on the evaluation env, re-seeded identically every call.
-        With ``video`` the first episode is saved as ``videos/eval_<frames>.gif``."""
+        With ``video`` the first episode is saved as ``videos/eval_<frames>.gif``. A progress
+        bar counts the episodes on stderr (with ``config.progress``; it is removed when the
+        evaluation ends)."""
         episodes = self.config.eval_episodes if episodes is None else episodes
         if episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -566,7 +591,13 @@ class Experiment:
             self.env.set_seed(self.config.seed + EVAL_SEED_OFFSET)
             per_episode = []
             with set_exploration_type(ExplorationType.DETERMINISTIC):
-                for ep in range(episodes):
+                for ep in tqdm(
+                    range(episodes),
+                    desc=f"evaluate {self.name} {self.config.env} seed {self.config.seed}",
+                    unit="episode",
+                    disable=not self.config.progress,
+                    leave=False,
+                ):
                     frames: list[Any] | None = [] if (video and ep == 0) else None
                     rollout = self._eval_episode(frames)
                     per_episode.append(self.episode_metrics(rollout))
@@ -634,21 +665,12 @@ class Experiment:
         render = getattr(self.env, "render", None)
         return render() if callable(render) else None
 
-    def _policy_frequency(self) -> float:
-        """Policy steps per second of the video env's scenario (``policy_frequency`` of a
-        highway-env scenario, or of the torch freeway's config; 10 when the env does not
-        say)."""
-        base = getattr(self._video_env, "base_env", self._video_env)
-        scenario = getattr(getattr(base, "_env", None), "env", None)
-        config = getattr(scenario, "config", None) or getattr(base, "config", None)
-        return float((config if isinstance(config, Mapping) else {}).get("policy_frequency", 10))
-
     def _write_video(self, frames: list[Any]) -> Path:
         """An animated GIF of ``frames``, one per policy step, played in real time (imageio's
         GIF writer reads ``duration`` in milliseconds per frame)."""
         import imageio.v2 as imageio
 
-        delay_ms = 1000.0 / self._policy_frequency()
+        delay_ms = 1000.0 / policy_frequency(self._video_env)
         path = self.run_dir / "videos" / f"eval_{self.frames:012d}.gif"
         atomic_write(path, lambda tmp: imageio.mimsave(tmp, frames, duration=delay_ms))
         return path
@@ -958,6 +980,23 @@ def _ray_collector(
         ray_init_config=init,
         remote_configs={"num_cpus": 1},
     )
+
+
+VIDEO_FALLBACK_FREQUENCY = 10.0
+"""Frames per second of an evaluation GIF whose scenario has no ``policy_frequency`` (a
+registered scenario that is not a traffic scenario of ours)."""
+
+
+def policy_frequency(env: EnvBase) -> float:
+    """Policy steps per second of ``env``'s scenario, the frame rate of its evaluation GIFs:
+    ``policy_frequency`` of its config (a highway-env scenario of ours or the torch freeway,
+    transformed or not: 1 on the freeways, 10 on the figure-eights);
+    :data:`VIDEO_FALLBACK_FREQUENCY` for another env."""
+    try:
+        config = scenario_config(env)
+    except ValueError:
+        return VIDEO_FALLBACK_FREQUENCY
+    return float(config["policy_frequency"])
 
 
 def purge_step(frames: int, log_steps: Mapping[str, int] | None) -> int | None:

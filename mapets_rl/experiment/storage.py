@@ -16,6 +16,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage
 
+from mapets_rl._console import torchrl_info_dropped
+
 __all__ = ["FilledTensorStorage"]
 
 
@@ -25,6 +27,11 @@ class FilledTensorStorage(LazyTensorStorage):
     before it wraps around), as ``{"rows", "data"}`` with ``data`` a nested dict of tensors (or
     a tensor). :meth:`load_state_dict` puts them back and zeroes the rows after them; it also
     reads the state of a plain ``LazyTensorStorage`` (every row)."""
+
+    def _init(self, data: TensorDictBase | torch.Tensor) -> None:
+        """torchrl's allocation on the first write, without its INFO line on stdout."""
+        with torchrl_info_dropped():
+            super()._init(data)
 
     def state_dict(self) -> dict[str, Any]:
         """``{"rows", "data", "initialized", "_len"}``; see the class docstring."""
