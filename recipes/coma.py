@@ -31,9 +31,9 @@ from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.objectives import SoftUpdate
 
 from mapets_rl.experiment import Experiment, SystemRewardMetrics, check
-from mapets_rl.experiment.storage import FilledTensorStorage
 from mapets_rl.experiment.training import OnPolicyConfig, check_layer_sizes
 from mapets_rl.modules import ACTION, ACTION_VALUE, OBS, AgentGroupSpec, make_stochastic_policy
+from mapets_rl.modules.storage import FilledTensorStorage
 from mapets_rl.objectives import COMACritic, COMALoss
 
 TARGET = ("agents", "coma_target")

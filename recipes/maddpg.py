@@ -36,7 +36,6 @@ from torchrl.modules import AdditiveGaussianModule, EGreedyModule, MultiAgentMLP
 from torchrl.objectives import SoftUpdate, ValueEstimators
 
 from mapets_rl.experiment import Experiment, check
-from mapets_rl.experiment.storage import FilledTensorStorage
 from mapets_rl.experiment.training import OffPolicyConfig
 from mapets_rl.modules import (
     ACTION,
@@ -53,6 +52,7 @@ from mapets_rl.modules import (
     make_q_critic,
     sync_target_statistics,
 )
+from mapets_rl.modules.storage import FilledTensorStorage
 from mapets_rl.objectives.ddpg import PreactivationRegularisedDDPGLoss
 from mapets_rl.objectives.m3ddpg import M3DDPGLoss
 from mapets_rl.objectives.n_step import STEPS_TO_NEXT_OBS, n_step_transitions

@@ -23,7 +23,6 @@ from torchrl.objectives import ValueEstimators
 from torchrl.objectives.multiagent import IPPOLoss, MAPPOLoss
 
 from mapets_rl.experiment import Experiment, check
-from mapets_rl.experiment.storage import FilledTensorStorage
 from mapets_rl.experiment.training import OnPolicyConfig
 from mapets_rl.modules import (
     ACTION,
@@ -37,6 +36,7 @@ from mapets_rl.modules import (
     make_obs_norm,
     make_stochastic_policy,
 )
+from mapets_rl.modules.storage import FilledTensorStorage
 
 
 @dataclasses.dataclass

@@ -24,7 +24,6 @@ from torchrl.modules import MultiAgentMLP
 from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate, ValueEstimators
 
 from mapets_rl.experiment import Experiment, check
-from mapets_rl.experiment.storage import FilledTensorStorage
 from mapets_rl.experiment.training import OffPolicyConfig
 from mapets_rl.modules import (
     ACTION,
@@ -41,6 +40,7 @@ from mapets_rl.modules import (
     make_stochastic_policy,
     sync_target_statistics,
 )
+from mapets_rl.modules.storage import FilledTensorStorage
 
 
 @dataclasses.dataclass

@@ -31,9 +31,9 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.objectives import SoftUpdate
 
 from mapets_rl.experiment import Experiment, SystemRewardMetrics, check
-from mapets_rl.experiment.storage import FilledTensorStorage
 from mapets_rl.experiment.training import OffPolicyConfig, check_layer_sizes
 from mapets_rl.modules import AgentGroupSpec, GumbelSoftmaxHead
+from mapets_rl.modules.storage import FilledTensorStorage
 from mapets_rl.objectives import ShapleyActorCriticLoss
 from mapets_rl.shapley import CoalitionCritic, RandomCoalition, make_coalition_actor
 

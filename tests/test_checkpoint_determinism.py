@@ -21,7 +21,7 @@ from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 
 from mapets_rl.comm import NeighbourDatasets
 from mapets_rl.experiment import latest_checkpoint, load_checkpoint
-from mapets_rl.experiment.storage import FilledTensorStorage
+from mapets_rl.modules.storage import FilledTensorStorage
 
 TINY_MAPETS = dict(TINY, episodes=2, seed=3)
 

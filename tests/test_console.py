@@ -13,8 +13,8 @@ ROOT = Path(__file__).resolve().parents[1]
 TRAIN = """
 import sys, tempfile
 from mapets_rl.envs import make_env
-from recipes.maddpg import MADDPG, MADDPGConfig
-from recipes.mapets import MAPETS, MAPETSConfig
+from mapets_rl.recipes.maddpg import MADDPG, MADDPGConfig
+from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
 make_env("freeway", n_vehicles=4, cav_ratio=0.5, horizon=3)
 scenario = {"env": "figure-eight", "env_config": {"n_cavs": 2, "n_hvs": 1, "horizon": 5}}

@@ -265,9 +265,8 @@ class _StepCountingMAPPO:
 def test_evaluation_gif_plays_one_frame_per_policy_step(
     scenario: str, backend: str, transformed: bool, period_ms: int, tmp_path: Path
 ) -> None:
+    from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
     from PIL import Image
-
-    from recipes.mappo import MAPPO, MAPPOConfig
 
     if scenario == "figure-eight":
         env_config = {"n_cavs": 2, "n_hvs": 1, "horizon": 3}
