@@ -73,9 +73,8 @@ def load() -> str:
 
 def build(recipe: str, args: argparse.Namespace, run_dir: Path) -> Any:
     """The ``recipe`` experiment on ``args.num_envs`` roads of the batched torch freeway."""
-    from mapets_rl.recipes.maddpg import OPENAI_MADDPG
-
     from mapets_rl.app.plugins import load_recipe
+    from mapets_rl.recipes.maddpg import OPENAI_MADDPG
 
     cls = load_recipe(recipe)
     env_config = {

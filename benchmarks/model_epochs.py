@@ -42,11 +42,11 @@ import time
 from pathlib import Path
 
 import torch
-from mapets_rl.recipes.mapets import MAPETS
 from tensordict import TensorDict
 
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, fit_ensemble, train_ensemble
+from mapets_rl.recipes.mapets import MAPETS
 
 GAP_AHEAD = 5
 #: The loss keys of the flat ``[N, I, *]`` dataset :func:`load_data` builds.

@@ -24,10 +24,10 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig  # noqa: E402
 
 from mapets_rl.experiment import atomic_savefig, default_run_dir  # noqa: E402
 from mapets_rl.plotting import draw_curve  # noqa: E402
+from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig  # noqa: E402
 
 
 def plot(history: list[dict[str, float]], path: Path, title: str) -> None:

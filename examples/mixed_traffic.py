@@ -51,8 +51,6 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from mapets_rl.recipes.coma import COMA, COMAConfig  # noqa: E402
-from mapets_rl.recipes.shapley_ac import ShapleyAC, ShapleyACConfig  # noqa: E402
 
 from mapets_rl.envs import FreewayEnv, FreewayMergeEnv  # noqa: E402
 from mapets_rl.experiment import (
@@ -64,6 +62,8 @@ from mapets_rl.experiment import (
 )
 from mapets_rl.metrics import MPH_PER_MPS  # noqa: E402
 from mapets_rl.plotting import draw_curve  # noqa: E402
+from mapets_rl.recipes.coma import COMA, COMAConfig  # noqa: E402
+from mapets_rl.recipes.shapley_ac import ShapleyAC, ShapleyACConfig  # noqa: E402
 from mapets_rl.statistics import mean_ci95  # noqa: E402
 
 RATIOS = (0.0, 0.17, 0.33, 0.5, 0.67, 0.83, 1.0)

@@ -16,11 +16,6 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
-from mapets_rl.recipes.maddpg import MADDPGConfig
-from mapets_rl.recipes.mapets import MAPETSConfig
-from mapets_rl.recipes.mappo import MAPPOConfig
-from mapets_rl.recipes.sac import SACConfig
-from mapets_rl.recipes.shapley_ac import ShapleyACConfig
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from toy_recipe import ToyConfig, ToyLearner
@@ -33,6 +28,11 @@ from mapets_rl.experiment import register_env
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.objectives import COMACritic, COMALoss, EnsembleNLLLoss, ShapleyActorCriticLoss
 from mapets_rl.planning import TrajectorySamplingCEM
+from mapets_rl.recipes.maddpg import MADDPGConfig
+from mapets_rl.recipes.mapets import MAPETSConfig
+from mapets_rl.recipes.mappo import MAPPOConfig
+from mapets_rl.recipes.sac import SACConfig
+from mapets_rl.recipes.shapley_ac import ShapleyACConfig
 from mapets_rl.shapley import (
     CoalitionCritic,
     RandomCoalition,
@@ -1088,9 +1088,8 @@ def test_mapets_refuses_a_scenario_or_size_before_writing_the_run_dir(
 def test_mapets_refuses_figure_eight_reward_fields_beside_a_reward_fn(tmp_path: Path) -> None:
     """collision_gap & co. configure the default figure-eight reward; with a reward_fn of the
     user's they were silently ignored."""
-    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
-
     from mapets_rl.envs import figure_eight_reward
+    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
     config = MAPETSConfig(env="figure-eight", preset="cpu", collision_gap=3.0)
     _refused(

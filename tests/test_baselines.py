@@ -7,13 +7,13 @@ from pathlib import Path
 
 import pytest
 import torch
-from mapets_rl.recipes.maddpg import MADDPG, MADDPGConfig
-from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
-from mapets_rl.recipes.sac import SAC, SACConfig
 from PIL import Image
 from torchrl.modules import MultiAgentMLP
 
 from mapets_rl.experiment import ConfigError
+from mapets_rl.recipes.maddpg import MADDPG, MADDPGConfig
+from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
+from mapets_rl.recipes.sac import SAC, SACConfig
 
 pytestmark = pytest.mark.usefixtures("toy_scenario")
 

@@ -13,18 +13,18 @@ from typing import Any
 
 import pytest
 import torch
-from mapets_rl.recipes.coma import COMA, COMAConfig
-from mapets_rl.recipes.maddpg import M3DDPG, MADDPG, OPENAI_MADDPG, M3DDPGConfig, MADDPGConfig
-from mapets_rl.recipes.mapets import MAPETSConfig
-from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
-from mapets_rl.recipes.sac import SAC, SACConfig
-from mapets_rl.recipes.shapley_ac import ShapleyAC, ShapleyACConfig
 from PIL import Image
 from tensordict import TensorDictBase
 
 from mapets_rl.experiment import ConfigError
 from mapets_rl.modules import TRANSITION_KEYS
 from mapets_rl.objectives.n_step import n_step_transitions
+from mapets_rl.recipes.coma import COMA, COMAConfig
+from mapets_rl.recipes.maddpg import M3DDPG, MADDPG, OPENAI_MADDPG, M3DDPGConfig, MADDPGConfig
+from mapets_rl.recipes.mapets import MAPETSConfig
+from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
+from mapets_rl.recipes.sac import SAC, SACConfig
+from mapets_rl.recipes.shapley_ac import ShapleyAC, ShapleyACConfig
 
 ROADS = 4
 ENV_CONFIG = {"backend": "torch", "num_envs": ROADS, "n_vehicles": 6, "cav_ratio": 1.0}

@@ -11,9 +11,6 @@ from typing import Any
 
 import pytest
 import torch
-from mapets_rl.recipes.maddpg import MADDPG, MADDPGConfig
-from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
-from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
 from tensordict import TensorDict
 from test_recipe_mapets import TINY
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
@@ -22,6 +19,9 @@ from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from mapets_rl.comm import NeighbourDatasets
 from mapets_rl.experiment import latest_checkpoint, load_checkpoint
 from mapets_rl.modules.storage import FilledTensorStorage
+from mapets_rl.recipes.maddpg import MADDPG, MADDPGConfig
+from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
+from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
 
 TINY_MAPETS = dict(TINY, episodes=2, seed=3)
 

@@ -110,6 +110,7 @@ def test_evaluate_video_prints_only_our_output(tmp_path: Path) -> None:
     """No dependency chatter (torchrl INFO lines, PettingZoo version warning, SDL's
     XDG_RUNTIME_DIR error) on a console without a desktop session, and the GIF is drawn."""
     import imageio.v2 as imageio
+
     from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
 
     run = tmp_path / "run"

@@ -6,13 +6,13 @@ from pathlib import Path
 
 import pytest
 import torch
-from mapets_rl.recipes.coma import COMA, COMAConfig
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
 
 from mapets_rl.experiment import ConfigError
 from mapets_rl.objectives import COMACritic, COMALoss, counterfactual_advantage
+from mapets_rl.recipes.coma import COMA, COMAConfig
 
 OBS = ("agents", "observation")
 ACTION = ("agents", "action")

@@ -5,7 +5,6 @@ import logging
 
 import pytest
 import torch
-from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 from tensordict import TensorDict
 
 from mapets_rl.envs.figure_eight import figure_eight_collision, figure_eight_reward
@@ -13,6 +12,7 @@ from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.planning import TrajectorySamplingCEM, compiled
 from mapets_rl.planning.compiled import CompiledStep
 from mapets_rl.planning.trajectory_sampling import propagate_step
+from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
 needs_compiler = pytest.mark.skipif(
     compiled.compiler_unavailable() is not None, reason="no C++ compiler for inductor"

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import gymnasium as gym
 import pytest
-from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
 from mapets_rl.app.cli import main
 from mapets_rl.envs import GYM_IDS, builtin_envs, make_env, make_parallel_env
+from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
 TINY_PLANNER = dict(
     preset="cpu",

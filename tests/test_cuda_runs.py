@@ -5,13 +5,13 @@ The environments step on the CPU; policies, models, datasets and generators live
 
 import pytest
 import torch
+
 from mapets_rl.recipes.coma import COMA
 from mapets_rl.recipes.maddpg import MADDPG
 from mapets_rl.recipes.mapets import MAPETS
 from mapets_rl.recipes.mappo import MAPPO
 from mapets_rl.recipes.sac import SAC
 from mapets_rl.recipes.shapley_ac import ShapleyAC
-
 from tests.test_recipe_mapets import tiny
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

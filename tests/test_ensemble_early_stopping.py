@@ -6,7 +6,6 @@ import json
 
 import pytest
 import torch
-from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 from tensordict import TensorDict
 
 from mapets_rl.experiment import ConfigError
@@ -18,6 +17,7 @@ from mapets_rl.objectives import (
     holdout_split,
     train_ensemble,
 )
+from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
 OBS = ("agents", "observation")
 ACT = ("agents", "action")

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from mapets_rl.recipes.maddpg import M3DDPG, M3DDPGConfig
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
@@ -27,6 +26,7 @@ from mapets_rl.objectives import (
     PreactivationRegularisedDDPGLoss,
     minimax_action_perturbation,
 )
+from mapets_rl.recipes.maddpg import M3DDPG, M3DDPGConfig
 
 B, N, OBS_DIM, D = 6, 3, 4, 2
 OBS, ACTION, Q = ("agents", "observation"), ("agents", "action"), ("agents", "q")

@@ -9,10 +9,10 @@ import textwrap
 import pytest
 import torch
 import yaml
-from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
 from mapets_rl.app.cli import main as cli_main
 from mapets_rl.experiment import ConfigError, latest_checkpoint, load_checkpoint
+from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
 TINY = dict(
     env_config={"n_cavs": 3, "n_hvs": 2, "horizon": 20},

@@ -5,9 +5,9 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
-from mapets_rl.recipes.shapley_ac import ShapleyAC, ShapleyACConfig
 
 from mapets_rl.experiment import ConfigError, list_checkpoints
+from mapets_rl.recipes.shapley_ac import ShapleyAC, ShapleyACConfig
 
 
 def _config(**overrides):

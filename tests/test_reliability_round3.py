@@ -521,9 +521,8 @@ def test_a_failing_final_evaluation_still_writes_the_final_checkpoint(
     ],
 )
 def test_conflicting_nested_overrides_are_refused(overrides):
-    from mapets_rl.recipes.mapets import MAPETSConfig
-
     from mapets_rl.config import ConfigError
+    from mapets_rl.recipes.mapets import MAPETSConfig
 
     with pytest.raises(ConfigError, match="both set (planner|env_config): give it once"):
         MAPETSConfig().with_overrides(overrides)
@@ -590,9 +589,8 @@ def test_a_deeply_nested_config_file_is_one_error(tmp_path):
     "override", ["env_config.x=" + "[" * 5000 + "]" * 5000, "env_config." + "a." * 2000 + "b=1"]
 )
 def test_a_deeply_nested_override_is_one_error(override):
-    from mapets_rl.recipes.mappo import MAPPOConfig
-
     from mapets_rl.config import ConfigError
+    from mapets_rl.recipes.mappo import MAPPOConfig
 
     with pytest.raises(ConfigError, match="deeper than 32 levels"):
         MAPPOConfig().with_overrides([override])
@@ -808,9 +806,8 @@ def test_identical_mapets_runs_write_byte_identical_checkpoints_and_results(tmp_
     results.json of two identical runs are equal byte for byte."""
     import hashlib
 
-    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
-
     from mapets_rl.experiment.results import read_results
+    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
     tiny = dict(
         env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},
@@ -859,9 +856,8 @@ def test_a_resume_keeps_the_timings_of_the_entries_its_checkpoint_holds(tmp_path
 def test_a_resume_hides_no_tensorboard_point_logged_before_its_checkpoint(tmp_path, monkeypatch):
     """MA-PETS logs model/nll by epoch (10 per episode here), ahead of the frames (5 per
     episode): the purge step must lie past the epochs, or TensorBoard hides epochs 6-10."""
-    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
-
     from mapets_rl.experiment import results
+    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
     tiny = dict(
         env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5},

@@ -213,6 +213,7 @@ def test_the_figure_eight_evaluation_video_carries_colours_legend_and_steps(
     tmp_path: Path,
 ) -> None:
     import imageio.v2 as imageio
+
     from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
 
     config = MAPPOConfig(
@@ -265,8 +266,9 @@ class _StepCountingMAPPO:
 def test_evaluation_gif_plays_one_frame_per_policy_step(
     scenario: str, backend: str, transformed: bool, period_ms: int, tmp_path: Path
 ) -> None:
-    from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
     from PIL import Image
+
+    from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
 
     if scenario == "figure-eight":
         env_config = {"n_cavs": 2, "n_hvs": 1, "horizon": 3}

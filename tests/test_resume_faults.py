@@ -16,8 +16,6 @@ from typing import Any
 import pytest
 import torch
 import yaml
-from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
-from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
 from test_checkpoint_determinism import _assert_equal
 from test_recipe_mapets import TINY
 
@@ -28,6 +26,8 @@ from mapets_rl.experiment import (
     verified_checkpoints,
 )
 from mapets_rl.experiment.files import WriteFailed
+from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
+from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import pytest
 import torch
-from mapets_rl.recipes.maddpg import MADDPG, MADDPGConfig
 from torchrl.envs.utils import check_env_specs
 
 from mapets_rl.envs import make_env
 from mapets_rl.envs.freeway import ES, KL
 from mapets_rl.experiment import ConfigError
+from mapets_rl.recipes.maddpg import MADDPG, MADDPGConfig
 
 ROADS = 16
 

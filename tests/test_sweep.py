@@ -255,9 +255,10 @@ def test_model_free_recipe_collects_with_torchrl_collector(kind, tmp_path):
     if kind == "ray":
         pytest.importorskip("ray", reason="ray is not installed (pip install 'mapets-rl[ray]')")
     import torch
-    from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
     from torchrl.collectors import MultiSyncCollector
     from torchrl.collectors.distributed import RayCollector
+
+    from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
 
     exp = MAPPO(MAPPOConfig(**COLLECTOR_RUN, collector=kind), tmp_path)
     assert isinstance(exp.collector, MultiSyncCollector if kind == "multi_sync" else RayCollector)

@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 from test_recipe_mapets import tiny
 from torchrl.envs.utils import check_env_specs
 
 from mapets_rl.envs import figure_eight_observation_bounds, make_env
 from mapets_rl.experiment import ConfigError
 from mapets_rl.modules import TileCodedObservation, TileCoder, TileCodingConfig
+from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
 OBS = ("agents", "observation")
 ACTION = ("agents", "action")

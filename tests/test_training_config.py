@@ -9,13 +9,13 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
+
+from mapets_rl.experiment import ConfigError
+from mapets_rl.experiment.training import ModelFreeConfig, OffPolicyConfig, OnPolicyConfig
 from mapets_rl.recipes.maddpg import MADDPGConfig
 from mapets_rl.recipes.mappo import MAPPOConfig
 from mapets_rl.recipes.sac import SAC, SACConfig
 from mapets_rl.recipes.shapley_ac import ShapleyAC, ShapleyACConfig
-
-from mapets_rl.experiment import ConfigError
-from mapets_rl.experiment.training import ModelFreeConfig, OffPolicyConfig, OnPolicyConfig
 
 OFF_POLICY = (MADDPGConfig, SACConfig, ShapleyACConfig)
 SHARED_OFF_POLICY = (

@@ -43,12 +43,12 @@ import highway_env  # noqa: F401 - registers highway-v0 with gymnasium
 import numpy as np
 import torch
 from gymnasium import spaces
-from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
-from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
 from pettingzoo import ParallelEnv
 from torchrl.envs import EnvBase
 
 from mapets_rl.envs import register_env, wrap_pettingzoo
+from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
+from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
 
 FEATURES = ("presence", "x", "y", "vx", "vy")
 """Kinematics features of each observed vehicle (row 0: the observer)."""

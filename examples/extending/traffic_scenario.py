@@ -54,7 +54,6 @@ import torch
 from highway_env.road.lane import LineType, StraightLane
 from highway_env.road.road import RoadNetwork
 from highway_env.vehicle.kinematics import Vehicle
-from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.objectives import LossModule
@@ -68,6 +67,7 @@ from mapets_rl.metrics import agility, safety
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.objectives import read_transitions
 from mapets_rl.planning import PlannerConfig
+from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
 GAP_RANGE = 50.0
 """Gaps beyond this many metres read as ``GAP_RANGE`` (nobody ahead)."""
