@@ -30,7 +30,7 @@ the other lane): their gap features jump, which no dynamics model of the CAV's o
 predict. (Keeping the changes that only move an observed vehicle between the own and the other
 lane's slots was measured and rejected: their jumps of up to 70 m raise the gap-ahead error of an
 exact own-motion model on the kept transitions from 0.06 to 2.7 m per step, and flagging every
-change keeps 93% of the transitions once CAVs no longer weave; ``benchmarks/RESULTS.md``.)
+change keeps 93% of the transitions once CAVs no longer weave; ``docs/results/mapets.md``.)
 
 CAV action: target speed in ``[0, 13.89]`` m/s, plus on two lanes a lane-change flag in
 ``[0, 1]`` (> 0.5 requests a change to the other lane; a request starts a change only while

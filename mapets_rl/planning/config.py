@@ -155,7 +155,8 @@ PAPER_PRESET = Preset(planner=PlannerConfig(), model=EnsembleConfig())
 #: planner is as safe at Q = 8 or 16 as at Q = 32 on both figure-eights, with the exact model and
 #: with the learned ones (iCEM's colored noise costs two-lane safety, so it stays off). Each
 #: rollout step is compiled (``compile``; eager where no C++ compiler is found). See
-#: benchmarks/RESULTS.md for timings, the safety-vs-model-rows table and the NLL curve.
+#: docs/results/ (performance.md: timings; ablations.md: safety against model rows; mapets.md:
+#: the NLL curve).
 CPU_PRESET = Preset(
     planner=PlannerConfig(
         horizon=25,
