@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from mapets_rl.envs import figure_eight_collision
+from mapets_rl.envs import FigureEightPlannerReward
 from mapets_rl.envs.figure_eight import FigureEightEnv
 from mapets_rl.envs.figure_eight_kinematics import FigureEightKinematicModel
 from mapets_rl.planning import CPU_PRESET, PAPER_PRESET, TrajectorySamplingCEM
@@ -124,10 +124,11 @@ def test_headway_margin_counts_closing_not_opening() -> None:
     # speed 10 m/s, headway 0.5 s: margin 2 + 5 = 7 m
     rows = torch.tensor([[10.0, 0, 0, 8, 8, gap, 30] for gap in (8.0, 6.0, 6.0, 1.5)])
     before = torch.tensor([[10.0, 0, 0, 8, 8, gap, 30] for gap in (8.5, 6.5, 5.5, 1.0)])
-    collided = figure_eight_collision(before, torch.zeros(4, 1), rows, headway=0.5)
+    collided = FigureEightPlannerReward(headway=0.5).collision(before, torch.zeros(4, 1), rows)
     # outside the margin; closing inside it; opening inside it; below the 2 m floor
     assert collided.tolist() == [False, True, False, True]
-    assert figure_eight_collision(before, torch.zeros(4, 1), rows).tolist() == [
+    fixed = FigureEightPlannerReward(headway=0.0)
+    assert fixed.collision(before, torch.zeros(4, 1), rows).tolist() == [
         False,
         False,
         False,
