@@ -271,8 +271,7 @@ class MAPETSConfig(RunConfig):
         planner-reward keys of a scenario without a planner reward (the defaults that a given
         ``reward_fn`` left unused) are dropped."""
         data = super().upgrade_dict(data)
-        scenario = registered_scenario(data.get("env", cls.env))
-        if scenario is None or scenario.planner_reward is None:
+        if _reward_section(data.get("env", cls.env)) is None:
             data = {
                 k: v for k, v in data.items() if k not in FigureEightPlannerReward.field_names()
             }
@@ -296,11 +295,15 @@ class MAPETSConfig(RunConfig):
     def with_overrides(self, overrides: Iterable[str]) -> MAPETSConfig:
         """``key=value`` overrides (dotted for the sections, ``planner.horizon=15``);
         ``preset=NAME`` re-fills the ``planner`` / ``model`` fields that still hold the current
-        preset's values (fields set explicitly, here or earlier, are kept)."""
+        preset's values (fields set explicitly, here or earlier, are kept); ``env=NAME`` of a
+        scenario with another planner-reward section (or none) starts ``planner_reward`` from
+        that scenario's (the ``planner_reward.*`` overrides given with it apply on top)."""
         overrides = list(overrides)
-        presets = [v for k, _, v in (o.partition("=") for o in overrides) if k.strip() == "preset"]
-        new = presets[-1].strip() if presets else self.preset
+        given = {k.strip(): v.strip() for k, _, v in (o.partition("=") for o in overrides)}
+        new = given.get("preset", self.preset)
         data = self.to_dict()
+        if "env" in given and _reward_section(given["env"]) is not _reward_section(self.env):
+            data["planner_reward"] = None
         if new != self.preset and new in PRESETS:
             old = PRESETS[self.preset]
             for name in _PRESET_SECTIONS:
@@ -309,14 +312,19 @@ class MAPETSConfig(RunConfig):
         return type(self).from_dict(self._apply_overrides(data, overrides))
 
 
+def _reward_section(env: str) -> type[PlannerReward] | None:
+    """The planner-reward section class scenario ``env`` registers (None: it has none)."""
+    scenario = registered_scenario(env)
+    return None if scenario is None else scenario.planner_reward
+
+
 def scenario_planner_reward(
     env: str, given: PlannerReward | Mapping[str, Any] | None
 ) -> PlannerReward | None:
     """The ``planner_reward`` section of scenario ``env``: ``given`` as an instance of the
     section class the scenario registers (a mapping fills the fields it names, None gives the
     defaults); None for a scenario without one (ConfigError if settings were given)."""
-    scenario = registered_scenario(env)
-    section = None if scenario is None else scenario.planner_reward
+    section = _reward_section(env)
     if section is None:
         check(
             given is None,

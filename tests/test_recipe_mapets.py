@@ -410,6 +410,22 @@ def test_planner_reward_is_the_scenarios_section_set_from_overrides(tmp_path):
     assert MAPETSConfig().planner_reward == FigureEightPlannerReward()
 
 
+def test_a_new_env_starts_from_its_own_planner_reward_section():
+    from mapets_rl.envs import FigureEightPlannerReward
+
+    # how the CLI and sweeps build a config: the default one with env=... applied
+    assert MAPETSConfig().with_overrides(["env=freeway"]).planner_reward is None
+    freeway = MAPETSConfig(env="freeway")
+    assert freeway.with_overrides(["env=figure-eight"]).planner_reward == (
+        FigureEightPlannerReward()
+    )
+    shifted = freeway.with_overrides(["env=figure-eight", "planner_reward.headway=0.3"])
+    assert shifted.planner_reward == FigureEightPlannerReward(headway=0.3)
+    # the same section on both figure-eights: the settings are kept
+    short = MAPETSConfig(planner_reward={"headway": 0.3})
+    assert short.with_overrides(["env=figure-eight-multilane"]).planner_reward.headway == 0.3
+
+
 def test_old_flat_planner_reward_keys_load_into_the_section(tmp_path):
     path = tmp_path / "config.yaml"
     path.write_text("env: figure-eight\nheadway: 0.25\ncollision_gap: 3.0\n")

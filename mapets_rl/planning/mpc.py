@@ -100,7 +100,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
     input, as written by torchrl's ``InitTracker``, resets the matching envs automatically).
 
     iCEM's options (Pinneri et al. 2020; all off by default, see
-    :class:`~mapets_rl.planning.PlannerConfig`): anchor candidates and keep-best; colored
+    :class:`~mapets_rl.planning.PlannerConfig`; with any of them on the planner optimises with
+    an :class:`~mapets_rl.planning.ICEMOptimizer`): anchor candidates and keep-best; colored
     candidate noise (``noise_beta``); ``K`` elites kept from each iteration for the next
     (``keep_elites``) and the last iteration's ``K``, shifted by one step, added to the next
     decision's first iteration (``shift_elites``; state ``warm_start_elites``
