@@ -23,7 +23,7 @@ from toy_scenario import ToyAgentsEnv
 
 from mapets_rl.comm import CommunicationRange, communication_graph
 from mapets_rl.envs import FigureEightEnv, FreewayEnv, make_env, registry
-from mapets_rl.experiment import register_env
+from mapets_rl.experiment import register_env, runner
 from mapets_rl.experiment.cli import main
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.objectives import COMACritic, COMALoss, EnsembleNLLLoss, ShapleyActorCriticLoss
@@ -335,7 +335,7 @@ def test_read_only_run_dir_is_refused_before_anything_starts(tmp_path: Path, mon
         os, "access", lambda p, mode, **kw: Path(p) != read_only and real_access(p, mode, **kw)
     )
     built = []
-    monkeypatch.setattr(ToyLearner, "make_env", lambda self: built.append(1))
+    monkeypatch.setattr(runner, "build_env", lambda *args, **kwargs: built.append(1))
     _refused(
         lambda: ToyLearner(ToyConfig(), read_only / "run"),
         "run_dir .* cannot be written: .* is not writable",
