@@ -93,7 +93,7 @@ def evaluate(settings: dict, starts: torch.Tensor, seed: int, steps: int) -> tup
         propagation="expectation",
         **settings,
     )
-    horizon = planner.horizon
+    horizon = planner.config.horizon
     obs = starts[:, None, :]  # [M, I=1, obs]
     planner.plan(obs)
     plan = planner.last_solution[:, 0, :, 0]  # [M, H]: the mean, or the best with keep_best

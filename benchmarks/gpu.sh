@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU measurements of benchmarks/RESULTS.md in one command, on a machine with a CUDA device:
+# The GPU measurements of docs/results/gpu.md in one command, on a machine with a CUDA device:
 #   bash benchmarks/gpu.sh [OUT_DIR] [PYTHON] [STEP ...]
 # (STEPs: machine tests planner decision_time mbrl_reference train_smoke; default: all).
 # Each step has its own time limit and writes OUT_DIR/<step>.log; a failed step does not stop

@@ -174,8 +174,9 @@ def pets_agents(
         cfg: a :class:`~mapets_rl.planning.Preset` (planner and model sizes).
         low, high: scalar action bounds.
         reward_fn: our known reward ``(obs, action, next_obs) -> [...]``; mbrl-lib's reward
-            sees only ``(action, next_obs)``, so it must not depend on ``obs``
-            (``figure_eight_reward`` does not).
+            sees only ``(action, next_obs)`` and is given ``next_obs`` as ``obs`` (the
+            figure-eight's reads ``obs`` only in its headway test of a closing gap, which
+            then never fires: give it ``headway=0`` for the same scores on both sides).
         seed: seeds each agent's ``ModelEnv`` generator.
         device: where mbrl-lib's models, particles and CEM run (``"cpu"``, ``"cuda"``).
 

@@ -11,8 +11,11 @@ policies that separate the causes, one change at a time, on the same seeds:
   and termination with the lane-aware test) planning through
   :class:`~mapets_rl.envs.figure_eight_kinematics.FigureEightKinematicModel` (exact own speed,
   constant-speed neighbours) instead of a learned ensemble: a crash here is the planner's or
-  the unforeseeable traffic's, not the model's. ``--lane-change-gap 0`` switches the lane-aware
-  termination off;
+  the unforeseeable traffic's, not the model's. Its margins are the scenario's planner-reward
+  section (:class:`~mapets_rl.envs.FigureEightPlannerReward`, the ones MA-PETS plans with)
+  with ``--reward key=value`` changes: ``--reward lane_change_gap=0 lane_change_time=0``
+  switches the lane-aware termination off, ``--reward headway=0 lane_change_time=0`` gives the
+  fixed margins of earlier versions;
 - ``learned``: the planner of a trained MA-PETS run (``--run RUN_DIR``, its last checkpoint:
   the learned ensembles, the recipe's reward, termination and CEM) on the same seeds: what the
   learned model adds to the oracle's crashes, class by class.
@@ -47,7 +50,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from mapets_rl.config import ConfigError, parse_override
 from mapets_rl.envs import ScriptedCAVPolicy, make_env, traffic_env
-from mapets_rl.envs.figure_eight import figure_eight_collision, figure_eight_reward
+from mapets_rl.envs.figure_eight import FigureEightPlannerReward
 from mapets_rl.envs.figure_eight_kinematics import FigureEightKinematicModel
 from mapets_rl.planning import CPU_PRESET, TrajectorySamplingCEM
 
@@ -96,33 +99,21 @@ class KeepLane(TensorDictModuleBase):
 
 
 def oracle_planner(
-    env,
-    lane_change_gap: float,
-    seed: int,
-    headway: float = 0.0,
-    lane_change_time: float = 0.0,
-    **cem: bool,
+    env, reward: FigureEightPlannerReward, seed: int, **cem: bool
 ) -> TrajectorySamplingCEM:
-    """The cpu-preset CEM over the kinematic model (one particle: the model is deterministic);
-    ``cem``: PlannerConfig fields over the preset's (``anchor_candidates``, ``keep_best``,
-    ``population``, ``noise_beta``, ...)."""
+    """The cpu-preset CEM over the kinematic model (one particle: the model is deterministic),
+    scoring with ``reward``'s reward and collision test; ``cem``: PlannerConfig fields over the
+    preset's (``anchor_candidates``, ``keep_best``, ``population``, ``noise_beta``, ...)."""
     spec = env.full_action_spec["agents", "action"]
     n_agents, action_dim = spec.shape
     obs_dim = env.observation_spec["agents", "observation"].shape[-1]
-    gaps = {
-        "collision_gap": 2.0,
-        "crossing_gap": 6.0,
-        "lane_change_gap": lane_change_gap,
-        "headway": headway,
-        "lane_change_time": lane_change_time,
-    }
     return TrajectorySamplingCEM(
         FigureEightKinematicModel(n_agents, obs_dim, action_dim),
-        functools.partial(figure_eight_reward, **gaps),
+        reward.reward,
         spec.space.low,
         spec.space.high,
         CPU_PRESET.planner,
-        termination_fn=functools.partial(figure_eight_collision, **gaps),
+        termination_fn=reward.collision,
         seed=seed,
         particles=1,
         propagation="expectation",
@@ -133,7 +124,7 @@ def oracle_planner(
 @functools.cache
 def learned_planner(run_dir: str, overrides: tuple[str, ...] = ()) -> TensorDictModuleBase:
     """The planner of MA-PETS run ``run_dir`` at its last checkpoint (loaded once), with
-    ``overrides`` of its config (e.g. ``lane_change_time=1``)."""
+    ``overrides`` of its config (e.g. ``planner_reward.lane_change_time=1``)."""
     from mapets_rl.recipes.mapets import MAPETS
 
     exp = MAPETS.from_run_dir(run_dir, overrides=list(overrides))
@@ -145,7 +136,7 @@ def make_policy(
     name: str,
     env,
     seed: int,
-    lane_change_gap: float,
+    reward: FigureEightPlannerReward,
     run: str | None = None,
     run_overrides: tuple[str, ...] = (),
     **cem: Any,
@@ -158,7 +149,7 @@ def make_policy(
         return ScriptedCAVPolicy(env)
     if name.startswith("random"):
         return RandomPolicy(env, keep_lane=name.endswith("keep-lane"), seed=seed)
-    planner = oracle_planner(env, lane_change_gap, seed, **cem)
+    planner = oracle_planner(env, reward, seed, **cem)
     return KeepLane(planner) if name.endswith("keep-lane") else planner
 
 
@@ -206,7 +197,7 @@ def run_episode(
     name: str,
     seed: int,
     horizon: int,
-    lane_change_gap: float,
+    reward: FigureEightPlannerReward,
     scenario: str = SCENARIO,
     run: str | None = None,
     run_overrides: tuple[str, ...] = (),
@@ -214,7 +205,7 @@ def run_episode(
 ) -> dict:
     env = make_env(scenario, seed=seed, horizon=horizon)
     raw = traffic_env(env)
-    policy = make_policy(name, env, seed, lane_change_gap, run, run_overrides, **cem)
+    policy = make_policy(name, env, seed, reward, run, run_overrides, **cem)
     if hasattr(policy, "reset"):
         policy.reset()
     td = env.reset()
@@ -259,25 +250,25 @@ def main(argv: list[str] | None = None) -> list[dict]:
         help="figure-eight: the one-lane reference (no keep-lane variants: one action)",
     )
     parser.add_argument("--horizon", type=int, default=400, help="steps per episode")
-    parser.add_argument("--lane-change-gap", type=float, default=8.0, help="metres")
+    parser.add_argument(
+        "--reward",
+        nargs="*",
+        default=[],
+        metavar="key=value",
+        help="oracle: FigureEightPlannerReward fields over its defaults (the margins MA-PETS "
+        "plans with), e.g. headway=0 lane_change_time=0 lane_change_gap=8",
+    )
     parser.add_argument(
         "--anchor-candidates", action="store_true", help="oracle: iCEM's fallback candidates"
     )
     parser.add_argument("--keep-best", action="store_true", help="oracle: best sequence")
-    parser.add_argument("--headway", type=float, default=0.0, help="oracle: margin [s]")
-    parser.add_argument(
-        "--lane-change-time",
-        type=float,
-        default=0.0,
-        help="oracle: seconds of closing speed added to the lane-change margins",
-    )
     parser.add_argument("--run", default=None, help="learned: a MA-PETS run directory")
     parser.add_argument(
         "--set",
         nargs="*",
         default=[],
         metavar="key=value",
-        help="learned: overrides of the run's config, e.g. lane_change_time=1",
+        help="learned: overrides of the run's config, e.g. planner_reward.lane_change_time=1",
     )
     parser.add_argument(
         "--planner",
@@ -294,6 +285,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
         CPU_PRESET.planner.replace(**planner_settings)
     except (ConfigError, TypeError) as err:
         parser.error(f"--planner: {err}")
+    try:
+        reward = FigureEightPlannerReward(**dict(map(parse_override, args.reward)))
+    except ConfigError as err:
+        parser.error(f"--reward: {err}")
     if "learned" in args.policies and (
         args.run is None or not (Path(args.run) / "config.yaml").is_file()
     ):
@@ -310,14 +305,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
                 name,
                 seed,
                 args.horizon,
-                args.lane_change_gap,
+                reward,
                 args.scenario,
                 args.run,
                 tuple(args.set),
                 anchor_candidates=args.anchor_candidates,
                 keep_best=args.keep_best,
-                headway=args.headway,
-                lane_change_time=args.lane_change_time,
                 **planner_settings,
             )
             rows.append(row)

@@ -48,13 +48,16 @@ from mbrl_reference import REFERENCES, pets_agents, require_mbrl
 from torch.nn import functional as F
 
 from mapets_rl.config import parse_override
-from mapets_rl.envs import figure_eight_reward
+from mapets_rl.envs import registered_scenario
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.planning import PRESETS, Preset, TrajectorySamplingCEM
 
 OBS_DIM, ACT_DIM = 7, 1
 LOW, HIGH = 0.0, 13.89
 DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
+#: The figure-eight's planner reward with the settings MA-PETS plans with (the registry's
+#: section at its defaults).
+figure_eight_reward = registered_scenario("figure-eight").planner_reward().reward
 #: Where models, planners and reference kernels run (``--device``).
 DEVICE = torch.device("cpu")
 
@@ -330,7 +333,8 @@ def bench(name: str, cfg: Preset, n_agents: int, args: argparse.Namespace) -> No
         gen = torch.Generator().manual_seed(0)
         variants["naive"] = lambda: naive_plan(model, cfg, obs, gen)
     if args.reference == "mbrl-lib":
-        agents = pets_agents(model, cfg, LOW, HIGH, figure_eight_reward, seed=0, device=str(DEVICE))
+        reward = registered_scenario("figure-eight").planner_reward(headway=0.0).reward
+        agents = pets_agents(model, cfg, LOW, HIGH, reward, seed=0, device=str(DEVICE))
         obs_np = obs.cpu().numpy()
         variants["mbrl-lib"] = lambda: [
             agent.act(o) for agent, o in zip(agents, obs_np, strict=True)

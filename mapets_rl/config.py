@@ -57,7 +57,7 @@ def _coerce(value: Any, tp: Any, field: str) -> Any:
     if tp is Any:
         return value
     if isinstance(tp, type) and issubclass(tp, ConfigSection):
-        return _coerce_section(value, tp, field)
+        return coerce_section(value, tp, field)
     if origin in (Union, types.UnionType):
         args = get_args(tp)
         if value is None and type(None) in args:
@@ -115,7 +115,7 @@ def _coerce(value: Any, tp: Any, field: str) -> Any:
     return value
 
 
-def _coerce_section(value: Any, tp: type[ConfigSection], field: str) -> ConfigSection:
+def coerce_section(value: Any, tp: type[ConfigSection], field: str) -> ConfigSection:
     """A :class:`ConfigSection` from an instance of it or a mapping of its fields; errors name
     the dotted key (``planner.horizon``)."""
     if isinstance(value, tp):

@@ -35,8 +35,8 @@ or ``mapets-rl train mapets --env figure-eight preset=cpu episodes=5 planner.hor
 from __future__ import annotations
 
 import dataclasses
-import functools
 import logging
+import pkgutil
 import time
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any, ClassVar
@@ -47,8 +47,13 @@ from tensordict.nn import TensorDictSequential
 from torchrl.objectives import LossModule
 
 from mapets_rl.comm import CommConfig, CommunicationRange, NeighbourDatasets, clique_cover_number
-from mapets_rl.config import ConfigError
-from mapets_rl.envs import figure_eight_observation_bounds, registered_scenario
+from mapets_rl.config import ConfigError, coerce_section
+from mapets_rl.envs import (
+    FigureEightPlannerReward,
+    PlannerReward,
+    figure_eight_observation_bounds,
+    registered_scenario,
+)
 from mapets_rl.envs.figure_eight import OBSERVATION_SIZES
 from mapets_rl.envs.registry import build_env, scenario_defaults
 from mapets_rl.experiment import Experiment, RunConfig, check, log_scalars
@@ -76,17 +81,6 @@ from mapets_rl.planning.memory import (
     planner_bytes,
 )
 
-FIGURE_EIGHT_REWARD_FIELDS = (
-    "collision_gap",
-    "crossing_gap",
-    "headway",
-    "lane_change_gap",
-    "lane_change_time",
-    "collision_reward",
-)
-"""MAPETSConfig fields that configure the default planner reward and termination
-(:func:`~mapets_rl.envs.figure_eight_reward`); refused when a ``reward_fn`` is given."""
-
 OBS = ("agents", "observation")
 ACTION = ("agents", "action")
 MASK = ("agents", "mask")
@@ -97,10 +91,10 @@ NEXT_NEIGHBOUR_CHANGED = ("next", "agents", "info", "neighbour_changed")
 MAX_STEPS = 100_000
 """Safety cap on the steps of one episode (the env truncates at its own horizon first)."""
 
-#: Flat field names of ``config.yaml`` files written before the planner, ensemble and
-#: communication settings became nested sections -> their nested names. Reading such a file
-#: (resuming an old run, ``MAPETSConfig.from_yaml``) maps them with one warning line; the
-#: resumed run's ``config.yaml`` is rewritten nested.
+#: Flat field names of ``config.yaml`` files written before the planner, ensemble,
+#: communication and planner-reward settings became nested sections -> their nested names.
+#: Reading such a file (resuming an old run, ``MAPETSConfig.from_yaml``) maps them with one
+#: warning line; the resumed run's ``config.yaml`` is rewritten nested.
 FLAT_FIELDS: dict[str, str] = {
     "horizon": "planner.horizon",
     "population": "planner.population",
@@ -120,6 +114,7 @@ FLAT_FIELDS: dict[str, str] = {
     "share_model": "model.share_model",
     "comm_range": "comm.comm_range",
     "p_fail": "comm.p_fail",
+    **{name: f"planner_reward.{name}" for name in FigureEightPlannerReward.field_names()},
 }
 
 # the sections whose fields a preset fills when they are not given
@@ -148,8 +143,9 @@ class MAPETSConfig(RunConfig):
       training epochs. About 0.37 TFLOP per agent and decision: a GPU workload.
     - ``"cpu"``: ``w=25, Q=8, X=4, Y=2, P=5, B=5``, 3x64 hidden units
       (:data:`mapets_rl.planning.CPU_PRESET`): the paper's horizon (a CAV must see 2.3 s ahead
-      to brake from top speed), a narrower CEM with iCEM's anchor candidates and keep-best,
-      each rollout step compiled, 30 training epochs.
+      to brake from top speed), a narrower CEM with iCEM's anchor candidates and keep-best
+      (:class:`~mapets_rl.planning.ICEMOptimizer`), each rollout step compiled, 30 training
+      epochs.
 
     A field set explicitly wins over the preset (``preset=cpu planner.horizon=15``); a section
     passed as a :class:`PlannerConfig` / :class:`EnsembleConfig` instance is taken whole. The
@@ -177,29 +173,18 @@ class MAPETSConfig(RunConfig):
             model's predictions stay continuous. The figure-eight's feature bounds come
             from :func:`~mapets_rl.envs.figure_eight_observation_bounds`; other scenarios
             give ``tile_coding.obs_low`` / ``obs_high``.
-        collision_gap: the planner predicts a collision when a predicted gap ahead falls below
-            this many metres (:func:`~mapets_rl.envs.figure_eight_collision`).
-        crossing_gap: with the crossing observation, the planner predicts a collision when the
-            CAV and the first conflicting vehicle are both within this many metres of the
-            crossing point.
-        headway: time headway [s] of the planner's margin ahead: a predicted gap ahead that
-            closes while below ``collision_gap + headway * v`` counts as a collision
-            (:func:`~mapets_rl.envs.figure_eight_collision`). 0 is the fixed 2 m margin of
-            earlier versions; 0.5 s keeps the room to react to a braking leader that a
-            constant-speed prediction does not see (``benchmarks/multilane_diagnosis.py``).
-        lane_change_gap: on two lanes (the 15-feature crossing observation), the planner
-            predicts a collision when it requests a lane change while the gap ahead or behind
-            in the other lane is below this many metres (plus ``lane_change_time``'s share).
-        lane_change_time: seconds of closing speed added to ``lane_change_gap``: the gap ahead
-            in the other lane must exceed ``lane_change_gap + lane_change_time * max(0, v -
-            v_ahead)``, the gap behind ``lane_change_gap + lane_change_time * max(0, v_behind -
-            v)`` (what the gap closes while the CAV moves over). 1 s: on the two-lane
-            figure-eight's diagnosis (``benchmarks/multilane_diagnosis.py``) it cut the oracle
-            planner's crashes from 2.0 to 0.7 per episode (6 seeds) and a trained MA-PETS
-            planner's from 4.0 to 2.0 (3 seeds); 0 is the fixed margin of earlier versions.
-        collision_reward: the planner's reward ``beta`` of a predicted collision (paper eq. 26:
-            -10). A predicted collision also ends the particle's trajectory (no reward after
-            it), so the paper's -10 suffices.
+        planner_reward: the scenario's planner-reward settings, the config section its
+            registry entry declares (:class:`~mapets_rl.envs.FigureEightPlannerReward` on the
+            figure-eights: ``planner_reward.headway=0.5``, ``planner_reward.collision_gap=2``,
+            ...; a mapping fills the fields it gives, the rest keep the section's defaults);
+            None for a scenario without one (it needs ``reward_fn``).
+        reward_fn: ``"package.module:function"``, a planner reward ``(obs [..., S], action
+            [..., A], next_obs [..., S]) -> [...]`` imported when the config is built (a
+            ConfigError names ``reward_fn`` if it cannot be imported or is not callable); it
+            replaces the scenario's (then ``planner_reward`` must keep its defaults) and gives
+            a scenario without one its reward from the shell
+            (``mapets-rl train mapets --env my-road reward_fn=my_pkg.rewards:speed``).
+            Planned trajectories never terminate with it. Empty: the scenario's own.
         num_threads: torch intra-op threads (0: leave torch's default). On a CPU shared with
             other jobs, 1 is often the fastest.
 
@@ -216,12 +201,8 @@ class MAPETSConfig(RunConfig):
     model: EnsembleConfig | None = None
     comm: CommConfig = dataclasses.field(default_factory=CommConfig)
     tile_coding: TileCodingConfig = dataclasses.field(default_factory=TileCodingConfig)
-    collision_gap: float = dataclasses.field(default=2.0, metadata={"unit": "m"})
-    crossing_gap: float = dataclasses.field(default=6.0, metadata={"unit": "m"})
-    headway: float = dataclasses.field(default=0.5, metadata={"unit": "s"})
-    lane_change_gap: float = dataclasses.field(default=8.0, metadata={"unit": "m"})
-    lane_change_time: float = dataclasses.field(default=1.0, metadata={"unit": "s"})
-    collision_reward: float = -10.0
+    planner_reward: PlannerReward | None = None
+    reward_fn: str = ""
     num_threads: int = 0
 
     # the frame-budget fields that MAPETSConfig inherited until it subclassed RunConfig
@@ -248,6 +229,7 @@ class MAPETSConfig(RunConfig):
                 setattr(self, name, getattr(preset, name))
             elif isinstance(given, Mapping):
                 setattr(self, name, {**getattr(preset, name).to_dict(), **given})
+        self.planner_reward = scenario_planner_reward(self.env, self.planner_reward)
         super().__post_init__()
         check(self.episodes >= 1, "episodes", ">= 1", self.episodes)
         check(self.random_episodes >= 0, "random_episodes", ">= 0", self.random_episodes)
@@ -261,24 +243,38 @@ class MAPETSConfig(RunConfig):
             f"False with device={self.device!r} (CUDA graphs need a CUDA device)",
             plan.cuda_graph,
         )
-        check(self.collision_gap >= 0, "collision_gap", ">= 0 metres", self.collision_gap)
-        check(self.crossing_gap >= 0, "crossing_gap", ">= 0 metres", self.crossing_gap)
-        check(self.lane_change_gap >= 0, "lane_change_gap", ">= 0 metres", self.lane_change_gap)
-        check(0 <= self.headway <= 10, "headway", "in [0, 10] seconds", self.headway)
-        check(
-            0 <= self.lane_change_time <= 10,
-            "lane_change_time",
-            "in [0, 10] seconds",
-            self.lane_change_time,
-        )
-        check(self.collision_reward <= 0, "collision_reward", "<= 0", self.collision_reward)
+        if self.reward_fn:
+            self.imported_reward_fn()
         check(self.num_threads >= 0, "num_threads", ">= 0", self.num_threads)
+
+    def imported_reward_fn(self) -> RewardFn:
+        """The function :attr:`reward_fn` names (``"package.module:function"``), imported;
+        ConfigError naming ``reward_fn`` when it cannot be imported or is not callable."""
+        allowed = "'package.module:function', an importable callable (obs, action, next_obs)"
+        try:
+            function = pkgutil.resolve_name(self.reward_fn)
+        except (ImportError, AttributeError, ValueError) as err:
+            raise ConfigError(
+                f"reward_fn must be {allowed}, got {self.reward_fn!r} ({type(err).__name__}: {err})"
+            ) from None
+        if not callable(function):
+            raise ConfigError(
+                f"reward_fn must be {allowed}, got {self.reward_fn!r} (a "
+                f"{type(function).__name__}, not callable)"
+            )
+        return function
 
     @classmethod
     def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
         """Drop the retired frame-budget keys and map the flat names of :data:`FLAT_FIELDS` to
-        their sections (one warning line); a nested value given too wins."""
+        their sections (one warning line); a nested value given too wins. The flat
+        planner-reward keys of a scenario without a planner reward (the defaults that a given
+        ``reward_fn`` left unused) are dropped."""
         data = super().upgrade_dict(data)
+        if _reward_section(data.get("env", cls.env)) is None:
+            data = {
+                k: v for k, v in data.items() if k not in FigureEightPlannerReward.field_names()
+            }
         flat = [k for k in data if k in FLAT_FIELDS]
         if not flat:
             return data
@@ -299,17 +295,53 @@ class MAPETSConfig(RunConfig):
     def with_overrides(self, overrides: Iterable[str]) -> MAPETSConfig:
         """``key=value`` overrides (dotted for the sections, ``planner.horizon=15``);
         ``preset=NAME`` re-fills the ``planner`` / ``model`` fields that still hold the current
-        preset's values (fields set explicitly, here or earlier, are kept)."""
+        preset's values (fields set explicitly, here or earlier, are kept); ``env=NAME`` of a
+        scenario with another planner-reward section (or none) starts ``planner_reward`` from
+        that scenario's (the ``planner_reward.*`` overrides given with it apply on top)."""
         overrides = list(overrides)
-        presets = [v for k, _, v in (o.partition("=") for o in overrides) if k.strip() == "preset"]
-        new = presets[-1].strip() if presets else self.preset
+        given = {k.strip(): v.strip() for k, _, v in (o.partition("=") for o in overrides)}
+        new = given.get("preset", self.preset)
         data = self.to_dict()
+        if "env" in given and _reward_section(given["env"]) is not _reward_section(self.env):
+            data["planner_reward"] = None
         if new != self.preset and new in PRESETS:
             old = PRESETS[self.preset]
             for name in _PRESET_SECTIONS:
                 defaults = getattr(old, name).to_dict()
                 data[name] = {k: v for k, v in data[name].items() if v != defaults[k]}
         return type(self).from_dict(self._apply_overrides(data, overrides))
+
+
+def _reward_section(env: str) -> type[PlannerReward] | None:
+    """The planner-reward section class scenario ``env`` registers (None: it has none)."""
+    scenario = registered_scenario(env)
+    return None if scenario is None else scenario.planner_reward
+
+
+def scenario_planner_reward(
+    env: str, given: PlannerReward | Mapping[str, Any] | None
+) -> PlannerReward | None:
+    """The ``planner_reward`` section of scenario ``env``: ``given`` as an instance of the
+    section class the scenario registers (a mapping fills the fields it names, None gives the
+    defaults); None for a scenario without one (ConfigError if settings were given)."""
+    section = _reward_section(env)
+    if section is None:
+        check(
+            given is None,
+            "planner_reward",
+            f"left out for env {env!r}, whose scenario registers no planner reward (give "
+            "reward_fn=package.module:function instead)",
+            given,
+        )
+        return None
+    if given is None:
+        return section()
+    if isinstance(given, PlannerReward) and not isinstance(given, section):
+        raise ConfigError(
+            f"planner_reward must be a {section.__name__} for env {env!r}, got "
+            f"{type(given).__name__}"
+        )
+    return coerce_section(given, section, "planner_reward")
 
 
 class _Counters:
@@ -332,17 +364,17 @@ class MAPETS(Experiment):
         config: a :class:`MAPETSConfig`.
         run_dir: run directory (default ``runs/mapets_<env>_seed<N>_<time>``).
         reward_fn: the known reward the planner maximises, ``(obs [..., S], action [..., A],
-            next_obs [..., S]) -> [...]``; default: the scenario's planner reward (registry;
-            the figure-eight scenarios': :func:`mapets_rl.envs.figure_eight_reward`, paper
-            eq. 26 with a predicted-collision penalty, called with ``config.collision_gap``,
-            ``config.crossing_gap``, ``config.lane_change_gap``, ``config.headway``,
-            ``config.lane_change_time`` and ``config.collision_reward``); a scenario without
-            one (the freeways, a ``register_env`` scenario) needs ``reward_fn``.
+            next_obs [..., S]) -> [...]``; default: ``config.reward_fn`` when it names one,
+            else the scenario's planner reward with the config's settings
+            (``config.planner_reward.reward``; the figure-eight scenarios':
+            :class:`~mapets_rl.envs.FigureEightPlannerReward`, paper eq. 26 with a
+            predicted-collision penalty); a scenario without one (the freeways, a
+            ``register_env`` scenario) needs ``reward_fn`` (here or in the config).
         termination_fn: the known termination of a planned trajectory, ``(obs, action,
-            next_obs) -> [...]`` bool; default (with the default ``reward_fn`` only) the
-            scenario's (the figure-eight's: :func:`mapets_rl.envs.figure_eight_collision`);
-            ``None`` with a custom ``reward_fn``
-            means trajectories never terminate.
+            next_obs) -> [...]`` bool; default (with the scenario's reward only) the
+            scenario's (``config.planner_reward.termination_fn``, the figure-eight's predicted
+            collision); ``None`` with a custom ``reward_fn`` means trajectories never
+            terminate.
 
     Attributes:
         env: the env with the :class:`CommunicationRange` transform appended.
@@ -385,20 +417,12 @@ class MAPETS(Experiment):
         self.obs_coder, self.action_coder = self._tile_coders(group, bounds.low, bounds.high)
         for transform in self.observation_transforms():
             self.env.append_transform(transform)
-        if reward_fn is None:  # the scenario's own (checked above), with the config's fields
-            scenario = registered_scenario(config.env)
-            gaps = {
-                "collision_gap": config.collision_gap,
-                "crossing_gap": config.crossing_gap,
-                "lane_change_gap": config.lane_change_gap,
-                "headway": config.headway,
-                "lane_change_time": config.lane_change_time,
-            }
-            reward_fn = functools.partial(
-                scenario.planner_reward, collision_reward=config.collision_reward, **gaps
-            )
-            if termination_fn is None and scenario.planner_termination is not None:
-                termination_fn = functools.partial(scenario.planner_termination, **gaps)
+        if reward_fn is None and config.reward_fn:
+            reward_fn = config.imported_reward_fn()
+        elif reward_fn is None:  # the scenario's own (checked above), with the config's settings
+            reward_fn = config.planner_reward.reward
+            if termination_fn is None:
+                termination_fn = config.planner_reward.termination_fn
         self.reward_fn = reward_fn
         self.termination_fn = termination_fn
         self.n_agents = n = group.n_agents
@@ -481,30 +505,38 @@ class MAPETS(Experiment):
         config: MAPETSConfig, group: AgentGroupSpec, reward_fn: RewardFn | None
     ) -> None:
         """ValueError (one line) when the scenario's actions, observation or size do not fit
-        MA-PETS with ``config``: discrete actions, a ``reward_fn`` given while the figure-eight
-        reward's fields (:data:`FIGURE_EIGHT_REWARD_FIELDS`) are set, no ``reward_fn`` for an
-        observation the figure-eight reward cannot read, or a planner / ensemble larger than
-        the memory the device has available (:mod:`mapets_rl.planning.memory`)."""
+        MA-PETS with ``config``: discrete actions, a ``reward_fn`` given twice (argument and
+        ``config.reward_fn``) or while ``config.planner_reward`` leaves its defaults, no
+        ``reward_fn`` for a scenario without a planner reward, or a planner / ensemble larger
+        than the memory the device has available (:mod:`mapets_rl.planning.memory`)."""
         if group.discrete:
             raise ValueError(
                 f"env {config.env!r} must have continuous actions for mapets (the CEM planner "
                 "optimises real-valued action sequences), e.g. figure-eight"
             )
-        if reward_fn is not None:  # the figure-eight reward's knobs would be ignored
-            defaults = {f.name: f.default for f in dataclasses.fields(type(config))}
-            ignored = [k for k in FIGURE_EIGHT_REWARD_FIELDS if getattr(config, k) != defaults[k]]
-            if ignored:
+        if reward_fn is not None and config.reward_fn:
+            raise ValueError(
+                f"reward_fn is given twice, reward_fn={config.reward_fn!r} in the config and "
+                "MAPETS(config, reward_fn=...): give one"
+            )
+        section = config.planner_reward
+        if (reward_fn is not None or config.reward_fn) and section is not None:
+            changed = next(
+                (k for k, v in section.to_dict().items() if v != getattr(type(section)(), k)),
+                None,
+            )
+            if changed is not None:  # the scenario reward's settings would be ignored
                 raise ValueError(
-                    f"{ignored[0]}={getattr(config, ignored[0])!r} configures the figure-eight "
-                    "reward and collision test, which a given reward_fn replaces: leave "
-                    f"{', '.join(FIGURE_EIGHT_REWARD_FIELDS)} at their defaults"
+                    f"planner_reward.{changed}={getattr(section, changed)!r} configures the "
+                    "scenario's planner reward, which a given reward_fn replaces: leave "
+                    "planner_reward at its defaults"
                 )
-        scenario = registered_scenario(config.env)
-        if reward_fn is None and (scenario is None or scenario.planner_reward is None):
+        if reward_fn is None and not config.reward_fn and section is None:
             raise ValueError(
                 f"reward_fn is required for env {config.env!r}: the scenario supplies no "
-                "planner reward (the figure-eight scenarios supply theirs; pass "
-                "MAPETS(config, reward_fn=..., termination_fn=...) for another scenario)"
+                "planner reward (the figure-eight scenarios supply theirs); give "
+                "reward_fn=package.module:function in the config, or "
+                "MAPETS(config, reward_fn=..., termination_fn=...)"
             )
         planner, model = config.planner, config.model
         dims = (group.n_agents, group.obs_dim, group.action_dim)

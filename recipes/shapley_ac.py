@@ -87,7 +87,7 @@ class ShapleyACConfig(OffPolicyConfig):
         ego_first: every actor's coalition view lists its own observation first (needed for
             ``share_params``: one actor for all CAVs must know which slot is its own).
         shapley_chunk_states: states per pass of the Shapley computation (None: all at once;
-            8 measured fastest on a 2-core AVX2 CPU at n = 30, see benchmarks/RESULTS.md).
+            8 measured fastest on a 2-core AVX2 CPU at n = 30, see docs/results/performance.md).
         shapley_bf16: evaluate the Shapley critic passes under bf16 autocast (pays on CPUs with
             AVX512-BF16/AMX and on GPUs; about 9x slower on AVX2-only CPUs).
     """

@@ -77,14 +77,14 @@ CONFIG_CASES = [
         "planner.epsilon must be a finite",
     ),
     (
-        "mapets collision_gap=inf",
-        lambda: MAPETSConfig(collision_gap=INF),
-        "collision_gap must be a finite",
+        "mapets planner_reward.collision_gap=inf",
+        lambda: MAPETSConfig(planner_reward={"collision_gap": INF}),
+        "planner_reward.collision_gap must be a finite",
     ),
     (
-        "mapets collision_reward=-inf",
-        lambda: MAPETSConfig(collision_reward=-INF),
-        "collision_reward must be a finite",
+        "mapets planner_reward.collision_reward=-inf",
+        lambda: MAPETSConfig(planner_reward={"collision_reward": -INF}),
+        "planner_reward.collision_reward must be a finite",
     ),
     (
         "mapets comm_range=nan",
@@ -335,7 +335,7 @@ def test_read_only_run_dir_is_refused_before_anything_starts(tmp_path: Path, mon
         os, "access", lambda p, mode, **kw: Path(p) != read_only and real_access(p, mode, **kw)
     )
     built = []
-    monkeypatch.setattr(runner, "build_env", lambda *args: built.append(1))
+    monkeypatch.setattr(runner, "build_env", lambda *args, **kwargs: built.append(1))
     _refused(
         lambda: ToyLearner(ToyConfig(), read_only / "run"),
         "run_dir .* cannot be written: .* is not writable",
@@ -1085,15 +1085,63 @@ def test_mapets_refuses_a_scenario_or_size_before_writing_the_run_dir(
     assert not (tmp_path / "run").exists()
 
 
-def test_mapets_refuses_figure_eight_reward_fields_beside_a_reward_fn(tmp_path: Path) -> None:
-    """collision_gap & co. configure the default figure-eight reward; with a reward_fn of the
-    user's they were silently ignored."""
-    from mapets_rl.envs import figure_eight_reward
+def test_mapets_refuses_planner_reward_settings_beside_a_reward_fn(tmp_path: Path) -> None:
+    """planner_reward.collision_gap & co. configure the scenario's planner reward; with a
+    reward_fn of the user's (argument or config field) they were silently ignored."""
+    from mapets_rl.envs import FigureEightPlannerReward
     from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
-    config = MAPETSConfig(env="figure-eight", preset="cpu", collision_gap=3.0)
+    config = MAPETSConfig(env="figure-eight", preset="cpu", planner_reward={"collision_gap": 3})
+    reward = FigureEightPlannerReward().reward
     _refused(
-        lambda: MAPETS(config, tmp_path / "run", reward_fn=figure_eight_reward),
-        r"collision_gap=3.0 configures the figure-eight reward .* which a given reward_fn",
+        lambda: MAPETS(config, tmp_path / "run", reward_fn=reward),
+        r"planner_reward.collision_gap=3.0 configures the scenario's planner reward, which a "
+        "given reward_fn replaces",
+    )
+    _refused(
+        lambda: MAPETS(
+            config.with_overrides(["reward_fn=mapets_rl.envs:FigureEightPlannerReward"]),
+            tmp_path / "run",
+        ),
+        "planner_reward.collision_gap=3.0 configures",
     )
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    ("value", "why"),
+    [
+        ("no_such_package_xyz.rewards:speed", "ModuleNotFoundError"),
+        ("mapets_rl.envs:no_such_reward", "AttributeError"),
+        ("mapets_rl.envs.figure_eight:COLLISION_REWARD", "a float, not callable"),
+        ("not a name", "ValueError"),
+    ],
+)
+def test_mapets_reward_fn_must_name_an_importable_callable(value: str, why: str) -> None:
+    from mapets_rl.recipes.mapets import MAPETSConfig
+
+    _refused(
+        lambda: MAPETSConfig(preset="cpu").with_overrides([f"reward_fn={value}"]),
+        rf"reward_fn must be 'package.module:function', an importable callable .*{why}",
+    )
+
+
+def test_mapets_refuses_a_reward_fn_given_twice(tmp_path: Path) -> None:
+    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
+
+    config = MAPETSConfig(preset="cpu", reward_fn="test_recipe_mapets:speed_reward")
+    _refused(
+        lambda: MAPETS(config, tmp_path / "run", reward_fn=lambda o, a, n: n[..., 0]),
+        "reward_fn is given twice",
+    )
+    assert not (tmp_path / "run").exists()
+
+
+def test_mapets_planner_reward_is_refused_for_a_scenario_without_one() -> None:
+    from mapets_rl.recipes.mapets import MAPETSConfig
+
+    _refused(
+        lambda: MAPETSConfig(env="freeway").with_overrides(["planner_reward.headway=1"]),
+        "planner_reward must be left out for env 'freeway', whose scenario registers no "
+        "planner reward",
+    )

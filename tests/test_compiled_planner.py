@@ -7,7 +7,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from mapets_rl.envs.figure_eight import figure_eight_collision, figure_eight_reward
+from mapets_rl.envs.figure_eight import FigureEightPlannerReward
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.planning import TrajectorySamplingCEM, compiled
 from mapets_rl.planning.compiled import CompiledStep
@@ -32,6 +32,9 @@ def trained_looking_ensemble(n_agents: int = 3) -> ProbabilisticEnsemble:
     return model
 
 
+PLANNER_REWARD = FigureEightPlannerReward()
+
+
 def observations(n_agents: int, envs: int = 1) -> torch.Tensor:
     """``[envs, I, 10]``: speeds 5-12 m/s, gaps 10-40 m, crossing distances 20-60 m."""
     gen = torch.Generator().manual_seed(1)
@@ -45,10 +48,10 @@ def observations(n_agents: int, envs: int = 1) -> torch.Tensor:
 def planner(model: ProbabilisticEnsemble, **settings) -> TrajectorySamplingCEM:
     return TrajectorySamplingCEM(
         model,
-        figure_eight_reward,
+        PLANNER_REWARD.reward,
         -3.0,
         3.0,
-        termination_fn=figure_eight_collision,
+        termination_fn=PLANNER_REWARD.collision,
         seed=0,
         **{**PLAN, **settings},
     )
@@ -69,8 +72,8 @@ def step_inputs(propagation: str) -> tuple:
     alive = torch.rand(3, rows, generator=gen) > 0.2
     finite = torch.randint(0, 3, (3, rows), generator=gen)
     return (model, state, action, eps, perm, returns, alive, finite) + (
-        figure_eight_reward,
-        figure_eight_collision,
+        PLANNER_REWARD.reward,
+        PLANNER_REWARD.collision,
         propagation,
         torch.float32,
     )

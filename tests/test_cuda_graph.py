@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from mapets_rl.config import ConfigError
-from mapets_rl.envs import figure_eight_collision, figure_eight_reward
+from mapets_rl.envs import FigureEightPlannerReward
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.planning import CPU_PRESET, TrajectorySamplingCEM
 from mapets_rl.planning.cuda_graph import GraphedStep
@@ -44,12 +44,12 @@ def figure_eight_planners(dtype: str, n_agents: int = 3, seed: int = 0):
     planners = [
         TrajectorySamplingCEM(
             model,
-            figure_eight_reward,
+            FigureEightPlannerReward().reward,
             0.0,
             13.89,
             CPU_PRESET.planner,
             seed=1,
-            termination_fn=figure_eight_collision,
+            termination_fn=FigureEightPlannerReward().collision,
             dtype=dtype,
             cuda_graph=graph,
         )

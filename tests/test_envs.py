@@ -18,11 +18,10 @@ from torchrl.envs.utils import check_env_specs, step_mdp
 from mapets_rl.envs import (
     FigureEightEnv,
     FigureEightParallelEnv,
+    FigureEightPlannerReward,
     FreewayEnv,
     FreewayParallelEnv,
     ScriptedCAVPolicy,
-    figure_eight_collision,
-    figure_eight_reward,
     make_env,
     make_parallel_env,
     traffic_env,
@@ -34,6 +33,8 @@ from mapets_rl.envs.pettingzoo_wrapper import TrafficPettingZooWrapper
 from mapets_rl.envs.vehicles import FastIDMVehicle, stock_control
 
 MAX_SPEED = 13.89
+#: The fixed margins (no time headway, no closing-speed share) these tests were written with.
+FIXED_MARGINS = FigureEightPlannerReward(headway=0.0, lane_change_time=0.0)
 
 
 def place(env: FigureEightEnv, vehicle, coordinate: float, speed: float, lane: int = 0) -> None:
@@ -124,7 +125,7 @@ def test_observation_and_reward_on_constructed_situation() -> None:
 
 def test_planning_reward_penalises_predicted_collisions() -> None:
     next_obs = torch.tensor([[10.0, 0, 0, 5, 7, 15, 10], [10.0, 0, 0, 5, 7, 0.2, 10]])
-    reward = figure_eight_reward(next_obs, torch.zeros(2, 1), next_obs)
+    reward = FIXED_MARGINS.reward(next_obs, torch.zeros(2, 1), next_obs)
     torch.testing.assert_close(reward, torch.tensor([22.0, 12.0]))
 
 
@@ -139,10 +140,10 @@ def test_planning_collision_tests_the_gap_ahead_and_the_crossing() -> None:
             [10.0, 0, 0, 5, 7, 15, 10, 3, -6, 8],  # the other vehicle has cleared it
         ]
     )
-    collided = figure_eight_collision(rows, torch.zeros(6, 1), rows)
+    collided = FIXED_MARGINS.collision(rows, torch.zeros(6, 1), rows)
     assert collided.tolist() == [False, True, False, True, False, False]
     # the paper's 7 features: only the gap ahead
-    assert figure_eight_collision(rows[:, :7], None, rows[:, :7]).tolist() == [
+    assert FIXED_MARGINS.collision(rows[:, :7], None, rows[:, :7]).tolist() == [
         False,
         True,
         False,
@@ -150,7 +151,7 @@ def test_planning_collision_tests_the_gap_ahead_and_the_crossing() -> None:
         False,
         False,
     ]
-    reward = figure_eight_reward(rows, None, rows)
+    reward = FIXED_MARGINS.reward(rows, None, rows)
     torch.testing.assert_close(reward, 22.0 - 10.0 * collided.float())
 
 

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from mapets_rl.envs import figure_eight_collision
+from mapets_rl.envs import FigureEightPlannerReward
 from mapets_rl.envs.figure_eight import FigureEightEnv
 from mapets_rl.envs.figure_eight_kinematics import FigureEightKinematicModel
 from mapets_rl.planning import CPU_PRESET, PAPER_PRESET, TrajectorySamplingCEM
-from mapets_rl.planning.cem import CEMOptimizer
+from mapets_rl.planning.cem import ICEMOptimizer
 
 
 def distance_to_low(candidates: torch.Tensor) -> torch.Tensor:
@@ -20,11 +20,12 @@ def distance_to_low(candidates: torch.Tensor) -> torch.Tensor:
 
 
 def run_cem(anchors: bool, keep_best: bool, seed: int = 0) -> torch.Tensor:
-    cem = CEMOptimizer(8, 2, 2, 1e-6, 0.1, torch.Generator().manual_seed(seed))
+    generator = torch.Generator().manual_seed(seed)
+    cem = ICEMOptimizer(8, 2, 2, 1e-6, 0.1, generator, keep_best=keep_best)
     low, high = torch.zeros(1, 1, 1, 1), torch.ones(1, 1, 1, 1)
     mean = torch.full((1, 1, 10, 1), 0.5)
     fixed = low.expand(1, 1, 10, 1).unsqueeze(2) if anchors else None
-    return cem.optimize(distance_to_low, mean, low, high, anchors=fixed, keep_best=keep_best)
+    return cem.optimize(distance_to_low, mean, low, high, anchors=fixed)
 
 
 def test_anchor_candidates_and_keep_best_return_an_optimum_the_samples_miss() -> None:
@@ -42,9 +43,9 @@ def test_keep_best_returns_the_best_scored_candidate() -> None:
         seen.append((candidates, scores))
         return scores
 
-    cem = CEMOptimizer(16, 4, 3, 1e-6, 0.1, torch.Generator().manual_seed(1))
+    cem = ICEMOptimizer(16, 4, 3, 1e-6, 0.1, torch.Generator().manual_seed(1), keep_best=True)
     low, high = torch.zeros(1, 1, 1, 2), torch.ones(1, 1, 1, 2)
-    best = cem.optimize(score, torch.full((1, 1, 5, 2), 0.5), low, high, keep_best=True)
+    best = cem.optimize(score, torch.full((1, 1, 5, 2), 0.5), low, high)
     candidates = torch.cat([c for c, _ in seen], dim=2)[0, 0]
     scores = torch.cat([s for _, s in seen], dim=2)[0, 0]
     torch.testing.assert_close(best[0, 0], candidates[scores.argmax()])
@@ -123,10 +124,11 @@ def test_headway_margin_counts_closing_not_opening() -> None:
     # speed 10 m/s, headway 0.5 s: margin 2 + 5 = 7 m
     rows = torch.tensor([[10.0, 0, 0, 8, 8, gap, 30] for gap in (8.0, 6.0, 6.0, 1.5)])
     before = torch.tensor([[10.0, 0, 0, 8, 8, gap, 30] for gap in (8.5, 6.5, 5.5, 1.0)])
-    collided = figure_eight_collision(before, torch.zeros(4, 1), rows, headway=0.5)
+    collided = FigureEightPlannerReward(headway=0.5).collision(before, torch.zeros(4, 1), rows)
     # outside the margin; closing inside it; opening inside it; below the 2 m floor
     assert collided.tolist() == [False, True, False, True]
-    assert figure_eight_collision(before, torch.zeros(4, 1), rows).tolist() == [
+    fixed = FigureEightPlannerReward(headway=0.0)
+    assert fixed.collision(before, torch.zeros(4, 1), rows).tolist() == [
         False,
         False,
         False,

@@ -13,7 +13,13 @@ from test_planner import ExactPointMass as PointMass
 
 from mapets_rl.config import ConfigError
 from mapets_rl.planning import PlannerConfig, TrajectorySamplingCEM
-from mapets_rl.planning.cem import CEMOptimizer, colored_noise, kept_elite_count, sample_sizes
+from mapets_rl.planning.cem import (
+    CEMOptimizer,
+    ICEMOptimizer,
+    colored_noise,
+    kept_elite_count,
+    sample_sizes,
+)
 
 
 def point_mass_planner(seed: int = 0, **settings) -> TrajectorySamplingCEM:
@@ -26,7 +32,7 @@ class Recorder:
     """Wraps ``optimizer.optimize`` to record every iteration's candidates and scores and the
     keyword arguments of each call."""
 
-    def __init__(self, optimizer: CEMOptimizer) -> None:
+    def __init__(self, optimizer: ICEMOptimizer) -> None:
         self.calls: list[dict] = []
         self._optimize = optimizer.optimize
         optimizer.optimize = self
@@ -94,8 +100,12 @@ def test_default_options_reproduce_the_plain_cem_exactly():
 
     low, high = torch.zeros(2, 1, 1, 1), torch.ones(2, 1, 1, 1)
     mean = torch.full((2, 3, 6, 1), 0.5)
-    config = PlannerConfig()
-    cem = CEMOptimizer(
+    config = PlannerConfig(population=12, elites=3, iterations=4, epsilon=1e-9)
+    want = reference_cem(score, mean, low, high, 12, 3, 4, 0.1, torch.Generator().manual_seed(7))
+    plain = config.make_optimizer(torch.Generator().manual_seed(7))
+    assert type(plain) is CEMOptimizer and plain.sample_sizes == [12] * 4
+    torch.testing.assert_close(plain.optimize(score, mean, low, high), want, rtol=0, atol=0)
+    icem = ICEMOptimizer(
         12,
         3,
         4,
@@ -105,11 +115,10 @@ def test_default_options_reproduce_the_plain_cem_exactly():
         noise_beta=config.noise_beta,
         keep_elites=config.keep_elites,
         population_decay=config.population_decay,
+        keep_best=config.keep_best,
     )
-    got = cem.optimize(score, mean, low, high)
-    want = reference_cem(score, mean, low, high, 12, 3, 4, 0.1, torch.Generator().manual_seed(7))
-    torch.testing.assert_close(got, want, rtol=0, atol=0)
-    assert cem.last_elites is None and cem.sample_sizes == [12] * 4
+    torch.testing.assert_close(icem.optimize(score, mean, low, high), want, rtol=0, atol=0)
+    assert icem.last_elites is None and icem.sample_sizes == [12] * 4
 
 
 def test_colored_noise_reaches_the_candidates_and_is_common_to_all_problems():
@@ -136,7 +145,7 @@ def test_kept_elites_join_the_next_iteration_and_are_scored_again():
         seen.append((candidates, scores))
         return scores
 
-    cem = CEMOptimizer(16, 4, 3, 1e-9, 0.1, torch.Generator().manual_seed(1), keep_elites=0.5)
+    cem = ICEMOptimizer(16, 4, 3, 1e-9, 0.1, torch.Generator().manual_seed(1), keep_elites=0.5)
     assert cem.kept_elites == 2
     low, high = torch.zeros(1, 1, 1, 2), torch.ones(1, 1, 1, 2)
     cem.optimize(score, torch.full((1, 2, 5, 2), 0.5), low, high)
@@ -160,13 +169,12 @@ def test_an_absent_initial_elite_never_wins_and_a_present_one_does():
     mean = torch.full((1, 2, 10, 1), 0.5)
     optimum = torch.zeros(1, 2, 1, 10, 1)
     valid = torch.tensor([True, False]).view(1, 2, 1)
-    cem = CEMOptimizer(8, 2, 2, 1e-9, 0.1, torch.Generator().manual_seed(0))
+    cem = ICEMOptimizer(8, 2, 2, 1e-9, 0.1, torch.Generator().manual_seed(0), keep_best=True)
     best = cem.optimize(
         distance_to_low,
         mean,
         low,
         high,
-        keep_best=True,
         initial_elites=optimum,
         initial_valid=valid,
     )
@@ -233,7 +241,7 @@ def test_without_shift_elites_nothing_is_carried_across_decisions():
     planner.plan(torch.tensor([[1.0, 0.5]]))
     planner.plan(torch.tensor([[1.0, 0.5]]))
     assert planner.warm_start_elites is None
-    assert record.calls[1]["kwargs"]["initial_elites"] is None
+    assert "initial_elites" not in record.calls[1]["kwargs"]
     assert [c.shape[2] for c in record.calls[1]["candidates"]] == [16, 18, 18]
 
 

@@ -10,11 +10,14 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase, InitTracker, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
+from mapets_rl.config import ConfigError
 from mapets_rl.models import EnsembleConfig, ProbabilisticEnsemble
 from mapets_rl.planning import (
     CPU_PRESET,
     PAPER_PRESET,
+    CEMOptimizer,
     DynamicsModel,
+    ICEMOptimizer,
     PlannerConfig,
     TrajectorySamplingCEM,
     trajectory_sampling_returns,
@@ -136,7 +139,7 @@ def test_is_init_resets_only_that_env():
     planner.plan(obs)  # converges to +1 everywhere: warm start ~ [1, ..., 1, 0]
     assert bool((planner.warm_start_mean[..., :-1, :] > 0.9).all())
     # With heavy momentum one iteration barely moves the mean: the result reveals the start.
-    planner.alpha, planner.iterations = 0.99, 1
+    planner.config = planner.config.replace(alpha=0.99, iterations=1)
     td = TensorDict(
         {("agents", "observation"): obs, "is_init": torch.tensor([[True], [False]])}, [2]
     )
@@ -223,11 +226,70 @@ def test_bad_input():
         PlannerConfig(elites=500)
 
 
+@pytest.mark.parametrize("field", PlannerConfig.field_names())
+def test_a_built_planner_refuses_setting_a_config_field(field):
+    planner = make_planner(linear_ensemble([point_mass_matrix()]), population=8, elites=4)
+    before = planner.config
+    with pytest.raises(AttributeError, match=rf"{field} is a PlannerConfig setting"):
+        setattr(planner, field, getattr(before, field))
+    assert planner.config is before
+
+
+def test_a_replaced_config_is_validated_and_used_from_the_next_decision():
+    model = linear_ensemble([point_mass_matrix()])
+    planner = make_planner(model, population=8, elites=4)
+    with pytest.raises(ConfigError, match=r"elites must be in \[1, population=8\], got 50"):
+        planner.config = planner.config.replace(elites=50)
+    with pytest.raises(ConfigError, match="population must be >= 1, got 0"):
+        planner.config = planner.config.replace(population=0)
+    with pytest.raises(ValueError, match=r"particles \(7\) must be divisible"):
+        planner.config = planner.config.replace(particles=7)
+    assert (planner.config.population, planner.config.elites) == (8, 4)  # unchanged
+    obs = torch.tensor([[1.0, 0.0]])
+    planner.plan(obs)
+    planner.config = planner.config.replace(population=16, iterations=2, horizon=3)
+    assert planner.warm_start_mean is None  # a new horizon forgets the warm start
+    planner.plan(obs)
+    assert planner.last_solution.shape == (1, 3, 1) and planner.last_iterations == 2
+    assert planner.optimizer.population == 16
+
+
+def test_the_config_chooses_the_optimizer_class():
+    model = linear_ensemble([point_mass_matrix()])
+    plain = make_planner(model)
+    assert type(plain.optimizer) is CEMOptimizer
+    for option in (
+        {"anchor_candidates": True},
+        {"keep_best": True},
+        {"noise_beta": 2.0},
+        {"keep_elites": 0.5},
+        {"population_decay": 2.0},
+    ):
+        assert type(make_planner(model, **option).optimizer) is ICEMOptimizer
+    plain.config = plain.config.replace(keep_best=True)
+    assert type(plain.optimizer) is ICEMOptimizer and plain.optimizer.keep_best
+
+
+def test_icem_with_every_option_off_equals_the_plain_cem():
+    def score(candidates):
+        return -(candidates - 0.3).pow(2).sum(dim=(-1, -2))
+
+    low, high = torch.zeros(2, 1, 1, 1), torch.ones(2, 1, 1, 1)
+    mean = torch.full((2, 3, 6, 1), 0.5)
+    results = [
+        optimizer(12, 3, 4, 1e-9, 0.1, torch.Generator().manual_seed(7)).optimize(
+            score, mean, low, high
+        )
+        for optimizer in (CEMOptimizer, ICEMOptimizer)
+    ]
+    torch.testing.assert_close(results[0], results[1], rtol=0, atol=0)
+
+
 def test_presets_build_planner_and_model():
     for preset in (PAPER_PRESET, CPU_PRESET):
         model = ProbabilisticEnsemble(7, 1, 2, **preset.model.model_kwargs())
         planner = TrajectorySamplingCEM(model, quadratic_reward, 0.0, 13.89, preset.planner)
-        assert planner.horizon == preset.planner.horizon
+        assert planner.config == preset.planner
         assert model.hidden == tuple(preset.model.hidden)
 
 

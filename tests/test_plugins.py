@@ -160,7 +160,7 @@ def test_train_mapets_help_lists_sections_units_and_scenarios(capsys) -> None:
     )
     assert "  comm.comm_range: float = 100.0 [m]" in lines
     assert "  model.hidden: list[int] = [300, 300, 300]" in lines  # the paper preset's
-    assert "  collision_gap: float = 2.0 [m]" in lines
+    assert "  planner_reward.collision_gap: float = 2.0 [m]" in lines
     assert "  episodes: int = 15 [episodes]" in lines
     supported, unsupported = out.split("not supported:\n")
     assert "figure-eight (8 agents, obs 10, continuous actions)" in supported

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from mapets_rl.config import ConfigError
-from mapets_rl.envs import figure_eight_collision, figure_eight_reward, make_env
+from mapets_rl.envs import FigureEightPlannerReward, make_env
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.planning import CPU_PRESET, PlannerConfig, TrajectorySamplingCEM, precision
 from mapets_rl.planning.precision import resolve_dtype
@@ -141,7 +141,8 @@ def test_bf16_and_fp32_choose_the_same_figure_eight_actions():
     model.fit_normalizer(obs, action, next_obs)
     model.requires_grad_(False)
     low, high = 0.0, 13.89
-    kwargs = {"reward_fn": figure_eight_reward, "termination_fn": figure_eight_collision}
+    fixed_margins = FigureEightPlannerReward(headway=0.0, lane_change_time=0.0)  # as measured
+    kwargs = {"reward_fn": fixed_margins.reward, "termination_fn": fixed_margins.collision}
     states = obs[::6]
 
     def plan(dtype: str, seed: int) -> torch.Tensor:

@@ -190,8 +190,9 @@ def test_presets_resolve_and_explicit_fields_win():
         ("model.epochs", 0),
         ("planner.alpha", 1.0),
         ("num_envs", 2),
-        ("collision_reward", 5.0),
-        ("collision_gap", -1.0),
+        ("planner_reward.collision_reward", 5.0),
+        ("planner_reward.collision_gap", -1.0),
+        ("planner_reward.headway", 11.0),
     ],
 )
 def test_bad_config_raises_naming_the_field(field, value):
@@ -364,8 +365,7 @@ def test_a_scenario_without_a_planner_reward_needs_reward_fn(tmp_path, monkeypat
     fit) is refused before the run directory exists unless ``reward_fn`` is given."""
     import functools
 
-    from mapets_rl.envs import make_env, registry
-    from mapets_rl.envs.figure_eight import figure_eight_reward
+    from mapets_rl.envs import FigureEightPlannerReward, make_env, registry
 
     monkeypatch.setattr(registry, "_SCENARIOS", dict(registry._SCENARIOS))
     registry.register_env("my-loop", functools.partial(make_env, "figure-eight"))
@@ -374,7 +374,64 @@ def test_a_scenario_without_a_planner_reward_needs_reward_fn(tmp_path, monkeypat
     with pytest.raises(ValueError, match="reward_fn is required for env 'my-loop'"):
         MAPETS(config, run_dir)
     assert not run_dir.exists()
-    exp = MAPETS(config, run_dir, reward_fn=figure_eight_reward)
-    assert exp.reward_fn is figure_eight_reward and exp.termination_fn is None
+    assert config.planner_reward is None
+    reward = FigureEightPlannerReward().reward
+    exp = MAPETS(config, run_dir, reward_fn=reward)
+    assert exp.reward_fn is reward and exp.termination_fn is None
     exp.close()
-    assert registry.registered_scenario("figure-eight").planner_reward is figure_eight_reward
+    # the shell path: the reward named in the config, resolved by import
+    shell = config.with_overrides(["reward_fn=test_recipe_mapets:speed_reward"])
+    exp = MAPETS(shell, tmp_path / "shell")
+    assert exp.reward_fn is speed_reward and exp.termination_fn is None
+    assert exp.planner.reward_fn is speed_reward
+    exp.close()
+    assert MAPETSConfig.from_yaml(tmp_path / "shell" / "config.yaml").reward_fn == (
+        "test_recipe_mapets:speed_reward"
+    )
+    scenario = registry.registered_scenario("figure-eight")
+    assert scenario.planner_reward is FigureEightPlannerReward
+
+
+def speed_reward(obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+    """A custom planner reward for the ``reward_fn`` config field: the predicted speed."""
+    return next_obs[..., 0]
+
+
+def test_planner_reward_is_the_scenarios_section_set_from_overrides(tmp_path):
+    from mapets_rl.envs import FigureEightPlannerReward
+
+    config = tiny().with_overrides(["planner_reward.headway=0.3"])
+    assert config.planner_reward == FigureEightPlannerReward(headway=0.3)
+    assert config.to_dict()["planner_reward"]["headway"] == 0.3
+    exp = MAPETS(config, tmp_path / "run")
+    assert exp.reward_fn == config.planner_reward.reward
+    assert exp.termination_fn == config.planner_reward.collision
+    exp.close()
+    assert MAPETSConfig().planner_reward == FigureEightPlannerReward()
+
+
+def test_a_new_env_starts_from_its_own_planner_reward_section():
+    from mapets_rl.envs import FigureEightPlannerReward
+
+    # how the CLI and sweeps build a config: the default one with env=... applied
+    assert MAPETSConfig().with_overrides(["env=freeway"]).planner_reward is None
+    freeway = MAPETSConfig(env="freeway")
+    assert freeway.with_overrides(["env=figure-eight"]).planner_reward == (
+        FigureEightPlannerReward()
+    )
+    shifted = freeway.with_overrides(["env=figure-eight", "planner_reward.headway=0.3"])
+    assert shifted.planner_reward == FigureEightPlannerReward(headway=0.3)
+    # the same section on both figure-eights: the settings are kept
+    short = MAPETSConfig(planner_reward={"headway": 0.3})
+    assert short.with_overrides(["env=figure-eight-multilane"]).planner_reward.headway == 0.3
+
+
+def test_old_flat_planner_reward_keys_load_into_the_section(tmp_path):
+    path = tmp_path / "config.yaml"
+    path.write_text("env: figure-eight\nheadway: 0.25\ncollision_gap: 3.0\n")
+    config = MAPETSConfig.from_yaml(path)
+    assert (config.planner_reward.headway, config.planner_reward.collision_gap) == (0.25, 3.0)
+    assert config.planner_reward.lane_change_time == 1.0  # the others keep their defaults
+    freeway = tmp_path / "freeway.yaml"
+    freeway.write_text("env: freeway\nheadway: 0.5\nreward_fn: test_recipe_mapets:speed_reward\n")
+    assert MAPETSConfig.from_yaml(freeway).planner_reward is None

@@ -128,7 +128,7 @@ _STEP_SCRIPT = textwrap.dedent(
     """
     import torch  # before the project: inductor has already chosen $TMPDIR/torchinductor_<user>
 
-    from mapets_rl.envs.figure_eight import figure_eight_collision, figure_eight_reward
+    from mapets_rl.envs.figure_eight import FigureEightPlannerReward
     from mapets_rl.models import ProbabilisticEnsemble
     from mapets_rl.planning.compiled import CompiledStep
 
@@ -138,7 +138,8 @@ _STEP_SCRIPT = textwrap.dedent(
     args = (
         model, torch.rand(2, rows, 10), torch.rand(2, rows, 1), torch.randn(2, 1, 10), None,
         torch.zeros(2, rows), torch.ones(2, rows, dtype=torch.bool),
-        torch.zeros(2, rows, dtype=torch.long), figure_eight_reward, figure_eight_collision,
+        torch.zeros(2, rows, dtype=torch.long), FigureEightPlannerReward().reward,
+        FigureEightPlannerReward().collision,
         "ts_inf", torch.float32,
     )
     step = CompiledStep()

@@ -7,8 +7,11 @@ import pytest
 import torch
 from test_envs import place
 
-from mapets_rl.envs import figure_eight_collision, figure_eight_observation_bounds, make_env
+from mapets_rl.envs import FigureEightPlannerReward, figure_eight_observation_bounds, make_env
 from mapets_rl.envs.figure_eight import TWO_LANE_OBS_DIM, FigureEightEnv
+
+#: The fixed margins (no time headway, no closing-speed share) these tests were written with.
+FIXED_MARGINS = FigureEightPlannerReward(headway=0.0, lane_change_time=0.0)
 
 
 def two_lane_env(n_hvs: int) -> FigureEightEnv:
@@ -102,9 +105,9 @@ def test_planning_termination_refuses_a_lane_change_into_a_short_gap() -> None:
     )
     change = torch.tensor([[8.0, 0.9]]).expand(4, 2)
     keep = torch.tensor([[8.0, 0.1]]).expand(4, 2)
-    assert figure_eight_collision(rows, change, rows).tolist() == [False, True, True, True]
-    assert figure_eight_collision(rows, keep, rows).tolist() == [False, False, False, False]
-    assert figure_eight_collision(rows, change, rows, lane_change_gap=2.0).tolist() == [
+    assert FIXED_MARGINS.collision(rows, change, rows).tolist() == [False, True, True, True]
+    assert FIXED_MARGINS.collision(rows, keep, rows).tolist() == [False, False, False, False]
+    assert FIXED_MARGINS.replace(lane_change_gap=2.0).collision(rows, change, rows).tolist() == [
         False,
         False,
         False,
@@ -112,7 +115,7 @@ def test_planning_termination_refuses_a_lane_change_into_a_short_gap() -> None:
     ]
     # halfway through a change a request is ignored by the env: no lane-change test
     rows[:, 10] = 0.5
-    assert figure_eight_collision(rows, change, rows).tolist() == [False, False, False, False]
+    assert FIXED_MARGINS.collision(rows, change, rows).tolist() == [False, False, False, False]
 
 
 def test_lane_change_margin_grows_with_the_closing_speed() -> None:
@@ -128,18 +131,18 @@ def test_lane_change_margin_grows_with_the_closing_speed() -> None:
         ]
     )
     change = torch.tensor([[8.0, 0.9]]).expand(4, 2)
-    assert figure_eight_collision(rows, change, rows).tolist() == [False] * 4
-    one = figure_eight_collision(rows, change, rows, lane_change_time=1.0)
+    assert FIXED_MARGINS.collision(rows, change, rows).tolist() == [False] * 4
+    one = FIXED_MARGINS.replace(lane_change_time=1.0).collision(rows, change, rows)
     assert one.tolist() == [False, False, True, False]
-    two = figure_eight_collision(rows, change, rows, lane_change_time=2.0)
+    two = FIXED_MARGINS.replace(lane_change_time=2.0).collision(rows, change, rows)
     assert two.tolist() == [False, True, True, False]
     # one lane (10 features): no lane-change test, so the single-lane planner is unchanged
     one_lane = rows[:, :10]
     for seconds in (0.0, 1.0, 2.0):
         assert (
-            figure_eight_collision(
-                one_lane, change[:, :1], one_lane, lane_change_time=seconds
-            ).tolist()
+            FIXED_MARGINS.replace(lane_change_time=seconds)
+            .collision(one_lane, change[:, :1], one_lane)
+            .tolist()
             == [False] * 4
         )
 

@@ -4,7 +4,7 @@ curves, Table III transitions shared, Fig. 7 clique cover number), with learning
     python benchmarks/ablations/comm_range.py [--scale cpu|paper] [--seeds 0 1 2]
         [--backend local|ray] [--out outputs/ablations/comm_range] [--set key=value ...]
 
-Scale ``cpu`` (default): the cpu preset (w=25, Q=32, X=4, Y=2, P=5, B=5, 3x64), 8 CAVs,
+Scale ``cpu`` (default): the cpu preset (w=25, Q=8, X=4, Y=2, P=5, B=5, 3x64), 8 CAVs,
 200-step episodes, 10 episodes per run: 5 ranges x 3 seeds = 15 runs of ~30 s per planned
 episode, about 40-60 min on two cores (two trials at a time). Scale ``paper``: Table II sizes
 and 15 episodes, unchanged (a GPU per trial: ``--backend ray --gpus-per-trial 1 --set

@@ -3,7 +3,7 @@
     python benchmarks/ablations/link_failure.py [--scale cpu|paper] [--seeds 0 1 2]
         [--backend local|ray] [--out outputs/ablations/link_failure] [--set key=value ...]
 
-Scale ``cpu`` (default): the cpu preset (w=25, Q=32, X=4, Y=2, P=5, B=5, 3x64), 8 CAVs,
+Scale ``cpu`` (default): the cpu preset (w=25, Q=8, X=4, Y=2, P=5, B=5, 3x64), 8 CAVs,
 200-step episodes, 10 episodes per run (as the other ablations; the paper runs 15):
 3 probabilities x 3 seeds = 9 runs, about 25-40 min on two cores. Scale ``paper``: Table II
 sizes, 15 episodes. Smoke run:

@@ -10,9 +10,8 @@ from gymnasium.envs import registration
 from mapets_rl.envs.factory import make_env, make_parallel_env
 from mapets_rl.envs.figure_eight import (
     FigureEightEnv,
-    figure_eight_collision,
+    FigureEightPlannerReward,
     figure_eight_observation_bounds,
-    figure_eight_reward,
 )
 from mapets_rl.envs.freeway import ACTION_NAMES, FreewayEnv
 from mapets_rl.envs.freeway_merge import FreewayMergeEnv, FreewayMergeParallelEnv
@@ -23,6 +22,7 @@ from mapets_rl.envs.pettingzoo_wrapper import (
     wrap_parallel_env,
     wrap_pettingzoo,
 )
+from mapets_rl.envs.planner_reward import PlannerReward
 from mapets_rl.envs.registry import (
     Scenario,
     available_envs,
@@ -53,9 +53,9 @@ __all__ = [
     "available_envs",
     "build_env",
     "builtin_envs",
-    "figure_eight_collision",
+    "FigureEightPlannerReward",
+    "PlannerReward",
     "figure_eight_observation_bounds",
-    "figure_eight_reward",
     "make_env",
     "make_parallel_env",
     "register_env",

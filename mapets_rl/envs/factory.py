@@ -19,10 +19,11 @@ from typing import Any
 import torch
 from torchrl.envs import EnvBase
 
-from mapets_rl.envs.figure_eight import figure_eight_collision, figure_eight_reward
+from mapets_rl.envs.figure_eight import FigureEightPlannerReward
 from mapets_rl.envs.freeway_merge import FreewayMergeParallelEnv
 from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, TrafficParallelEnv
 from mapets_rl.envs.pettingzoo_wrapper import wrap_pettingzoo
+from mapets_rl.envs.planner_reward import PlannerReward
 from mapets_rl.envs.registry import builtin_envs, register_builtin, registered_scenario
 from mapets_rl.envs.torch_freeway.env import TorchFreewayEnv
 
@@ -143,26 +144,18 @@ def make_env(
     )
 
 
-_FIGURE_EIGHT_PLANNER = {
-    "planner_reward": figure_eight_reward,
-    "planner_termination": figure_eight_collision,
-}
-"""What a model-based planner scores figure-eight trajectories with (the registry's
-``planner_reward`` / ``planner_termination``)."""
-
-
 def _register_builtin(
     name: str,
     parallel_env: type[TrafficParallelEnv],
     gym_id: str,
     changes: dict[str, Any] | None = None,
-    **planner: Any,
+    planner_reward: type[PlannerReward] | None = None,
 ) -> None:
     """Register built-in scenario ``name``: ``parallel_env`` with ``changes`` to its defaults,
     built by :func:`make_env`, raw env registered with gymnasium as ``gym_id``, and the
-    ``planner_reward`` / ``planner_termination`` it brings (if any)."""
+    planner reward section it brings (if any)."""
     register_builtin(
-        name, functools.partial(make_env, name), parallel_env, gym_id, changes, **planner
+        name, functools.partial(make_env, name), parallel_env, gym_id, changes, planner_reward
     )
 
 
@@ -170,14 +163,17 @@ def _register_builtin(
 # the recipes, the CLI, compare and the gymnasium ids (mapets_rl.envs.GYM_IDS) read them from
 # the registry.
 _register_builtin(
-    "figure-eight", FigureEightParallelEnv, "mapets_rl/FigureEight-v0", **_FIGURE_EIGHT_PLANNER
+    "figure-eight",
+    FigureEightParallelEnv,
+    "mapets_rl/FigureEight-v0",
+    planner_reward=FigureEightPlannerReward,
 )
 _register_builtin(
     "figure-eight-multilane",
     FigureEightParallelEnv,
     "mapets_rl/FigureEightMultiLane-v0",
     {"lanes": 2, "n_cavs": 22, "horizon": 400},
-    **_FIGURE_EIGHT_PLANNER,
+    planner_reward=FigureEightPlannerReward,
 )
 _register_builtin("freeway", FreewayParallelEnv, "mapets_rl/Freeway-v0")
 _register_builtin("freeway-merge", FreewayMergeParallelEnv, "mapets_rl/FreewayMerge-v0")

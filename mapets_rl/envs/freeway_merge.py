@@ -40,7 +40,7 @@ change lanes or stop, so "keep lane" is not a policy but a crash into the lane's
 scripted reference every learner is compared with would be meaningless. With an on-ramp
 keep-lane stays a safe, sensible policy whose cost falls on the ramp vehicles: exactly the
 situation in which a selfish CAV's best reply differs from the system's (measured in
-``benchmarks/RESULTS.md``, section "freeway-merge: a social dilemma (issue 21)"). A lane drop
+``docs/results/scenarios.md``, section "freeway-merge: an on-ramp social dilemma"). A lane drop
 was not measured.
 """
 

@@ -41,10 +41,12 @@ a planner reward (a function; MA-PETS only)
     action [..., A], next_obs [..., S]) -> reward [...]`` (float, vectorised over the leading
     dimensions: agents, candidates, particles) and optionally ``termination_fn(...) -> bool
     [...]`` (a predicted crash ends the particle's trajectory). Pass them as
-    ``MAPETS(config, reward_fn=..., termination_fn=...)``; the built-in scenarios register
-    theirs with the scenario registry (``planner_reward`` / ``planner_termination``,
-    :class:`~mapets_rl.envs.registry.Scenario`), which MA-PETS uses when no ``reward_fn`` is
-    given. MA-PETS also needs continuous actions (``Box`` action spaces).
+    ``MAPETS(config, reward_fn=..., termination_fn=...)``, or name the reward in the config
+    (``reward_fn=package.module:function``, imported when the config is built: the shell's
+    way); the built-in scenarios register theirs with the scenario registry as a config
+    section (``planner_reward``, a :class:`~mapets_rl.envs.PlannerReward` subclass whose fields
+    are its settings, :class:`~mapets_rl.envs.registry.Scenario`), which MA-PETS uses when no
+    ``reward_fn`` is given. MA-PETS also needs continuous actions (``Box`` action spaces).
 
 A :class:`~mapets_rl.envs.TrafficParallelEnv` (the package's traffic scenarios and their
 subclasses) goes through :class:`TrafficPettingZooWrapper`: the same entries, built from one

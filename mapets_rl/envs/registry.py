@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from torchrl.envs import EnvBase
 
     from mapets_rl.envs.parallel import TrafficParallelEnv
+    from mapets_rl.envs.planner_reward import PlannerReward
 
 SCENARIO_GROUP = "mapets_rl.scenarios"
 """Entry-point group of the scenarios that installed packages provide."""
@@ -45,20 +46,20 @@ class Scenario:
             scenario registered with :func:`register_env`.
         changes: what a built-in scenario changes from its env class's defaults.
         gym_id: gymnasium id of a built-in scenario's raw (array-valued) highway-env env.
-        planner_reward / planner_termination: the known reward and crash test a model-based
-            planner (MA-PETS) uses on the scenario's observations, ``(obs [..., S], action
-            [..., A], next_obs [..., S]) -> [...]`` (the figure-eight's:
-            :func:`~mapets_rl.envs.figure_eight_reward`,
-            :func:`~mapets_rl.envs.figure_eight_collision`); None where the scenario has
-            none (MA-PETS then needs a ``reward_fn``).
+        planner_reward: the scenario's planner-reward settings, a
+            :class:`~mapets_rl.envs.PlannerReward` config section class whose instances give
+            the known reward (and termination) a model-based planner (MA-PETS) scores the
+            scenario's predicted trajectories with (the figure-eight's:
+            :class:`~mapets_rl.envs.FigureEightPlannerReward`); its fields are declared there,
+            once, and MA-PETS' config holds an instance as its ``planner_reward`` section.
+            None where the scenario has none (MA-PETS then needs a ``reward_fn``).
     """
 
     factory: Callable[..., EnvBase]
     parallel_env: type[TrafficParallelEnv] | None = None
     changes: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
     gym_id: str | None = None
-    planner_reward: Callable[..., Any] | None = None
-    planner_termination: Callable[..., Any] | None = None
+    planner_reward: type[PlannerReward] | None = None
 
     @property
     def builtin(self) -> bool:
@@ -77,13 +78,12 @@ def register_builtin(
     parallel_env: type[TrafficParallelEnv],
     gym_id: str,
     changes: Mapping[str, Any] | None = None,
-    planner_reward: Callable[..., Any] | None = None,
-    planner_termination: Callable[..., Any] | None = None,
+    planner_reward: type[PlannerReward] | None = None,
 ) -> None:
     """Register one of the package's own traffic scenarios (``mapets_rl.envs.factory`` does on
     import): ``factory(**env_config)`` builds it, ``parallel_env`` is its PettingZoo env class,
     ``changes`` what the scenario changes from that class's defaults, ``gym_id`` its
-    gymnasium id and ``planner_reward`` / ``planner_termination`` what a planner scores its
+    gymnasium id and ``planner_reward`` the section of settings of what a planner scores its
     trajectories with (see :class:`Scenario`). A name registered before raises ValueError."""
     check_name(name, "scenario")
     if name in _SCENARIOS:
@@ -94,7 +94,6 @@ def register_builtin(
         MappingProxyType(dict(changes or {})),
         gym_id,
         planner_reward,
-        planner_termination,
     )
 
 

@@ -45,7 +45,7 @@ class TileCodingConfig(ConfigSection):
             transitions show no change and then a jump, the model's NLL stays ~25 nats above
             the continuous model's and safety falls to 0.61 (continuous 0.93; 3 seeds, 10
             episodes); ``bins=64`` (256 values) kept one seed within 0.07 of continuous
-            (``benchmarks/RESULTS.md``, tile-coding ablation).
+            (``docs/results/ablations.md``, tile-coded MA-PETS).
         action_bins: tiles per dimension and tiling of an action dimension.
         obs_low: lower bounds of the observation features (``None``: the figure-eight's,
             from :func:`mapets_rl.envs.figure_eight_observation_bounds`; required on other

@@ -1,12 +1,13 @@
 """Planning: batched multi-agent CEM with trajectory sampling (MA-PETS sec. IV-B).
 
-Three pieces, as mbrl-lib splits PETS: :class:`CEMOptimizer` (a pure optimiser over action
-sequences), :func:`trajectory_sampling_returns` (scores of candidate sequences through any
-:class:`DynamicsModel`) and :class:`TrajectorySamplingCEM` (the policy module that composes them
-and keeps the warm start).
+Three pieces, as mbrl-lib splits PETS: :class:`CEMOptimizer` and its :class:`ICEMOptimizer`
+subclass (pure optimisers over action sequences, chosen by
+:meth:`PlannerConfig.make_optimizer`), :func:`trajectory_sampling_returns` (scores of candidate
+sequences through any :class:`DynamicsModel`) and :class:`TrajectorySamplingCEM` (the policy
+module that composes them, keeps its frozen :class:`PlannerConfig` and the warm start).
 """
 
-from mapets_rl.planning.cem import CEMOptimizer, ScoreFn
+from mapets_rl.planning.cem import CEMOptimizer, ICEMOptimizer, ScoreFn
 from mapets_rl.planning.config import CPU_PRESET, PAPER_PRESET, PRESETS, PlannerConfig, Preset
 from mapets_rl.planning.mpc import TrajectorySamplingCEM
 from mapets_rl.planning.precision import DTYPE_CHOICES, resolve_dtype
@@ -20,6 +21,7 @@ from mapets_rl.planning.trajectory_sampling import (
 
 __all__ = [
     "CEMOptimizer",
+    "ICEMOptimizer",
     "DynamicsModel",
     "ScoreFn",
     "TrajectorySamplingCEM",

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import dataclasses
 
+import torch
+
 from mapets_rl.config import ConfigSection, check
 from mapets_rl.models.config import EnsembleConfig
-from mapets_rl.planning.cem import kept_elite_count, sample_sizes
+from mapets_rl.planning.cem import CEMOptimizer, ICEMOptimizer, kept_elite_count, sample_sizes
 from mapets_rl.planning.precision import DTYPE_CHOICES
 from mapets_rl.planning.trajectory_sampling import PROPAGATIONS, particle_layout_error
 
@@ -106,6 +108,35 @@ class PlannerConfig(ConfigSection):
         check(self.population_decay >= 1.0, "population_decay", ">= 1", self.population_decay)
         check(self.dtype in DTYPE_CHOICES, "dtype", f"one of {list(DTYPE_CHOICES)}", self.dtype)
 
+    @property
+    def icem(self) -> bool:
+        """Whether any of iCEM's options is on (:meth:`make_optimizer` then builds an
+        :class:`~mapets_rl.planning.ICEMOptimizer`)."""
+        return (
+            self.anchor_candidates
+            or self.keep_best
+            or self.noise_beta > 0
+            or self.keep_elites > 0
+            or self.population_decay > 1
+        )
+
+    def make_optimizer(self, generator: torch.Generator | None = None) -> CEMOptimizer:
+        """The optimiser of these settings: an :class:`~mapets_rl.planning.ICEMOptimizer` with
+        iCEM's options (:attr:`icem`), else the paper's :class:`~mapets_rl.planning.CEMOptimizer`
+        (the same sequences as an ICEMOptimizer with every option off), drawing its candidate
+        noise from ``generator``."""
+        sizes = (self.population, self.elites, self.iterations, self.epsilon, self.alpha)
+        if not self.icem:
+            return CEMOptimizer(*sizes, generator)
+        return ICEMOptimizer(
+            *sizes,
+            generator,
+            noise_beta=self.noise_beta,
+            keep_elites=self.keep_elites,
+            population_decay=self.population_decay,
+            keep_best=self.keep_best,
+        )
+
     def candidates_per_iteration(self) -> list[int]:
         """Candidates one CEM iteration scores, per iteration: the sampled ones (decaying with
         ``population_decay``), the anchors and the mean (3 with ``anchor_candidates``) and the
@@ -155,7 +186,8 @@ PAPER_PRESET = Preset(planner=PlannerConfig(), model=EnsembleConfig())
 #: planner is as safe at Q = 8 or 16 as at Q = 32 on both figure-eights, with the exact model and
 #: with the learned ones (iCEM's colored noise costs two-lane safety, so it stays off). Each
 #: rollout step is compiled (``compile``; eager where no C++ compiler is found). See
-#: benchmarks/RESULTS.md for timings, the safety-vs-model-rows table and the NLL curve.
+#: docs/results/ (performance.md: timings; ablations.md: safety against model rows; mapets.md:
+#: the NLL curve).
 CPU_PRESET = Preset(
     planner=PlannerConfig(
         horizon=25,

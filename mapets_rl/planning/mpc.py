@@ -23,7 +23,7 @@ from tensordict.utils import NestedKey
 
 from mapets_rl.modules.memory import check_memory
 from mapets_rl.modules.tensor_checks import as_mask, check_finite, check_real, get_tensor
-from mapets_rl.planning.cem import CEMOptimizer
+from mapets_rl.planning.cem import kept_elite_count
 from mapets_rl.planning.compiled import CompiledStep
 from mapets_rl.planning.config import PlannerConfig
 from mapets_rl.planning.cuda_graph import GraphedStep
@@ -44,6 +44,7 @@ log = logging.getLogger(__name__)
 
 
 _TORCH_DTYPES = {torch.float32: "fp32", torch.bfloat16: "bf16"}
+_CONFIG_FIELDS = frozenset(PlannerConfig.field_names())
 
 
 def _planner_config(config: PlannerConfig | None, settings: dict[str, Any]) -> PlannerConfig:
@@ -99,7 +100,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
     input, as written by torchrl's ``InitTracker``, resets the matching envs automatically).
 
     iCEM's options (Pinneri et al. 2020; all off by default, see
-    :class:`~mapets_rl.planning.PlannerConfig`): anchor candidates and keep-best; colored
+    :class:`~mapets_rl.planning.PlannerConfig`; with any of them on the planner optimises with
+    an :class:`~mapets_rl.planning.ICEMOptimizer`): anchor candidates and keep-best; colored
     candidate noise (``noise_beta``); ``K`` elites kept from each iteration for the next
     (``keep_elites``) and the last iteration's ``K``, shifted by one step, added to the next
     decision's first iteration (``shift_elites``; state ``warm_start_elites``
@@ -128,7 +130,12 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             ``low < high`` elementwise.
         config: the planner's settings (:class:`~mapets_rl.planning.PlannerConfig`, Table II
             names ``w, Q, X, Y, P``; default: its defaults, the paper's sizes). Every setting
-            is declared, defaulted and validated there, once.
+            is declared, defaulted and validated there, once. The planner keeps it, frozen, in
+            :attr:`config`: a setting changes only by replacing the whole config,
+            ``planner.config = planner.config.replace(elites=8)`` (validated again); setting a
+            field on the planner (``planner.elites = 8``) raises AttributeError. The config
+            chooses the optimiser (:meth:`~mapets_rl.planning.PlannerConfig.make_optimizer`:
+            the paper's CEM, or iCEM's with its options on), kept in ``optimizer``.
         **settings: :class:`~mapets_rl.planning.PlannerConfig` fields that replace the
             config's (``horizon=3, population=8``); ``dtype`` may also be ``torch.float32`` /
             ``torch.bfloat16``. The planner keeps the resolved compute dtype and the reason
@@ -164,16 +171,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         if termination_fn is not None and not callable(termination_fn):
             raise ValueError("termination_fn must be callable (obs, action, next_obs) -> done.")
         config = _planner_config(config, settings)
-        layout = config.layout_error(model.ensemble_size)
-        if layout is not None:
-            raise ValueError(f"{layout}.")
         device = _model_device(model, action_low)
-        if config.cuda_graph and device.type != "cuda":
-            raise ValueError(
-                f"cuda_graph=True needs the model on a CUDA device, got it on {device} "
-                "(move the model with .cuda() first, or leave cuda_graph False)."
-            )
-        resolved_dtype, dtype_reason = resolve_dtype(config.dtype, device)
         low = torch.as_tensor(action_low, dtype=torch.float32, device=device)
         high = torch.as_tensor(action_high, dtype=torch.float32, device=device)
         for name, bound in (("action_low", low), ("action_high", high)):
@@ -192,55 +190,14 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             ) from err
         if not bool((low < high).all()):
             raise ValueError("action_low must be < action_high in every dimension.")
-        check_memory(  # a planner built from the Python API gets the estimate MA-PETS makes
-            planner_bytes(
-                model.n_agents,
-                model.obs_dim,
-                act,
-                tuple(getattr(model, "hidden", ())),
-                max(config.candidates_per_iteration()),
-                config.particles,
-                config.horizon,
-            ),
-            device,
-            f"the tensors of one planner decision (population={config.population} x particles="
-            f"{config.particles} x horizon={config.horizon}, {model.n_agents} agents)",
-            "lower population, particles or horizon",
-        )
         super().__init__()
         self.model = model
         self.reward_fn = reward_fn
         self.termination_fn = termination_fn
-        self.horizon = config.horizon
-        self.particles = config.particles
-        self.propagation = config.propagation
-        self.dtype = resolved_dtype
-        self.dtype_reason = dtype_reason
-        self.anchor_candidates = config.anchor_candidates
-        self.keep_best = config.keep_best
-        self.shift_elites = config.shift_elites
         if generator is None and seed is not None:
             generator = torch.Generator(device=device)
             generator.manual_seed(seed)
         self.generator = generator
-        self._graphed = GraphedStep(device, generator) if config.cuda_graph else None
-        # compile fuses a CPU step; on an accelerator cuda_graph is the tool (inductor's GPU
-        # backend is not tested here), so the step stays eager there.
-        compiled = config.compile and device.type == "cpu"
-        if config.compile and not compiled:
-            log.info("planner compile applies to CPU planning; the %s step runs eagerly", device)
-        self._step: StepFn = CompiledStep() if compiled else propagate_step
-        self.optimizer = CEMOptimizer(
-            config.population,
-            config.elites,
-            config.iterations,
-            config.epsilon,
-            config.alpha,
-            generator,
-            noise_beta=config.noise_beta,
-            keep_elites=config.keep_elites,
-            population_decay=config.population_decay,
-        )
         self.in_keys = [observation_key]
         self.out_keys = [action_key]
         self.is_init_key = is_init_key
@@ -257,7 +214,84 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         self.register_buffer(
             "nonfinite_rewards", torch.zeros(model.n_agents, dtype=torch.long, device=device)
         )
+        self._config: PlannerConfig | None = None
+        self._graphed: GraphedStep | None = None
+        self._step: StepFn = propagate_step
+        self.config = config
         self._check_model_fns(device)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        """Refuse to set a :class:`PlannerConfig` field as an attribute (``planner.elites =
+        50``): the settings change only as a whole, validated, through :attr:`config`."""
+        if name in _CONFIG_FIELDS:
+            raise AttributeError(
+                f"{name} is a PlannerConfig setting, not an attribute of the planner: replace "
+                f"the config, validated, with planner.config = planner.config.replace({name}=...)"
+            )
+        super().__setattr__(name, value)
+
+    @property
+    def config(self) -> PlannerConfig:
+        """The planner's settings (a frozen :class:`~mapets_rl.planning.PlannerConfig`)."""
+        return self._config
+
+    @config.setter
+    def config(self, config: PlannerConfig) -> None:
+        """Plan with ``config`` from the next decision on (``planner.config =
+        planner.config.replace(elites=8)``; the PlannerConfig has validated its own fields).
+        Checked here against the model and the device: the particle layout over the ensemble,
+        ``cuda_graph`` on a CUDA device and the memory of one decision (ValueError). Builds the
+        optimiser (:meth:`PlannerConfig.make_optimizer`) and the rollout step; a new horizon
+        forgets the warm start (:meth:`reset`)."""
+        if not isinstance(config, PlannerConfig):
+            raise TypeError(f"config must be a PlannerConfig, got {type(config).__name__}.")
+        model, device = self.model, self.action_low.device
+        layout = config.layout_error(model.ensemble_size)
+        if layout is not None:
+            raise ValueError(f"{layout}.")
+        if config.cuda_graph and device.type != "cuda":
+            raise ValueError(
+                f"cuda_graph=True needs the model on a CUDA device, got it on {device} "
+                "(move the model with .cuda() first, or leave cuda_graph False)."
+            )
+        check_memory(  # a planner built from the Python API gets the estimate MA-PETS makes
+            planner_bytes(
+                model.n_agents,
+                model.obs_dim,
+                model.action_dim,
+                tuple(getattr(model, "hidden", ())),
+                max(config.candidates_per_iteration()),
+                config.particles,
+                config.horizon,
+            ),
+            device,
+            f"the tensors of one planner decision (population={config.population} x particles="
+            f"{config.particles} x horizon={config.horizon}, {model.n_agents} agents)",
+            "lower population, particles or horizon",
+        )
+        self._dtype, self.dtype_reason = resolve_dtype(config.dtype, device)
+        previous = self._config
+        if previous is None or previous.cuda_graph != config.cuda_graph:
+            self._graphed = GraphedStep(device, self.generator) if config.cuda_graph else None
+        if previous is None or previous.compile != config.compile:
+            # compile fuses a CPU step; on an accelerator cuda_graph is the tool (inductor's GPU
+            # backend is not tested here), so the step stays eager there.
+            compiled = config.compile and device.type == "cpu"
+            if config.compile and not compiled:
+                log.info(
+                    "planner compile applies to CPU planning; the %s step runs eagerly", device
+                )
+            self._step = CompiledStep() if compiled else propagate_step
+        if previous is not None and previous.horizon != config.horizon:
+            self.reset()
+        self.optimizer = config.make_optimizer(self.generator)
+        self._config = config
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The compute dtype of the ensemble forward (``config.dtype`` resolved on the model's
+        device; why: :attr:`dtype_reason`)."""
+        return self._dtype
 
     def _check_model_fns(self, device: torch.device) -> None:
         """Dry-call ``reward_fn`` (and ``termination_fn``) on a dummy batch ``[I, 2, *]``: a
@@ -307,54 +341,13 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         if plan is None:
             return None
         return plan.transpose(0, 1).reshape(
-            *self._batch_shape, self.model.n_agents, self.horizon, self.model.action_dim
+            *self._batch_shape, self.model.n_agents, self.config.horizon, self.model.action_dim
         )
 
     @property
     def last_iterations(self) -> int:
         """CEM iterations run by the last call (early stopping may cut them short)."""
         return self.optimizer.last_iterations
-
-    population = property(
-        lambda self: self.optimizer.population,
-        lambda self, value: setattr(self.optimizer, "population", value),
-        doc="CEM candidates ``Q`` (held by :attr:`optimizer`).",
-    )
-    elites = property(
-        lambda self: self.optimizer.elites,
-        lambda self, value: setattr(self.optimizer, "elites", value),
-        doc="CEM elites ``X``.",
-    )
-    iterations = property(
-        lambda self: self.optimizer.iterations,
-        lambda self, value: setattr(self.optimizer, "iterations", value),
-        doc="Maximum CEM iterations ``Y``.",
-    )
-    epsilon = property(
-        lambda self: self.optimizer.epsilon,
-        lambda self, value: setattr(self.optimizer, "epsilon", value),
-        doc="Early-stop threshold on the sampling std.",
-    )
-    alpha = property(
-        lambda self: self.optimizer.alpha,
-        lambda self, value: setattr(self.optimizer, "alpha", value),
-        doc="Momentum of the CEM update.",
-    )
-    noise_beta = property(
-        lambda self: self.optimizer.noise_beta,
-        lambda self, value: setattr(self.optimizer, "noise_beta", value),
-        doc="Spectral exponent of the candidate noise along the horizon (0: white).",
-    )
-    keep_elites = property(
-        lambda self: self.optimizer.keep_elites,
-        lambda self, value: setattr(self.optimizer, "keep_elites", value),
-        doc="Fraction of the elites kept for the next iteration (and decision).",
-    )
-    population_decay = property(
-        lambda self: self.optimizer.population_decay,
-        lambda self, value: setattr(self.optimizer, "population_decay", value),
-        doc="Population decay factor per CEM iteration (1: none).",
-    )
 
     @property
     def warm_start_mean(self) -> torch.Tensor | None:
@@ -398,21 +391,23 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         """``[I, M, 2, H, act]`` the noise-free fallbacks scored in every CEM iteration: the
         constant sequence at ``action_low`` (on the figure-eight: stop, keep the lane) and the
         warm start ``mean [I, M, H, act]``'s first action held for the whole horizon."""
-        low = self.action_low.expand(-1, mean.shape[1], self.horizon, -1)
-        hold = mean[:, :, :1].expand(-1, -1, self.horizon, -1)
+        horizon = self.config.horizon
+        low = self.action_low.expand(-1, mean.shape[1], horizon, -1)
+        hold = mean[:, :, :1].expand(-1, -1, horizon, -1)
         return torch.stack([low, hold], dim=2)
 
     def _initial_mean(self, envs: int) -> torch.Tensor:
         """``[I, M, H, act]`` centre of the action box."""
         centre = (self.action_low + self.action_high) / 2  # [I, 1, 1, act]
-        return centre.expand(-1, envs, self.horizon, -1).clone()
+        return centre.expand(-1, envs, self.config.horizon, -1).clone()
 
     def _shifted_elites(self, envs: int, reset: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
         """The previous decision's shifted elites ``[I, M, K, H, act]`` and whether each env
         has them, bool ``[1, M, 1]`` (not those ``reset [1, M, 1, 1]`` restarts); ``()``
         without ``keep_elites`` / ``shift_elites``. Before the first decision (or after a change
         of ``K``) placeholders of the same shape, all absent: the shapes stay fixed."""
-        kept = self.optimizer.kept_elites if self.shift_elites else 0
+        config = self.config
+        kept = kept_elite_count(config.keep_elites, config.elites) if config.shift_elites else 0
         if not kept:
             self._elites = None
             return ()
@@ -451,8 +446,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
                 candidates,
                 self.reward_fn,
                 termination_fn=self.termination_fn,
-                propagation=self.propagation,
-                particles=self.particles,
+                propagation=self.config.propagation,
+                particles=self.config.particles,
                 dtype=self.dtype,
                 generator=self.generator,
                 step=self._step,
@@ -460,21 +455,15 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             nonfinite = nonfinite + counted
             return scores
 
-        anchors = self._anchors(mean) if self.anchor_candidates else None
+        icem: dict[str, torch.Tensor] = {}  # ICEMOptimizer's inputs (its options are on)
+        if self.config.anchor_candidates:
+            icem["anchors"] = self._anchors(mean)
+        if shifted:
+            icem["initial_elites"], icem["initial_valid"] = shifted
         frozen = getattr(self.model, "frozen_parameters", None)  # optional (DynamicsModel)
         with frozen(self.dtype) if frozen is not None else contextlib.nullcontext():
-            mu = self.optimizer.optimize(
-                score,
-                mean,
-                self.action_low,
-                self.action_high,
-                anchors=anchors,
-                keep_best=self.keep_best,
-                initial_elites=shifted[0] if shifted else None,
-                initial_valid=shifted[1] if shifted else None,
-            )
-        kept = self.optimizer.last_elites
-        return (mu, nonfinite) if kept is None else (mu, nonfinite, kept)
+            mu = self.optimizer.optimize(score, mean, self.action_low, self.action_high, **icem)
+        return (mu, nonfinite, self.optimizer.last_elites) if shifted else (mu, nonfinite)
 
     def _graph_key(self, obs: torch.Tensor) -> tuple:
         """What a captured decision depends on beyond its inputs' values: shapes, settings,
@@ -482,21 +471,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         tensors = (*self.parameters(), *self.buffers())
         return (
             tuple(obs.shape),
+            self.config,
             self.dtype,
-            self.horizon,
-            self.particles,
-            self.propagation,
-            self.population,
-            self.elites,
-            self.iterations,
-            self.epsilon,
-            self.alpha,
-            self.anchor_candidates,
-            self.keep_best,
-            self.noise_beta,
-            self.keep_elites,
-            self.population_decay,
-            self.shift_elites,
             id(self.reward_fn),
             id(self.termination_fn),
             tuple(t.data_ptr() for t in tensors),

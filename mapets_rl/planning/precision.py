@@ -3,7 +3,7 @@
 bf16 halves the memory traffic of the MLP and runs on native instructions where the hardware
 has them (CPU: AVX512-BF16 or AMX; CUDA: compute capability >= 8.0). Where it does not, torch
 emulates bf16 matmuls and they are 4-20x *slower* than fp32 (measured on an AVX2-only AMD EPYC,
-``benchmarks/RESULTS.md``), so ``"auto"`` falls back to fp32 there.
+``docs/results/performance.md``), so ``"auto"`` falls back to fp32 there.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ rectangles that touch crash. The step is a pure function of a dict of ``[B, N]``
 data-dependent shapes), so :class:`~mapets_rl.envs.torch_freeway.simulator.BatchedFreeway` can
 hand it to ``torch.compile``, which fuses its few hundred elementwise ops into a few loops.
 
-Where it departs from highway-env (measured in ``benchmarks/RESULTS.md``):
+Where it departs from highway-env (measured in ``docs/results/scenarios.md``):
 
 - highway-env's vehicles act one after the other; a vehicle's abort of a lane change reads the
   targets of the vehicles before it *after* their decision in the same step and those after it

@@ -8,7 +8,8 @@ policy_frequency`` simulation steps of highway-env's drivers (IDM + MOBIL, lane-
 steering, the kinematic bicycle model, rectangle collisions; :mod:`.dynamics`), then the
 observation, reward and episode bookkeeping of :class:`~mapets_rl.envs.FreewayEnv`. What each
 part reproduces, and where the simulator departs from highway-env, is listed in
-``docs/ARCHITECTURE.md`` and measured in ``benchmarks/RESULTS.md`` ("The batched freeway").
+``docs/ARCHITECTURE.md`` and measured in ``docs/results/scenarios.md`` ("The batched freeway
+against highway-env").
 
 Randomness is drawn only when a road is reset (spawn slots, speeds, target speeds, human IDM
 exponents, which vehicles are CAVs), from the simulator's own ``torch.Generator``; stepping is
