@@ -13,7 +13,8 @@ openai/maddpg schedule (``mapets_rl.recipes.maddpg.OPENAI_MADDPG``), the team re
   change or stop that a copy of the road predicts to crash within 3 s is replaced by Keep Lane),
   in training and in evaluation;
 - ``gamma99``: gamma 0.99 and 5-step returns (the gain of a yield comes steps later);
-- ``mappo``: MAPPO (GAE, gamma 0.99) with the team reward, the on-policy reference.
+- ``mappo``: MAPPO (GAE, gamma 0.99) with the team reward, the on-policy reference, one PPO
+  update per 40 steps of every road; ``short``: one per 4 steps (10x the updates).
 
 Every trained policy is scored greedily on ``--eval-roads`` roads of the same evaluation seeds
 as the scripted keep-lane policy and the cooperative merge rule
@@ -63,7 +64,9 @@ CHANGES: dict[str, list[str]] = {
     "shield": ["env_config.shield=true"],
     "gamma99": ["gamma=0.99", "n_steps=5"],
 }
-"""The controlled changes, as config overrides of the MADDPG recipe."""
+"""The controlled changes of MADDPG, as config overrides."""
+MAPPO_CHANGES = ("shield", "short")
+"""The controlled changes of MAPPO (``short``: ``frames_per_batch`` of 4 steps per road)."""
 
 OPENAI_SCHEDULE = [
     "update_interval=100",
@@ -84,10 +87,11 @@ def variant_overrides(variant: str, args: argparse.Namespace) -> tuple[str, list
     """The recipe and config overrides of ``variant`` (``maddpg[_change...]`` or
     ``mappo[_shield]``); ValueError naming the variant otherwise."""
     recipe, *changes = variant.split("_")
-    unknown = [c for c in changes if c not in CHANGES or (recipe == "mappo" and c != "shield")]
-    if recipe not in ("maddpg", "mappo") or unknown:
+    allowed = MAPPO_CHANGES if recipe == "mappo" else tuple(CHANGES)
+    if recipe not in ("maddpg", "mappo") or any(c not in allowed for c in changes):
         raise ValueError(
-            f"--variants: {variant!r} is not maddpg[_{'|_'.join(CHANGES)}...] or mappo[_shield]"
+            f"--variants: {variant!r} is not maddpg[_{'|_'.join(CHANGES)}...] or "
+            f"mappo[_{'|_'.join(MAPPO_CHANGES)}...]"
         )
     roads = args.train_roads
     overrides = [
@@ -107,9 +111,10 @@ def variant_overrides(variant: str, args: argparse.Namespace) -> tuple[str, list
         overrides += [*OPENAI_SCHEDULE, f"frames_per_batch={4 * roads}"]
         overrides.append(f"epsilon_anneal_frames={args.anneal_frames}")
     else:
-        overrides += [f"frames_per_batch={40 * roads}", "gamma=0.99"]
+        steps = 4 if "short" in changes else 40
+        overrides += [f"frames_per_batch={steps * roads}", "gamma=0.99"]
     for change in changes:
-        overrides += CHANGES[change]
+        overrides += CHANGES.get(change, [])  # MAPPO's "short" is its frames_per_batch
     return recipe, overrides
 
 

@@ -21,7 +21,7 @@ def control(load_script: Callable[[str], ModuleType], monkeypatch) -> ModuleType
     return load_script("benchmarks/cooperation_control.py")
 
 
-@pytest.mark.parametrize("variant", ["maddpg_boltzmann", "mappo_epsilon", "sac"])
+@pytest.mark.parametrize("variant", ["maddpg_boltzmann", "mappo_epsilon", "maddpg_short", "sac"])
 def test_an_unknown_variant_is_refused_before_any_work(
     control: ModuleType, variant: str, tmp_path: Path
 ) -> None:
