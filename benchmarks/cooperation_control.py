@@ -115,7 +115,9 @@ def variant_overrides(variant: str, args: argparse.Namespace) -> tuple[str, list
         overrides += [f"frames_per_batch={steps * roads}", "gamma=0.99"]
     for change in changes:
         overrides += CHANGES.get(change, [])  # MAPPO's "short" is its frames_per_batch
-    return recipe, overrides
+    # a change replaces the base's value of its key (gamma99's gamma=0.99 the schedule's 0.95)
+    by_key = {item.split("=", 1)[0]: item for item in overrides}
+    return recipe, list(by_key.values())
 
 
 def train(variant: str, seed: int, args: argparse.Namespace) -> Path:

@@ -36,6 +36,9 @@ def test_variants_are_one_change_at_a_time(control: ModuleType) -> None:
     _, shielded = control.variant_overrides("maddpg_shield", args)
     assert sorted(set(shielded) - set(base)) == ["env_config.shield=true"]
     assert "env_config.team_reward=true" in base
+    _, longer = control.variant_overrides("maddpg_gamma99", args)
+    assert sorted(set(longer) - set(base)) == ["gamma=0.99", "n_steps=5"]
+    assert "gamma=0.95" not in longer
 
 
 def test_a_tiny_control_scores_policies_on_the_roads_of_keep_lane(
