@@ -66,11 +66,11 @@ def _mapets(preset: str, **planner: Any) -> Callable[[argparse.Namespace], Any]:
     return build
 
 
-def _model_free(module: str, cls: str, env: str) -> Callable[[argparse.Namespace], Any]:
+def _model_free(name: str, env: str) -> Callable[[argparse.Namespace], Any]:
     def build(args: argparse.Namespace) -> Any:
-        import importlib
+        from mapets_rl.app.plugins import load_recipe
 
-        recipe = getattr(importlib.import_module(f"recipes.{module}"), cls)
+        recipe = load_recipe(name)
         if env == "loop":
             scenario, env_config = args.loop, {"n_cavs": args.agents}
         else:
@@ -88,10 +88,10 @@ METHODS: dict[str, tuple[str, Callable[[argparse.Namespace], Any]]] = {
     "mapets-paper": ("mapets", _mapets("paper")),
     "mapets-cpu-graph": ("mapets", _mapets("cpu", cuda_graph=True)),
     "mapets-paper-graph": ("mapets", _mapets("paper", cuda_graph=True)),
-    "maddpg": ("maddpg", _model_free("maddpg", "MADDPG", "loop")),
-    "mappo": ("mappo", _model_free("mappo", "MAPPO", "loop")),
-    "sac": ("sac", _model_free("sac", "SAC", "loop")),
-    "shapley_ac": ("shapley_ac", _model_free("shapley_ac", "ShapleyAC", "freeway")),
+    "maddpg": ("maddpg", _model_free("maddpg", "loop")),
+    "mappo": ("mappo", _model_free("mappo", "loop")),
+    "sac": ("sac", _model_free("sac", "loop")),
+    "shapley_ac": ("shapley_ac", _model_free("shapley_ac", "freeway")),
 }
 """Method name -> (paper key, builder of the recipe's Experiment). The ``-graph`` methods plan
 with ``planner.cuda_graph`` (CUDA devices only; the first, untimed warm-up decision captures),
