@@ -1129,7 +1129,7 @@ def test_mapets_reward_fn_must_name_an_importable_callable(value: str, why: str)
 def test_mapets_refuses_a_reward_fn_given_twice(tmp_path: Path) -> None:
     from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 
-    config = MAPETSConfig(preset="cpu", reward_fn="test_recipe_mapets:speed_reward")
+    config = MAPETSConfig(preset="cpu", reward_fn="tests.recipes.test_recipe_mapets:speed_reward")
     _refused(
         lambda: MAPETS(config, tmp_path / "run", reward_fn=lambda o, a, n: n[..., 0]),
         "reward_fn is given twice",
