@@ -28,8 +28,8 @@ step machine 60 bash -c "nvidia-smi --query-gpu=name,driver_version,memory.total
     --format=csv; grep -m1 'model name' /proc/cpuinfo; nproc; $py -c 'import torch; \
     print(torch.__version__, torch.version.cuda, torch.cuda.get_device_name(), \
     torch.backends.cpu.get_cpu_capability())'"
-step tests 150 "$py" -m pytest -q -p no:cacheprovider tests/test_cuda_graph.py tests/test_cuda_runs.py \
-    tests/test_precision.py -k "cuda or graph"
+step tests 150 "$py" -m pytest -q -p no:cacheprovider tests/planning/test_cuda_graph.py tests/recipes/test_cuda_runs.py \
+    tests/planning/test_precision.py -k "cuda or graph"
 step planner 200 "$py" benchmarks/planner.py --device cuda --configs paper cpu \
     --agents 1 8 22 --dtypes fp32 bf16 --graph --repeats 5 --naive-max-agents 0 --no-separate
 step decision_time 150 "$py" benchmarks/decision_time.py --device cuda --decisions 20 \

@@ -912,10 +912,9 @@ def test_a_ray_sweep_killed_with_kill_9_leaves_no_ray_agent(tmp_path):
     import signal
     import time
 
-    from sweep_helpers import SLOW_ENV
-    from test_sweep import _SWEEP_SCRIPT, TINY
-
     from mapets_rl.ray_runtime import RAY_AGENTS
+    from tests.app.test_sweep import _SWEEP_SCRIPT, TINY
+    from tests.sweep_helpers import SLOW_ENV
 
     out = tmp_path / "sweep"
     argv = ["sweep", "slowtoy", "--env", "toy", "--seeds", "0", *TINY, "--out", str(out)]

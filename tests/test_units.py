@@ -8,11 +8,11 @@ import json
 from pathlib import Path
 
 import pytest
-from test_results import fake_run
 
 from mapets_rl.app.comparison import compare
 from mapets_rl.comm import CommConfig
 from mapets_rl.metrics import MPH_PER_MPS, format_metric, metric_label, metric_unit
+from tests.experiment.test_results import fake_run
 
 
 def test_metric_units_and_labels() -> None:

@@ -1,0 +1,62 @@
+"""benchmarks/cooperation_control.py (issue 32's positive control): variants are named changes
+that are refused before any work when unknown, a tiny end-to-end run scores every policy on
+the same roads as keep lane, and a second call reuses the finished runs and evaluations."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+TINY = ["--seeds", "0", "--frames", "16", "--train-roads", "4", "--eval-roads", "2"]
+
+
+@pytest.fixture
+def control(load_script: Callable[[str], ModuleType], monkeypatch) -> ModuleType:
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))  # it imports freeway_headroom
+    return load_script("benchmarks/cooperation_control.py")
+
+
+@pytest.mark.parametrize("variant", ["maddpg_boltzmann", "mappo_epsilon", "maddpg_short", "sac"])
+def test_an_unknown_variant_is_refused_before_any_work(
+    control: ModuleType, variant: str, tmp_path: Path
+) -> None:
+    with pytest.raises(ValueError, match="--variants"):
+        control.main(["--variants", variant, *TINY, "--out", str(tmp_path)])
+    assert not any(tmp_path.iterdir())
+
+
+def test_variants_are_one_change_at_a_time(control: ModuleType) -> None:
+    args = control.argparse.Namespace(train_roads=4, n_vehicles=8, frames=16, anneal_frames=8)
+    _, base = control.variant_overrides("maddpg", args)
+    _, shielded = control.variant_overrides("maddpg_shield", args)
+    assert sorted(set(shielded) - set(base)) == ["env_config.shield=true"]
+    assert "env_config.team_reward=true" in base
+    _, longer = control.variant_overrides("maddpg_gamma99", args)
+    assert sorted(set(longer) - set(base)) == ["gamma=0.99", "n_steps=5"]
+    assert "gamma=0.95" not in longer
+
+
+def test_a_tiny_control_scores_policies_on_the_roads_of_keep_lane(
+    control: ModuleType, tmp_path: Path, monkeypatch
+) -> None:
+    argv = ["--variants", "maddpg_shield", *TINY, "--n-vehicles", "8", "--out", str(tmp_path)]
+    summary = control.main(argv)
+    assert summary["keep lane (scripted)"]["gain_percent_per_seed"] == [0.0]
+    run = summary["maddpg_shield"]
+    assert len(run["gain_percent_per_seed"]) == 1
+    low, high = run["gain_percent_ci95"]
+    assert low <= run["gain_percent_mean"] <= high
+    assert json.loads((tmp_path / "control.json").read_text())["maddpg_shield"] == run
+
+    files = sorted(tmp_path.rglob("*"))
+    stamps = {f: f.stat().st_mtime_ns for f in files if f.is_file() and "logs" not in f.parts}
+    again = control.main(argv)
+    assert again["maddpg_shield"] == run
+    for path, stamp in stamps.items():
+        if path.name not in ("control.md", "control.json", ".lock"):
+            assert path.stat().st_mtime_ns == stamp, path  # nothing trained or scored again
