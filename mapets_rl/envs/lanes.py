@@ -4,7 +4,7 @@
 called several times per vehicle and simulation step (steering control, lane tracking, route
 coordinates). The stock versions run NumPy ufuncs on two-element arrays and NumPy scalars, whose
 per-call overhead dominates; these subclasses compute the same expressions, in the same order,
-with Python floats and ``math`` (the results are the same numbers, see ``tests/test_envs.py``).
+with Python floats and ``math`` (the results are the same numbers, see ``tests/envs/test_envs.py``).
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@
   desired gap, steering, kinematics) is plain float math: the stock methods apply NumPy ufuncs
   (``np.clip``, ``np.arcsin``, ``np.dot`` on 2-vectors) to scalars, whose call overhead was ~14%
   of an env step. The overrides compute the same expressions in the same order and give the same
-  numbers (``tests/test_envs.py`` compares them with the stock methods).
+  numbers (``tests/envs/test_envs.py`` compares them with the stock methods).
 - ``HumanVehicle``: highway-env IDM/MOBIL driver that additionally obeys a crossing rule (it
   brakes for a virtual stop line when the road says it must yield).
 - ``TargetSpeedVehicle``: a CAV whose action is a target speed (plus an optional lane change),
@@ -296,7 +296,7 @@ STOCK_METHODS: tuple[tuple[type, str, object], ...] = (
 @contextlib.contextmanager
 def stock_control() -> Iterator[None]:
     """Inside the block, highway-env's own methods replace the float-math overrides (the
-    reference of ``tests/test_envs.py`` and ``benchmarks/env_throughput.py``); not thread-safe."""
+    reference of ``tests/envs/test_envs.py`` and ``benchmarks/env_throughput.py``); not thread-safe."""
     saved = [(cls, name, cls.__dict__[name]) for cls, name, _ in STOCK_METHODS]
     try:
         for cls, name, stock in STOCK_METHODS:

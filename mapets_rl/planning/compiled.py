@@ -66,7 +66,7 @@ class CompiledStep:
     ``torch.compile`` (static shapes), falling back to the eager step where it cannot compile.
 
     Same arguments and results as ``propagate_step``; the results equal the eager step's up
-    to floating-point reassociation inside the fused loops (``tests/test_compiled_planner.py``
+    to floating-point reassociation inside the fused loops (``tests/planning/test_compiled_planner.py``
     states the tolerance).
 
     Attributes:

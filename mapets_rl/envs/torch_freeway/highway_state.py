@@ -5,7 +5,7 @@
 lanes and target lanes, target speeds, IDM exponents, lane-change timers, last commands,
 crashes, pending impacts, CAV decisions and the episode's bookkeeping. From such a scene both
 simulators step the same vehicles (the calibration of ``benchmarks/freeway_calibration.py`` and
-``tests/test_torch_freeway.py``). :func:`draw_scene` does the reverse for rendering: it puts one
+``tests/envs/test_torch_freeway.py``). :func:`draw_scene` does the reverse for rendering: it puts one
 road's vehicles on a highway-env road, whose viewer then draws it.
 """
 
