@@ -296,7 +296,8 @@ STOCK_METHODS: tuple[tuple[type, str, object], ...] = (
 @contextlib.contextmanager
 def stock_control() -> Iterator[None]:
     """Inside the block, highway-env's own methods replace the float-math overrides (the
-    reference of ``tests/envs/test_envs.py`` and ``benchmarks/env_throughput.py``); not thread-safe."""
+    reference of ``tests/envs/test_envs.py`` and ``benchmarks/env_throughput.py``); not
+    thread-safe."""
     saved = [(cls, name, cls.__dict__[name]) for cls, name, _ in STOCK_METHODS]
     try:
         for cls, name, stock in STOCK_METHODS:

@@ -66,8 +66,8 @@ class CompiledStep:
     ``torch.compile`` (static shapes), falling back to the eager step where it cannot compile.
 
     Same arguments and results as ``propagate_step``; the results equal the eager step's up
-    to floating-point reassociation inside the fused loops (``tests/planning/test_compiled_planner.py``
-    states the tolerance).
+    to floating-point reassociation inside the fused loops
+    (``tests/planning/test_compiled_planner.py`` states the tolerance).
 
     Attributes:
         compiles: distinct step signatures compiled so far (one per run at fixed shapes).

@@ -4,9 +4,9 @@
 ``FreewayMergeEnv``) into one road of a :class:`BatchedFreeway`: positions, headings, speeds,
 lanes and target lanes, target speeds, IDM exponents, lane-change timers, last commands,
 crashes, pending impacts, CAV decisions and the episode's bookkeeping. From such a scene both
-simulators step the same vehicles (the calibration of ``benchmarks/freeway_calibration.py`` and
-``tests/envs/test_torch_freeway.py``). :func:`draw_scene` does the reverse for rendering: it puts one
-road's vehicles on a highway-env road, whose viewer then draws it.
+simulators step the same vehicles (the calibration of ``benchmarks/freeway_calibration.py``
+and ``tests/envs/test_torch_freeway.py``). :func:`draw_scene` does the reverse for rendering:
+it puts one road's vehicles on a highway-env road, whose viewer then draws it.
 """
 
 from __future__ import annotations
