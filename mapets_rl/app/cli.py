@@ -223,12 +223,14 @@ def build_parser() -> argparse.ArgumentParser:
         "compare",
         help="learning curves and a final-metrics table over runs",
         description="Group RUN_DIRs by recipe (and --group-by fields), plot mean learning "
-        "curves with a 95%% Student-t confidence band over the runs of each group "
-        "(learning_curves.png) and write a markdown table of final metrics (final_metrics.md), "
-        "summary.json and curves.json into --out. Runs on different scenarios (env or "
-        "env_config) are refused unless --allow-mixed-env; a run named twice, or an --out "
-        "inside a run, is refused. The runs of a group that end at different x are "
-        "compared at the last x all of them reached (the table's header says so).",
+        "curves with a bootstrap 95% band over the runs of each group, clipped to each "
+        "metric's range (learning_curves.png), and write markdown tables of final metrics "
+        "(mean and interquartile mean with bootstrap intervals, final_metrics.md), "
+        "summary.json and curves.json into --out (with --marl-eval also marl_eval.json). "
+        "Runs on different scenarios (env or env_config) are refused unless "
+        "--allow-mixed-env; a run named twice, or an --out inside a run, is refused. The runs "
+        "of a group that end at different x are compared at the last x all of them reached "
+        "(the table's header says so).",
     )
     compare.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="run directories")
     compare.add_argument("--out", required=True, metavar="DIR", help="output directory")
@@ -284,6 +286,11 @@ def build_parser() -> argparse.ArgumentParser:
         default="eval",
         help="what the entries of a results.json from before training and "
         "evaluation entries were kept apart are (old mapets runs: train)",
+    )
+    compare.add_argument(
+        "--marl-eval",
+        action="store_true",
+        help="also write marl_eval.json, every run's entries in InstaDeep's marl-eval format",
     )
     _add_sweep_parser(sub)
     return parser
@@ -547,6 +554,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             x_grid=args.x_grid,
             allow_mixed_env=args.allow_mixed_env,
             legacy_as=args.legacy_as,
+            marl_eval=args.marl_eval,
         )
     except ValueError as err:
         _fail(str(err))

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from mapets_rl.app.cli import main as cli_main
 from mapets_rl.app.comparison import compare
 from mapets_rl.metrics import metric_range
 from mapets_rl.statistics import bootstrap_interval
@@ -168,6 +169,10 @@ def test_marl_eval_export(tmp_path: Path) -> None:
     run_1 = algorithms["mapets comm.comm_range=0"]["run_1"]
     assert run_1["absolute_metrics"] == {"safety": [0.5]}  # the last entry
     assert list(run_1)[-1] == "absolute_metrics"  # marl-eval reads it as the last key
+    argv = ["compare", *map(str, runs), "--out", str(tmp_path / "cli"), "--metrics", "safety"]
+    argv += ["--group-by", "comm.comm_range"]
+    assert cli_main([*argv, "--marl-eval"]) == 0
+    assert json.loads((tmp_path / "cli" / "marl_eval.json").read_text()) == data
 
 
 # ----------------------------------------------------------------------------- scenarios
