@@ -126,10 +126,12 @@ def train(variant: str, seed: int, args: argparse.Namespace) -> Path:
     cls = load_recipe(recipe)
     run_dir = Path(args.out) / "runs" / f"{variant}_seed{seed}"
     if latest_checkpoint(run_dir) is not None:
-        exp = cls.from_run_dir(run_dir, overrides=[f"total_frames={args.frames}"])
+        exp = cls.from_run_dir(run_dir)  # a finished run may have done more (whole batches)
         if exp.frames >= args.frames:
             exp.close()
             return run_dir
+        exp.close()
+        exp = cls.from_run_dir(run_dir, overrides=[f"total_frames={args.frames}"])
     else:
         config = cls.Config(env=ENV, seed=seed).with_overrides(overrides)
         exp = cls(config, run_dir)

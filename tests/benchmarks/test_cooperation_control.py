@@ -12,7 +12,8 @@ from types import ModuleType
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-TINY = ["--seeds", "0", "--frames", "16", "--train-roads", "4", "--eval-roads", "2"]
+TINY = ["--seeds", "0", "--frames", "20", "--train-roads", "4", "--eval-roads", "2"]
+"""20 frames: two batches of 4 roads x 4 steps, so a finished run has done more than asked."""
 
 
 @pytest.fixture
