@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -46,12 +47,13 @@ import numpy as np
 import torch
 from freeway_headroom import CooperativeMerge
 from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mapets_rl.app.plugins import load_recipe
-from mapets_rl.envs import make_env
+from mapets_rl.envs import FreewayMergeEnv, ScriptedCAVPolicy, make_env
 from mapets_rl.experiment import atomic_write_text, latest_checkpoint
-from mapets_rl.modules import ACTION
+from mapets_rl.recipes.maddpg import OPENAI_MADDPG
 from mapets_rl.statistics import bootstrap_interval
 
 ENV = "freeway-merge"
@@ -67,20 +69,6 @@ CHANGES: dict[str, list[str]] = {
 """The controlled changes of MADDPG, as config overrides."""
 MAPPO_CHANGES = ("shield", "short")
 """The controlled changes of MAPPO (``short``: ``frames_per_batch`` of 4 steps per road)."""
-
-OPENAI_SCHEDULE = [
-    "update_interval=100",
-    "updates_per_batch=1",
-    "batch_size=1024",
-    "lr_actor=0.01",
-    "lr_critic=0.01",
-    "gamma=0.95",
-    "tau=0.01",
-    "num_cells=[64, 64]",
-    "max_grad_norm=0.5",
-]
-"""``mapets_rl.recipes.maddpg.OPENAI_MADDPG`` (repeated here so that a benchmark reads no recipe
-module by path)."""
 
 
 def variant_overrides(variant: str, args: argparse.Namespace) -> tuple[str, list[str]]:
@@ -108,7 +96,7 @@ def variant_overrides(variant: str, args: argparse.Namespace) -> tuple[str, list
         "keep_last=1",
     ]
     if recipe == "maddpg":
-        overrides += [*OPENAI_SCHEDULE, f"frames_per_batch={4 * roads}"]
+        overrides += [*OPENAI_MADDPG, f"frames_per_batch={4 * roads}"]
         overrides.append(f"epsilon_anneal_frames={args.anneal_frames}")
     else:
         steps = 4 if "short" in changes else 40
@@ -141,11 +129,14 @@ def train(variant: str, seed: int, args: argparse.Namespace) -> Path:
 
 @torch.no_grad()
 def score(
-    policy: TensorDictModuleBase | None, shield: bool, seed: int, args: argparse.Namespace
+    policy: Callable[[EnvBase], TensorDictModuleBase],
+    shield: bool,
+    seed: int,
+    args: argparse.Namespace,
 ) -> dict[str, np.ndarray]:
-    """Greedy episodes of ``policy`` (None: keep lane) on ``--eval-roads`` roads of the
-    evaluation seed of ``seed``: per road, the system reward and the scenario's episode
-    metrics (``[roads]`` each)."""
+    """Greedy episodes of ``policy(env)`` on ``--eval-roads`` roads of the evaluation seed of
+    ``seed``: per road, the system reward and the scenario's episode metrics (``[roads]``
+    each)."""
     env = make_env(
         ENV,
         backend="torch",
@@ -154,18 +145,13 @@ def score(
         cav_ratio=1.0,
         shield=shield,
     )
+    actor = policy(env)
     env.set_seed(EVAL_SEED_OFFSET + seed)
     td = env.reset()
     system = torch.zeros(args.eval_roads, dtype=torch.float64)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(int(env.config["horizon"])):
-            if policy is None:
-                action = torch.zeros(env.full_action_spec[ACTION].shape, dtype=torch.long)
-                action[..., 0] = 1
-                td.set(ACTION, action)
-            else:
-                td = policy(td)
-            td = env.step(td)
+            td = env.step(actor(td))
             system += td.get(("next", "agents", "reward")).double().sum((-2, -1))
             td = td.get("next")
     episodes = env.pop_finished_episodes()
@@ -178,14 +164,11 @@ def score(
 
 def scripted(seed: int, shield: bool, args: argparse.Namespace) -> dict[str, dict]:
     """Keep lane and the cooperative merge rule on the evaluation roads of ``seed``."""
-    env = make_env(ENV, backend="torch", num_envs=1, n_vehicles=args.n_vehicles)
-    rule = CooperativeMerge(
-        int(env.config["lanes"]), float("inf"), 60.0, 30.0, 15.0, 15.0, 1.5, torch.int64
-    )
-    env.close()
+    lanes = int(FreewayMergeEnv.resolved_config({"n_vehicles": args.n_vehicles})["lanes"])
+    rule = CooperativeMerge(lanes, float("inf"), 60.0, 30.0, 15.0, 15.0, 1.5, torch.int64)
     return {
-        "keep lane": score(None, shield, seed, args),
-        "cooperative merge": score(rule, shield, seed, args),
+        "keep lane": score(ScriptedCAVPolicy, shield, seed, args),
+        "cooperative merge": score(lambda env: rule, shield, seed, args),
     }
 
 
@@ -198,7 +181,9 @@ def evaluate(variant: str, seed: int, run_dir: Path, args: argparse.Namespace) -
     exp = load_recipe(recipe).from_run_dir(run_dir)
     try:
         shield = bool(exp.config.env_config.get("shield", False))
-        result = {k: v.tolist() for k, v in score(exp.eval_policy, shield, seed, args).items()}
+        result = {
+            k: v.tolist() for k, v in score(lambda env: exp.eval_policy, shield, seed, args).items()
+        }
     finally:
         exp.close()
     atomic_write_text(path, json.dumps(result))
