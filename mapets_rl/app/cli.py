@@ -428,17 +428,20 @@ def _cmd_train(args: argparse.Namespace) -> int:
     except OSError as err:
         _fail_setup(err)
     _train(exp)
-    print(
-        json.dumps(
-            {
-                "run_dir": str(exp.run_dir),
-                "frames": exp.frames,
-                "metrics": exp.latest_metrics,
-                "units": _metric_units(["frames", *exp.latest_metrics]),
-            }
-        )
-    )
+    _print_run_summary(exp)
     return 0
+
+
+def _print_run_summary(exp: Any) -> None:
+    """The JSON line ``train`` and ``resume`` end with: run directory, frames, the latest
+    metrics and their units."""
+    summary = {
+        "run_dir": str(exp.run_dir),
+        "frames": exp.frames,
+        "metrics": exp.latest_metrics,
+        "units": _metric_units(["frames", *exp.latest_metrics]),
+    }
+    print(json.dumps(summary))
 
 
 def _metric_units(names: Sequence[str]) -> dict[str, str]:
@@ -488,16 +491,7 @@ def _fail_setup(err: OSError) -> NoReturn:
 def _cmd_resume(args: argparse.Namespace) -> int:
     exp = _load_run(args.run_dir, _overrides(args.overrides))
     _train(exp)
-    print(
-        json.dumps(
-            {
-                "run_dir": str(exp.run_dir),
-                "frames": exp.frames,
-                "metrics": exp.latest_metrics,
-                "units": _metric_units(["frames", *exp.latest_metrics]),
-            }
-        )
-    )
+    _print_run_summary(exp)
     return 0
 
 
