@@ -19,6 +19,7 @@ slower than the raw env at 8 + 8 (issue 14).
 
     PYTHONPATH=. python benchmarks/env_throughput.py [--steps 300] [--repeats 5]
         [--cases 8+8 22+20 freeway] [--backends freeway-merge] [--roads 1 64 256 1024]
+        [--device cuda]
 
 ``--backends SCENARIO`` times the two backends of a freeway scenario side by side instead (issue
 30): the highway-env TorchRL env (one road) against ``make_env(..., backend="torch",
@@ -26,6 +27,10 @@ num_envs=B)`` for each ``B`` of ``--roads``, with the fused CPU kernel and with 
 program (``kernel="torch"``), every CAV keeping its lane, 30 vehicles, one thread; frames are
 steps x roads, per CPU-second; ratios are medians of the per-round ratios to highway-env.
 Targets: >= 400x highway-env at B >= 256 (at least 200x).
+
+``--device cuda`` (with ``--backends``) steps the torch program on the GPU for each ``B`` of
+``--roads`` beside highway-env and the CPU kernel at B = 256 on this host; GPU frames are per
+wall-second (the GPU works while the process waits), the CPU layers per CPU-second as above.
 """
 
 from __future__ import annotations
@@ -64,12 +69,19 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
-def rate(run: Callable[[], int]) -> float:
-    """Steps per CPU-second of one call of ``run`` (which returns the steps it took).
+def rate(run: Callable[[], int], device: str = "cpu") -> float:
+    """Steps per CPU-second of one call of ``run`` (which returns the steps it took); on a GPU
+    (``device="cuda"``) per wall-second, the GPU's queue drained before and after.
 
-    Process CPU time, not wall time: everything here is single-threaded, and CPU time is far
-    less disturbed by other processes sharing the machine.
+    Process CPU time, not wall time, on the CPU: everything here is single-threaded, and CPU
+    time is far less disturbed by other processes sharing the machine.
     """
+    if device == "cuda":
+        torch.cuda.synchronize()
+        start = time.perf_counter()
+        steps = run()
+        torch.cuda.synchronize()
+        return steps / (time.perf_counter() - start)
     start = time.process_time()
     steps = run()
     return steps / (time.process_time() - start)
@@ -130,16 +142,18 @@ def torchrl_runner(name: str, config: dict, steps: int) -> Callable[[], int]:
 
 
 def backend_runner(
-    name: str, steps: int, roads: int | None, kernel: str = "auto"
+    name: str, steps: int, roads: int | None, kernel: str = "auto", device: str = "cpu"
 ) -> Callable[[], int]:
     """Frames of ``steps`` keep-lane steps of scenario ``name`` at 30 vehicles: the highway-env
-    backend (``roads=None``) or ``roads`` roads of the torch backend."""
+    backend (``roads=None``) or ``roads`` roads of the torch backend on ``device``."""
     if roads is None:
         env = make_env(name, seed=0, n_vehicles=30, categorical_actions=True)
     else:
         env = make_env(name, seed=0, backend="torch", num_envs=roads, n_vehicles=30,
-                       categorical_actions=True, kernel=kernel)  # fmt: skip
-    action = torch.zeros(env.full_action_spec["agents", "action"].shape, dtype=torch.long)
+                       categorical_actions=True, kernel=kernel, device=device)  # fmt: skip
+    action = torch.zeros(
+        env.full_action_spec["agents", "action"].shape, dtype=torch.long, device=env.device
+    )
 
     def run() -> int:
         td = env.reset()
@@ -151,19 +165,29 @@ def backend_runner(
     return run
 
 
-def compare_backends(name: str, steps: int, repeats: int, road_counts: list[int]) -> None:
+def compare_backends(
+    name: str, steps: int, repeats: int, road_counts: list[int], device: str = "cpu"
+) -> None:
     """The two backends of freeway scenario ``name`` side by side (see module docstring)."""
     layers: dict[str, Callable[[], int]] = {"highway-env": backend_runner(name, steps, None)}
-    for roads in road_counts:
-        layers[f"torch B={roads}, kernel"] = backend_runner(name, steps, roads)
-        layers[f"torch B={roads}, torch ops"] = backend_runner(name, steps, roads, "torch")
+    devices = {"highway-env": "cpu"}
+    if device == "cuda":
+        layers["torch B=256, kernel (CPU)"] = backend_runner(name, steps, 256)
+        for roads in road_counts:
+            layers[f"torch B={roads}, cuda"] = backend_runner(name, steps, roads, device="cuda")
+            devices[f"torch B={roads}, cuda"] = "cuda"
+    else:
+        for roads in road_counts:
+            layers[f"torch B={roads}, kernel"] = backend_runner(name, steps, roads)
+            layers[f"torch B={roads}, torch ops"] = backend_runner(name, steps, roads, "torch")
     for run in layers.values():  # warm-up (builds the kernel on first use)
         run()
     rates: dict[str, list[float]] = {layer: [] for layer in layers}
     for _ in range(repeats):
         for layer, run in layers.items():
-            rates[layer].append(rate(run))
-    print(f"\n{name}, 30 vehicles, keep lane: frames per CPU-s (median, min..max), ratio")
+            rates[layer].append(rate(run, devices.get(layer, "cpu")))
+    unit = "CPU-s (GPU rows: wall-s)" if device == "cuda" else "CPU-s"
+    print(f"\n{name}, 30 vehicles, keep lane: frames per {unit} (median, min..max), ratio")
     reference = rates["highway-env"]
     for layer, values in rates.items():
         ratio = statistics.median(v / r for v, r in zip(values, reference, strict=True))
@@ -183,14 +207,22 @@ def main() -> None:
         help="compare the highway-env and torch backends of this scenario instead",
     )  # fmt: skip
     parser.add_argument("--roads", nargs="+", type=int, default=[1, 64, 256, 1024])
+    parser.add_argument(
+        "--device", choices=["cpu", "cuda"], default="cpu",
+        help="with --backends: step the torch backend's roads on this device",
+    )  # fmt: skip
     args = parser.parse_args()
+    if args.device == "cuda" and (args.backends is None or not torch.cuda.is_available()):
+        parser.error("--device cuda needs --backends and a CUDA device")
     torch.set_num_threads(1)
     print(
         f"torch {torch.__version__}, CPU capability {torch.backends.cpu.get_cpu_capability()}, "
         f"{cpu_model()}"
     )
     if args.backends is not None:
-        compare_backends(args.backends, args.steps, args.repeats, args.roads)
+        if args.device == "cuda":
+            print(f"GPU: {torch.cuda.get_device_name()}")
+        compare_backends(args.backends, args.steps, args.repeats, args.roads, args.device)
         return
 
     print(f"{'case':42s} {'layer':20s} {'steps per CPU-s (median, min..max)':>36s}")

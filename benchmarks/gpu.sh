@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The GPU measurements of docs/results/gpu.md in one command, on a machine with a CUDA device:
 #   bash benchmarks/gpu.sh [OUT_DIR] [PYTHON] [STEP ...]
-# (STEPs: machine tests planner decision_time mbrl_reference train_smoke; default: all).
+# (STEPs: machine tests freeway learners planner decision_time mbrl_reference train_smoke;
+# default: all, in that order).
 # Each step has its own time limit and writes OUT_DIR/<step>.log; a failed step does not stop
 # the next. mbrl-lib (the last step) is optional: without it that step prints how to install it.
 set -u
@@ -28,8 +29,19 @@ step machine 60 bash -c "nvidia-smi --query-gpu=name,driver_version,memory.total
     --format=csv; grep -m1 'model name' /proc/cpuinfo; nproc; $py -c 'import torch; \
     print(torch.__version__, torch.version.cuda, torch.cuda.get_device_name(), \
     torch.backends.cpu.get_cpu_capability())'"
-step tests 150 "$py" -m pytest -q -p no:cacheprovider tests/planning/test_cuda_graph.py tests/recipes/test_cuda_runs.py \
-    tests/planning/test_precision.py -k "cuda or graph"
+step tests 200 "$py" -m pytest -q -p no:cacheprovider tests/planning/test_cuda_graph.py tests/recipes/test_cuda_runs.py \
+    tests/planning/test_precision.py tests/envs/test_torch_freeway_cuda.py -k "cuda or graph"
+# The batched torch freeway on the GPU: frames/s of 256..65,536 roads beside highway-env and the
+# CPU kernel (issue 30), and the model-free learners with roads, networks and replay on the GPU.
+step freeway 150 "$py" benchmarks/env_throughput.py --backends freeway-merge --device cuda \
+    --roads 1024 8192 65536 --steps 8 --repeats 2
+step learners 300 bash -c "set -e; \
+    $py benchmarks/learner_throughput.py --device cuda --recipes maddpg --num-envs 8192 \
+        --frames 65536 --rounds 2 --threads 1 --schedule openai; \
+    $py benchmarks/learner_throughput.py --device cuda --recipes shapley_ac mappo \
+        --num-envs 1024 --frames 8192 --rounds 2 --threads 1 --schedule openai; \
+    $py benchmarks/learner_throughput.py --device cuda --recipes maddpg --num-envs 1024 \
+        --frames 40960 --rounds 3 --threads 1 --schedule openai"
 step planner 200 "$py" benchmarks/planner.py --device cuda --configs paper cpu \
     --agents 1 8 22 --dtypes fp32 bf16 --graph --repeats 5 --naive-max-agents 0 --no-separate
 step decision_time 150 "$py" benchmarks/decision_time.py --device cuda --decisions 20 \

@@ -22,7 +22,11 @@ median over rounds and the spread (min..max); ``4M-frame run`` extrapolates the 
 
     PYTHONPATH=. python benchmarks/learner_throughput.py [--recipes maddpg shapley_ac]
         [--num-envs 256] [--vehicles 30] [--steps 4] [--frames 20480] [--rounds 3]
-        [--threads 2] [--schedule openai] [key=value ...]
+        [--threads 2] [--schedule openai] [--device cuda] [key=value ...]
+
+``--device cuda`` puts the roads, the networks and the replay buffer on the GPU
+(``device=cuda``, ``env_config.device=cuda``); every phase then drains the GPU's queue before
+its clock stops, so that its wall time is its own.
 
 ``--schedule openai`` applies :data:`mapets_rl.recipes.maddpg.OPENAI_MADDPG` (one update per 100
 frames, batch 1024, ...) to every recipe (the Shapley AC and SAC configs share the fields);
@@ -82,6 +86,7 @@ def build(recipe: str, args: argparse.Namespace, run_dir: Path) -> Any:
         "num_envs": args.num_envs,
         "n_vehicles": args.vehicles,
         "cav_ratio": args.cav_ratio,
+        "device": args.device,
     }
     config = cls.Config(
         env=args.env,
@@ -92,6 +97,7 @@ def build(recipe: str, args: argparse.Namespace, run_dir: Path) -> Any:
         checkpoint_interval=0,
         progress=False,
         logger="none",
+        device=args.device,
     )
     fields = set(cls.Config.field_names())
     schedule = OPENAI_MADDPG if args.schedule == "openai" else ()
@@ -101,15 +107,23 @@ def build(recipe: str, args: argparse.Namespace, run_dir: Path) -> Any:
     return cls(config.with_overrides(list(overrides.values())), run_dir)
 
 
-def timed(owner: Any, name: str, clock: dict[str, float], key: str) -> None:
+def drain(device: str) -> None:
+    """Wait for the GPU's queued work (nothing to wait for on the CPU)."""
+    if device == "cuda":
+        torch.cuda.synchronize()
+
+
+def timed(owner: Any, name: str, clock: dict[str, float], key: str, device: str) -> None:
     """Replace method ``name`` of ``owner`` by one that adds its wall time to ``clock[key]``."""
     method: Callable[..., Any] = getattr(owner, name)
 
     def wrapper(*a: Any, **kw: Any) -> Any:
+        drain(device)
         start = time.perf_counter()
         try:
             return method(*a, **kw)
         finally:
+            drain(device)
             clock[key] += time.perf_counter() - start
 
     setattr(owner, name, wrapper)
@@ -121,10 +135,10 @@ def measure(recipe: str, args: argparse.Namespace, run_dir: Path) -> list[dict[s
     clock = dict.fromkeys(("env", "collect", "learner"), 0.0)
     exp._reset_collector()
     env = exp.collector.env
-    timed(env, "_step", clock, "env")
-    timed(env, "_reset", clock, "env")
-    timed(exp.collector, "next", clock, "collect")
-    timed(exp, "train_step", clock, "learner")
+    timed(env, "_step", clock, "env", args.device)
+    timed(env, "_reset", clock, "env", args.device)
+    timed(exp.collector, "next", clock, "collect", args.device)
+    timed(exp, "train_step", clock, "learner", args.device)
     cfg = exp.config
     warm = max(getattr(cfg, "batch_size", 0), getattr(cfg, "init_random_frames", 0))
     warm = max(warm + cfg.frames_per_batch, args.warmup_frames)
@@ -134,9 +148,11 @@ def measure(recipe: str, args: argparse.Namespace, run_dir: Path) -> list[dict[s
     for _ in range(args.rounds):
         for key in clock:
             clock[key] = 0.0
+        drain(args.device)
         start, frames = time.perf_counter(), exp.frames
         while exp.frames - frames < args.frames:
             exp._train_on_batch()
+        drain(args.device)
         wall = time.perf_counter() - start
         rounds.append(
             {
@@ -176,8 +192,11 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     parser.add_argument("--schedule", choices=["default", "openai"], default="default")
     parser.add_argument("--budget", type=int, default=4_000_000, help="frames to extrapolate to")
+    parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
     args = parser.parse_args()
+    if args.device == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda needs a CUDA device")
     if args.num_envs < 1 or args.steps < 1 or args.frames < 1 or args.rounds < 1:
         parser.error("--num-envs, --steps, --frames and --rounds must be >= 1")
     if args.threads < 1:
@@ -194,6 +213,8 @@ def main() -> None:
         f"{args.env}, {args.vehicles} vehicles (cav_ratio {args.cav_ratio}), B = {args.num_envs} "
         f"roads x {args.steps} steps per batch; schedule {args.schedule} {' '.join(args.overrides)}"
     )
+    if args.device == "cuda":
+        print(f"GPU: {torch.cuda.get_device_name()}; roads, networks and replay on the GPU")
     print(f"load average before: {load()}")
     header = f"{'recipe':<11} {'frames/s':>20} " + " ".join(f"{p + ' %':>14}" for p in PHASES)
     print(header + f" {'budget run (h)':>15}")

@@ -65,3 +65,32 @@ def test_model_free_recipes_train_and_evaluate_on_cuda(tmp_path, recipe, sizes):
     exp.train()
     assert any(not torch.equal(before[k], p) for k, p in exp.loss.named_parameters())
     assert exp.evaluate(episodes=1)["length"] > 0
+
+
+@pytest.mark.parametrize(
+    ("recipe", "sizes"),
+    [
+        (MADDPG, {"batch_size": 32, "init_random_frames": 0}),
+        (MAPPO, {"minibatch_size": 32}),
+        (ShapleyAC, {"batch_size": 32, "init_random_frames": 0}),
+    ],
+)
+def test_model_free_recipes_train_on_the_gpu_freeway(tmp_path, recipe, sizes):
+    """Roads, networks and replay all on the GPU: the batched torch freeway on CUDA (8 roads)
+    feeds the collector, every learned parameter moves, and evaluation runs on one GPU road."""
+    config = recipe.Config(
+        env="freeway-merge",
+        env_config={"backend": "torch", "num_envs": 8, "device": "cuda", "n_vehicles": 10},
+        total_frames=128,
+        frames_per_batch=64,
+        eval_interval=0,
+        device="cuda",
+        progress=False,
+        **sizes,
+    )
+    exp = recipe(config, tmp_path / "run")
+    assert exp.env.device.type == "cuda"
+    before = {k: p.detach().clone() for k, p in exp.loss.named_parameters()}
+    exp.train()
+    assert any(not torch.equal(before[k], p) for k, p in exp.loss.named_parameters())
+    assert exp.evaluate(episodes=1)["length"] > 0
