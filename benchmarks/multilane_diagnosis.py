@@ -16,6 +16,10 @@ policies that separate the causes, one change at a time, on the same seeds:
   with ``--reward key=value`` changes: ``--reward lane_change_gap=0 lane_change_time=0``
   switches the lane-aware termination off, ``--reward headway=0 lane_change_time=0`` gives the
   fixed margins of earlier versions;
+- ``oracle-shared`` / ``learned-shared``: the same planners with plan sharing
+  (:class:`~mapets_rl.planning.shared_plans.PlanSharingPlanner`, MA-PETS ``comm.share_plans``):
+  each CAV plans with the broadcast plans of the CAVs it observes within ``--comm-range``
+  metres as their future speeds;
 - ``learned``: the planner of a trained MA-PETS run (``--run RUN_DIR``, its last checkpoint:
   the learned ensembles, the recipe's reward, termination and CEM) on the same seeds: what the
   learned model adds to the oracle's crashes, class by class.
@@ -48,14 +52,25 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from mapets_rl.comm import CommunicationRange
 from mapets_rl.config import ConfigError, parse_override
 from mapets_rl.envs import ScriptedCAVPolicy, make_env, traffic_env
-from mapets_rl.envs.figure_eight import FigureEightPlannerReward
+from mapets_rl.envs.figure_eight import FigureEightPlannerReward, neighbour_speed_columns
 from mapets_rl.envs.figure_eight_kinematics import FigureEightKinematicModel
 from mapets_rl.planning import CPU_PRESET, TrajectorySamplingCEM
+from mapets_rl.planning.shared_plans import PlanSharingPlanner
 
 SCENARIO = "figure-eight-multilane"
-POLICIES = ("scripted", "random", "random-keep-lane", "oracle", "oracle-keep-lane", "learned")
+POLICIES = (
+    "scripted",
+    "random",
+    "random-keep-lane",
+    "oracle",
+    "oracle-keep-lane",
+    "oracle-shared",
+    "learned",
+    "learned-shared",
+)
 CLASSES = ("crossing", "lane change (CAV)", "lane change (other)", "into leader", "rear-ended")
 NEAR_CROSSING = 10.0
 """A vehicle within this many metres of a crossing point [m] is at the crossing."""
@@ -141,15 +156,20 @@ def make_policy(
     run_overrides: tuple[str, ...] = (),
     **cem: Any,
 ) -> TensorDictModuleBase:
-    if name == "learned":
+    obs_dim = env.observation_spec["agents", "observation"].shape[-1]
+    if name.startswith("learned"):
         planner = learned_planner(run, run_overrides)
         planner.generator.manual_seed(seed)
+        if name.endswith("shared"):
+            return PlanSharingPlanner(planner, neighbour_speed_columns(obs_dim))
         return planner
     if name == "scripted":
         return ScriptedCAVPolicy(env)
     if name.startswith("random"):
         return RandomPolicy(env, keep_lane=name.endswith("keep-lane"), seed=seed)
     planner = oracle_planner(env, reward, seed, **cem)
+    if name.endswith("shared"):
+        return PlanSharingPlanner(planner, neighbour_speed_columns(obs_dim))
     return KeepLane(planner) if name.endswith("keep-lane") else planner
 
 
@@ -201,9 +221,12 @@ def run_episode(
     scenario: str = SCENARIO,
     run: str | None = None,
     run_overrides: tuple[str, ...] = (),
+    comm_range: float = 100.0,
     **cem: Any,
 ) -> dict:
     env = make_env(scenario, seed=seed, horizon=horizon)
+    if name.endswith("shared"):  # the step's communication graph, for the broadcasts
+        env = env.append_transform(CommunicationRange(comm_range))
     raw = traffic_env(env)
     policy = make_policy(name, env, seed, reward, run, run_overrides, **cem)
     if hasattr(policy, "reset"):
@@ -227,6 +250,7 @@ def run_episode(
                 break
             td = td["next"]
     metrics = raw.episode_metrics()
+    messages = getattr(policy, "broadcasts", 0) / steps
     return {
         "policy": name,
         "seed": seed,
@@ -236,6 +260,8 @@ def run_episode(
         "partner_cav": with_cav,
         "classes": dict(classes),
         "step_time": (time.perf_counter() - start) / steps,
+        "plan_messages": messages,
+        "plans_used": getattr(policy, "plans_used", 0) / steps,
     }
 
 
@@ -278,8 +304,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
         help="oracle: PlannerConfig fields over the cpu preset's, e.g. population=16 "
         "noise_beta=2 keep_elites=0.3 (model rows per decision scale with population)",
     )
+    parser.add_argument(
+        "--comm-range", type=float, default=100.0,
+        help="*-shared: the range d [m] within which CAVs hear each other's plans",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
     args = parser.parse_args(argv)
+    if not args.comm_range >= 0:
+        parser.error(f"--comm-range must be >= 0 metres, got {args.comm_range}")
     try:
         planner_settings = dict(map(parse_override, args.planner))
         CPU_PRESET.planner.replace(**planner_settings)
@@ -289,7 +321,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         reward = FigureEightPlannerReward(**dict(map(parse_override, args.reward)))
     except ConfigError as err:
         parser.error(f"--reward: {err}")
-    if "learned" in args.policies and (
+    if any(p.startswith("learned") for p in args.policies) and (
         args.run is None or not (Path(args.run) / "config.yaml").is_file()
     ):
         parser.error(f"--policies learned needs --run RUN_DIR of a MA-PETS run, got {args.run}")
@@ -309,6 +341,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
                 args.scenario,
                 args.run,
                 tuple(args.set),
+                args.comm_range,
                 anchor_candidates=args.anchor_candidates,
                 keep_best=args.keep_best,
                 **planner_settings,
@@ -316,8 +349,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
             rows.append(row)
             print(json.dumps(row), flush=True)
     header = " | ".join(CLASSES)
-    print(f"\n| policy | seeds | safety | agility [m/step] | crashes / 22 | {header} |")
-    print("|---|---|---|---|---|" + "---|" * len(CLASSES))
+    print(
+        f"\n| policy | seeds | safety | agility [m/step] | crashes / 22 | {header} | "
+        "plans sent / step |"
+    )
+    print("|---|---|---|---|---|" + "---|" * (len(CLASSES) + 1))
     for name in args.policies:
         group = [r for r in rows if r["policy"] == name]
         total: Counter = Counter()
@@ -328,7 +364,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
         print(
             f"| {name} | {n} | {np.mean([r['safety'] for r in group]):.3f} | "
             f"{np.mean([r['agility'] for r in group]):.3f} | "
-            f"{np.mean([r['crashes'] for r in group]):.1f} | {cells} |"
+            f"{np.mean([r['crashes'] for r in group]):.1f} | {cells} | "
+            f"{np.mean([r['plan_messages'] for r in group]):.1f} |"
         )
     if args.out is not None:
         tmp = args.out.with_suffix(".tmp")

@@ -54,7 +54,7 @@ from mapets_rl.envs import (
     figure_eight_observation_bounds,
     registered_scenario,
 )
-from mapets_rl.envs.figure_eight import OBSERVATION_SIZES
+from mapets_rl.envs.figure_eight import OBSERVATION_SIZES, neighbour_speed_columns
 from mapets_rl.envs.registry import build_env, scenario_defaults
 from mapets_rl.experiment import Experiment, RunConfig, check, log_scalars
 from mapets_rl.models import EnsembleConfig, ProbabilisticEnsemble
@@ -80,6 +80,7 @@ from mapets_rl.planning.memory import (
     ensemble_bytes,
     planner_bytes,
 )
+from mapets_rl.planning.shared_plans import PlanSharingPlanner
 
 OBS = ("agents", "observation")
 ACTION = ("agents", "action")
@@ -409,6 +410,16 @@ class MAPETS(Experiment):
         group = AgentGroupSpec.from_env(env)
         try:  # refusals before the run directory is written
             self._check_scenario(config, group, reward_fn)
+            shared = ("agents", "info", "neighbour_cav")
+            if config.comm.share_plans and (
+                shared not in env.observation_spec.keys(True, True)
+                or group.obs_dim not in OBSERVATION_SIZES
+            ):
+                raise ValueError(
+                    "comm.share_plans=true needs a scenario that says which CAV each observed "
+                    "vehicle is (per-agent info 'neighbour_cav', as the figure-eight scenarios "
+                    f"report), and env {config.env!r} does not"
+                )
         except ValueError:
             env.close()
             raise
@@ -452,10 +463,16 @@ class MAPETS(Experiment):
             termination_fn=self.termination_fn,
         )
         log.info("planner compute dtype: %s", self.planner.dtype_reason)
+        self.plan_sharing = (
+            PlanSharingPlanner(self.planner, neighbour_speed_columns(group.obs_dim))
+            if config.comm.share_plans
+            else None
+        )
+        decide = self.planner if self.plan_sharing is None else self.plan_sharing
         self.policy = (
-            self.planner
+            decide
             if self.action_coder is None
-            else TensorDictSequential(self.planner, action_quantiser(self.action_coder))
+            else TensorDictSequential(decide, action_quantiser(self.action_coder))
         )
         self.eval_policy = self.policy
 
@@ -624,6 +641,7 @@ class MAPETS(Experiment):
                 metrics = {"episode": float(episode), "random": float(random_actions)}
                 metrics.update(self.episode_metrics(rollout))
                 metrics["nonfinite_rewards"] = float(self.planner.nonfinite_rewards.sum())
+                metrics.update(self.plan_sharing_metrics(random_actions))
                 metrics.update(self.store_and_share(rollout))  # lines 16-17: D(i)+, share
                 start = time.perf_counter()
                 metrics.update(self.train_models())  # line 4: refit every ensemble
@@ -633,6 +651,21 @@ class MAPETS(Experiment):
                 self.counters.episode = episode
                 loop.end_iteration(metrics)
         return self.results.train
+
+    def plan_sharing_metrics(self, random_actions: bool) -> dict[str, float]:
+        """Per step of the episode just driven, with ``comm.share_plans``: plans broadcast
+        (``plan_messages``), their bytes (``plan_bytes``) and neighbour slots filled from a
+        received plan (``plans_used``); empty otherwise (random episodes send none)."""
+        sharing = self.plan_sharing
+        if sharing is None:
+            return {}
+        steps = max(sharing.steps, 1) if not random_actions else 1
+        messages = 0 if random_actions else sharing.broadcasts
+        return {
+            "plan_messages": messages / steps,
+            "plan_bytes": messages * sharing.bytes_per_broadcast / steps,
+            "plans_used": (0 if random_actions else sharing.plans_used) / steps,
+        }
 
     def _seed_episode(self, episode: int) -> None:
         """Seed the env and every private random stream from ``(seed, episode)``."""
@@ -647,6 +680,9 @@ class MAPETS(Experiment):
     def run_episode(self, random_actions: bool) -> TensorDictBase:
         """One episode until every CAV is done: ``[T]`` rollout (random or planned actions)."""
         self.planner.reset()
+        if self.plan_sharing is not None:
+            self.plan_sharing.reset()
+            self.plan_sharing.reset_counts()
         self.planner.nonfinite_rewards.zero_()
         policy = self.policy
         if random_actions:

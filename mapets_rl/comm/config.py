@@ -17,10 +17,14 @@ class CommConfig(ConfigSection):
         comm_range: communication range ``d`` in metres (``0``: independent learners,
             ``inf``: everybody shares); paper: 100.
         p_fail: probability that a communication link fails, in ``[0, 1]``.
+        share_plans: every step each CAV also broadcasts the speeds its chosen plan predicts,
+            and the CAVs that hear it plan with them as that neighbour's future speeds
+            (:mod:`mapets_rl.comm.plans`; off: the paper's MA-PETS).
     """
 
     comm_range: float = dataclasses.field(default=100.0, metadata={"allow_inf": True, "unit": "m"})
     p_fail: float = 0.0
+    share_plans: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -23,6 +23,11 @@ learn when the CAV's lane switches), the other four are the leader and follower 
 the lane it is not on, measured and clipped like the own-lane gaps. ``observation="paper"`` stays
 the paper's 7 features on two lanes.
 
+``info["neighbour_cav"]`` ``[I, K]`` says which CAV (its agent index; ``-1``: a human driver or
+nobody) each observed vehicle is, in the order of :func:`neighbour_speed_columns` (leader,
+follower, then the conflicting vehicle, then the other lane's leader and follower): what a CAV
+needs to read a neighbour's broadcast plan (MA-PETS ``comm.share_plans``).
+
 ``info["neighbour_changed"]`` ``[I]`` flags the CAVs whose observed neighbours changed identity in
 this step (a new leader or follower, one removed after a crash, a vehicle entering or leaving the
 75 m range, a new conflicting vehicle or crossing, and on two lanes a new leader or follower in
@@ -482,7 +487,20 @@ class FigureEightEnv(MultiAgentTrafficEnv):
             changed = (current != previous).any(axis=1) & self.alive
         self._previous_ids = current
         info["neighbour_changed"] = changed
+        info["neighbour_cav"] = self._neighbour_cavs(current)
         return info
+
+    def _neighbour_cavs(self, ids: np.ndarray | None) -> np.ndarray:
+        """``[I, K]`` agent index of the CAV in each observed vehicle slot (``-1``: a human
+        driver, nobody in range, or a CAV that no longer drives); see the module docstring."""
+        columns = NEIGHBOUR_ID_COLUMNS[self.obs_dim]
+        out = np.full((len(self.cavs), len(columns)), -1, dtype=np.int64)
+        if ids is None:
+            return out
+        index = {id(cav): i for i, cav in enumerate(self.cavs) if self.alive[i]}
+        for k, column in enumerate(columns):
+            out[:, k] = [index.get(int(v), -1) for v in ids[:, column]]
+        return out
 
     def agent_rewards(self, obs: np.ndarray, action: Any) -> np.ndarray:
         """Paper eq. (26) on the observation ``obs``, ``beta`` for CAVs that crashed this step."""
@@ -535,6 +553,26 @@ class FigureEightEnv(MultiAgentTrafficEnv):
             target = cav.speed + acc / cav.KP_A
             action[i, 0] = clip(target, 0.0, self.config["max_speed"])
         return action
+
+
+NEIGHBOUR_ID_COLUMNS = {
+    OBS_DIM: (0, 1),
+    CROSSING_OBS_DIM: (0, 1, 3),
+    TWO_LANE_OBS_DIM: (0, 1, 3, 4, 5),
+}
+"""Per observation size: the columns of the observed ids (``observe_agents``) that are
+vehicles, in the order of :func:`neighbour_speed_columns`."""
+
+
+def neighbour_speed_columns(obs_dim: int) -> tuple[int, ...]:
+    """The observation columns holding the speeds of the observed vehicles, in the order of
+    ``info["neighbour_cav"]``: ``v_ahead``, ``v_behind``, with the crossing features
+    ``v_conflict``, on two lanes ``v_ahead_other`` and ``v_behind_other``."""
+    if obs_dim not in OBSERVATION_SIZES:
+        raise ValueError(f"obs_dim must be one of {list(OBSERVATION_SIZES)}, got {obs_dim}")
+    return {OBS_DIM: (3, 4), CROSSING_OBS_DIM: (3, 4, 9), TWO_LANE_OBS_DIM: (3, 4, 9, 11, 12)}[
+        obs_dim
+    ]
 
 
 def observation_size(observation: str, lanes: int) -> int:

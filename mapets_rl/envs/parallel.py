@@ -3,7 +3,8 @@
 Agents are named ``cav_0 .. cav_{I-1}``. A CAV that collides is terminated and removed from
 ``agents`` (PettingZoo convention). Per-agent ``infos`` hold ``position`` (``[2]``, metres),
 ``distance`` (travelled this step, m), ``speed`` (m/s) and ``collided`` (this step); the
-figure-eight adds ``neighbour_changed`` (the observed neighbours changed identity); the freeway
+figure-eight adds ``neighbour_changed`` (the observed neighbours changed identity) and
+``neighbour_cav`` (``[K]``: which CAV each observed vehicle is, ``-1`` for others); the freeway
 adds ``traffic_velocity`` and ``traffic_comfort`` (means over all vehicles this step).
 Episode metrics (agility/safety or velocity/comfort) are in ``last_episode_metrics`` after an
 episode ends.
@@ -68,6 +69,8 @@ class TrafficParallelEnv(ParallelEnv):
         }
         if "neighbour_changed" in info:
             arrays["neighbour_changed"] = np.asarray(info["neighbour_changed"], dtype=bool)
+        if "neighbour_cav" in info:
+            arrays["neighbour_cav"] = np.asarray(info["neighbour_cav"], dtype=np.int64)
         if "traffic_velocity" in info:
             arrays["traffic_velocity"] = np.full(n, info["traffic_velocity"], dtype=np.float32)
             arrays["traffic_comfort"] = np.full(n, info["traffic_comfort"], dtype=np.float32)

@@ -34,6 +34,7 @@ from mapets_rl.planning.trajectory_sampling import (
     RewardFn,
     StepFn,
     TerminationFn,
+    expected_trajectory,
     propagate_step,
     trajectory_sampling_returns,
 )
@@ -143,6 +144,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             float32).
         seed / generator: reproducible randomness (``generator`` wins if both are given).
         observation_key / action_key / is_init_key: TensorDict keys.
+        schedule_key: optional key of known future feature values ``[*, I, H, obs]`` (NaN:
+            the model predicts; see :meth:`plan`), read when present in the input.
     """
 
     def __init__(
@@ -159,6 +162,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         observation_key: NestedKey = ("agents", "observation"),
         action_key: NestedKey = ("agents", "action"),
         is_init_key: NestedKey = "is_init",
+        schedule_key: NestedKey = ("agents", "plan_schedule"),
         **settings: Any,
     ) -> None:
         if not isinstance(model, DynamicsModel):
@@ -201,6 +205,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         self.in_keys = [observation_key]
         self.out_keys = [action_key]
         self.is_init_key = is_init_key
+        self.schedule_key = schedule_key
+        self._with_schedule = False  # whether this call's _optimize inputs hold a schedule
         # Bounds as [I, 1, 1, act] so they broadcast over [I, M, (Q,) H, act].
         self.register_buffer("action_low", low[:, None, None, :])
         self.register_buffer("action_high", high[:, None, None, :])
@@ -366,6 +372,49 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             *self._batch_shape, *self._elites.shape[:1], *self._elites.shape[2:]
         )
 
+    def _schedule_layout(
+        self, schedule: torch.Tensor | None, batch_shape: torch.Size
+    ) -> torch.Tensor | None:
+        """``[*, I, H, obs]`` -> ``[I, M, H, obs]`` float32, checked (None stays None)."""
+        if schedule is None:
+            return None
+        n_agents, obs_dim, horizon = self.model.n_agents, self.model.obs_dim, self.config.horizon
+        expected = (*batch_shape, n_agents, horizon, obs_dim)
+        if tuple(schedule.shape) != expected:
+            raise ValueError(
+                f"schedule must be shaped {list(expected)} ([*, n_agents, horizon, obs_dim], "
+                f"NaN where the model predicts), got {list(schedule.shape)}."
+            )
+        check_real("schedule", schedule, f"{list(expected)}")
+        if bool(torch.isinf(schedule).any()):
+            raise ValueError("schedule must hold finite values or NaN (no inf).")
+        return schedule.reshape(-1, n_agents, horizon, obs_dim).transpose(0, 1).float()
+
+    def expected_states(
+        self, obs: torch.Tensor, schedule: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """The states the last call's optimised sequences lead to through the members' mean
+        (no noise; :func:`~mapets_rl.planning.expected_trajectory`): what each agent expects of
+        its own plan, e.g. to broadcast it.
+
+        Args:
+            obs: ``[*, I, obs]`` the observations of that call; schedule: its schedule.
+
+        Returns:
+            ``[*, I, H, obs]`` (index ``t``: the state after step ``t``).
+        """
+        if self._solution is None:
+            raise RuntimeError("expected_states needs a plan first: call plan() or forward().")
+        n_agents, obs_dim = self.model.n_agents, self.model.obs_dim
+        obs_p = obs.reshape(-1, n_agents, obs_dim).transpose(0, 1).float()
+        known = self._schedule_layout(schedule, obs.shape[:-2])
+        frozen = getattr(self.model, "frozen_parameters", None)
+        with frozen(self.dtype) if frozen is not None else contextlib.nullcontext():
+            states = expected_trajectory(
+                self.model, obs_p, self._solution, dtype=self.dtype, schedule=known
+            )
+        return states.transpose(0, 1).reshape(*obs.shape[:-2], n_agents, -1, obs_dim)
+
     @property
     def last_solution(self) -> torch.Tensor | None:
         """The last call's optimised mean sequence, ``[*, I, horizon, act]`` (or ``None``)."""
@@ -420,16 +469,17 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         return self._elites, ~reset.view(1, envs, 1)
 
     def _optimize(
-        self, obs: torch.Tensor, mean: torch.Tensor, *shifted: torch.Tensor
+        self, obs: torch.Tensor, mean: torch.Tensor, *extra: torch.Tensor
     ) -> tuple[torch.Tensor, ...]:
         """One decision's CEM from the warm start: a pure tensor function (what a CUDA graph
         captures).
 
         Args:
             obs: ``[I, M, obs]`` start states; mean: ``[I, M, H, act]`` warm start.
-            shifted: with ``keep_elites`` (and ``shift_elites``), the previous decision's kept
-                elites shifted by one step ``[I, M, K, H, act]`` and which envs have them
-                (bool ``[1, M, 1]``); they join the first CEM iteration.
+            extra: the schedule ``[I, M, H, obs]`` first when this call has one, then with
+                ``keep_elites`` (and ``shift_elites``) the previous decision's kept elites
+                shifted by one step ``[I, M, K, H, act]`` and which envs have them (bool
+                ``[1, M, 1]``); they join the first CEM iteration.
 
         Returns:
             ``[I, M, H, act]`` the optimised sequences, ``[I]`` the non-finite predicted
@@ -437,6 +487,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             kept elites ``[I, M, K, H, act]``.
         """
         nonfinite = torch.zeros_like(self.nonfinite_rewards)
+        schedule = extra[0] if self._with_schedule else None
+        shifted = extra[1:] if self._with_schedule else extra
 
         def score(candidates: torch.Tensor) -> torch.Tensor:
             nonlocal nonfinite
@@ -451,6 +503,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
                 dtype=self.dtype,
                 generator=self.generator,
                 step=self._step,
+                schedule=schedule,
             )
             nonfinite = nonfinite + counted
             return scores
@@ -471,6 +524,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         tensors = (*self.parameters(), *self.buffers())
         return (
             tuple(obs.shape),
+            self._with_schedule,
             self.config,
             self.dtype,
             id(self.reward_fn),
@@ -484,16 +538,26 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         expected = f"[*, n_agents={model.n_agents}, obs_dim={model.obs_dim}]"
         obs = get_tensor(tensordict, self.in_keys[0], expected, type(self).__name__)
         is_init = tensordict.get(self.is_init_key, None)
-        tensordict.set(self.out_keys[0], self.plan(obs, is_init=is_init))
+        schedule = tensordict.get(self.schedule_key, None)
+        tensordict.set(self.out_keys[0], self.plan(obs, is_init=is_init, schedule=schedule))
         return tensordict
 
     @torch.no_grad()
-    def plan(self, obs: torch.Tensor, is_init: torch.Tensor | None = None) -> torch.Tensor:
+    def plan(
+        self,
+        obs: torch.Tensor,
+        is_init: torch.Tensor | None = None,
+        schedule: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """Plan one decision for every agent.
 
         Args:
             obs: ``[*, I, obs]`` current observations (real, finite).
             is_init: optional ``[*]`` / ``[*, 1]`` bool; ``True`` resets that env's warm start.
+            schedule: optional ``[*, I, H, obs]`` known values of the predicted states'
+                features (index ``t``: the state after step ``t``; NaN where the model
+                predicts), e.g. a neighbour's speeds from its broadcast plan: every particle's
+                predicted state takes them (:func:`~mapets_rl.planning.propagate_step`).
 
         Returns:
             ``[*, I, act]`` first actions of the optimised sequences, within the bounds.
@@ -519,6 +583,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             is_init = as_mask("is_init", is_init, f"{[*batch_shape, 1]}")
         obs_p = obs.reshape(-1, n_agents, obs_dim).transpose(0, 1).float()  # [I, M, obs]
         envs = obs_p.shape[1]
+        known = self._schedule_layout(schedule, batch_shape)
         reset = None
         if self._mean is None or self._batch_shape != batch_shape:
             self._mean = self._initial_mean(envs)
@@ -528,13 +593,12 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             reset = is_init.reshape(envs).view(1, envs, 1, 1)
             self._mean = torch.where(reset, self._initial_mean(envs), self._mean)
         shifted = self._shifted_elites(envs, reset)
-
+        self._with_schedule = known is not None
+        inputs = (obs_p, self._mean, *(() if known is None else (known,)), *shifted)
         if self._graphed is None:
-            mu, nonfinite, *elites = self._optimize(obs_p, self._mean, *shifted)
+            mu, nonfinite, *elites = self._optimize(*inputs)
         else:
-            mu, nonfinite, *elites = self._graphed(
-                self._optimize, self._graph_key(obs_p), (obs_p, self._mean, *shifted)
-            )
+            mu, nonfinite, *elites = self._graphed(self._optimize, self._graph_key(obs_p), inputs)
         self.nonfinite_rewards += nonfinite
         self._warn_nonfinite()
         self._solution = mu

@@ -20,6 +20,7 @@ __all__ = [
     "PROPAGATIONS",
     "StepFn",
     "particle_layout_error",
+    "expected_trajectory",
     "propagate_step",
     "trajectory_sampling_returns",
 ]
@@ -99,6 +100,7 @@ def propagate_step(
     termination_fn: TerminationFn | None,
     propagation: str,
     dtype: torch.dtype,
+    schedule: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """One model step of every particle and its reward: a pure tensor function (no random
     draws, no host syncs), what :class:`~mapets_rl.planning.compiled.CompiledStep` compiles.
@@ -115,6 +117,9 @@ def propagate_step(
             terminated; finite_steps: ``[I, R]`` long, steps with a finite counted reward.
         reward_fn / termination_fn: the known reward and termination.
         propagation: ``ts_inf``, ``ts1`` or ``expectation``; dtype: the MLP's compute dtype.
+        schedule: optional ``[I, R, S]`` known values of the next state's features (NaN: the
+            model's prediction stands), e.g. a neighbour's speed from its broadcast plan; they
+            replace the prediction before the reward and termination read it.
 
     Returns:
         ``next_state [I, R, S]``, ``returns``, ``alive`` and ``finite_steps`` after the step.
@@ -142,6 +147,8 @@ def propagate_step(
         # Common random numbers: one draw per particle [P, 1, S], shared by all candidates.
         next_state = torch.addcmul(state.view(shape) + mean.view(shape), std.view(shape), eps)
         next_state = next_state.reshape(n_agents, rows, obs_dim)
+    if schedule is not None:
+        next_state = torch.where(torch.isnan(schedule), next_state, schedule)
     reward = reward_fn(state, action, next_state)
     if reward.shape != returns.shape:
         raise ValueError(
@@ -168,6 +175,7 @@ def trajectory_sampling_returns(
     dtype: torch.dtype = torch.float32,
     generator: torch.Generator | None = None,
     step: StepFn = propagate_step,
+    schedule: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean over particles of the summed predicted reward of every candidate (eq. 10).
 
@@ -190,6 +198,9 @@ def trajectory_sampling_returns(
         propagation, particles, dtype, generator: see above and
             :class:`~mapets_rl.planning.PlannerConfig` (trusted here).
         step: the step function (default :func:`propagate_step`).
+        schedule: optional ``[I, M, H, S]`` known feature values of the state after each step
+            (index ``t``: the state after step ``t``), NaN where the model predicts; the same
+            for every candidate and particle of an env (see :func:`propagate_step`).
 
     Returns:
         ``[I, M, Q]`` scores (``-inf`` where a rollout produced NaN) and ``[I]`` long, the
@@ -208,6 +219,12 @@ def trajectory_sampling_returns(
     # Every step's model-input actions [H, I, rows, act], built once (not once per step).
     actions = candidates.reshape(n_agents, cands, horizon, -1).permute(2, 0, 1, 3).unsqueeze(2)
     step_actions = actions.expand(-1, -1, particles, -1, -1).reshape(horizon, n_agents, rows, -1)
+    step_schedule = None
+    if schedule is not None:  # [I, M, H, S] -> [H, I, rows, S] in the particle-major layout
+        known = schedule.permute(2, 0, 1, 3).repeat_interleave(pop, dim=2).unsqueeze(2)
+        step_schedule = known.expand(-1, -1, particles, -1, -1).reshape(
+            horizon, n_agents, rows, obs_dim
+        )
     returns = torch.zeros(n_agents, rows, device=device)
     alive = torch.ones(n_agents, rows, dtype=torch.bool, device=device)
     finite_steps = torch.zeros(n_agents, rows, dtype=torch.long, device=device)
@@ -230,7 +247,40 @@ def trajectory_sampling_returns(
             termination_fn,
             propagation,
             dtype,
+            None if step_schedule is None else step_schedule[t],
         )
     nonfinite = (horizon - finite_steps).sum(-1)
     scores = returns.reshape(n_agents, particles, envs, pop).mean(1)
     return torch.where(torch.isnan(scores), float("-inf"), scores), nonfinite
+
+
+def expected_trajectory(
+    model: DynamicsModel,
+    obs: torch.Tensor,
+    actions: torch.Tensor,
+    *,
+    dtype: torch.dtype = torch.float32,
+    schedule: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The states that ``actions`` lead to through the members' mean (no noise): what an agent
+    expects of its own plan, e.g. to broadcast it.
+
+    Args:
+        model: the agents' dynamics (:class:`DynamicsModel`).
+        obs: ``[I, M, S]`` start states.
+        actions: ``[I, M, H, A]`` one action sequence per agent and env.
+        dtype: the MLP's compute dtype.
+        schedule: optional ``[I, M, H, S]`` known feature values (NaN: predicted), as in
+            :func:`trajectory_sampling_returns`.
+
+    Returns:
+        ``[I, M, H, S]``: index ``t`` is the state after step ``t``.
+    """
+    state, states = obs, []
+    for t in range(actions.shape[2]):
+        mean, _ = model.predict(state.unsqueeze(1), actions[:, :, t].unsqueeze(1), dtype=dtype)
+        state = state + mean.mean(1).to(state.dtype)
+        if schedule is not None:
+            state = torch.where(torch.isnan(schedule[:, :, t]), state, schedule[:, :, t])
+        states.append(state)
+    return torch.stack(states, dim=2)
