@@ -222,9 +222,10 @@ def run_episode(
     run: str | None = None,
     run_overrides: tuple[str, ...] = (),
     comm_range: float = 100.0,
+    env_config: dict[str, Any] | None = None,
     **cem: Any,
 ) -> dict:
-    env = make_env(scenario, seed=seed, horizon=horizon)
+    env = make_env(scenario, seed=seed, horizon=horizon, **(env_config or {}))
     if name.endswith("shared"):  # the step's communication graph, for the broadcasts
         env = env.append_transform(CommunicationRange(comm_range))
     raw = traffic_env(env)
@@ -236,12 +237,15 @@ def run_episode(
     with_cav = 0
     start = time.perf_counter()
     steps = 0
+    human_distance = 0.0  # summed over the steps: the human drivers' mean m/step
     with torch.no_grad():
         while True:
             before = snapshot(raw)
             alive = raw.alive.copy()
             td = env.step(policy(td))
             steps += 1
+            humans = [s["vehicle"].speed for s in before.values() if not s["cav"]]
+            human_distance += float(np.mean(humans)) * raw.dt if humans else 0.0
             for i in np.flatnonzero(alive & ~raw.alive):
                 label, partner_cav = classify(raw, before, raw.cavs[i])
                 classes[label] += 1
@@ -260,6 +264,7 @@ def run_episode(
         "partner_cav": with_cav,
         "classes": dict(classes),
         "step_time": (time.perf_counter() - start) / steps,
+        "human_agility": human_distance / steps,
         "plan_messages": messages,
         "plans_used": getattr(policy, "plans_used", 0) / steps,
     }

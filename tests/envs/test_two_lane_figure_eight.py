@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from mapets_rl.envs import FigureEightPlannerReward, figure_eight_observation_bounds, make_env
-from mapets_rl.envs.figure_eight import TWO_LANE_OBS_DIM, FigureEightEnv
+from mapets_rl.envs.figure_eight import TWO_LANE_OBS_DIM, FigureEightEnv, neighbour_speed_columns
 from tests.envs.test_envs import place
 
 #: The fixed margins (no time headway, no closing-speed share) these tests were written with.
@@ -154,3 +154,22 @@ def test_observation_bounds_on_two_lanes_cover_an_episode() -> None:
     obs = env.rollout(60, break_when_any_done=False)["agents", "observation"]
     assert (obs >= torch.from_numpy(low) - 1e-4).all()
     assert (obs <= torch.from_numpy(high) + 1e-4).all()
+
+
+@pytest.mark.parametrize(("name", "slots"), [("figure-eight", 3), ("figure-eight-multilane", 5)])
+def test_neighbour_cav_names_the_cav_whose_speed_is_observed(name: str, slots: int) -> None:
+    """``info["neighbour_cav"]``: where slot ``k`` of CAV ``i`` names CAV ``j``, the speed
+    column of that slot equals CAV ``j``'s own speed; humans and empty slots are -1."""
+    env = make_env(name, seed=4, n_cavs=8, n_hvs=6)
+    td = env.rollout(30, break_when_any_done=False)
+    obs = td["next", "agents", "observation"]  # [T, I, S]
+    named = td["next", "agents", "info", "neighbour_cav"].long()  # [T, I, K]
+    columns = neighbour_speed_columns(obs.shape[-1])
+    assert named.shape[-1] == slots == len(columns)
+    checked = 0
+    for k, column in enumerate(columns):
+        t, i = torch.nonzero(named[..., k] >= 0, as_tuple=True)
+        j = named[t, i, k]
+        torch.testing.assert_close(obs[t, i, column], obs[t, j, 0])
+        checked += len(t)
+    assert checked > 0 and (named >= -1).all()

@@ -1,0 +1,202 @@
+"""The safety-agility frontier of MA-PETS' planner on the figure-eight (issue 33).
+
+Each point is one setting of the planner reward's margins (``headway`` x ``lane_change_gap``;
+``FigureEightPlannerReward``) and one planner, driven over the same seeds by
+``benchmarks/multilane_diagnosis.py``'s episode loop (400 steps, the recipe's scenario
+defaults, cpu-preset CEM with iCEM's anchors and keep-best as in the recipe): its mean safety
+and agility (paper eqs. 27-28) with 95% percentile-bootstrap intervals over the seeds. Planners:
+
+- ``oracle``: the exact own-motion model, every other vehicle at constant speed;
+- ``oracle-shared``: the same with plan sharing within ``--comm-range`` (``comm.share_plans``):
+  the neighbouring CAVs' broadcast plans replace their constant-speed guess;
+- ``learned`` / ``learned-shared``: a trained MA-PETS run's planner (``--run RUN_DIR``).
+
+Each row also gives the human drivers' mean distance per step over the same episodes: an upper
+bound the CAVs cannot beat for long on one lane.
+
+Episodes are appended to ``OUT/rows.jsonl`` as they finish and the ones found there are not run
+again (a stopped sweep resumes). The table and ``OUT/frontier.png`` are written at the end.
+
+    PYTHONPATH=. python benchmarks/safety_agility_frontier.py --out OUT \\
+        [--scenario figure-eight-multilane] [--policies oracle oracle-shared] \\
+        [--headway 0 0.25 0.5] [--lane-change-gap 4 8] [--seeds 0 1 2 3 4 5] \\
+        [--env n_hvs=0]
+
+``--env key=value`` changes the scenario for every point (e.g. ``n_hvs=0``: no human drivers,
+to see what they cost); rows remember it, and a sweep resumes only rows of the same scenario.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import platform
+from pathlib import Path
+
+import numpy as np
+import torch
+from multilane_diagnosis import POLICIES, SCENARIO, run_episode
+
+from mapets_rl.config import ConfigError, parse_override
+from mapets_rl.envs import make_env
+from mapets_rl.envs.figure_eight import FigureEightPlannerReward
+from mapets_rl.statistics import bootstrap_interval
+
+PLANNERS = tuple(p for p in POLICIES if p.startswith(("oracle", "learned")) and "keep" not in p)
+TARGETS = {"figure-eight-multilane": (0.97, 0.65), "figure-eight": (0.99, 0.8)}
+"""Issue 33's targets (safety, agility [m/step]) per scenario."""
+
+
+def key(row: dict) -> tuple:
+    return (row["policy"], row["headway"], row["lane_change_gap"], row["seed"])
+
+
+def scenario_tag(scenario: str, env_config: dict) -> str:
+    """The scenario and its changes, as rows record them."""
+    return " ".join([scenario, *(f"{k}={v}" for k, v in sorted(env_config.items()))])
+
+
+def load_rows(path: Path) -> list[dict]:
+    """The episodes already run (a torn last line from a stopped run is dropped)."""
+    if not path.is_file():
+        return []
+    rows = []
+    for line in path.read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return rows
+
+
+def summarise(rows: list[dict]) -> list[dict]:
+    """Per (policy, headway, lane_change_gap): means and 95% bootstrap intervals."""
+    groups: dict[tuple, list[dict]] = {}
+    for row in rows:
+        groups.setdefault(key(row)[:3], []).append(row)
+    out = []
+    for (policy, headway, gap), group in sorted(groups.items()):
+        point = {"policy": policy, "headway": headway, "lane_change_gap": gap, "seeds": len(group)}
+        for metric, bounds in (("safety", (0.0, 1.0)), ("agility", (0.0, np.inf))):
+            point[metric] = bootstrap_interval([r[metric] for r in group], bounds=bounds)
+        point["crashes"] = float(np.mean([r["crashes"] for r in group]))
+        point["human_agility"] = float(np.mean([r["human_agility"] for r in group]))
+        point["plan_messages"] = float(np.mean([r["plan_messages"] for r in group]))
+        out.append(point)
+    return out
+
+
+def plot(points: list[dict], scenario: str, tag: str, path: Path) -> None:
+    """Safety against agility, one marker per planner, bars = 95% intervals."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 5))
+    for n, policy in enumerate(sorted({p["policy"] for p in points})):
+        mine = [p for p in points if p["policy"] == policy]
+        x = np.array([p["agility"][0] for p in mine])
+        y = np.array([p["safety"][0] for p in mine])
+        xerr = np.array([[p["agility"][0] - p["agility"][1], p["agility"][2] - p["agility"][0]]
+                         for p in mine]).T  # fmt: skip
+        yerr = np.array([[p["safety"][0] - p["safety"][1], p["safety"][2] - p["safety"][0]]
+                         for p in mine]).T  # fmt: skip
+        ax.errorbar(x, y, xerr=xerr, yerr=yerr, fmt="osD^v"[n % 5], capsize=3, label=policy)
+        for p, xi, yi in zip(mine, x, y, strict=True):
+            ax.annotate(f"{p['headway']:g}s/{p['lane_change_gap']:g}m", (xi, yi), fontsize=7,
+                        xytext=(3, 3), textcoords="offset points")  # fmt: skip
+    safety, agility = TARGETS[scenario]
+    ax.axhline(safety, color="grey", ls="--", lw=0.8)
+    ax.axvline(agility, color="grey", ls="--", lw=0.8)
+    ax.set_xlabel("agility [m/step] (speed limit: 1.39)")
+    ax.set_ylabel("safety")
+    ax.set_title(f"{tag}\nlabels: headway / lane-change gap; bars: 95% bootstrap", fontsize=9)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True, help="folder of rows.jsonl and plot")
+    parser.add_argument(
+        "--scenario", default=SCENARIO, choices=("figure-eight", SCENARIO), help="the road"
+    )
+    parser.add_argument("--policies", nargs="+", choices=PLANNERS, default=["oracle"])
+    parser.add_argument("--headway", nargs="+", type=float, default=[0.0, 0.25, 0.5])
+    parser.add_argument("--lane-change-gap", nargs="+", type=float, default=[8.0])
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3, 4, 5])
+    parser.add_argument("--comm-range", type=float, default=100.0, help="*-shared: d [m]")
+    parser.add_argument("--run", default=None, help="learned*: a MA-PETS run directory")
+    parser.add_argument("--env", nargs="*", default=[], metavar="key=value",
+                        help="scenario config changes, e.g. n_hvs=0")  # fmt: skip
+    args = parser.parse_args()
+    try:
+        env_config = dict(map(parse_override, args.env))
+        make_env(args.scenario, **env_config).close()  # a bad change fails before any episode
+    except (ConfigError, ValueError) as err:
+        parser.error(f"--env: {err}")
+    tag = scenario_tag(args.scenario, env_config)
+    if any(p.startswith("learned") for p in args.policies) and (
+        args.run is None or not (Path(args.run) / "config.yaml").is_file()
+    ):
+        parser.error(f"learned policies need --run RUN_DIR of a MA-PETS run, got {args.run}")
+    for name in ("headway", "lane_change_gap"):
+        try:  # every setting is checked before the first episode
+            for value in getattr(args, name):
+                FigureEightPlannerReward(**{name: value})
+        except ValueError as err:
+            parser.error(f"--{name.replace('_', '-')}: {err}")
+    if not args.comm_range >= 0:
+        parser.error(f"--comm-range must be >= 0 metres, got {args.comm_range}")
+    torch.set_num_threads(1)
+    print(
+        f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, "
+        f"cpu capability {torch.backends.cpu.get_cpu_capability()}"
+    )
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / "rows.jsonl"
+    rows = [r for r in load_rows(path) if r.get("scenario") == tag]
+    done = {key(r) for r in rows}
+    grid = itertools.product(args.policies, args.headway, args.lane_change_gap, args.seeds)
+    for policy, headway, gap, seed in grid:
+        if (policy, headway, gap, seed) in done:
+            continue
+        reward = FigureEightPlannerReward(headway=headway, lane_change_gap=gap)
+        row = run_episode(
+            policy, seed, 400, reward, args.scenario, args.run, (), args.comm_range, env_config,
+            anchor_candidates=True, keep_best=True,
+        )  # fmt: skip
+        row.update(headway=headway, lane_change_gap=gap, scenario=tag)
+        with path.open("a") as out:
+            out.write(json.dumps(row) + "\n")
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    wanted = {(p, h, g) for p, h, g, _ in itertools.product(
+        args.policies, args.headway, args.lane_change_gap, args.seeds)}  # fmt: skip
+    points = [p for p in summarise(rows) if (p["policy"], p["headway"], p["lane_change_gap"])
+              in wanted]  # fmt: skip
+    print(
+        "\n| planner | headway [s] | lane-change gap [m] | seeds | safety [95% CI] | "
+        "agility [m/step] [95% CI] | crashes | humans' m/step | plans sent / step |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for p in points:
+        s, a = p["safety"], p["agility"]
+        print(
+            f"| {p['policy']} | {p['headway']:g} | {p['lane_change_gap']:g} | {p['seeds']} | "
+            f"{s[0]:.3f} [{s[1]:.3f}, {s[2]:.3f}] | {a[0]:.3f} [{a[1]:.3f}, {a[2]:.3f}] | "
+            f"{p['crashes']:.1f} | {p['human_agility']:.3f} | {p['plan_messages']:.1f} |"
+        )
+    plot(points, args.scenario, tag, args.out / "frontier.png")
+    print(f"figure: {args.out / 'frontier.png'}")
+
+
+if __name__ == "__main__":
+    from mapets_rl import quiet_dependencies
+
+    quiet_dependencies()
+    main()
