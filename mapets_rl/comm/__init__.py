@@ -5,6 +5,8 @@
   overhead accounting, over one shared torchrl storage.
 - :func:`clique_cover`, :func:`clique_cover_number`: (minimum) clique cover of the graph.
 - :func:`group_regret_bound`: Theorem 1, eq. (21).
+- :func:`plan_schedule`: the neighbours' broadcast plans as known future speeds
+  (``comm.share_plans``).
 """
 
 from mapets_rl.comm.clique import (
@@ -15,6 +17,7 @@ from mapets_rl.comm.clique import (
 )
 from mapets_rl.comm.config import CommConfig
 from mapets_rl.comm.datasets import ExchangeStats, NeighbourDatasets
+from mapets_rl.comm.plans import plan_schedule
 from mapets_rl.comm.regret import group_regret_bound
 from mapets_rl.comm.transform import CommunicationRange, communication_graph
 
@@ -29,4 +32,5 @@ __all__ = [
     "clique_cover_number",
     "communication_graph",
     "group_regret_bound",
+    "plan_schedule",
 ]

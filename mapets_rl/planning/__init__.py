@@ -4,18 +4,21 @@ Three pieces, as mbrl-lib splits PETS: :class:`CEMOptimizer` and its :class:`ICE
 subclass (pure optimisers over action sequences, chosen by
 :meth:`PlannerConfig.make_optimizer`), :func:`trajectory_sampling_returns` (scores of candidate
 sequences through any :class:`DynamicsModel`) and :class:`TrajectorySamplingCEM` (the policy
-module that composes them, keeps its frozen :class:`PlannerConfig` and the warm start).
+module that composes them, keeps its frozen :class:`PlannerConfig` and the warm start);
+:class:`PlanSharingPlanner` makes its agents plan with each other's broadcast plans.
 """
 
 from mapets_rl.planning.cem import CEMOptimizer, ICEMOptimizer, ScoreFn
 from mapets_rl.planning.config import CPU_PRESET, PAPER_PRESET, PRESETS, PlannerConfig, Preset
 from mapets_rl.planning.mpc import TrajectorySamplingCEM
 from mapets_rl.planning.precision import DTYPE_CHOICES, resolve_dtype
+from mapets_rl.planning.shared_plans import PlanSharingPlanner
 from mapets_rl.planning.trajectory_sampling import (
     PROPAGATIONS,
     DynamicsModel,
     RewardFn,
     TerminationFn,
+    expected_trajectory,
     trajectory_sampling_returns,
 )
 
@@ -28,6 +31,8 @@ __all__ = [
     "RewardFn",
     "TerminationFn",
     "trajectory_sampling_returns",
+    "expected_trajectory",
+    "PlanSharingPlanner",
     "PlannerConfig",
     "Preset",
     "PAPER_PRESET",
