@@ -41,6 +41,7 @@ from multilane_diagnosis import POLICIES, SCENARIO, run_episode
 from mapets_rl.config import ConfigError, parse_override
 from mapets_rl.envs import make_env
 from mapets_rl.envs.figure_eight import FigureEightPlannerReward
+from mapets_rl.planning import CPU_PRESET
 from mapets_rl.statistics import bootstrap_interval
 
 PLANNERS = tuple(p for p in POLICIES if p.startswith(("oracle", "learned")) and "keep" not in p)
@@ -119,7 +120,7 @@ def plot(points: list[dict], scenario: str, tag: str, path: Path) -> None:
     plt.close(fig)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True, help="folder of rows.jsonl and plot")
     parser.add_argument(
@@ -130,16 +131,28 @@ def main() -> None:
     parser.add_argument("--lane-change-gap", nargs="+", type=float, default=[8.0])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3, 4, 5])
     parser.add_argument("--comm-range", type=float, default=100.0, help="*-shared: d [m]")
+    parser.add_argument("--steps", type=int, default=400, help="steps per episode (>= 1)")
     parser.add_argument("--run", default=None, help="learned*: a MA-PETS run directory")
     parser.add_argument("--env", nargs="*", default=[], metavar="key=value",
                         help="scenario config changes, e.g. n_hvs=0")  # fmt: skip
-    args = parser.parse_args()
+    parser.add_argument("--planner", nargs="*", default=[], metavar="key=value",
+                        help="oracle*: PlannerConfig fields over the cpu preset's, e.g. "
+                        "population=64 (rows record them)")  # fmt: skip
+    args = parser.parse_args(argv)
+    try:
+        planner = {"anchor_candidates": True, "keep_best": True}
+        planner.update(map(parse_override, args.planner))
+        CPU_PRESET.planner.replace(**planner)
+    except (ConfigError, TypeError) as err:
+        parser.error(f"--planner: {err}")
     try:
         env_config = dict(map(parse_override, args.env))
         make_env(args.scenario, **env_config).close()  # a bad change fails before any episode
     except (ConfigError, ValueError) as err:
         parser.error(f"--env: {err}")
-    tag = scenario_tag(args.scenario, env_config)
+    tag = scenario_tag(args.scenario, {**env_config, "horizon": args.steps})
+    if args.planner:
+        tag += " | planner " + " ".join(sorted(args.planner))
     if any(p.startswith("learned") for p in args.policies) and (
         args.run is None or not (Path(args.run) / "config.yaml").is_file()
     ):
@@ -152,6 +165,8 @@ def main() -> None:
             parser.error(f"--{name.replace('_', '-')}: {err}")
     if not args.comm_range >= 0:
         parser.error(f"--comm-range must be >= 0 metres, got {args.comm_range}")
+    if args.steps < 1:
+        parser.error(f"--steps must be >= 1, got {args.steps}")
     torch.set_num_threads(1)
     print(
         f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, "
@@ -167,8 +182,8 @@ def main() -> None:
             continue
         reward = FigureEightPlannerReward(headway=headway, lane_change_gap=gap)
         row = run_episode(
-            policy, seed, 400, reward, args.scenario, args.run, (), args.comm_range, env_config,
-            anchor_candidates=True, keep_best=True,
+            policy, seed, args.steps, reward, args.scenario, args.run, (), args.comm_range,
+            env_config, **planner,
         )  # fmt: skip
         row.update(headway=headway, lane_change_gap=gap, scenario=tag)
         with path.open("a") as out:
@@ -193,6 +208,7 @@ def main() -> None:
         )
     plot(points, args.scenario, tag, args.out / "frontier.png")
     print(f"figure: {args.out / 'frontier.png'}")
+    return points
 
 
 if __name__ == "__main__":
