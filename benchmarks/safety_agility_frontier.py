@@ -135,6 +135,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--run", default=None, help="learned*: a MA-PETS run directory")
     parser.add_argument("--env", nargs="*", default=[], metavar="key=value",
                         help="scenario config changes, e.g. n_hvs=0")  # fmt: skip
+    parser.add_argument("--reward", nargs="*", default=[], metavar="key=value",
+                        help="other FigureEightPlannerReward fields for every point, e.g. "
+                        "collision_reward=-100 (rows record them)")  # fmt: skip
     parser.add_argument("--planner", nargs="*", default=[], metavar="key=value",
                         help="oracle*: PlannerConfig fields over the cpu preset's, e.g. "
                         "population=64 (rows record them)")  # fmt: skip
@@ -153,10 +156,19 @@ def main(argv: list[str] | None = None) -> list[dict]:
     tag = scenario_tag(args.scenario, {**env_config, "horizon": args.steps})
     if args.planner:
         tag += " | planner " + " ".join(sorted(args.planner))
+    if args.reward:
+        tag += " | reward " + " ".join(sorted(args.reward))
     if any(p.startswith("learned") for p in args.policies) and (
         args.run is None or not (Path(args.run) / "config.yaml").is_file()
     ):
         parser.error(f"learned policies need --run RUN_DIR of a MA-PETS run, got {args.run}")
+    try:
+        reward_fields = dict(map(parse_override, args.reward))
+        if {"headway", "lane_change_gap"} & set(reward_fields):
+            raise ConfigError("headway and lane_change_gap are the grid's: give them as options")
+        FigureEightPlannerReward(**reward_fields)
+    except (ConfigError, TypeError) as err:
+        parser.error(f"--reward: {err}")
     for name in ("headway", "lane_change_gap"):
         try:  # every setting is checked before the first episode
             for value in getattr(args, name):
@@ -180,7 +192,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for policy, headway, gap, seed in grid:
         if (policy, headway, gap, seed) in done:
             continue
-        reward = FigureEightPlannerReward(headway=headway, lane_change_gap=gap)
+        reward = FigureEightPlannerReward(headway=headway, lane_change_gap=gap, **reward_fields)
         row = run_episode(
             policy, seed, args.steps, reward, args.scenario, args.run, (), args.comm_range,
             env_config, **planner,
