@@ -679,9 +679,8 @@ class MAPETS(Experiment):
 
     def run_episode(self, random_actions: bool) -> TensorDictBase:
         """One episode until every CAV is done: ``[T]`` rollout (random or planned actions)."""
-        self.planner.reset()
+        self.on_evaluation_episode_start()
         if self.plan_sharing is not None:
-            self.plan_sharing.reset()
             self.plan_sharing.reset_counts()
         self.planner.nonfinite_rewards.zero_()
         policy = self.policy
@@ -800,5 +799,8 @@ class MAPETS(Experiment):
         return [TileCodedObservation(self.obs_coder, in_keys=[OBS])]
 
     def on_evaluation_episode_start(self) -> None:
-        """Each evaluation episode plans from a cold start."""
+        """Each episode (evaluated or trained) plans from a cold start: no warm start, no
+        plans received."""
         self.planner.reset()
+        if self.plan_sharing is not None:
+            self.plan_sharing.reset()

@@ -99,6 +99,9 @@ class PlanSharingPlanner(TensorDictModuleBase):
         horizon = planner.config.horizon
         if self._plans is None or self._plans.shape[:-1] != obs.shape[:-1]:
             self._plans = torch.full((*obs.shape[:-1], horizon), float("nan"), device=obs.device)
+        if driving is not None:  # the env's rows of CAVs that no longer drive say nothing
+            driving = driving.to(torch.bool).reshape(obs.shape[:-1])
+            neighbour = torch.where(driving.unsqueeze(-1), neighbour.round().long(), -1)
         schedule, used = plan_schedule(
             self._plans, neighbour, links, self.columns, planner.model.obs_dim
         )
@@ -107,7 +110,6 @@ class PlanSharingPlanner(TensorDictModuleBase):
         states = planner.expected_states(obs, schedule)
         plans = states[..., self.own_column]  # [*, I, H]
         if driving is not None:
-            driving = driving.to(torch.bool).reshape(plans.shape[:-1])
             plans = torch.where(driving.unsqueeze(-1), plans, float("nan"))
         self._plans = plans
         sending = links.any(-1) if driving is None else links.any(-1) & driving

@@ -158,12 +158,15 @@ def test_observation_bounds_on_two_lanes_cover_an_episode() -> None:
 
 @pytest.mark.parametrize(("name", "slots"), [("figure-eight", 3), ("figure-eight-multilane", 5)])
 def test_neighbour_cav_names_the_cav_whose_speed_is_observed(name: str, slots: int) -> None:
-    """``info["neighbour_cav"]``: where slot ``k`` of CAV ``i`` names CAV ``j``, the speed
-    column of that slot equals CAV ``j``'s own speed; humans and empty slots are -1."""
+    """``info["neighbour_cav"]``: where slot ``k`` of a driving CAV ``i`` names CAV ``j``, the
+    speed column of that slot equals CAV ``j``'s own speed; humans and empty slots are -1 (the
+    rows of CAVs that no longer drive are the wrapper's zeros, masked out)."""
     env = make_env(name, seed=4, n_cavs=8, n_hvs=6)
     td = env.rollout(30, break_when_any_done=False)
     obs = td["next", "agents", "observation"]  # [T, I, S]
     named = td["next", "agents", "info", "neighbour_cav"].long()  # [T, I, K]
+    driving = td["next", "agents", "mask"].unsqueeze(-1)
+    named = torch.where(driving, named, -1)
     columns = neighbour_speed_columns(obs.shape[-1])
     assert named.shape[-1] == slots == len(columns)
     checked = 0

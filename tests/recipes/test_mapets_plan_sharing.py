@@ -33,3 +33,21 @@ def test_without_range_no_plan_is_sent(tmp_path) -> None:
 def test_paper_configuration_has_no_plan_sharing(tmp_path) -> None:
     exp = MAPETS(tiny(episodes=1), tmp_path / "run")
     assert exp.plan_sharing is None and exp.policy is not None
+
+
+def test_an_evaluation_episode_starts_without_plans(tmp_path) -> None:
+    """The broadcasts of the last training step must not reach the first step of an
+    evaluation episode (nor of the next training episode)."""
+    exp = MAPETS(tiny(episodes=2, comm={"share_plans": True}), tmp_path / "run")
+    exp.train()
+    assert exp.plan_sharing._plans is not None
+    seen = []
+    original = exp.plan_sharing.forward
+
+    def spy(td):
+        seen.append(exp.plan_sharing._plans)
+        return original(td)
+
+    exp.plan_sharing.forward = spy
+    exp.evaluate(episodes=1)
+    assert seen[0] is None
