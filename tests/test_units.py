@@ -64,7 +64,7 @@ def test_compare_table_and_plot_labels_carry_units(tmp_path: Path, monkeypatch) 
 
 def test_config_fields_declare_their_units() -> None:
     units = {f.name: f.metadata.get("unit") for f in dataclasses.fields(CommConfig)}
-    assert units == {"comm_range": "m", "p_fail": None}
+    assert units == {"comm_range": "m", "p_fail": None, "share_plans": None}
 
 
 def test_logs_name_the_units_of_the_logged_scalars(tmp_path: Path) -> None:

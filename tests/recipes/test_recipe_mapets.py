@@ -272,7 +272,7 @@ def test_yaml_round_trip_keeps_the_nested_sections(tmp_path):
     config.to_yaml(path)
     on_disk = yaml.safe_load(path.read_text())
     assert on_disk["planner"]["horizon"] == 3 and on_disk["model"]["hidden"] == [16]
-    assert on_disk["comm"] == {"comm_range": float("inf"), "p_fail": 0.25}
+    assert on_disk["comm"] == {"comm_range": float("inf"), "p_fail": 0.25, "share_plans": False}
     assert "horizon" not in on_disk and "comm_range" not in on_disk
     assert MAPETSConfig.from_yaml(path) == config
 
@@ -324,6 +324,7 @@ def test_run_with_flat_field_names_resumes_with_nested_sections(tmp_path, caplog
         del flat[newer]  # flat config.yaml files predate these planner fields
     for newer in newer_model:
         del flat[newer]  # ... and these model fields
+    del flat["share_plans"]  # ... and plan sharing
     path.write_text(yaml.safe_dump(flat, sort_keys=False))
     with caplog.at_level("WARNING", logger="mapets_rl"):
         resumed = MAPETS.from_run_dir(run_dir, overrides=["episodes=2"])
