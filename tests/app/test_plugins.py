@@ -4,7 +4,6 @@ neither recipes nor torch."""
 
 from __future__ import annotations
 
-import ast
 import importlib
 import inspect
 import json
@@ -19,19 +18,9 @@ from mapets_rl.app.plugins import RECIPE_GROUP, available_recipes, entry_points,
 from mapets_rl.envs.registry import SCENARIO_GROUP
 from mapets_rl.experiment import Experiment, available_envs, build_env, read_results, register_env
 from tests.cli_run import run_cli
+from tests.test_architecture import project_imports
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def _imports(path: Path) -> list[str]:
-    """Every module name ``path`` imports (``import a.b`` and ``from a.b import c``)."""
-    names = []
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import):
-            names += [alias.name for alias in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.append(node.module)
-    return names
 
 
 # ------------------------------------------------------------------------ import direction
@@ -39,7 +28,7 @@ def test_the_library_never_imports_recipes() -> None:
     offenders = [
         f"{path.relative_to(ROOT)}: {name}"
         for path in sorted((ROOT / "mapets_rl").rglob("*.py"))
-        for name in _imports(path)
+        for _line, name in project_imports(path)
         if name == "recipes" or name.startswith("recipes.")
     ]
     assert offenders == []

@@ -3,7 +3,6 @@ and the one Gumbel-softmax / one-hot implementation."""
 
 from __future__ import annotations
 
-import ast
 import re
 from pathlib import Path
 from typing import Any
@@ -16,26 +15,17 @@ from mapets_rl.modules import GumbelSoftmaxHead, gumbel_one_hot, one_hot_argmax
 from mapets_rl.modules.arguments import hidden_sizes, require_positive_ints
 from mapets_rl.objectives.coma import COMACritic
 from mapets_rl.shapley import CoalitionCritic, RandomCoalition
+from tests.test_architecture import project_imports
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def _imported_recipes(path: Path) -> list[str]:
-    """The ``recipes`` modules that ``path`` imports."""
-    names = []
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import):
-            names += [alias.name for alias in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.append(node.module)
-    return [n for n in names if n == "recipes" or n.startswith("recipes.")]
 
 
 def test_recipes_do_not_import_each_other() -> None:
     offenders = [
         f"{path.name}: {name}"
         for path in sorted((ROOT / "recipes").glob("*.py"))
-        for name in _imported_recipes(path)
+        for _line, name in project_imports(path)
+        if name == "recipes" or name.startswith("recipes.")
     ]
     assert offenders == []
 
