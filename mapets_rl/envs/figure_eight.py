@@ -493,12 +493,12 @@ class FigureEightEnv(MultiAgentTrafficEnv):
     def _neighbour_cavs(self, ids: np.ndarray | None) -> np.ndarray:
         """``[I, K]`` agent index of the CAV in each observed vehicle slot (``-1``: a human
         driver, nobody in range, or a CAV that no longer drives); see the module docstring."""
-        columns = NEIGHBOUR_ID_COLUMNS[self.obs_dim]
-        out = np.full((len(self.cavs), len(columns)), -1, dtype=np.int64)
+        slots = NEIGHBOUR_SLOTS[self.obs_dim]
+        out = np.full((len(self.cavs), len(slots)), -1, dtype=np.int64)
         if ids is None:
             return out
         index = {id(cav): i for i, cav in enumerate(self.cavs) if self.alive[i]}
-        for k, column in enumerate(columns):
+        for k, (column, _speed) in enumerate(slots):
             out[:, k] = [index.get(int(v), -1) for v in ids[:, column]]
         return out
 
@@ -555,13 +555,15 @@ class FigureEightEnv(MultiAgentTrafficEnv):
         return action
 
 
-NEIGHBOUR_ID_COLUMNS = {
-    OBS_DIM: (0, 1),
-    CROSSING_OBS_DIM: (0, 1, 3),
-    TWO_LANE_OBS_DIM: (0, 1, 3, 4, 5),
+NEIGHBOUR_SLOTS = {
+    OBS_DIM: ((0, 3), (1, 4)),
+    CROSSING_OBS_DIM: ((0, 3), (1, 4), (3, 9)),
+    TWO_LANE_OBS_DIM: ((0, 3), (1, 4), (3, 9), (4, 11), (5, 12)),
 }
-"""Per observation size: the columns of the observed ids (``observe_agents``) that are
-vehicles, in the order of :func:`neighbour_speed_columns`."""
+"""Per observation size, the observed vehicles in the order of ``info["neighbour_cav"]``: the
+column of each one's id among ``observe_agents``' ids and the observation column of its speed
+(leader, follower, with the crossing features the conflicting vehicle, on two lanes the other
+lane's leader and follower)."""
 
 
 def neighbour_speed_columns(obs_dim: int) -> tuple[int, ...]:
@@ -570,9 +572,7 @@ def neighbour_speed_columns(obs_dim: int) -> tuple[int, ...]:
     ``v_conflict``, on two lanes ``v_ahead_other`` and ``v_behind_other``."""
     if obs_dim not in OBSERVATION_SIZES:
         raise ValueError(f"obs_dim must be one of {list(OBSERVATION_SIZES)}, got {obs_dim}")
-    return {OBS_DIM: (3, 4), CROSSING_OBS_DIM: (3, 4, 9), TWO_LANE_OBS_DIM: (3, 4, 9, 11, 12)}[
-        obs_dim
-    ]
+    return tuple(speed for _id, speed in NEIGHBOUR_SLOTS[obs_dim])
 
 
 def observation_size(observation: str, lanes: int) -> int:

@@ -144,8 +144,6 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             float32).
         seed / generator: reproducible randomness (``generator`` wins if both are given).
         observation_key / action_key / is_init_key: TensorDict keys.
-        schedule_key: optional key of known future feature values ``[*, I, H, obs]`` (NaN:
-            the model predicts; see :meth:`plan`), read when present in the input.
     """
 
     def __init__(
@@ -162,7 +160,6 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         observation_key: NestedKey = ("agents", "observation"),
         action_key: NestedKey = ("agents", "action"),
         is_init_key: NestedKey = "is_init",
-        schedule_key: NestedKey = ("agents", "plan_schedule"),
         **settings: Any,
     ) -> None:
         if not isinstance(model, DynamicsModel):
@@ -205,7 +202,6 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         self.in_keys = [observation_key]
         self.out_keys = [action_key]
         self.is_init_key = is_init_key
-        self.schedule_key = schedule_key
         self._with_schedule = False  # whether this call's _optimize inputs hold a schedule
         # Bounds as [I, 1, 1, act] so they broadcast over [I, M, (Q,) H, act].
         self.register_buffer("action_low", low[:, None, None, :])
@@ -538,8 +534,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         expected = f"[*, n_agents={model.n_agents}, obs_dim={model.obs_dim}]"
         obs = get_tensor(tensordict, self.in_keys[0], expected, type(self).__name__)
         is_init = tensordict.get(self.is_init_key, None)
-        schedule = tensordict.get(self.schedule_key, None)
-        tensordict.set(self.out_keys[0], self.plan(obs, is_init=is_init, schedule=schedule))
+        tensordict.set(self.out_keys[0], self.plan(obs, is_init=is_init))
         return tensordict
 
     @torch.no_grad()

@@ -101,7 +101,7 @@ class PlanSharingPlanner(TensorDictModuleBase):
             self._plans = torch.full((*obs.shape[:-1], horizon), float("nan"), device=obs.device)
         if driving is not None:  # the env's rows of CAVs that no longer drive say nothing
             driving = driving.to(torch.bool).reshape(obs.shape[:-1])
-            neighbour = torch.where(driving.unsqueeze(-1), neighbour.round().long(), -1)
+            neighbour = torch.where(driving.unsqueeze(-1), neighbour, -1)
         schedule, used = plan_schedule(
             self._plans, neighbour, links, self.columns, planner.model.obs_dim
         )
