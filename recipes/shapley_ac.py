@@ -73,7 +73,12 @@ class ShapleyACConfig(OffPolicyConfig):
         init_random_frames: transitions in the buffer before the first update; they are
             collected with the policy (its coalitions are random), not with random actions.
         critic_cells: hidden sizes of the coalition critic.
-        join_prob: probability that a CAV joins the random coalition of a timestep.
+        join_prob: probability that a CAV joins the random coalition of a timestep
+            (``coalition_sizes="binomial"``).
+        coalition_sizes: how a timestep's coalition is drawn while collecting: ``binomial``
+            (every CAV joins with ``join_prob``, the paper's Algorithm 1) or ``uniform`` (size
+            uniform over 1..alive CAVs, then the members: the sizes at which the permutation
+            estimator reads the critic; see :class:`~mapets_rl.shapley.RandomCoalition`).
         eval_coalition: coalition used in evaluation: ``grand``, ``empty`` or ``random``.
         gumbel_tau: Gumbel-softmax temperature (exploration and actor gradient; > 0).
         logits_reg: weight of the squared-logits penalty in the actor loss (keeps the discrete
@@ -114,6 +119,7 @@ class ShapleyACConfig(OffPolicyConfig):
     updates_per_batch: int = 10
     critic_cells: list[int] = dataclasses.field(default_factory=lambda: [128, 128])
     join_prob: float = 0.5
+    coalition_sizes: str = "binomial"
     eval_coalition: str = "grand"
     gumbel_tau: float = 1.0
     exact_max_agents: int = 10
@@ -136,6 +142,12 @@ class ShapleyACConfig(OffPolicyConfig):
         super().__post_init__()
         check_layer_sizes("critic_cells", self.critic_cells, self.device)
         check(0.0 <= self.join_prob <= 1.0, "join_prob", "in [0, 1]", self.join_prob)
+        check(
+            self.coalition_sizes in ("binomial", "uniform"),
+            "coalition_sizes",
+            "one of binomial, uniform",
+            self.coalition_sizes,
+        )
         check(
             self.eval_coalition in ("grand", "empty", "random"),
             "eval_coalition",
@@ -184,7 +196,10 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
 
         # modules: coalition of the timestep -> actors on s^C; coalition critic v(s, a, C)
         self.coalition = RandomCoalition(
-            n, join_prob=config.join_prob, eval_mode=config.eval_coalition
+            n,
+            join_prob=config.join_prob,
+            eval_mode=config.eval_coalition,
+            sizes=config.coalition_sizes,
         )
         self.actor = make_coalition_actor(
             n,

@@ -377,3 +377,36 @@ def test_bf16_autocast_close_to_fp32():
     phi16 = bf16.shapley_values(td)
     assert phi16.dtype == torch.float32
     assert (phi16 - phi32).abs().max() < 0.05 * phi32.abs().mean() + 1e-3
+
+
+def test_uniform_size_coalitions_have_uniform_sizes_over_the_alive_agents():
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from mapets_rl.shapley import RandomCoalition
+
+    torch.manual_seed(0)
+    n, draws = 6, 12000
+    alive = torch.ones(draws, n, dtype=torch.bool)
+    alive[draws // 2 :, 4:] = False  # half the states have 4 alive agents
+    td = TensorDict(
+        {("agents", "observation"): torch.zeros(draws, n, 1), ("agents", "mask"): alive}, [draws]
+    )
+    module = RandomCoalition(n, sizes="uniform")
+    with set_exploration_type(ExplorationType.RANDOM):
+        c = module(td)["agents", "coalition"]
+    assert not (c & ~alive).any()
+    for rows, m in ((slice(0, draws // 2), 6), (slice(draws // 2, None), 4)):
+        sizes = torch.bincount(c[rows].sum(-1), minlength=n + 1).float() / (draws // 2)
+        assert sizes[0] == 0 and sizes[m + 1 :].sum() == 0  # never empty, never above m
+        torch.testing.assert_close(sizes[1 : m + 1], torch.full((m,), 1 / m), atol=0.02, rtol=0)
+        # given its size, every alive agent is equally likely to be a member
+        membership = c[rows][:, :m].float().mean(0)
+        torch.testing.assert_close(membership, membership.mean().expand(m), atol=0.03, rtol=0)
+    binomial = RandomCoalition(n, sizes="binomial")
+    with set_exploration_type(ExplorationType.RANDOM):
+        sizes = binomial(td)["agents", "coalition"][: draws // 2].sum(-1).float()
+    assert abs(sizes.mean().item() - 3.0) < 0.1 and sizes.std().item() < 1.4  # Bin(6, 1/2)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        assert torch.equal(module(td)["agents", "coalition"], alive)  # grand coalition
+    with pytest.raises(ValueError, match="sizes must be one of"):
+        RandomCoalition(n, sizes="poisson")
