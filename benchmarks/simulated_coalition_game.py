@@ -47,7 +47,7 @@ def main() -> None:
     config = make_env("freeway-merge", backend="torch", cav_ratio=args.cavs / 30).config
     rule = CooperativeMerge(3, math.inf, 60.0, 30.0, 15.0, 15.0, 1.5, torch.int64)
 
-    def cooperative(observation: torch.Tensor) -> torch.Tensor:
+    def cooperative(observation: torch.Tensor, members: torch.Tensor) -> torch.Tensor:
         td = TensorDict({OBS: observation}, batch_size=observation.shape[:-2])
         return rule(td).get(ACTION).argmax(-1)
 

@@ -61,6 +61,14 @@ def test_config_validation() -> None:
         _config(num_permutations=3)
     with pytest.raises(ConfigError, match="eval_coalition"):
         _config(eval_coalition="half")
+    with pytest.raises(ConfigError, match="coalition_sizes"):
+        _config(coalition_sizes="poisson")
+
+
+def test_uniform_coalition_sizes_reach_the_sampler(tmp_path: Path) -> None:
+    exp = ShapleyAC(_config(coalition_sizes="uniform"), tmp_path)
+    assert exp.coalition.sizes == "uniform"
+    exp.close()
 
 
 def test_config_written_before_ego_first_views_keeps_index_order(tmp_path: Path) -> None:

@@ -216,20 +216,42 @@ class BatchedFreeway:
         twin.state = self.state[road : road + 1].expand(copies).clone()
         return twin
 
-    def rollout_returns(self, decide: Callable[[torch.Tensor], torch.Tensor]) -> torch.Tensor:
+    def rollout_returns(
+        self,
+        decide: Callable[[torch.Tensor], torch.Tensor],
+        *,
+        gamma: float = 1.0,
+        payoff: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """Step every road to the end of its episode with actions ``decide(observation)``
-        (``[B, I, obs_dim]`` -> ``[B, I]``) and return each road's system return from now on
-        (the CAVs' rewards summed over CAVs and steps) ``[B]``; roads are not reset."""
+        (``[B, I, obs_dim]`` -> ``[B, I]``) and return each road's return from now on ``[B]``:
+        the CAVs' rewards summed over CAVs and steps, the step ``k`` steps from now weighted by
+        ``gamma ** k``; with ``payoff`` (bool or float ``[B, I]``) only the CAVs it selects (or
+        weights) count. Default: the undiscounted system return. Roads are not reset."""
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+        if payoff is not None and tuple(payoff.shape) != (self.n_roads, self.n_cavs):
+            raise ValueError(
+                f"payoff must have shape [{self.n_roads}, {self.n_cavs}], got {tuple(payoff.shape)}"
+            )
+        weights = (
+            torch.ones(self.n_roads, self.n_cavs, dtype=torch.float64, device=self.device)
+            if payoff is None
+            else payoff.to(self.device, torch.float64)
+        )
         observation = self.observe()
         total = torch.zeros(self.n_roads, dtype=torch.float64, device=self.device)
         running = (self.state.get("steps") < int(self.config["horizon"])) & self.state[
             "agents"
         ].get("alive").any(1)
+        discount = 1.0
         while bool(running.any()):
             result = self.step(decide(observation))
-            total += torch.where(running, result.reward.double().sum(1), 0.0)
+            gained = (result.reward.double() * weights).sum(1)
+            total += torch.where(running, discount * gained, 0.0)
             running &= ~(result.truncated | result.terminated)
             observation = result.observation
+            discount *= gamma
         return total
 
     def restore(self, snapshot: TensorDict) -> None:
