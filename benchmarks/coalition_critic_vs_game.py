@@ -8,16 +8,17 @@ with the run's greedy policy (grand coalition, as in evaluation) for each number
 
 - the **critic's game** ``v_critic(C) = v(s, a, C)`` for all coalitions, and its exact Shapley
   value ``phi_critic`` (what the actor's gradient reads);
-- the **member game** (:func:`~mapets_rl.shapley.simulated.simulated_member_game`): what ``v(s, a, C)``
-  should converge to: after ``a``, every CAV plays the greedy policy on its coalition view and
-  ``v(C)`` is the members' return discounted by the run's ``gamma``. Against it: the
-  correlation of the 255 non-empty coalition values, the critic's grand-coalition value
-  ``v(N)`` over the simulated one, and the correlation of the Shapley values;
-- the **credit game** (:func:`~mapets_rl.shapley.simulated.simulated_game`): the members of ``C`` play the
-  greedy policy and the other CAVs keep their lane; ``v(C)`` is the system return (discounted
-  by ``gamma``). Its Shapley value is the credit each CAV's learned driving earns over keeping
-  its lane. Against it: the correlation with ``phi_critic``, and how additive the game is
-  (``v(N) - v(0)`` over the sum of single-CAV gains).
+- the **member game** (:func:`~mapets_rl.shapley.simulated.simulated_member_game`): what
+  ``v(s, a, C)`` should converge to: after ``a``, every CAV plays the greedy policy on its
+  coalition view and ``v(C)`` is the members' return discounted by the run's ``gamma``.
+  Against it: the correlation of the 255 non-empty coalition values, the critic's
+  grand-coalition value ``v(N)`` over the simulated one, and the correlation of the Shapley
+  values;
+- the **credit game** (:func:`~mapets_rl.shapley.simulated.simulated_game`): the members of
+  ``C`` play the greedy policy and the other CAVs keep their lane; ``v(C)`` is the system
+  return (discounted by ``gamma``). Its Shapley value is the credit each CAV's learned driving
+  earns over keeping its lane. Against it: the correlation with ``phi_critic``, and how
+  additive the game is (``v(N) - v(0)`` over the sum of single-CAV gains).
 
 Also: the share of agent-steps at these states where a CAV's greedy action under the
 evaluation view (grand coalition) differs from its action under a training view (a coalition
