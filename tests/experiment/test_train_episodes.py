@@ -59,9 +59,9 @@ def _by_hand(batches: list[TensorDictBase]) -> list[float]:
     return [value for _, _, value in sorted(ended)]
 
 
-def _recording(exp: MADDPG) -> tuple[list[TensorDictBase], list[dict[str, float]]]:
+def _recording(exp: MADDPG) -> list[TensorDictBase]:
+    """The batches ``exp`` trains on, recorded as it trains."""
     batches: list[TensorDictBase] = []
-    metrics: list[dict[str, float]] = []
     step = exp.train_step
 
     def record(batch: TensorDictBase) -> dict[str, float]:
@@ -69,13 +69,13 @@ def _recording(exp: MADDPG) -> tuple[list[TensorDictBase], list[dict[str, float]
         return step(batch)
 
     exp.train_step = record
-    return batches, metrics
+    return batches
 
 
 @pytest.mark.parametrize("env", ["freeway", "freeway-merge"])
 def test_batched_run_records_every_finished_episode(env: str, tmp_path: Path) -> None:
     exp = MADDPG(_config(env), tmp_path)
-    batches, _ = _recording(exp)
+    batches = _recording(exp)
     metrics: list[dict[str, float]] = []
     exp.train(on_iteration_end=metrics.append)
     expected = _by_hand(batches)
@@ -184,7 +184,7 @@ def test_highway_env_backend_records_its_episodes(tmp_path: Path) -> None:
         env_config={"n_vehicles": 4, "cav_ratio": 0.5}, total_frames=80, eval_episodes=1
     )
     exp = MADDPG(config, tmp_path)
-    batches, _ = _recording(exp)
+    batches = _recording(exp)
     exp.train()
     episodes = read_train_episodes(tmp_path)
     reward = torch.cat([b.get(("next", "agents", "reward")).double() for b in batches])
