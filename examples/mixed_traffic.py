@@ -33,8 +33,30 @@ Scales (``--scale``; ``--frames``, ``--n-vehicles``, ``--eval-episodes`` and the
 * ``paper``: 30 vehicles, 400,000 frames (10,000 episodes) per run, 5 evaluation episodes,
   recipe defaults (hours per run: the paper trained 100k episodes on 4 GPUs).
 
+Training metrics: every learned run records its training episodes
+(``train_episodes.jsonl``, :mod:`mapets_rl.experiment.episodes`); the table adds, beside the
+greedy evaluation, the mean over each run's last ``--window`` training episodes (all of them
+when it has fewer) of the episode system reward (reward summed over CAVs and steps, the paper's
+Fig. 2 quantity), velocity and comfort (``train_*`` keys in ``results.json``).
+
+Backends (``--backend``): ``highway-env`` (default) or ``torch``: ``--num-envs`` roads of the
+batched torch freeway per run for the same ``--frames`` (a frame is one step of one road;
+batches of ``--frames-per-batch``, default 10 steps of every road); evaluation, the scripted
+rows and ratio 0 step one road of the scenario (ratio 0 on highway-env, whose all-human
+``FreewayEnv`` has no torch twin). ``--schedule openai`` applies openai/maddpg's schedule
+(:data:`mapets_rl.recipes.maddpg.OPENAI_MADDPG`) where the recipe has the field: Shapley AC all
+of it (update interval 100 frames, one update, minibatch 1,024, learning rates 1e-2, gamma
+0.95, tau 0.01, actor ``num_cells`` [64, 64], gradient clip 0.5; ``critic_cells`` stays), COMA
+gamma, tau, ``lr_critic``, ``num_cells`` and ``max_grad_norm`` (its on-policy ``lr`` and its
+one update per batch stay); ``--shapley-override`` / ``--coma-override`` come after it.
+Interrupted runs resume from their last checkpoint (``--checkpoint-interval`` frames, default:
+the end of the run only).
+
 Run:  python examples/mixed_traffic.py [--scale cpu] [--methods shapley_ac coma scripted]
       [--ratios 0 0.5 1] [--seeds 0 1 2] [--out outputs/mixed_traffic]
+      python examples/mixed_traffic.py --scale paper --backend torch --num-envs 64 \
+          --frames-per-batch 1024 --schedule openai --checkpoint-interval 102400 \
+          --out outputs/mixed_traffic_torch
 Writes ``<out>/table.md``, ``<out>/results.json`` and ``<out>/velocity_comfort.png``; runs
 that already finished in ``<out>/runs`` are not retrained.
 """
@@ -52,17 +74,21 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from mapets_rl.config import parse_override  # noqa: E402
 from mapets_rl.envs import FreewayEnv, FreewayMergeEnv  # noqa: E402
 from mapets_rl.experiment import (
     ExperimentConfig,
     atomic_savefig,
     atomic_write_text,
     evaluate_scripted,
+    latest_checkpoint,
     mean_metrics,
+    read_train_episodes,
 )
 from mapets_rl.metrics import MPH_PER_MPS  # noqa: E402
 from mapets_rl.plotting import draw_curve  # noqa: E402
 from mapets_rl.recipes.coma import COMA, COMAConfig  # noqa: E402
+from mapets_rl.recipes.maddpg import OPENAI_MADDPG  # noqa: E402
 from mapets_rl.recipes.shapley_ac import ShapleyAC, ShapleyACConfig  # noqa: E402
 from mapets_rl.statistics import mean_ci95  # noqa: E402
 
@@ -80,6 +106,17 @@ SCALE_OVERRIDES = {
 }
 METHODS = {"shapley_ac": (ShapleyAC, ShapleyACConfig), "coma": (COMA, COMAConfig)}
 SCRIPTED = "scripted"  # keep lane under IDM, nothing trained
+OPENAI_FIELDS = {
+    "shapley_ac": frozenset(parse_override(item)[0] for item in OPENAI_MADDPG),
+    "coma": frozenset({"gamma", "tau", "lr_critic", "num_cells", "max_grad_norm"}),
+}
+"""``--schedule openai``: the fields of :data:`OPENAI_MADDPG` each method gets."""
+TRAIN_KEYS = {
+    "system_return": "train_system_return",
+    "average_velocity": "train_average_velocity",
+    "average_comfort": "train_average_comfort",
+}
+"""Training-episode metric -> its key in a run's results (mean over the last ``--window``)."""
 # Paper Table I: CAV ratio -> (average velocity mph, average comfort), Shapley and COMA.
 PAPER_SHAPLEY = {
     0.0: (60.06, 2.61),
@@ -127,18 +164,47 @@ def scripted(ratio: float, seed: int, args: argparse.Namespace) -> dict[str, flo
     return evaluate_scripted(
         ExperimentConfig(
             env=args.env,
-            env_config={"n_vehicles": args.n_vehicles, "cav_ratio": ratio},
+            env_config=env_config(args, ratio, batched=False),  # evaluation steps one road
             seed=seed,
             eval_episodes=args.eval_episodes,
         )
     )
 
 
+def env_config(args: argparse.Namespace, ratio: float, batched: bool = True) -> dict[str, Any]:
+    """The runs' ``env_config`` at ``ratio``, plus ``backend: torch`` and (when ``batched``)
+    ``num_envs`` on the torch backend."""
+    config: dict[str, Any] = {"n_vehicles": args.n_vehicles, "cav_ratio": ratio}
+    if args.backend == "torch":
+        config["backend"] = "torch"
+        if batched:
+            config["num_envs"] = args.num_envs
+    return config
+
+
+def training_metrics(run_dir: Path, window: int) -> dict[str, float]:
+    """``train_*`` means over the run's last ``window`` training episodes (all when it has
+    fewer) and ``train_episodes``, the number it recorded; ``{}`` when it recorded none."""
+    episodes = read_train_episodes(run_dir)
+    count = len(episodes["system_return"])
+    if count == 0:
+        return {}
+    out = {"train_episodes": float(count)}
+    for key, name in TRAIN_KEYS.items():
+        if key in episodes:
+            values = episodes[key][-window:]
+            values = values[np.isfinite(values)]
+            if len(values):
+                out[name] = float(values.mean())
+    return out
+
+
 def train_and_evaluate(
     method: str, ratio: float, seed: int, args: argparse.Namespace
 ) -> dict[str, float]:
-    """Train ``method`` at ``ratio`` and return its final evaluation; a run of the same budget
-    already finished in ``--out`` is reused (so an interrupted table resumes)."""
+    """Train ``method`` at ``ratio`` and return its final evaluation with its training
+    metrics (:func:`training_metrics`); a run of the same budget already finished in
+    ``--out`` is reused, one with a checkpoint resumed (so an interrupted table resumes)."""
     run_dir = Path(args.out) / "runs" / method / f"ratio{ratio:.2f}" / f"seed{seed}"
     results = run_dir / "results.json"
     if results.is_file():
@@ -146,26 +212,44 @@ def train_and_evaluate(
             e for e in json.loads(results.read_text())["evaluations"] if e["frames"] >= args.frames
         ]
         if done:
-            return done[-1]["metrics"]
+            return {**done[-1]["metrics"], **training_metrics(run_dir, args.window)}
     recipe, config_cls = METHODS[method]
-    config = config_cls(
-        env=args.env,
-        env_config={"n_vehicles": args.n_vehicles, "cav_ratio": ratio},
-        seed=seed,
-        total_frames=args.frames,
-        eval_interval=args.frames,
-        checkpoint_interval=args.frames,
-        eval_episodes=args.eval_episodes,
-        logger="csv",
-        progress=args.progress,
-    )
-    config = config.with_overrides(args.override.get(method, []))
-    return recipe(config, run_dir).train()[-1]["metrics"]
+    if latest_checkpoint(run_dir) is not None:
+        exp = recipe.from_run_dir(run_dir, overrides=[f"total_frames={args.frames}"])
+    else:
+        batch = args.frames_per_batch or config_cls.frames_per_batch
+        sizes = {}
+        if method == "coma":
+            sizes["minibatch_size"] = min(config_cls.minibatch_size, batch)
+        config = config_cls(
+            env=args.env,
+            env_config=env_config(args, ratio),
+            seed=seed,
+            total_frames=args.frames,
+            frames_per_batch=batch,
+            **sizes,
+            eval_interval=args.frames,
+            checkpoint_interval=args.checkpoint_interval or args.frames,
+            eval_episodes=args.eval_episodes,
+            logger="csv",
+            progress=args.progress,
+        )
+        exp = recipe(config.with_overrides(args.override.get(method, [])), run_dir)
+    final = exp.train()[-1]["metrics"]
+    return {**final, **training_metrics(run_dir, args.window)}
 
 
 def _cell(values: list[float], digits: int = 2) -> str:
     mean, half = mean_ci95(values)
     return f"{mean:.{digits}f} ± {half:.{digits}f}" if len(values) > 1 else f"{mean:.{digits}f}"
+
+
+def _train_cell(runs: list[dict[str, float]], key: str, scale: float = 1.0, digits: int = 2) -> str:
+    """The table cell of training metric ``key`` over the seeds' runs; ``-`` unless every run
+    has it."""
+    if not all(key in r for r in runs):
+        return "-"
+    return _cell([r[key] * scale for r in runs], digits)
 
 
 def build_table(results: dict[str, Any], args: argparse.Namespace) -> str:
@@ -176,9 +260,13 @@ def build_table(results: dict[str, Any], args: argparse.Namespace) -> str:
         f"{args.frames} frames, {args.eval_episodes} evaluation episode(s). Paper: CARLA, "
         "100k episodes.",
         "",
+        f"Training columns: mean over each run's last {args.window} training episodes "
+        "(system reward: summed over CAVs and steps); '-' for rows that train nothing.",
+        "",
         "| method | CAV ratio | CAVs | velocity (mph) | velocity (m/s) | comfort "
-        "| collisions / episode | paper velocity (mph) | paper comfort |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| collisions / episode | training velocity (mph) | training comfort "
+        "| training system reward | paper velocity (mph) | paper comfort |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for method, by_ratio in results.items():
         paper = {"shapley_ac": PAPER_SHAPLEY, "coma": PAPER_COMA}.get(method, {})
@@ -191,6 +279,9 @@ def build_table(results: dict[str, Any], args: argparse.Namespace) -> str:
                 f"| {_cell([x * MPH_PER_MPS for x in v])} | {_cell(v)} "
                 f"| {_cell([r['average_comfort'] for r in runs])} "
                 f"| {_cell([r.get('collisions', 0.0) for r in runs], 1)} "
+                f"| {_train_cell(runs, 'train_average_velocity', MPH_PER_MPS)} "
+                f"| {_train_cell(runs, 'train_average_comfort')} "
+                f"| {_train_cell(runs, 'train_system_return', digits=1)} "
                 f"| {ref[0] if ref else '-'} | {ref[1] if ref else '-'} |"
             )
     return "\n".join(lines)
@@ -218,6 +309,18 @@ def plot_table(results: dict[str, Any], path: Path) -> None:
     fig.tight_layout()
     atomic_savefig(fig, path)
     plt.close(fig)
+
+
+def last_wins(*groups: list[str]) -> list[str]:
+    """``key=value`` overrides of ``groups`` in order, a key given again replacing the
+    earlier value (a config refuses a key given twice)."""
+    merged: dict[str, str] = {}
+    for group in groups:
+        for item in group:
+            key = parse_override(item)[0]
+            merged.pop(key, None)
+            merged[key] = item
+    return list(merged.values())
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -249,6 +352,37 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         choices=sorted(SCENARIO_ENVS),
         help="freeway-merge: the on-ramp social dilemma (issue 21)",
     )
+    parser.add_argument(
+        "--backend",
+        default="highway-env",
+        choices=["highway-env", "torch"],
+        help="torch: --num-envs roads of the batched torch freeway per run",
+    )
+    parser.add_argument("--num-envs", type=int, default=4, help="roads (torch backend)")
+    parser.add_argument(
+        "--frames-per-batch",
+        type=int,
+        default=None,
+        help="frames per collected batch (default: the recipe's; torch: 10 x --num-envs)",
+    )
+    parser.add_argument(
+        "--schedule",
+        choices=["default", "openai"],
+        default="default",
+        help="openai: openai/maddpg's update schedule where a recipe has the field",
+    )
+    parser.add_argument(
+        "--window",
+        type=int,
+        default=1000,
+        help="training episodes (the last ones of each run) the training columns average",
+    )
+    parser.add_argument(
+        "--checkpoint-interval",
+        type=int,
+        default=None,
+        help="frames between checkpoints (default: one at the end of each run)",
+    )
     parser.add_argument("--out", default="outputs/mixed_traffic")
     parser.add_argument("--progress", action="store_true")
     args = parser.parse_args(argv)
@@ -264,10 +398,24 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error(f"--frames must be >= 40 (one episode), got {args.frames}")
     if args.eval_episodes < 1:
         parser.error(f"--eval-episodes must be >= 1, got {args.eval_episodes}")
+    if args.num_envs < 1:
+        parser.error(f"--num-envs must be >= 1, got {args.num_envs}")
+    if args.window < 1:
+        parser.error(f"--window must be >= 1, got {args.window}")
+    if args.frames_per_batch is None and args.backend == "torch":
+        args.frames_per_batch = 10 * args.num_envs
     preset = SCALE_OVERRIDES[args.scale]
+
+    def schedule(method: str) -> list[str]:
+        if args.schedule == "default":
+            return []
+        return [i for i in OPENAI_MADDPG if parse_override(i)[0] in OPENAI_FIELDS[method]]
+
     args.override = {
-        "shapley_ac": [*preset.get("shapley_ac", []), *args.shapley_override],
-        "coma": [*preset.get("coma", []), *args.coma_override],
+        "shapley_ac": last_wins(
+            preset.get("shapley_ac", []), schedule("shapley_ac"), args.shapley_override
+        ),
+        "coma": last_wins(preset.get("coma", []), schedule("coma"), args.coma_override),
     }
     return args
 

@@ -60,6 +60,9 @@ Run directory layout: ``config.yaml`` (resolved config), ``run.json`` (recipe, s
 :func:`read_results` and :func:`mapets_rl.app.comparison.compare`),
 ``checkpoints/ckpt_<frames>.pt`` (atomic, the newest ``keep_last`` that verify, each with its
 SHA-256 digest ``ckpt_<frames>.pt.sha256``; replay storages save only their filled rows),
+``train_episodes.jsonl`` (the model-free loop's training episodes, one line each: the frame
+count, the system return, the length and the scenario's episode metrics; read by
+:func:`read_train_episodes`, averaged per window of episodes by :func:`window_means`),
 ``logs/`` (torchrl logger), ``videos/`` (GIFs when ``video=true``), and ``.lock`` (the pid of the
 process writing the run while it runs). Every file is written atomically with the same
 permissions.
@@ -98,6 +101,7 @@ from mapets_rl.experiment.checkpoint import (
     verify_checkpoint,
 )
 from mapets_rl.experiment.config import ExperimentConfig, RunConfig
+from mapets_rl.experiment.episodes import TRAIN_EPISODES_FILE, read_train_episodes, window_means
 from mapets_rl.experiment.files import atomic_savefig, atomic_write, atomic_write_text
 from mapets_rl.experiment.reference import evaluate_scripted
 from mapets_rl.experiment.results import (
@@ -127,6 +131,7 @@ __all__ = [
     "ResultsWriter",
     "RunConfig",
     "SystemRewardMetrics",
+    "TRAIN_EPISODES_FILE",
     "atomic_torch_save",
     "atomic_savefig",
     "atomic_write",
@@ -147,6 +152,7 @@ __all__ = [
     "make_logger",
     "mean_metrics",
     "read_results",
+    "read_train_episodes",
     "register_env",
     "remove_stale_files",
     "rng_state",
@@ -156,4 +162,5 @@ __all__ = [
     "set_rng_state",
     "verified_checkpoints",
     "verify_checkpoint",
+    "window_means",
 ]

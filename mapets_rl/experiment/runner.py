@@ -42,6 +42,13 @@ from mapets_rl.experiment.checkpoint import (
     set_rng_state,
 )
 from mapets_rl.experiment.config import ExperimentConfig, RunConfig, check_device
+from mapets_rl.experiment.episodes import (
+    EpisodeLog,
+    EpisodeTracker,
+    drain_env_episodes,
+    env_episode_metrics,
+    summarize_episodes,
+)
 from mapets_rl.experiment.files import (
     OWN_FILES,
     RunDirLock,
@@ -303,6 +310,8 @@ class Experiment:
         self.results = ResultsWriter(
             self.run_dir, self.name, config.env, config.seed, config.to_dict()
         )
+        self.episode_log = EpisodeLog(self.run_dir, deferred=restoring)
+        self.episode_tracker = EpisodeTracker()
 
     def _refuse_occupied_dir(self) -> None:
         """ValueError when the run directory of a new run already holds checkpoints (of
@@ -548,13 +557,29 @@ class Experiment:
 
     def _train_on_batch(self) -> dict[str, float]:
         """One iteration of :meth:`train`: collect a batch (its environment steps counted in
-        ``self.frames``), :meth:`train_step` on it; returns its training metrics."""
+        ``self.frames``), :meth:`train_step` on it; returns its training metrics, with those of
+        the training episodes that ended in the batch (:meth:`training_episodes`)."""
         batch = self.collector.next()
         self.frames += batch.numel()
         self.batches += 1
+        episodes = self.training_episodes(batch)
         losses = self.train_step(batch)
         self.collector.update_policy_weights_()
-        return {**self.batch_metrics(batch), **losses}
+        return {**self.batch_metrics(batch), **summarize_episodes(episodes), **losses}
+
+    def training_episodes(self, batch: TensorDictBase) -> list[dict[str, float]]:
+        """The training episodes that ended in the collected ``batch`` [*, T] (see
+        :mod:`mapets_rl.experiment.episodes`), each ``{"system_return", "length"}`` (reward
+        summed over CAVs and steps; steps) plus the scenario's episode metrics when the
+        collector's env reports them (the torch freeway: ``average_velocity``,
+        ``average_comfort``, ``collisions``, ``ramp_stuck`` on the ramp); appended to the run's
+        ``train_episodes.jsonl`` at the run's frame count."""
+        episodes = self.episode_tracker.update(batch)
+        scenario = env_episode_metrics(getattr(self.collector, "env", None), len(episodes))
+        if scenario is not None:
+            episodes = [{**s, **e} for s, e in zip(scenario, episodes, strict=True)]
+        self.episode_log.append(self.frames, episodes)
+        return episodes
 
     def _save_boundary_checkpoint(self, last: bool) -> None:
         """The checkpoint of a training loop: one more boundary, then the checkpoint; unless
@@ -570,6 +595,9 @@ class Experiment:
         resumed run and an uninterrupted one see the same episodes after a checkpoint."""
         self.collector.set_seed(self.config.seed + BOUNDARY_SEED_STRIDE * self.boundaries)
         self.collector.reset()
+        # the episodes under way end with the reset: none of them is recorded
+        self.episode_tracker.reset()
+        drain_env_episodes(getattr(self.collector, "env", None))
 
     # ------------------------------------------------------------------------- evaluation
     @torch.no_grad()
@@ -754,12 +782,14 @@ class Experiment:
     def _start_writing(self) -> None:
         """Write what a resumed run deferred until it has started (its first iteration
         succeeded, or it had nothing left to do, or a checkpoint is saved): ``config.yaml``
-        when overrides changed it, ``results.json`` as the restored checkpoint has it, and
-        the logs cut back to the checkpoint's steps (see
-        :class:`~mapets_rl.experiment.results.RunLogger`) with the scalars logged meanwhile.
-        Until then a resume that fails (an override that runs out of memory in the first
-        iteration) leaves the run directory as it was, and a plain resume starts from the
-        same state. No-op for a run that is not a resume, and after the first call."""
+        when overrides changed it, ``results.json`` as the restored checkpoint has it, the logs
+        cut back to the checkpoint's steps (see
+        :class:`~mapets_rl.experiment.results.RunLogger`) with the scalars logged meanwhile,
+        and ``train_episodes.jsonl`` cut back to the checkpoint's frames with the episodes
+        ended meanwhile (:class:`~mapets_rl.experiment.episodes.EpisodeLog`). Until then a
+        resume that fails (an override that runs out of memory in the first iteration) leaves
+        the run directory as it was, and a plain resume starts from the same state. No-op for
+        a run that is not a resume, and after the first call."""
         deferred, self._deferred = self._deferred, None
         if deferred is None:
             return
@@ -767,6 +797,7 @@ class Experiment:
             self.config.to_yaml(self.run_dir / CONFIG_FILE)
         if deferred["results"]:
             self.results.write()
+        self.episode_log.open(int(deferred["frames"]))
         if self.logger is not None:
             steps = deferred["log_steps"]
             self.logger.open(steps, purge_step=purge_step(int(deferred["frames"]), steps))

@@ -91,3 +91,33 @@ def test_table_on_freeway_merge(tmp_path: Path, load_script: Callable[[str], Mod
     assert all(r["average_velocity"] > 0 for r in results["scripted"]["1.00"])
     config = (tmp_path / "runs" / "shapley_ac" / "ratio1.00" / "seed0" / "config.yaml").read_text()
     assert "env: freeway-merge" in config
+
+
+def test_table_on_the_torch_backend_with_training_columns(
+    tmp_path: Path, load_script: Callable[[str], ModuleType]
+) -> None:
+    """``--backend torch --num-envs 2``: both methods train on two batched roads; the table
+    adds the training episodes' velocity, comfort and system reward (the last ``--window``)."""
+    mixed = load_script("examples/mixed_traffic.py")
+    tiny = ["eval_episodes=1", "num_cells=[8]", "critic_cells=[8]"]
+    argv = [
+        "--backend", "torch", "--num-envs", "2", "--scale", "smoke", "--n-vehicles", "4",
+        "--frames", "160", "--ratios", "0.5", "--seeds", "0", "--window", "2",
+        "--schedule", "openai", "--out", str(tmp_path),
+        "--shapley-override", *tiny, "init_random_frames=0", "batch_size=8",
+        "--coma-override", *tiny, "minibatch_size=20",
+    ]  # fmt: skip
+    results = mixed.main(argv)
+    for method in ("shapley_ac", "coma"):
+        (run,) = results[method]["0.50"]
+        assert run["train_episodes"] >= 4  # 80 steps of each of 2 roads: 2 episodes each
+        assert run["train_average_velocity"] > 0 and "train_system_return" in run
+        run_dir = tmp_path / "runs" / method / "ratio0.50" / "seed0"
+        config = (run_dir / "config.yaml").read_text()
+        assert "backend: torch" in config and "num_envs: 2" in config
+        assert "gamma: 0.95" in config  # --schedule openai
+    shapley = (tmp_path / "runs" / "shapley_ac" / "ratio0.50" / "seed0" / "config.yaml").read_text()
+    assert "batch_size: 8" in shapley and "update_interval: 100" in shapley  # override last
+    table = (tmp_path / "table.md").read_text()
+    assert "training system reward" in table and "| scripted | 0.50 | 2 |" in table
+    assert mixed.main(argv) == results  # finished runs are reused
