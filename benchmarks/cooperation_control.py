@@ -13,13 +13,17 @@ openai/maddpg schedule (``mapets_rl.recipes.maddpg.OPENAI_MADDPG``), the team re
   change or stop that a copy of the road predicts to crash within 3 s is replaced by Keep Lane),
   in training and in evaluation;
 - ``gamma99``: gamma 0.99 and 5-step returns (the gain of a yield comes steps later);
+- ``w1``: a change of the task, not of the learner: the velocity weight ``w`` of the reward
+  (eq. 10, ``w * velocity + comfort``) 1.0 instead of 0.1, so that a ramp vehicle left standing
+  costs about ten times more against the one step of comfort a yield costs (the scripted rows
+  are scored with the same reward);
 - ``mappo``: MAPPO (GAE, gamma 0.99) with the team reward, the on-policy reference, one PPO
   update per 40 steps of every road; ``short``: one per 4 steps (10x the updates).
 
 Every trained policy is scored greedily on ``--eval-roads`` roads of the same evaluation seeds
 as the scripted keep-lane policy and the cooperative merge rule
-(``benchmarks/freeway_headroom.py``'s ``CooperativeMerge``), each with the variant's shield
-setting. The system reward of a road is the CAVs' rewards summed over CAVs and the 40 steps
+(``benchmarks/freeway_headroom.py``'s ``CooperativeMerge``), each with the variant's shield and
+reward settings. The system reward of a road is the CAVs' rewards summed over CAVs and the 40 steps
 (the same under the team and the individual reward).
 
 Run (resumable: finished runs and evaluations are kept under ``--out``):
@@ -65,9 +69,10 @@ CHANGES: dict[str, list[str]] = {
     "epsilon": ["exploration=epsilon", "exploration_actions=[0, 1, 2]"],
     "shield": ["env_config.shield=true"],
     "gamma99": ["gamma=0.99", "n_steps=5"],
+    "w1": ["env_config.velocity_weight=1.0"],
 }
 """The controlled changes of MADDPG, as config overrides."""
-MAPPO_CHANGES = ("shield", "short")
+MAPPO_CHANGES = ("shield", "short", "w1")
 """The controlled changes of MAPPO (``short``: ``frames_per_batch`` of 4 steps per road)."""
 
 
@@ -108,6 +113,24 @@ def variant_overrides(variant: str, args: argparse.Namespace) -> tuple[str, list
     return recipe, list(by_key.values())
 
 
+def env_settings(variant: str) -> dict[str, Any]:
+    """The scenario settings that ``variant`` changes (``shield``, ``velocity_weight``): the
+    scripted references it is compared with are scored with the same ones."""
+    changes = variant.split("_")[1:]
+    settings: dict[str, Any] = {"shield": "shield" in changes}
+    if "w1" in changes:
+        settings["velocity_weight"] = 1.0
+    return settings
+
+
+def settings_label(settings: dict[str, Any]) -> str:
+    """``", shield, w=1.0"``-style suffix of a scripted row (empty for the base scenario)."""
+    parts = ["shield"] if settings.get("shield") else []
+    if "velocity_weight" in settings:
+        parts.append(f"w={settings['velocity_weight']}")
+    return "".join(f", {p}" for p in parts)
+
+
 def train(variant: str, seed: int, args: argparse.Namespace) -> Path:
     """Train (or finish training) one run; returns its run directory."""
     recipe, overrides = variant_overrides(variant, args)
@@ -130,20 +153,20 @@ def train(variant: str, seed: int, args: argparse.Namespace) -> Path:
 @torch.no_grad()
 def score(
     policy: Callable[[EnvBase], TensorDictModuleBase],
-    shield: bool,
+    settings: dict[str, Any],
     seed: int,
     args: argparse.Namespace,
 ) -> dict[str, np.ndarray]:
     """Greedy episodes of ``policy(env)`` on ``--eval-roads`` roads of the evaluation seed of
-    ``seed``: per road, the system reward and the scenario's episode metrics (``[roads]``
-    each)."""
+    ``seed``, the scenario changed by ``settings`` (:func:`env_settings`): per road, the
+    system reward and the scenario's episode metrics (``[roads]`` each)."""
     env = make_env(
         ENV,
         backend="torch",
         num_envs=args.eval_roads,
         n_vehicles=args.n_vehicles,
         cav_ratio=1.0,
-        shield=shield,
+        **settings,
     )
     actor = policy(env)
     env.set_seed(EVAL_SEED_OFFSET + seed)
@@ -162,13 +185,13 @@ def score(
     return out
 
 
-def scripted(seed: int, shield: bool, args: argparse.Namespace) -> dict[str, dict]:
+def scripted(seed: int, settings: dict[str, Any], args: argparse.Namespace) -> dict[str, dict]:
     """Keep lane and the cooperative merge rule on the evaluation roads of ``seed``."""
     lanes = int(FreewayMergeEnv.resolved_config({"n_vehicles": args.n_vehicles})["lanes"])
     rule = CooperativeMerge(lanes, float("inf"), 60.0, 30.0, 15.0, 15.0, 1.5, torch.int64)
     return {
-        "keep lane": score(ScriptedCAVPolicy, shield, seed, args),
-        "cooperative merge": score(lambda env: rule, shield, seed, args),
+        "keep lane": score(ScriptedCAVPolicy, settings, seed, args),
+        "cooperative merge": score(lambda env: rule, settings, seed, args),
     }
 
 
@@ -180,9 +203,10 @@ def evaluate(variant: str, seed: int, run_dir: Path, args: argparse.Namespace) -
     recipe, _ = variant_overrides(variant, args)
     exp = load_recipe(recipe).from_run_dir(run_dir)
     try:
-        shield = bool(exp.config.env_config.get("shield", False))
+        settings = env_settings(variant)
         result = {
-            k: v.tolist() for k, v in score(lambda env: exp.eval_policy, shield, seed, args).items()
+            k: v.tolist()
+            for k, v in score(lambda env: exp.eval_policy, settings, seed, args).items()
         }
     finally:
         exp.close()
@@ -241,8 +265,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, "
         f"CPU capability {torch.backends.cpu.get_cpu_capability()}"
     )
+    scenarios = {"": env_settings("maddpg"), ", shield": env_settings("maddpg_shield")}
+    scenarios.update({settings_label(env_settings(v)): env_settings(v) for v in args.variants})
     references = {
-        shield: [scripted(seed, shield, args) for seed in args.seeds] for shield in (False, True)
+        label: [scripted(seed, settings, args) for seed in args.seeds]
+        for label, settings in scenarios.items()
     }
     summary: dict[str, Any] = {"args": vars(args)}
     header = [
@@ -256,20 +283,19 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "|---|---|---|---|---|---|---|---|",
     ]
     rows = []
-    for shield in (False, True):
-        keep = [r["keep lane"] for r in references[shield]]
+    for suffix, reference in references.items():
+        keep = [r["keep lane"] for r in reference]
         for name in ("keep lane", "cooperative merge"):
-            label = f"{name} (scripted{', shield' if shield else ''})"
-            fields, row = summarise(label, [r[name] for r in references[shield]], keep)
+            label = f"{name} (scripted{suffix})"
+            fields, row = summarise(label, [r[name] for r in reference], keep)
             summary[label] = fields
             rows.append(row)
     for variant in args.variants:
-        shield = "shield" in variant.split("_")
         runs = []
         for seed in args.seeds:
             print(f"{variant} seed {seed} ...", flush=True)
             runs.append(evaluate(variant, seed, train(variant, seed, args), args))
-        keep = [r["keep lane"] for r in references[shield]]
+        keep = [r["keep lane"] for r in references[settings_label(env_settings(variant))]]
         summary[variant], row = summarise(variant, runs, keep)
         rows.append(row)
     table = "\n".join([*header, *rows])

@@ -40,6 +40,21 @@ def test_variants_are_one_change_at_a_time(control: ModuleType) -> None:
     _, longer = control.variant_overrides("maddpg_gamma99", args)
     assert sorted(set(longer) - set(base)) == ["gamma=0.99", "n_steps=5"]
     assert "gamma=0.95" not in longer
+    _, weighted = control.variant_overrides("maddpg_w1", args)
+    assert sorted(set(weighted) - set(base)) == ["env_config.velocity_weight=1.0"]
+
+
+def test_scripted_references_are_scored_with_the_variants_reward(control: ModuleType) -> None:
+    assert control.env_settings("maddpg_epsilon_shield") == {"shield": True}
+    assert control.env_settings("mappo_w1") == {"shield": False, "velocity_weight": 1.0}
+    assert control.settings_label(control.env_settings("maddpg_shield_w1")) == ", shield, w=1.0"
+    args = control.argparse.Namespace(eval_roads=2, n_vehicles=8)
+    keep = control.ScriptedCAVPolicy
+    plain = control.score(keep, control.env_settings("maddpg"), 0, args)
+    weighted = control.score(keep, control.env_settings("maddpg_w1"), 0, args)
+    # same roads and the same driving: only the velocity term of the reward grows, tenfold
+    assert (plain["average_velocity"] == weighted["average_velocity"]).all()
+    assert (weighted["system_reward"] > plain["system_reward"] + 1.0).all()
 
 
 def test_a_tiny_control_scores_policies_on_the_roads_of_keep_lane(
