@@ -192,7 +192,8 @@ def write_outputs(rows: list[dict], runs: list[str], out: Path) -> str:
         "eval vs training view |\n|---|---|---|---|---|---|---|---|---|"
     )
     lines = [header]
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.6))
+    null_runs: list[str] = []
     for run in runs:
         mine = [r for r in rows if r["run"] == run]
         if not mine:
@@ -207,21 +208,32 @@ def write_outputs(rows: list[dict], runs: list[str], out: Path) -> str:
         )
         critic = np.concatenate([r["phi"]["critic"] for r in mine])
         for ax, other in zip(axes, ("member", "credit"), strict=True):
-            ax.scatter(
-                np.concatenate([r["phi"][other] for r in mine]),
-                critic,
-                s=6,
-                alpha=0.5,
-                label=Path(run).name,
-            )
+            simulated = np.concatenate([r["phi"][other] for r in mine])
+            if other == "credit" and np.ptp(simulated) < 1e-6:
+                null_runs.append(Path(run).name)  # a null game: the policy keeps its lane
+                continue
+            ax.scatter(simulated, critic, s=6, alpha=0.5, label=Path(run).name)
+    top = axes[0].get_xlim()[1]
+    axes[0].plot([0, top], [0, top], "k--", lw=0.8, label="critic = simulated")
+    if null_runs:
+        axes[1].text(
+            0.5,
+            0.5,
+            "null game (the greedy policy keeps its lane):\n" + ", ".join(null_runs),
+            ha="center",
+            va="center",
+            transform=axes[1].transAxes,
+            fontsize=8,
+        )
     for ax, title in zip(
         axes,
         ("member game (what the critic should learn)", "credit game (drive vs keep lane)"),
         strict=True,
     ):
-        ax.set_xlabel(f"simulated Shapley value, {title}")
+        ax.set_xlabel(f"simulated Shapley value,\n{title}")
         ax.set_ylabel("critic's Shapley value")
-        ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
     fig.tight_layout()
     atomic_savefig(fig, out / "critic_vs_game.png", dpi=120)
     plt.close(fig)
