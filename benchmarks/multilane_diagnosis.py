@@ -20,6 +20,18 @@ policies that separate the causes, one change at a time, on the same seeds:
   (:class:`~mapets_rl.planning.shared_plans.PlanSharingPlanner`, MA-PETS ``comm.share_plans``):
   each CAV plans with the broadcast plans of the CAVs it observes within ``--comm-range``
   metres as their future speeds;
+- ``oracle-exact``: the oracle told its observed CAVs' *actual* future speeds, replayed from a
+  rollout of the same seed (``benchmarks/exact_futures.py``): the upper bound of plan sharing.
+  The CAVs react to what they are told, so it iterates: rollout 0 is ``oracle-shared``, rollout
+  ``k = 1..--replay-iterations`` replays every CAV's speeds of rollout ``k - 1``; the row is the
+  last rollout's, with every rollout's safety, agility and how exact its known speeds were
+  (``rollouts``);
+- ``oracle-exact-windowed``: the same iteration window by window (``--replay-window`` steps):
+  each window restarts ``--replay-iterations`` times from the state the previous windows
+  committed (the env re-driven with the committed actions, the planner's warm start and
+  generator restored), replaying the latest speeds of every CAV, and commits the last
+  iteration's first window of steps; the row is the committed episode's. A window's replays
+  only have to agree over ``window + horizon`` steps, not the whole episode;
 - ``learned``: the planner of a trained MA-PETS run (``--run RUN_DIR``, its last checkpoint:
   the learned ensembles, the recipe's reward, termination and CEM) on the same seeds: what the
   learned model adds to the oracle's crashes, class by class.
@@ -49,6 +61,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from exact_futures import ExactFuturePlanner, broadcast_schedule, schedule_exactness
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
@@ -68,6 +81,8 @@ POLICIES = (
     "oracle",
     "oracle-keep-lane",
     "oracle-shared",
+    "oracle-exact",
+    "oracle-exact-windowed",
     "learned",
     "learned-shared",
 )
@@ -154,8 +169,11 @@ def make_policy(
     reward: FigureEightPlannerReward,
     run: str | None = None,
     run_overrides: tuple[str, ...] = (),
+    *,
+    record: torch.Tensor | None = None,
     **cem: Any,
 ) -> TensorDictModuleBase:
+    """``record``: oracle-exact, the rollout whose speeds it replays ([T + 1, I])."""
     obs_dim = env.observation_spec["agents", "observation"].shape[-1]
     if name.startswith("learned"):
         planner = learned_planner(run, run_overrides)
@@ -168,6 +186,8 @@ def make_policy(
     if name.startswith("random"):
         return RandomPolicy(env, keep_lane=name.endswith("keep-lane"), seed=seed)
     planner = oracle_planner(env, reward, seed, **cem)
+    if name.startswith("oracle-exact"):
+        return ExactFuturePlanner(planner, neighbour_speed_columns(obs_dim), record)
     if name.endswith("shared"):
         return PlanSharingPlanner(planner, neighbour_speed_columns(obs_dim))
     return KeepLane(planner) if name.endswith("keep-lane") else planner
@@ -223,16 +243,179 @@ def run_episode(
     run_overrides: tuple[str, ...] = (),
     comm_range: float = 100.0,
     env_config: dict[str, Any] | None = None,
+    replay_iterations: int = 3,
+    replay_window: int = 50,
     **cem: Any,
 ) -> dict:
+    """One episode of policy ``name`` (``oracle-exact``: its ``replay_iterations + 1``
+    rollouts, the row of the last one; ``oracle-exact-windowed``: its committed episode; see
+    the module docstring)."""
+    args = (seed, horizon, reward, scenario, run, run_overrides, comm_range, env_config)
+    if name == "oracle-exact-windowed":
+        return run_windowed(*args, replay_iterations, replay_window, **cem)
+    if name != "oracle-exact":
+        return drive(name, *args, **cem)[0]
+    start = time.perf_counter()
+    row, trace = drive("oracle-shared", *args, **cem)
+    rollouts = [rollout_summary(row, trace)]
+    fixed_point = None
+    for k in range(1, replay_iterations + 1):
+        if fixed_point is None:  # else the replay of an unchanged rollout: the same rollout
+            previous = trace["speeds"]
+            row, trace = drive(name, *args, record=previous, **cem)
+            if torch.equal(previous.nan_to_num(-1.0), trace["speeds"].nan_to_num(-1.0)):
+                fixed_point = k
+        rollouts.append(rollout_summary(row, trace))
+    row.update(
+        policy=name,
+        rollouts=rollouts,
+        replay_iterations=replay_iterations,
+        fixed_point=fixed_point,
+        wall_time=time.perf_counter() - start,
+    )
+    return row
+
+
+def run_windowed(
+    seed: int,
+    horizon: int,
+    reward: FigureEightPlannerReward,
+    scenario: str,
+    run: str | None,
+    run_overrides: tuple[str, ...],
+    comm_range: float,
+    env_config: dict[str, Any] | None,
+    iterations: int,
+    window: int,
+    **cem: Any,
+) -> dict:
+    """``oracle-exact-windowed`` (see the module docstring): the row of the committed episode,
+    with rollout 0's (oracle-shared) and the committed one's summaries as ``rollouts``."""
+    start = time.perf_counter()
+    args = (seed, horizon, reward, scenario, run, run_overrides, comm_range, env_config)
+    row, trace = drive("oracle-shared", *args, **cem)
+    rollouts = [rollout_summary(row, trace)]
+    guess = trace["speeds"].clone()  # [T + 1, I] the latest speeds of every CAV
+    obs_key, action_key = ("agents", "observation"), ("agents", "action")
+
+    def fresh_env():
+        return make_env(scenario, seed=seed, horizon=horizon, **(env_config or {}))
+
+    env = fresh_env()
+    policy = make_policy("oracle-exact", env, seed, reward, record=guess, **cem)
+    env.close()
+    policy.reset()
+    lookahead = policy.planner.config.horizon
+    committed_state, actions, schedules = policy.state(), [], []
+    for begin in range(0, horizon, window):
+        end = min(begin + window, horizon)
+        for k in range(iterations):
+            env = fresh_env()
+            td = env.reset()
+            for action in actions:  # back to the committed state at ``begin``
+                td = env.step(td.set(action_key, action))["next"]
+            policy.load_state(committed_state)
+            policy.record = guess
+            tried, known, speeds, n, done = [], [], [], begin, False
+            while n < min(end + lookahead, horizon) and not done:
+                if n == end and k == iterations - 1:
+                    next_state = policy.state()
+                td = policy(td)
+                if policy.last_schedule is not None:
+                    known.append((n, *policy.last_schedule))
+                tried.append(td[action_key].clone())
+                td = env.step(td)
+                n += 1
+                driving = torch.as_tensor(traffic_env(env).alive)  # (mask: False at the end)
+                speeds.append(torch.where(driving, td["next"][obs_key][:, 0], float("nan")))
+                done = bool(td["next", "done"].all())
+                td = td["next"]
+            env.close()
+            guess = guess.clone()
+            guess[begin + 1 : n + 1] = torch.stack(speeds)
+        actions += tried[: end - begin]
+        schedules += [entry for entry in known if entry[0] < end]
+        if end < horizon:
+            committed_state = next_state
+        if done and n <= end:  # every CAV stopped within the window: the episode ended
+            break
+    row, trace = drive("oracle-exact-windowed", *args, actions=actions, **cem)
+    if not torch.equal(
+        trace["speeds"].nan_to_num(-1.0), guess[: len(trace["speeds"])].nan_to_num(-1.0)
+    ):
+        raise RuntimeError("the committed actions did not drive the committed episode again")
+    trace["schedules"] = schedules
+    row.update(
+        plans_used=sum(int((senders >= 0).sum()) for *_, senders in schedules) / len(actions)
+    )
+    rollouts.append(rollout_summary(row, trace))
+    row.update(
+        rollouts=rollouts,
+        replay_iterations=iterations,
+        replay_window=window,
+        wall_time=time.perf_counter() - start,
+    )
+    return row
+
+
+class ActionReplay(TensorDictModuleBase):
+    """Plays recorded actions ``[I, A]`` in order (re-drives a committed episode)."""
+
+    in_keys: list = []
+    out_keys = [("agents", "action")]
+
+    def __init__(self, actions: list[torch.Tensor]) -> None:
+        super().__init__()
+        self.actions = actions
+        self.step = 0
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = self.actions[self.step]
+        self.step += 1
+        return tensordict.set(("agents", "action"), action)
+
+
+def rollout_summary(row: dict, trace: dict) -> dict:
+    """A rollout's safety, agility and crashes, and how exact its known speeds were."""
+    summary = {k: v for k, v in row.items() if k != "seed"}
+    columns = neighbour_speed_columns(trace["obs_dim"])
+    summary.update(schedule_exactness(trace["schedules"], trace["speeds"], columns))
+    return summary
+
+
+def drive(
+    name: str,
+    seed: int,
+    horizon: int,
+    reward: FigureEightPlannerReward,
+    scenario: str = SCENARIO,
+    run: str | None = None,
+    run_overrides: tuple[str, ...] = (),
+    comm_range: float = 100.0,
+    env_config: dict[str, Any] | None = None,
+    *,
+    record: torch.Tensor | None = None,
+    actions: list[torch.Tensor] | None = None,
+    **cem: Any,
+) -> tuple[dict, dict]:
+    """One episode: its row, and its trace: ``speeds`` ``[T + 1, I]`` (each CAV's observed own
+    speed after each step, NaN once it no longer drives), ``schedules`` (per decision with
+    known neighbour speeds: ``(step, schedule [I, H, S], senders [I, K])``) and ``obs_dim``.
+    ``actions``: play these instead of deciding (:class:`ActionReplay`)."""
     env = make_env(scenario, seed=seed, horizon=horizon, **(env_config or {}))
     if name.endswith("shared"):  # the step's communication graph, for the broadcasts
         env = env.append_transform(CommunicationRange(comm_range))
     raw = traffic_env(env)
-    policy = make_policy(name, env, seed, reward, run, run_overrides, **cem)
+    if actions is not None:
+        policy = ActionReplay(actions)
+    else:
+        policy = make_policy(name, env, seed, reward, run, run_overrides, record=record, **cem)
     if hasattr(policy, "reset"):
         policy.reset()
     td = env.reset()
+    obs_key = ("agents", "observation")
+    speeds = [td[obs_key][:, 0].clone()]
+    schedules = []
     classes: Counter = Counter()
     with_cav = 0
     start = time.perf_counter()
@@ -242,8 +425,18 @@ def run_episode(
         while True:
             before = snapshot(raw)
             alive = raw.alive.copy()
-            td = env.step(policy(td))
+            known = None
+            if isinstance(policy, PlanSharingPlanner):  # what it is about to plan with
+                known = broadcast_schedule(policy, td)
+            td = policy(td)
+            if isinstance(policy, ExactFuturePlanner):
+                known = policy.last_schedule
+            if known is not None:
+                schedules.append((steps, *known))
+            td = env.step(td)
             steps += 1
+            driving = torch.as_tensor(raw.alive)
+            speeds.append(torch.where(driving, td["next"][obs_key][:, 0], float("nan")))
             humans = [s["vehicle"].speed for s in before.values() if not s["cav"]]
             human_distance += float(np.mean(humans)) * raw.dt if humans else 0.0
             for i in np.flatnonzero(alive & ~raw.alive):
@@ -255,7 +448,7 @@ def run_episode(
             td = td["next"]
     metrics = raw.episode_metrics()
     messages = getattr(policy, "broadcasts", 0) / steps
-    return {
+    row = {
         "policy": name,
         "seed": seed,
         "safety": metrics["safety"],
@@ -268,6 +461,12 @@ def run_episode(
         "plan_messages": messages,
         "plans_used": getattr(policy, "plans_used", 0) / steps,
     }
+    trace = {
+        "speeds": torch.stack(speeds),
+        "schedules": schedules,
+        "obs_dim": env.observation_spec[obs_key].shape[-1],
+    }
+    return row, trace
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
@@ -313,10 +512,23 @@ def main(argv: list[str] | None = None) -> list[dict]:
         "--comm-range", type=float, default=100.0,
         help="*-shared: the range d [m] within which CAVs hear each other's plans",
     )  # fmt: skip
+    parser.add_argument(
+        "--replay-iterations", type=int, default=3,
+        help="oracle-exact: rollouts replaying the previous rollout's speeds (after rollout 0, "
+        "oracle-shared)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--replay-window", type=int, default=50,
+        help="oracle-exact-windowed: steps committed per window",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
     args = parser.parse_args(argv)
     if not args.comm_range >= 0:
         parser.error(f"--comm-range must be >= 0 metres, got {args.comm_range}")
+    if args.replay_iterations < 1:
+        parser.error(f"--replay-iterations must be >= 1, got {args.replay_iterations}")
+    if args.replay_window < 1:
+        parser.error(f"--replay-window must be >= 1, got {args.replay_window}")
     try:
         planner_settings = dict(map(parse_override, args.planner))
         CPU_PRESET.planner.replace(**planner_settings)
@@ -347,6 +559,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
                 args.run,
                 tuple(args.set),
                 args.comm_range,
+                replay_iterations=args.replay_iterations,
+                replay_window=args.replay_window,
                 anchor_candidates=args.anchor_candidates,
                 keep_best=args.keep_best,
                 **planner_settings,
