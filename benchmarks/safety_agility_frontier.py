@@ -51,6 +51,7 @@ from multilane_diagnosis import POLICIES, SCENARIO, run_episode
 from mapets_rl.config import ConfigError, parse_override
 from mapets_rl.envs import make_env
 from mapets_rl.envs.figure_eight import FigureEightPlannerReward
+from mapets_rl.experiment import read_results
 from mapets_rl.planning import CPU_PRESET
 from mapets_rl.statistics import bootstrap_interval
 
@@ -105,8 +106,35 @@ def summarise(rows: list[dict]) -> list[dict]:
     return out
 
 
-def plot(points: list[dict], scenario: str, tag: str, path: Path) -> None:
-    """Safety against agility, one marker per planner, bars = 95% intervals."""
+def baseline_points(run_dirs: list[Path], scenario: str) -> list[dict]:
+    """One point per recipe of the trained runs ``run_dirs`` (e.g. the model-free baselines of
+    ``examples/baselines_figure_eight.py``): the safety and agility of each run's last
+    evaluation, means and 95% bootstrap intervals over the runs (seeds), and the frames they
+    trained for. ValueError naming the run when it is not a run of ``scenario`` or has no
+    evaluation with both metrics."""
+    groups: dict[str, list[dict]] = {}
+    for run in run_dirs:
+        results = read_results(run)
+        if results["env"] != scenario:
+            raise ValueError(f"--baselines: {str(run)!r} is a run of {results['env']!r}, "
+                             f"not of {scenario!r}")  # fmt: skip
+        evaluations = [e for e in results["evaluations"]
+                       if {"safety", "agility"} <= set(e["metrics"])]  # fmt: skip
+        if not evaluations:
+            raise ValueError(f"--baselines: {str(run)!r} has no evaluation of safety and agility")
+        groups.setdefault(results["recipe"], []).append(evaluations[-1])
+    points = []
+    for recipe, last in sorted(groups.items()):
+        point = {"policy": recipe, "seeds": len(last), "frames": [e["frames"] for e in last]}
+        for metric, bounds in (("safety", (0.0, 1.0)), ("agility", (0.0, np.inf))):
+            point[metric] = bootstrap_interval([e["metrics"][metric] for e in last], bounds=bounds)
+        points.append(point)
+    return points
+
+
+def plot(points: list[dict], scenario: str, tag: str, path: Path, baselines: list[dict]) -> None:
+    """Safety against agility, one marker per planner (and per baseline recipe), bars = 95%
+    intervals."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -125,6 +153,15 @@ def plot(points: list[dict], scenario: str, tag: str, path: Path) -> None:
         for p, xi, yi in zip(mine, x, y, strict=True):
             ax.annotate(f"{p['headway']:g}s/{p['lane_change_gap']:g}m", (xi, yi), fontsize=7,
                         xytext=(3, 3), textcoords="offset points")  # fmt: skip
+    for b in baselines:
+        ax.errorbar(
+            [b["agility"][0]], [b["safety"][0]],
+            xerr=[[b["agility"][0] - b["agility"][1]], [b["agility"][2] - b["agility"][0]]],
+            yerr=[[b["safety"][0] - b["safety"][1]], [b["safety"][2] - b["safety"][0]]],
+            fmt="X", color="grey", capsize=3,
+        )  # fmt: skip
+        ax.annotate(f"{b['policy']} ({max(b['frames'])} steps)", (b["agility"][0], b["safety"][0]),
+                    fontsize=7, xytext=(3, -9), textcoords="offset points")  # fmt: skip
     safety, agility = TARGETS[scenario]
     ax.axhline(safety, color="grey", ls="--", lw=0.8)
     ax.axvline(agility, color="grey", ls="--", lw=0.8)
@@ -155,6 +192,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
                         help="oracle-exact-windowed: steps per window")  # fmt: skip
     parser.add_argument("--steps", type=int, default=400, help="steps per episode (>= 1)")
     parser.add_argument("--run", default=None, help="learned*: a MA-PETS run directory")
+    parser.add_argument("--baselines", nargs="*", type=Path, default=[], metavar="RUN_DIR",
+                        help="trained runs of the scenario drawn as one point per recipe (their "
+                        "last evaluation), e.g. examples/baselines_figure_eight.py's")  # fmt: skip
     parser.add_argument("--env", nargs="*", default=[], metavar="key=value",
                         help="scenario config changes, e.g. n_hvs=0")  # fmt: skip
     parser.add_argument("--reward", nargs="*", default=[], metavar="key=value",
@@ -205,6 +245,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error(f"--replay-iterations must be >= 1, got {args.replay_iterations}")
     if args.replay_window < 1:
         parser.error(f"--replay-window must be >= 1, got {args.replay_window}")
+    try:
+        baselines = baseline_points(args.baselines, args.scenario)
+    except ValueError as err:
+        parser.error(str(err))
     torch.set_num_threads(1)
     print(
         f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, "
@@ -272,7 +316,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
                     f"{r['safety']:.3f} | {r['agility']:.3f} | {r['crashes']:.1f} | "
                     f"{r['exact']:.3f} | {r['mae']:.3f} | {r['compared']:.2f} |"
                 )
-    plot(points, args.scenario, tag, args.out / "frontier.png")
+    for b in baselines:
+        s, a = b["safety"], b["agility"]
+        print(
+            f"| {b['policy']} (trained {max(b['frames'])} steps, last evaluation) | - | - | "
+            f"{b['seeds']} | {s[0]:.3f} [{s[1]:.3f}, {s[2]:.3f}] | "
+            f"{a[0]:.3f} [{a[1]:.3f}, {a[2]:.3f}] | - | - | - |"
+        )
+    plot(points, args.scenario, tag, args.out / "frontier.png", baselines)
     print(f"figure: {args.out / 'frontier.png'}")
     return points
 

@@ -93,3 +93,34 @@ def test_bad_settings_are_refused_before_any_episode(
     with pytest.raises(SystemExit):
         frontier.main([*TINY, *bad, "--out", str(tmp_path)])
     assert not (tmp_path / "rows.jsonl").exists()
+
+
+def _fake_run(path: Path, recipe: str, env: str, safety: float, agility: float) -> Path:
+    path.mkdir(parents=True)
+    evaluation = {"frames": 6000, "metrics": {"safety": safety, "agility": agility}}
+    first = {"frames": 400, "metrics": {"safety": 0.0, "agility": 0.0}}
+    results = {"recipe": recipe, "env": env, "seed": 0, "config": {},
+               "evaluations": [first, evaluation], "train": []}  # fmt: skip
+    (path / "results.json").write_text(json.dumps(results))
+    return path
+
+
+def test_baselines_are_one_point_per_recipe_from_their_last_evaluation(
+    frontier: ModuleType, tmp_path: Path
+) -> None:
+    runs = [
+        _fake_run(tmp_path / f"mappo_{s}", "mappo", "figure-eight", 0.4 + 0.1 * s, 0.7)
+        for s in range(3)
+    ]
+    runs.append(_fake_run(tmp_path / "sac_0", "sac", "figure-eight", 0.3, 1.1))
+    points = frontier.baseline_points(runs, "figure-eight")
+    assert [p["policy"] for p in points] == ["mappo", "sac"]
+    mappo = points[0]
+    assert mappo["seeds"] == 3 and mappo["frames"] == [6000] * 3
+    assert mappo["safety"][0] == pytest.approx(0.5)  # the last evaluations, not the first
+    assert mappo["safety"][1] <= 0.5 <= mappo["safety"][2]
+    assert mappo["agility"][0] == pytest.approx(0.7)
+    other = _fake_run(tmp_path / "two_lanes", "mappo", "figure-eight-multilane", 0.5, 0.7)
+    with pytest.raises(SystemExit):  # a run of another road is refused before any episode
+        frontier.main([*TINY, "--baselines", str(other), "--out", str(tmp_path / "out")])
+    assert not (tmp_path / "out").exists()
