@@ -41,6 +41,7 @@ import argparse
 import itertools
 import json
 import platform
+import re
 from pathlib import Path
 
 import numpy as np
@@ -106,28 +107,43 @@ def summarise(rows: list[dict]) -> list[dict]:
     return out
 
 
+TRAINING_EPISODES = 3
+"""A run without evaluations of safety and agility (MA-PETS, whose planner drives the same way in
+training and evaluation) is scored by the mean of its last this many training episodes: the
+issue's episodes 13-15 of 15."""
+
+
 def baseline_points(run_dirs: list[Path], scenario: str) -> list[dict]:
-    """One point per recipe of the trained runs ``run_dirs`` (e.g. the model-free baselines of
-    ``examples/baselines_figure_eight.py``): the safety and agility of each run's last
-    evaluation, means and 95% bootstrap intervals over the runs (seeds), and the frames they
-    trained for. ValueError naming the run when it is not a run of ``scenario`` or has no
-    evaluation with both metrics."""
+    """One point per family of trained runs ``run_dirs`` (a family: the directory names without
+    their ``_seedN`` / ``_sN`` suffix, e.g. ``mappo_seed0``, ``mappo_seed1`` of
+    ``examples/baselines_figure_eight.py``): each run's safety and agility from its last
+    evaluation, or, for a run with none (MA-PETS), the mean of its last
+    :data:`TRAINING_EPISODES` training episodes; means and 95% bootstrap intervals over the
+    family's runs (seeds), and the frames they trained for. ValueError naming the run when it
+    is not a run of ``scenario`` or has no entry with both metrics."""
     groups: dict[str, list[dict]] = {}
     for run in run_dirs:
         results = read_results(run)
         if results["env"] != scenario:
             raise ValueError(f"--baselines: {str(run)!r} is a run of {results['env']!r}, "
                              f"not of {scenario!r}")  # fmt: skip
-        evaluations = [e for e in results["evaluations"]
-                       if {"safety", "agility"} <= set(e["metrics"])]  # fmt: skip
-        if not evaluations:
-            raise ValueError(f"--baselines: {str(run)!r} has no evaluation of safety and agility")
-        groups.setdefault(results["recipe"], []).append(evaluations[-1])
+        wanted = {"safety", "agility"}
+        evaluations = [e for e in results["evaluations"] if wanted <= set(e["metrics"])]
+        episodes = [e for e in results["train"] if wanted <= set(e["metrics"])]
+        if evaluations:
+            entry = {"frames": evaluations[-1]["frames"], **evaluations[-1]["metrics"]}
+        elif episodes:
+            last = episodes[-TRAINING_EPISODES:]
+            entry = {"frames": last[-1]["frames"]}
+            entry.update({m: float(np.mean([e["metrics"][m] for e in last])) for m in wanted})
+        else:
+            raise ValueError(f"--baselines: {str(run)!r} has no entry of safety and agility")
+        groups.setdefault(re.sub(r"_s(eed)?\d+$", "", Path(run).name), []).append(entry)
     points = []
-    for recipe, last in sorted(groups.items()):
-        point = {"policy": recipe, "seeds": len(last), "frames": [e["frames"] for e in last]}
+    for family, entries in sorted(groups.items()):
+        point = {"policy": family, "seeds": len(entries), "frames": [e["frames"] for e in entries]}
         for metric, bounds in (("safety", (0.0, 1.0)), ("agility", (0.0, np.inf))):
-            point[metric] = bootstrap_interval([e["metrics"][metric] for e in last], bounds=bounds)
+            point[metric] = bootstrap_interval([e[metric] for e in entries], bounds=bounds)
         points.append(point)
     return points
 
@@ -153,22 +169,21 @@ def plot(points: list[dict], scenario: str, tag: str, path: Path, baselines: lis
         for p, xi, yi in zip(mine, x, y, strict=True):
             ax.annotate(f"{p['headway']:g}s/{p['lane_change_gap']:g}m", (xi, yi), fontsize=7,
                         xytext=(3, 3), textcoords="offset points")  # fmt: skip
-    for b in baselines:
+    for k, b in enumerate(baselines):  # trained runs: filled crosses, one colour per family
         ax.errorbar(
             [b["agility"][0]], [b["safety"][0]],
             xerr=[[b["agility"][0] - b["agility"][1]], [b["agility"][2] - b["agility"][0]]],
             yerr=[[b["safety"][0] - b["safety"][1]], [b["safety"][2] - b["safety"][0]]],
-            fmt="X", color="grey", capsize=3,
+            fmt="X", color=plt.get_cmap("Dark2")(k % 8), capsize=3, markersize=8,
+            label=f"{b['policy']} (trained, {max(b['frames'])} steps)",
         )  # fmt: skip
-        ax.annotate(f"{b['policy']} ({max(b['frames'])} steps)", (b["agility"][0], b["safety"][0]),
-                    fontsize=7, xytext=(3, -9), textcoords="offset points")  # fmt: skip
     safety, agility = TARGETS[scenario]
     ax.axhline(safety, color="grey", ls="--", lw=0.8)
     ax.axvline(agility, color="grey", ls="--", lw=0.8)
     ax.set_xlabel("agility [m/step] (speed limit: 1.39)")
     ax.set_ylabel("safety")
     ax.set_title(f"{tag}\nlabels: headway / lane-change gap; bars: 95% bootstrap", fontsize=9)
-    ax.legend()
+    ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -193,8 +208,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--steps", type=int, default=400, help="steps per episode (>= 1)")
     parser.add_argument("--run", default=None, help="learned*: a MA-PETS run directory")
     parser.add_argument("--baselines", nargs="*", type=Path, default=[], metavar="RUN_DIR",
-                        help="trained runs of the scenario drawn as one point per recipe (their "
-                        "last evaluation), e.g. examples/baselines_figure_eight.py's")  # fmt: skip
+                        help="trained runs of the scenario, one point per family of seeds (the "
+                        "last evaluation, or the last 3 training episodes of a MA-PETS run), "
+                        "e.g. examples/baselines_figure_eight.py's")  # fmt: skip
     parser.add_argument("--env", nargs="*", default=[], metavar="key=value",
                         help="scenario config changes, e.g. n_hvs=0")  # fmt: skip
     parser.add_argument("--reward", nargs="*", default=[], metavar="key=value",
@@ -319,7 +335,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for b in baselines:
         s, a = b["safety"], b["agility"]
         print(
-            f"| {b['policy']} (trained {max(b['frames'])} steps, last evaluation) | - | - | "
+            f"| {b['policy']} (trained {max(b['frames'])} steps) | - | - | "
             f"{b['seeds']} | {s[0]:.3f} [{s[1]:.3f}, {s[2]:.3f}] | "
             f"{a[0]:.3f} [{a[1]:.3f}, {a[2]:.3f}] | - | - | - |"
         )

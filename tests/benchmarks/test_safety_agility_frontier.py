@@ -109,12 +109,22 @@ def test_baselines_are_one_point_per_recipe_from_their_last_evaluation(
     frontier: ModuleType, tmp_path: Path
 ) -> None:
     runs = [
-        _fake_run(tmp_path / f"mappo_{s}", "mappo", "figure-eight", 0.4 + 0.1 * s, 0.7)
+        _fake_run(tmp_path / f"mappo_seed{s}", "mappo", "figure-eight", 0.4 + 0.1 * s, 0.7)
         for s in range(3)
     ]
-    runs.append(_fake_run(tmp_path / "sac_0", "sac", "figure-eight", 0.3, 1.1))
-    points = frontier.baseline_points(runs, "figure-eight")
-    assert [p["policy"] for p in points] == ["mappo", "sac"]
+    runs.append(_fake_run(tmp_path / "sac_seed0", "sac", "figure-eight", 0.3, 1.1))
+    mapets = tmp_path / "share100_s0"  # a MA-PETS run: training episodes, no evaluation
+    mapets.mkdir()
+    episodes = [
+        {"frames": 400 * k, "metrics": {"safety": 0.1 * k, "agility": 0.4}} for k in range(1, 6)
+    ]
+    results = {"recipe": "mapets", "env": "figure-eight", "seed": 0, "config": {},
+               "evaluations": [], "train": episodes}  # fmt: skip
+    (mapets / "results.json").write_text(json.dumps(results))
+    points = frontier.baseline_points([*runs, mapets], "figure-eight")
+    assert [p["policy"] for p in points] == ["mappo", "sac", "share100"]
+    assert points[2]["safety"][0] == pytest.approx(0.4)  # episodes 3-5 of 5
+    assert points[2]["frames"] == [2000]
     mappo = points[0]
     assert mappo["seeds"] == 3 and mappo["frames"] == [6000] * 3
     assert mappo["safety"][0] == pytest.approx(0.5)  # the last evaluations, not the first
