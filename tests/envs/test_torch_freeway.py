@@ -299,6 +299,48 @@ def test_kernel_build_directory_must_be_private(tmp_path, monkeypatch) -> None:
         build_directory()
 
 
+def test_a_build_killed_half_way_does_not_leave_the_next_one_waiting(tmp_path) -> None:
+    """torch's build lock file outlives a killed builder and made every later process wait for
+    ever (seen: a run killed while it rebuilt the kernel hung the next runs and the tests).
+    The build now holds a flock, which dies with its holder, and clears torch's stale lock."""
+    import signal
+    import subprocess
+    import sys
+    import textwrap
+    import time
+
+    from mapets_rl.envs.torch_freeway.native import TORCH_BATON, build_exclusively
+
+    baton = tmp_path / TORCH_BATON
+    builder = textwrap.dedent(f"""
+        import time
+        from pathlib import Path
+        from mapets_rl.envs.torch_freeway.native import build_exclusively
+        def build():
+            Path({str(baton)!r}).touch()  # as torch does while it compiles
+            time.sleep(600)
+        build_exclusively(Path({str(tmp_path)!r}), build)
+    """)
+    child = subprocess.Popen([sys.executable, "-c", builder])
+    try:
+        deadline = time.monotonic() + 60
+        while not baton.exists():
+            assert child.poll() is None and time.monotonic() < deadline, "the builder never began"
+            time.sleep(0.05)
+    finally:
+        child.kill()
+        child.wait()
+    assert baton.exists()  # what the killed build left behind
+    previous = signal.signal(signal.SIGALRM, lambda *_: pytest.fail("the next build waited"))
+    signal.alarm(30)
+    try:
+        built = build_exclusively(tmp_path, lambda: "module")
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+    assert built == "module" and not baton.exists()
+
+
 @pytest.mark.parametrize("backend", ["highway-env", "torch"])
 def test_devices_and_lengths_are_checked_first(backend: str) -> None:
     """Devices that do not exist and absurd road lengths get one clear error, on both

@@ -13,8 +13,10 @@ would let another user plant the module that every run loads). Where it cannot b
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import os
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
@@ -42,6 +44,27 @@ def build_directory() -> Path:
     return path
 
 
+TORCH_BATON = "lock"
+"""The file torch's ``cpp_extension.load`` creates in the build directory while it builds and
+deletes when done; other processes wait for it to go away, for ever if its builder was killed."""
+
+
+def build_exclusively(directory: Path, build: Callable[[], ModuleType]) -> ModuleType:
+    """``build()`` while holding an exclusive ``flock`` on ``directory/build.flock``.
+
+    The operating system releases a ``flock`` when its holder dies, so a build killed half way
+    (Ctrl-C, ``kill -9``, a job's time limit) does not leave the next process waiting. Every
+    build of this kernel takes this lock first, so torch's own lock file (:data:`TORCH_BATON`)
+    found while holding it was left by a killed build, and is removed before building."""
+    with open(directory / "build.flock", "a", encoding="utf-8") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            (directory / TORCH_BATON).unlink(missing_ok=True)
+            return build()
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 def load_kernel() -> ModuleType | None:
     """The compiled kernel module, or None (and :func:`kernel_unavailable` says why) where it
     cannot be built. Built once per process (seconds to a minute the first time on a machine;
@@ -52,12 +75,16 @@ def load_kernel() -> ModuleType | None:
     try:
         from torch.utils.cpp_extension import load
 
-        _KERNEL = load(
-            name="mapets_rl_freeway_step",
-            sources=[str(SOURCE)],
-            extra_cflags=["-O3", "-fno-math-errno"],
-            build_directory=str(build_directory()),
-            verbose=False,
+        directory = build_directory()
+        _KERNEL = build_exclusively(
+            directory,
+            lambda: load(
+                name="mapets_rl_freeway_step",
+                sources=[str(SOURCE)],
+                extra_cflags=["-O3", "-fno-math-errno"],
+                build_directory=str(directory),
+                verbose=False,
+            ),
         )
     except Exception as err:  # noqa: BLE001 - no compiler, no ninja, unsafe directory...
         root = err
