@@ -154,9 +154,6 @@ def summarise(rows: list[dict]) -> dict[str, float | int | None]:
         kept = [v for v in values if v is not None]
         return statistics.median(kept) if kept else None
 
-    def column(name: str, key: str) -> np.ndarray:
-        return np.asarray([r[name][key] if key else r[name] for r in rows], dtype=float)
-
     v_critic, v_member = (np.asarray([r[k] for r in rows]) for k in ("v_critic", "v_member"))
     phi = {k: np.asarray([r["phi"][k] for r in rows]) for k in ("critic", "member", "credit")}
     ratio = [
@@ -174,7 +171,7 @@ def summarise(rows: list[dict]) -> dict[str, float | int | None]:
             [pearson(c, m) for c, m in zip(phi["critic"], phi["credit"], strict=True)]
         ),
         "phi_credit_pooled": pearson(phi["critic"].ravel(), phi["credit"].ravel()),
-        "credit_gain": float(column("credit_gain", "").mean()),
+        "credit_gain": float(np.mean([r["credit_gain"] for r in rows])),
         "credit_ratio": statistics.median(ratio) if ratio else None,
         "view_disagreement": float(np.mean([r["view_disagreement"] for r in rows])),
     }

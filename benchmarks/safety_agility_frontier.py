@@ -189,6 +189,11 @@ def plot(points: list[dict], scenario: str, tag: str, path: Path, baselines: lis
     plt.close(fig)
 
 
+def interval(value: tuple[float, float, float]) -> str:
+    """``mean [low, high]`` of :func:`bootstrap_interval`, three decimals."""
+    return f"{value[0]:.3f} [{value[1]:.3f}, {value[2]:.3f}]"
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True, help="folder of rows.jsonl and plot")
@@ -309,11 +314,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
     )
     print("|---|---|---|---|---|---|---|---|---|")
     for p in points:
-        s, a = p["safety"], p["agility"]
         print(
             f"| {p['policy']} | {p['headway']:g} | {p['lane_change_gap']:g} | {p['seeds']} | "
-            f"{s[0]:.3f} [{s[1]:.3f}, {s[2]:.3f}] | {a[0]:.3f} [{a[1]:.3f}, {a[2]:.3f}] | "
+            f"{interval(p['safety'])} | {interval(p['agility'])} | "
             f"{p['crashes']:.1f} | {p['human_agility']:.3f} | {p['plan_messages']:.1f} |"
+        )
+    for b in baselines:  # in the same table, before the oracle-exact rollouts' own one
+        print(
+            f"| {b['policy']} (trained {max(b['frames'])} steps) | - | - | {b['seeds']} | "
+            f"{interval(b['safety'])} | {interval(b['agility'])} | - | - | - |"
         )
     exact = [p for p in points if "rollouts" in p]
     if exact:
@@ -332,13 +341,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
                     f"{r['safety']:.3f} | {r['agility']:.3f} | {r['crashes']:.1f} | "
                     f"{r['exact']:.3f} | {r['mae']:.3f} | {r['compared']:.2f} |"
                 )
-    for b in baselines:
-        s, a = b["safety"], b["agility"]
-        print(
-            f"| {b['policy']} (trained {max(b['frames'])} steps) | - | - | "
-            f"{b['seeds']} | {s[0]:.3f} [{s[1]:.3f}, {s[2]:.3f}] | "
-            f"{a[0]:.3f} [{a[1]:.3f}, {a[2]:.3f}] | - | - | - |"
-        )
     plot(points, args.scenario, tag, args.out / "frontier.png", baselines)
     print(f"figure: {args.out / 'frontier.png'}")
     return points
