@@ -17,6 +17,9 @@ openai/maddpg schedule (``mapets_rl.recipes.maddpg.OPENAI_MADDPG``), the team re
   (eq. 10, ``w * velocity + comfort``) 1.0 instead of 0.1, so that a ramp vehicle left standing
   costs about ten times more against the one step of comfort a yield costs (the scripted rows
   are scored with the same reward);
+- ``individual``: the credit question, once a learner can find the merge: every CAV is paid
+  its own reward (``team_reward=false``, the Shapley paper's MADDPG baseline) instead of the
+  team's;
 - ``mappo``: MAPPO (GAE, gamma 0.99) with the team reward, the on-policy reference, one PPO
   update per 40 steps of every road; ``short``: one per 4 steps (10x the updates).
 
@@ -70,6 +73,7 @@ CHANGES: dict[str, list[str]] = {
     "shield": ["env_config.shield=true"],
     "gamma99": ["gamma=0.99", "n_steps=5"],
     "w1": ["env_config.velocity_weight=1.0"],
+    "individual": ["env_config.team_reward=false"],
 }
 """The controlled changes of MADDPG, as config overrides."""
 MAPPO_CHANGES = ("shield", "short", "w1")
@@ -273,7 +277,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     }
     summary: dict[str, Any] = {"args": vars(args)}
     header = [
-        f"{ENV}, {args.n_vehicles} CAVs (ratio 1), team reward, {args.frames} training frames "
+        f"{ENV}, {args.n_vehicles} CAVs (ratio 1), team reward (individual: each CAV's own "
+        f"reward), {args.frames} training frames "
         f"per run, greedy evaluation on {args.eval_roads} roads per seed (seeds "
         f"{' '.join(map(str, args.seeds))}); gain = system reward vs keep lane on the same "
         "roads, mean over seeds [bootstrap 95% interval]",

@@ -42,6 +42,9 @@ def test_variants_are_one_change_at_a_time(control: ModuleType) -> None:
     assert "gamma=0.95" not in longer
     _, weighted = control.variant_overrides("maddpg_w1", args)
     assert sorted(set(weighted) - set(base)) == ["env_config.velocity_weight=1.0"]
+    _, selfish = control.variant_overrides("maddpg_w1_individual", args)
+    assert sorted(set(selfish) - set(weighted)) == ["env_config.team_reward=false"]
+    assert "env_config.team_reward=true" not in selfish
 
 
 def test_scripted_references_are_scored_with_the_variants_reward(control: ModuleType) -> None:
