@@ -32,11 +32,11 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import TensorDictReplayBuffer
-from torchrl.modules import AdditiveGaussianModule, EGreedyModule, MultiAgentMLP, TanhModule
+from torchrl.modules import AdditiveGaussianModule, MultiAgentMLP, TanhModule
 from torchrl.objectives import SoftUpdate, ValueEstimators
 
 from mapets_rl.experiment import Experiment, check
-from mapets_rl.experiment.training import OffPolicyConfig
+from mapets_rl.experiment.training import DiscreteExplorationConfig
 from mapets_rl.modules import (
     ACTION,
     GROUP,
@@ -50,6 +50,7 @@ from mapets_rl.modules import (
     GumbelSoftmaxHead,
     make_obs_norm,
     make_q_critic,
+    restricted_epsilon_greedy,
     sync_target_statistics,
 )
 from mapets_rl.modules.storage import FilledTensorStorage
@@ -106,11 +107,14 @@ of their own: the defaults, 1,000 frames, evaluate and checkpoint after every ba
 
 
 @dataclasses.dataclass
-class MADDPGConfig(OffPolicyConfig):
+class MADDPGConfig(DiscreteExplorationConfig):
     """MADDPG hyper-parameters; the shared off-policy fields (``gamma``, ``tau``, ``lr_actor``,
     ``lr_critic``, ``num_cells`` (actor and critic), ``share_params`` (the actor),
     ``buffer_size``, ``batch_size``, ``updates_per_batch``, ``init_random_frames``,
-    ``max_grad_norm``) are those of :class:`~mapets_rl.experiment.training.OffPolicyConfig`.
+    ``max_grad_norm``) are those of :class:`~mapets_rl.experiment.training.OffPolicyConfig`,
+    the exploration of discrete actions (``exploration``, ``gumbel_tau``, ``epsilon_*``,
+    ``exploration_actions``) that of
+    :class:`~mapets_rl.experiment.training.DiscreteExplorationConfig`.
 
     Attributes:
         init_random_frames: first frames of the run with uniformly random actions (>= 0).
@@ -118,14 +122,6 @@ class MADDPGConfig(OffPolicyConfig):
             range, annealed linearly over ``sigma_anneal_frames`` (continuous actions).
         sigma_anneal_frames: frames (>= 1) over which the exploration std goes from
             ``sigma_init`` to ``sigma_end``.
-        gumbel_tau: Gumbel-softmax temperature (> 0; discrete actions).
-        exploration: how discrete actions explore while collecting: ``"gumbel"`` (a hard
-            Gumbel-softmax sample of the actor's logits) or ``"epsilon"`` (epsilon-greedy).
-        epsilon_init, epsilon_end: the epsilon-greedy probability (in [0, 1], end <= init) of
-            a random action per agent, annealed linearly over ``epsilon_anneal_frames``.
-        epsilon_anneal_frames: frames (>= 1) over which epsilon goes from init to end.
-        exploration_actions: the action indices an epsilon-greedy draw picks from (empty:
-            all; the freeways' are 0 KL, 1 CL, 2 CR, 3 ES).
         normalize_obs: standardise observations with running statistics of collected data
             (the target networks always use the current statistics).
         actor_preactivation_coef: weight (>= 0) of the actor pre-activation penalty
@@ -138,45 +134,12 @@ class MADDPGConfig(OffPolicyConfig):
     sigma_init: float = 0.3
     sigma_end: float = 0.05
     sigma_anneal_frames: int = 3000
-    gumbel_tau: float = 1.0
-    exploration: str = "gumbel"
-    epsilon_init: float = 1.0
-    epsilon_end: float = 0.05
-    epsilon_anneal_frames: int = 100_000
-    exploration_actions: list[int] = dataclasses.field(default_factory=list)
     normalize_obs: bool = True
     actor_preactivation_coef: float = 1e-3
     n_steps: int = 1
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check(self.gumbel_tau > 0, "gumbel_tau", "> 0", self.gumbel_tau)
-        check(
-            self.exploration in ("gumbel", "epsilon"),
-            "exploration",
-            "'gumbel' or 'epsilon'",
-            self.exploration,
-        )
-        check(0 <= self.epsilon_init <= 1, "epsilon_init", "in [0, 1]", self.epsilon_init)
-        check(
-            0 <= self.epsilon_end <= self.epsilon_init,
-            "epsilon_end",
-            "in [0, epsilon_init]",
-            self.epsilon_end,
-        )
-        check(
-            self.epsilon_anneal_frames >= 1,
-            "epsilon_anneal_frames",
-            ">= 1",
-            self.epsilon_anneal_frames,
-        )
-        check(
-            all(a >= 0 for a in self.exploration_actions)
-            and len(set(self.exploration_actions)) == len(self.exploration_actions),
-            "exploration_actions",
-            "distinct action indices >= 0",
-            self.exploration_actions,
-        )
         check(
             self.actor_preactivation_coef >= 0,
             "actor_preactivation_coef",
@@ -232,7 +195,17 @@ class MADDPG(Experiment):
                     out_keys=[PREACTIVATION, ACTION],
                 ),
             )
-            self.exploration = self.epsilon_greedy(config, spec) if epsilon else None
+            self.exploration = (
+                restricted_epsilon_greedy(
+                    self.env.full_action_spec_unbatched[ACTION],
+                    config.exploration_actions,
+                    eps_init=config.epsilon_init,
+                    eps_end=config.epsilon_end,
+                    annealing_num_steps=config.epsilon_anneal_frames,
+                )
+                if epsilon
+                else None
+            )
             collection_policy = (
                 TensorDictSequential(self.actor, self.exploration) if epsilon else self.actor
             )
@@ -284,27 +257,6 @@ class MADDPG(Experiment):
         )
         self.optim_critic = torch.optim.Adam(
             self.loss.value_network_params.values(True, True), lr=config.lr_critic
-        )
-
-    def epsilon_greedy(self, config: MADDPGConfig, spec: AgentGroupSpec) -> EGreedyModule:
-        """torchrl's ``EGreedyModule`` whose random actions are uniform over
-        ``config.exploration_actions`` (all actions when empty)."""
-        allowed = config.exploration_actions or list(range(spec.action_dim))
-        if max(allowed) >= spec.action_dim:
-            raise ValueError(
-                f"exploration_actions must be action indices in [0, {spec.action_dim - 1}], "
-                f"got {allowed}"
-            )
-        action_spec = self.env.full_action_spec_unbatched[ACTION].clone()
-        mask = torch.zeros(spec.action_dim, dtype=torch.bool)
-        mask[allowed] = True
-        action_spec.update_mask(mask.expand(action_spec.shape))
-        return EGreedyModule(
-            action_spec,
-            eps_init=config.epsilon_init,
-            eps_end=config.epsilon_end,
-            annealing_num_steps=config.epsilon_anneal_frames,
-            action_key=ACTION,
         )
 
     def make_loss(

@@ -31,8 +31,8 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.objectives import SoftUpdate
 
 from mapets_rl.experiment import Experiment, SystemRewardMetrics, check
-from mapets_rl.experiment.training import OffPolicyConfig, check_layer_sizes
-from mapets_rl.modules import AgentGroupSpec, GumbelSoftmaxHead
+from mapets_rl.experiment.training import DiscreteExplorationConfig, check_layer_sizes
+from mapets_rl.modules import AgentGroupSpec, GumbelSoftmaxHead, restricted_epsilon_greedy
 from mapets_rl.modules.storage import FilledTensorStorage
 from mapets_rl.objectives import ShapleyActorCriticLoss
 from mapets_rl.shapley import CoalitionCritic, RandomCoalition, make_coalition_actor
@@ -57,11 +57,14 @@ def _default_env_config() -> dict[str, Any]:
 
 
 @dataclasses.dataclass
-class ShapleyACConfig(OffPolicyConfig):
+class ShapleyACConfig(DiscreteExplorationConfig):
     """Shapley actor-critic hyper-parameters; the shared off-policy fields (``gamma``, ``tau``,
     ``lr_actor``, ``lr_critic``, ``num_cells``, ``share_params``, ``buffer_size``,
     ``batch_size``, ``updates_per_batch``, ``init_random_frames``, ``max_grad_norm``) are
-    those of :class:`~mapets_rl.experiment.training.OffPolicyConfig`.
+    those of :class:`~mapets_rl.experiment.training.OffPolicyConfig`; how the actors explore
+    while collecting (``exploration``: ``gumbel`` samples, default, or ``epsilon``-greedy over
+    ``exploration_actions``) and ``gumbel_tau`` (also the temperature of the actor gradient's
+    relaxation) are those of :class:`~mapets_rl.experiment.training.DiscreteExplorationConfig`.
 
     Attributes:
         num_cells: hidden sizes of the per-agent actors (``critic_cells``: of the critic).
@@ -80,7 +83,6 @@ class ShapleyACConfig(OffPolicyConfig):
             uniform over 1..alive CAVs, then the members: the sizes at which the permutation
             estimator reads the critic; see :class:`~mapets_rl.shapley.RandomCoalition`).
         eval_coalition: coalition used in evaluation: ``grand``, ``empty`` or ``random``.
-        gumbel_tau: Gumbel-softmax temperature (exploration and actor gradient; > 0).
         logits_reg: weight of the squared-logits penalty in the actor loss (keeps the discrete
             policies from saturating early; 0.1 suits the freeway, whose values are in the
             hundreds: at 1e-3 some CAVs locked onto CL/CR within 400 frames).
@@ -121,7 +123,6 @@ class ShapleyACConfig(OffPolicyConfig):
     join_prob: float = 0.5
     coalition_sizes: str = "binomial"
     eval_coalition: str = "grand"
-    gumbel_tau: float = 1.0
     exact_max_agents: int = 10
     num_permutations: int = 32
     logits_reg: float = 0.1
@@ -154,7 +155,6 @@ class ShapleyACConfig(OffPolicyConfig):
             "one of grand, empty, random",
             self.eval_coalition,
         )
-        check(self.gumbel_tau > 0, "gumbel_tau", "> 0", self.gumbel_tau)
         check(
             1 <= self.exact_max_agents <= 20,
             "exact_max_agents",
@@ -194,7 +194,9 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
             )
         n, device = group.n_agents, self.device
 
-        # modules: coalition of the timestep -> actors on s^C; coalition critic v(s, a, C)
+        # modules: coalition of the timestep -> actors on s^C (-> epsilon-greedy while
+        # collecting, or Gumbel samples); coalition critic v(s, a, C)
+        epsilon = config.exploration == "epsilon"
         self.coalition = RandomCoalition(
             n,
             join_prob=config.join_prob,
@@ -209,16 +211,29 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
             num_cells=config.num_cells,
             share_params=config.share_params,
             ego_first=config.ego_first,
-            action_head=GumbelSoftmaxHead(config.gumbel_tau),
+            action_head=GumbelSoftmaxHead(config.gumbel_tau, sample=not epsilon),
             device=device,
         )
         self.critic = CoalitionCritic(
             n, group.obs_dim, group.action_dim, num_cells=config.critic_cells, device=device
         )
         self.policy = TensorDictSequential(self.coalition, self.actor)
+        self.exploration = (
+            restricted_epsilon_greedy(
+                self.env.full_action_spec_unbatched[ACTION],
+                config.exploration_actions,
+                eps_init=config.epsilon_init,
+                eps_end=config.epsilon_end,
+                annealing_num_steps=config.epsilon_anneal_frames,
+            )
+            if epsilon
+            else None
+        )
 
         # collector (no random warm-up phase: the coalition is written by the policy)
-        self.collector = self.make_collector(self.policy)
+        self.collector = self.make_collector(
+            TensorDictSequential(self.policy, self.exploration) if epsilon else self.policy
+        )
         self.eval_policy = self.policy
 
         self.buffer = TensorDictReplayBuffer(
@@ -255,6 +270,8 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
         actor step on the Shapley values and a soft target update."""
         cfg = self.config
         self.buffer.extend(batch.reshape(-1).select(*REPLAY_KEYS).to(self.device))
+        if self.exploration is not None:
+            self.exploration.step(batch.numel())
         steps = cfg.gradient_steps(self.frames - batch.numel(), self.frames)
         if len(self.buffer) < max(cfg.init_random_frames, cfg.batch_size) or steps == 0:
             return {}
@@ -286,9 +303,12 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
         return logs
 
     def stateful_components(self) -> dict[str, Any]:
-        return {
+        parts = {
             "loss": self.loss,
             "actor_optim": self.actor_optim,
             "critic_optim": self.critic_optim,
             "buffer": self.buffer,
         }
+        if self.exploration is not None:
+            parts["exploration"] = self.exploration
+        return parts

@@ -117,12 +117,18 @@ from mapets_rl.experiment.runner import (
     default_run_dir,
     run_recipe_name,
 )
-from mapets_rl.experiment.training import ModelFreeConfig, OffPolicyConfig, OnPolicyConfig
+from mapets_rl.experiment.training import (
+    DiscreteExplorationConfig,
+    ModelFreeConfig,
+    OffPolicyConfig,
+    OnPolicyConfig,
+)
 
 __all__ = [
     "CheckpointError",
     "ConfigError",
     "ConfigSection",
+    "DiscreteExplorationConfig",
     "Experiment",
     "ExperimentConfig",
     "ModelFreeConfig",

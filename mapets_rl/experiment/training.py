@@ -3,9 +3,11 @@
 :class:`ModelFreeConfig` holds what every model-free recipe has (discount, gradient clip,
 network sizes, parameter sharing); :class:`OffPolicyConfig` adds replay and target-network
 fields for the replay-buffer recipes (``maddpg``, ``sac``, ``shapley_ac``) and
-:class:`OnPolicyConfig` the PPO fields of ``mappo``. Every shared field is validated once, here;
-a recipe's config subclasses a block, adds only its own fields and changes a shared default by
-re-declaring the field (e.g. ``gamma: float = 0.99`` in ``SACConfig``).
+:class:`OnPolicyConfig` the PPO fields of ``mappo``; :class:`DiscreteExplorationConfig` adds
+how the one-hot actors of ``maddpg`` and ``shapley_ac`` explore. Every shared field is
+validated once, here; a recipe's config subclasses a block, adds only its own fields and
+changes a shared default by re-declaring the field (e.g. ``gamma: float = 0.99`` in
+``SACConfig``).
 """
 
 from __future__ import annotations
@@ -134,6 +136,62 @@ class OffPolicyConfig(ModelFreeConfig):
             return self.updates_per_batch
         rounds = frames_after // self.update_interval - frames_before // self.update_interval
         return self.updates_per_batch * rounds
+
+
+@dataclasses.dataclass
+class DiscreteExplorationConfig(OffPolicyConfig):
+    """How a deterministic one-hot actor explores while collecting (plus
+    :class:`OffPolicyConfig`; ``maddpg``, ``m3ddpg``, ``shapley_ac``).
+
+    Attributes:
+        gumbel_tau: Gumbel-softmax temperature (> 0) of the actor's one-hot head.
+        exploration: ``"gumbel"`` (a hard Gumbel-softmax sample of the actor's logits) or
+            ``"epsilon"`` (the greedy action, replaced for each agent with probability epsilon
+            by a uniform draw among ``exploration_actions``;
+            :func:`~mapets_rl.modules.restricted_epsilon_greedy`).
+        epsilon_init, epsilon_end: the epsilon-greedy probability (in [0, 1], end <= init) of
+            a random action per agent, annealed linearly over ``epsilon_anneal_frames``.
+        epsilon_anneal_frames: frames (>= 1) over which epsilon goes from init to end.
+        exploration_actions: the action indices an epsilon-greedy draw picks from (empty:
+            all; the freeways' are 0 KL, 1 CL, 2 CR, 3 ES).
+    """
+
+    gumbel_tau: float = 1.0
+    exploration: str = "gumbel"
+    epsilon_init: float = 1.0
+    epsilon_end: float = 0.05
+    epsilon_anneal_frames: int = dataclasses.field(default=100_000, metadata={"unit": "frames"})
+    exploration_actions: list[int] = dataclasses.field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check(self.gumbel_tau > 0, "gumbel_tau", "> 0", self.gumbel_tau)
+        check(
+            self.exploration in ("gumbel", "epsilon"),
+            "exploration",
+            "'gumbel' or 'epsilon'",
+            self.exploration,
+        )
+        check(0 <= self.epsilon_init <= 1, "epsilon_init", "in [0, 1]", self.epsilon_init)
+        check(
+            0 <= self.epsilon_end <= self.epsilon_init,
+            "epsilon_end",
+            "in [0, epsilon_init]",
+            self.epsilon_end,
+        )
+        check(
+            self.epsilon_anneal_frames >= 1,
+            "epsilon_anneal_frames",
+            ">= 1",
+            self.epsilon_anneal_frames,
+        )
+        check(
+            all(a >= 0 for a in self.exploration_actions)
+            and len(set(self.exploration_actions)) == len(self.exploration_actions),
+            "exploration_actions",
+            "distinct action indices >= 0",
+            self.exploration_actions,
+        )
 
 
 @dataclasses.dataclass

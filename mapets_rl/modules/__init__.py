@@ -1,11 +1,12 @@
 """Building blocks that the recipes share (as torchrl's ``modules``): the ``"agents"`` group's
 keys and spec, the masked mean over driving agents, running observation normalisation, one-hot
-action heads (greedy and Gumbel-softmax), the baselines' stochastic policy and tile coding
-(MA-PETS's discretised variant).
+action heads (greedy and Gumbel-softmax), epsilon-greedy exploration over some actions, the
+baselines' stochastic policy and tile coding (MA-PETS's discretised variant).
 
 Recipes import these from here, never from each other."""
 
 from mapets_rl.modules.agents import AgentGroupSpec, masked_mean
+from mapets_rl.modules.exploration import restricted_epsilon_greedy
 from mapets_rl.modules.heads import GumbelSoftmaxHead, gumbel_one_hot, one_hot_argmax
 from mapets_rl.modules.keys import (
     ACTION,
@@ -61,6 +62,7 @@ __all__ = [
     "make_obs_norm",
     "make_q_critic",
     "make_stochastic_policy",
+    "restricted_epsilon_greedy",
     "masked_mean",
     "one_hot_argmax",
     "sync_target_statistics",

@@ -1,5 +1,6 @@
 """The tools of issue 32's positive control: the batched freeway's model-predictive shield
-(``env_config.shield``) and MADDPG's epsilon-greedy exploration without random braking."""
+(``env_config.shield``) and the epsilon-greedy exploration without random braking of MADDPG and
+the Shapley actor-critic."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from mapets_rl.envs import make_env
 from mapets_rl.envs.freeway import ES, KL
 from mapets_rl.experiment import ConfigError
 from mapets_rl.recipes.maddpg import MADDPG, MADDPGConfig
+from mapets_rl.recipes.shapley_ac import ShapleyAC, ShapleyACConfig
 
 ROADS = 16
 
@@ -83,29 +85,30 @@ def test_a_bad_shield_is_refused(backend: str, config: dict, match: str) -> None
         make_env("freeway-merge", backend=backend, n_vehicles=8, **config)
 
 
-def _maddpg(tmp_path: Path, **changes) -> MADDPG:
-    config = MADDPGConfig(
-        env="freeway-merge",
-        env_config={"backend": "torch", "num_envs": 8, "n_vehicles": 8, "cav_ratio": 1.0},
-        frames_per_batch=160,
-        total_frames=320,
-        eval_interval=0,
-        checkpoint_interval=0,
-        num_cells=[16],
-        batch_size=16,
-        init_random_frames=0,
-        progress=False,
-        logger="none",
-        **changes,
-    )
-    return MADDPG(config, tmp_path)
+def _learner(tmp_path: Path, recipe: type = MADDPG, **changes) -> MADDPG | ShapleyAC:
+    settings = {
+        "env_config": {"backend": "torch", "num_envs": 8, "n_vehicles": 8, "cav_ratio": 1.0},
+        "frames_per_batch": 160,
+        "total_frames": 320,
+        "eval_interval": 0,
+        "checkpoint_interval": 0,
+        "num_cells": [16],
+        "batch_size": 16,
+        "init_random_frames": 0,
+        "progress": False,
+        "logger": "none",
+    }
+    config = recipe.Config(env="freeway-merge", **{**settings, **changes})
+    return recipe(config, tmp_path)
 
 
+@pytest.mark.parametrize("recipe", [MADDPG, ShapleyAC])
 def test_epsilon_greedy_exploration_draws_only_the_allowed_actions_and_anneals(
-    tmp_path: Path,
+    tmp_path: Path, recipe: type
 ) -> None:
-    exp = _maddpg(
+    exp = _learner(
         tmp_path,
+        recipe,
         exploration="epsilon",
         exploration_actions=[0, 1, 2],
         epsilon_init=1.0,
@@ -120,9 +123,22 @@ def test_epsilon_greedy_exploration_draws_only_the_allowed_actions_and_anneals(
     assert float(exp.exploration.eps) == pytest.approx(0.5, abs=1e-4)
 
 
-def test_gumbel_exploration_stays_the_default(tmp_path: Path) -> None:
-    exp = _maddpg(tmp_path)
+@pytest.mark.parametrize("recipe", [MADDPG, ShapleyAC])
+def test_gumbel_exploration_stays_the_default(tmp_path: Path, recipe: type) -> None:
+    exp = _learner(tmp_path, recipe)
     assert exp.exploration is None  # the actor's Gumbel samples explore
+
+
+def test_a_resumed_shapley_run_explores_where_it_stopped(tmp_path: Path) -> None:
+    settings = {"exploration": "epsilon", "epsilon_end": 0.1, "epsilon_anneal_frames": 640}
+    exp = _learner(tmp_path, ShapleyAC, checkpoint_interval=320, **settings)
+    exp.train()
+    eps = float(exp.exploration.eps)
+    assert 0.1 < eps < 1.0  # half-way through the annealing
+    exp.close()
+    resumed = ShapleyAC.from_run_dir(tmp_path)
+    assert float(resumed.exploration.eps) == pytest.approx(eps)
+    resumed.close()
 
 
 @pytest.mark.parametrize(
@@ -136,14 +152,18 @@ def test_gumbel_exploration_stays_the_default(tmp_path: Path) -> None:
         ({"exploration_actions": [-1]}, "exploration_actions"),
     ],
 )
-def test_bad_exploration_settings_are_refused(changes: dict, field: str) -> None:
+@pytest.mark.parametrize("config", [MADDPGConfig, ShapleyACConfig])
+def test_bad_exploration_settings_are_refused(changes: dict, field: str, config: type) -> None:
     with pytest.raises(ConfigError, match=field):
-        MADDPGConfig(env="freeway-merge", **changes)
+        config(env="freeway-merge", **changes)
 
 
-def test_exploration_actions_beyond_the_action_space_are_refused(tmp_path: Path) -> None:
+@pytest.mark.parametrize("recipe", [MADDPG, ShapleyAC])
+def test_exploration_actions_beyond_the_action_space_are_refused(
+    tmp_path: Path, recipe: type
+) -> None:
     with pytest.raises(ValueError, match="exploration_actions"):
-        _maddpg(tmp_path, exploration="epsilon", exploration_actions=[0, 4])
+        _learner(tmp_path, recipe, exploration="epsilon", exploration_actions=[0, 4])
 
 
 def test_epsilon_greedy_is_refused_for_continuous_actions(tmp_path: Path) -> None:
