@@ -29,7 +29,12 @@ as the scripted keep-lane policy and the cooperative merge rule
 reward settings. The system reward of a road is the CAVs' rewards summed over CAVs and the 40 steps
 (the same under the team and the individual reward).
 
-Run (resumable: finished runs and evaluations are kept under ``--out``):
+``--explored`` adds, for each epsilon variant, the scores of its final collection policy
+(greedy plus the last epsilon of random moves), to tell a policy that merges only when its
+co-players are perturbed from one that does not merge.
+
+Run (resumable: finished runs and every evaluation, scripted ones included, are kept under
+``--out``):
 
     OMP_NUM_THREADS=1 python benchmarks/cooperation_control.py \\
         --variants maddpg maddpg_epsilon maddpg_shield maddpg_epsilon_shield mappo \\
@@ -53,7 +58,7 @@ from typing import Any
 import numpy as np
 import torch
 from freeway_headroom import CooperativeMerge
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
@@ -160,10 +165,12 @@ def score(
     settings: dict[str, Any],
     seed: int,
     args: argparse.Namespace,
+    exploration: ExplorationType = ExplorationType.DETERMINISTIC,
 ) -> dict[str, np.ndarray]:
-    """Greedy episodes of ``policy(env)`` on ``--eval-roads`` roads of the evaluation seed of
-    ``seed``, the scenario changed by ``settings`` (:func:`env_settings`): per road, the
-    system reward and the scenario's episode metrics (``[roads]`` each)."""
+    """Episodes of ``policy(env)`` (greedy unless ``exploration`` is ``RANDOM``) on
+    ``--eval-roads`` roads of the evaluation seed of ``seed``, the scenario changed by
+    ``settings`` (:func:`env_settings`): per road, the system reward and the scenario's
+    episode metrics (``[roads]`` each)."""
     env = make_env(
         ENV,
         backend="torch",
@@ -176,7 +183,7 @@ def score(
     env.set_seed(EVAL_SEED_OFFSET + seed)
     td = env.reset()
     system = torch.zeros(args.eval_roads, dtype=torch.float64)
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
+    with set_exploration_type(exploration):
         for _ in range(int(env.config["horizon"])):
             td = env.step(actor(td))
             system += td.get(("next", "agents", "reward")).double().sum((-2, -1))
@@ -190,28 +197,44 @@ def score(
 
 
 def scripted(seed: int, settings: dict[str, Any], args: argparse.Namespace) -> dict[str, dict]:
-    """Keep lane and the cooperative merge rule on the evaluation roads of ``seed``."""
+    """Keep lane and the cooperative merge rule on the evaluation roads of ``seed``, cached in
+    ``<out>/evals/``."""
+    label = settings_label(settings).replace(", ", "_").replace("=", "")
+    name = f"scripted_seed{seed}{label}_{args.n_vehicles}vehicles_{args.eval_roads}roads"
+    path = Path(args.out) / "evals" / f"{name}.json"
+    if path.is_file():
+        return json.loads(path.read_text())
     lanes = int(FreewayMergeEnv.resolved_config({"n_vehicles": args.n_vehicles})["lanes"])
     rule = CooperativeMerge(lanes, float("inf"), 60.0, 30.0, 15.0, 15.0, 1.5, torch.int64)
-    return {
+    result = {
         "keep lane": score(ScriptedCAVPolicy, settings, seed, args),
         "cooperative merge": score(lambda env: rule, settings, seed, args),
     }
+    result = {name: {k: v.tolist() for k, v in scores.items()} for name, scores in result.items()}
+    atomic_write_text(path, json.dumps(result))
+    return result
 
 
-def evaluate(variant: str, seed: int, run_dir: Path, args: argparse.Namespace) -> dict:
-    """The greedy scores of the trained run, cached in ``<out>/evals/``."""
-    path = Path(args.out) / "evals" / f"{variant}_seed{seed}_{args.eval_roads}roads.json"
+def evaluate(
+    variant: str, seed: int, run_dir: Path, args: argparse.Namespace, *, explored: bool = False
+) -> dict:
+    """The greedy scores of the trained run, cached in ``<out>/evals/``; ``explored``: the
+    scores of its final epsilon-greedy collection policy instead (the actions its last
+    training episodes took)."""
+    name = f"{variant}_seed{seed}_{args.eval_roads}roads{'_explored' if explored else ''}"
+    path = Path(args.out) / "evals" / f"{name}.json"
     if path.is_file():
         return json.loads(path.read_text())
     recipe, _ = variant_overrides(variant, args)
     exp = load_recipe(recipe).from_run_dir(run_dir)
     try:
         settings = env_settings(variant)
-        result = {
-            k: v.tolist()
-            for k, v in score(lambda env: exp.eval_policy, settings, seed, args).items()
-        }
+        if explored:
+            policy = TensorDictSequential(exp.eval_policy, exp.exploration)
+            scores = score(lambda env: policy, settings, seed, args, ExplorationType.RANDOM)
+        else:
+            scores = score(lambda env: exp.eval_policy, settings, seed, args)
+        result = {k: v.tolist() for k, v in scores.items()}
     finally:
         exp.close()
     atomic_write_text(path, json.dumps(result))
@@ -259,6 +282,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--eval-roads", type=int, default=256)
     parser.add_argument("--n-vehicles", type=int, default=30)
     parser.add_argument("--out", default="outputs/cooperation_control")
+    parser.add_argument(
+        "--explored",
+        action="store_true",
+        help="also score each epsilon variant's final collection policy (greedy + its final "
+        "epsilon of random moves): does the policy merge only when its co-players are perturbed?",
+    )
     args = parser.parse_args(argv)
     for name in ("frames", "anneal_frames", "train_roads", "eval_roads", "n_vehicles"):
         if getattr(args, name) < 1:
@@ -303,6 +332,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         keep = [r["keep lane"] for r in references[settings_label(env_settings(variant))]]
         summary[variant], row = summarise(variant, runs, keep)
         rows.append(row)
+        if args.explored and "epsilon" in variant.split("_"):
+            label = f"{variant} (its final epsilon-greedy)"
+            explored = [
+                evaluate(variant, seed, train(variant, seed, args), args, explored=True)
+                for seed in args.seeds
+            ]
+            summary[label], row = summarise(label, explored, keep)
+            rows.append(row)
     table = "\n".join([*header, *rows])
     out = Path(args.out)
     atomic_write_text(out / "control.md", table + "\n")

@@ -79,3 +79,20 @@ def test_a_tiny_control_scores_policies_on_the_roads_of_keep_lane(
     for path, stamp in stamps.items():
         if path.name not in ("control.md", "control.json", ".lock"):
             assert path.stat().st_mtime_ns == stamp, path  # nothing trained or scored again
+
+
+def test_the_explored_row_scores_the_final_collection_policy(
+    control: ModuleType, tmp_path: Path
+) -> None:
+    # 20 frames of a 200k-frame annealing: epsilon is still about 1, so the collection policy
+    # changes lanes at random where the greedy one does not
+    argv = ["--variants", "maddpg_epsilon", *TINY, "--n-vehicles", "8", "--out", str(tmp_path)]
+    summary = control.main([*argv, "--explored"])
+    greedy = summary["maddpg_epsilon"]
+    explored = summary["maddpg_epsilon (its final epsilon-greedy)"]
+    assert explored["system_reward"] != greedy["system_reward"]
+    assert explored["average_comfort"] != greedy["average_comfort"]
+    assert (tmp_path / "evals" / "maddpg_epsilon_seed0_2roads_explored.json").is_file()
+    assert control.main([*argv, "--explored"])["maddpg_epsilon (its final epsilon-greedy)"] == (
+        explored
+    )
