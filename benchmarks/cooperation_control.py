@@ -42,8 +42,10 @@ Run (resumable: finished runs and every evaluation, scripted ones included, are 
 
 Prints a markdown table (per variant: system reward relative to keep-lane, per seed and mean
 with a bootstrap 95% interval over seeds; ramp vehicles stuck, collisions, shield
-interventions and comfort per episode) and writes it with the per-seed numbers to
-``<out>/control.md`` and ``<out>/control.json``.
+interventions and comfort per episode), then per variant the training episodes
+(``train_episodes.jsonl``) in windows of ``--window-frames``: when, in training, the merge
+appears. Writes them with the per-seed numbers to ``<out>/control.md`` and
+``<out>/control.json``.
 """
 
 from __future__ import annotations
@@ -64,7 +66,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mapets_rl.app.plugins import load_recipe
 from mapets_rl.envs import FreewayMergeEnv, ScriptedCAVPolicy, make_env
-from mapets_rl.experiment import atomic_write_text, latest_checkpoint
+from mapets_rl.experiment import atomic_write_text, latest_checkpoint, read_train_episodes
 from mapets_rl.recipes.maddpg import OPENAI_MADDPG
 from mapets_rl.statistics import bootstrap_interval
 
@@ -241,6 +243,41 @@ def evaluate(
     return result
 
 
+def training_windows(run_dir: Path, window_frames: int, frames: int) -> list[tuple[float, float]]:
+    """The run's training episodes (``train_episodes.jsonl``, the Shapley paper's Fig. 2
+    quantity) in windows of ``window_frames`` frames up to ``frames``: per window, the mean
+    system return and the mean ramp vehicles stuck per episode (NaN for a window without an
+    ended episode)."""
+    episodes = read_train_episodes(run_dir)
+    bins = (episodes["frames"] - 1) // window_frames
+    out = []
+    for index in range(-(-frames // window_frames)):
+        inside = bins == index
+        if not inside.any():
+            out.append((float("nan"), float("nan")))
+            continue
+        stuck = episodes.get("ramp_stuck", np.full(len(bins), np.nan))[inside]
+        out.append((float(episodes["system_return"][inside].mean()), float(stuck.mean())))
+    return out
+
+
+def windows_table(name: str, windows: dict[int, list[tuple[float, float]]], width: int) -> str:
+    """A markdown table of :func:`training_windows` per seed (one row per seed)."""
+    count = max(len(w) for w in windows.values())
+    heads = [f"{i * width // 1000}k-{(i + 1) * width // 1000}k" for i in range(count)]
+    lines = [
+        f"{name}: mean training system reward / ramp vehicles stuck per episode, per "
+        f"{width} frames",
+        "",
+        "| seed | " + " | ".join(heads) + " |",
+        "|---|" + "---|" * count,
+    ]
+    for seed, rows in windows.items():
+        cells = [f"{reward:.0f} / {stuck:.1f}" for reward, stuck in rows]
+        lines.append(f"| {seed} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def summarise(name: str, runs: list[dict], references: list[dict]) -> tuple[dict, str]:
     """Summary fields and the table row of ``runs`` (one per seed) against keep lane on the
     same roads (``references``)."""
@@ -283,6 +320,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--n-vehicles", type=int, default=30)
     parser.add_argument("--out", default="outputs/cooperation_control")
     parser.add_argument(
+        "--window-frames",
+        type=int,
+        default=0,
+        help="frames per window of the training-episode table (0: a tenth of --frames)",
+    )
+    parser.add_argument(
         "--explored",
         action="store_true",
         help="also score each epsilon variant's final collection policy (greedy + its final "
@@ -292,6 +335,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     for name in ("frames", "anneal_frames", "train_roads", "eval_roads", "n_vehicles"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if args.window_frames < 0:
+        parser.error(f"--window-frames must be >= 0, got {args.window_frames}")
     for variant in args.variants:  # a bad name fails before any training
         variant_overrides(variant, args)
     print(
@@ -324,11 +369,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             fields, row = summarise(label, [r[name] for r in reference], keep)
             summary[label] = fields
             rows.append(row)
+    width = args.window_frames or max(args.frames // 10, 1)
+    training = []
     for variant in args.variants:
-        runs = []
+        runs, windows = [], {}
         for seed in args.seeds:
             print(f"{variant} seed {seed} ...", flush=True)
-            runs.append(evaluate(variant, seed, train(variant, seed, args), args))
+            run_dir = train(variant, seed, args)
+            runs.append(evaluate(variant, seed, run_dir, args))
+            windows[seed] = training_windows(run_dir, width, args.frames)
+        summary[f"{variant} training windows"] = {str(k): v for k, v in windows.items()}
+        training.append(windows_table(variant, windows, width))
         keep = [r["keep lane"] for r in references[settings_label(env_settings(variant))]]
         summary[variant], row = summarise(variant, runs, keep)
         rows.append(row)
@@ -340,7 +391,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             ]
             summary[label], row = summarise(label, explored, keep)
             rows.append(row)
-    table = "\n".join([*header, *rows])
+    table = "\n\n".join(["\n".join([*header, *rows]), *training])
     out = Path(args.out)
     atomic_write_text(out / "control.md", table + "\n")
     atomic_write_text(out / "control.json", json.dumps(summary, indent=1))

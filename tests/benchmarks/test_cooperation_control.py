@@ -96,3 +96,20 @@ def test_the_explored_row_scores_the_final_collection_policy(
     assert control.main([*argv, "--explored"])["maddpg_epsilon (its final epsilon-greedy)"] == (
         explored
     )
+
+
+def test_training_windows_bin_the_episodes_by_the_frame_they_ended(
+    control: ModuleType, tmp_path: Path
+) -> None:
+    ended = [(10, 1.0, 0.0), (20, 2.0, 1.0), (30, 3.0, 2.0), (70, 4.0, 3.0)]
+    lines = [
+        json.dumps({"frames": f, "system_return": r, "length": 40.0, "ramp_stuck": stuck})
+        for f, r, stuck in ended
+    ]
+    (tmp_path / "train_episodes.jsonl").write_text("\n".join(lines) + "\n")
+    windows = control.training_windows(tmp_path, 20, 80)
+    assert windows[:2] == [(1.5, 0.5), (3.0, 2.0)]
+    assert all(v != v for v in windows[2])  # no episode ended in frames 41-60: NaN
+    assert windows[3] == (4.0, 3.0)
+    table = control.windows_table("v", {0: windows}, 20)
+    assert "| 0 | 2 / 0.5 | 3 / 2.0 | nan / nan | 4 / 3.0 |" in table
