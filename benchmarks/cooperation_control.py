@@ -20,6 +20,8 @@ openai/maddpg schedule (``mapets_rl.recipes.maddpg.OPENAI_MADDPG``), the team re
 - ``individual``: the credit question, once a learner can find the merge: every CAV is paid
   its own reward (``team_reward=false``, the Shapley paper's MADDPG baseline) instead of the
   team's;
+- ``shapley``: the Shapley actor-critic (the paper's method) instead of MADDPG, with the same
+  schedule and changes, paid the individual rewards that it reallocates by Shapley value;
 - ``mappo``: MAPPO (GAE, gamma 0.99) with the team reward, the on-policy reference, one PPO
   update per 40 steps of every road; ``short``: one per 4 steps (10x the updates).
 
@@ -83,19 +85,28 @@ CHANGES: dict[str, list[str]] = {
     "individual": ["env_config.team_reward=false"],
 }
 """The controlled changes of MADDPG, as config overrides."""
-MAPPO_CHANGES = ("shield", "short", "w1")
-"""The controlled changes of MAPPO (``short``: ``frames_per_batch`` of 4 steps per road)."""
+RECIPES = {"maddpg": "maddpg", "shapley": "shapley_ac", "mappo": "mappo"}
+"""A variant's first word and the recipe it trains."""
+RECIPE_CHANGES: dict[str, tuple[str, ...]] = {
+    "maddpg": tuple(CHANGES),
+    "shapley": ("epsilon", "shield", "w1"),
+    "mappo": ("shield", "short", "w1"),
+}
+"""The controlled changes of each recipe (MAPPO's ``short``: ``frames_per_batch`` of 4 steps
+per road; Shapley AC is always paid the individual rewards it reallocates and has no n-step
+targets)."""
 
 
 def variant_overrides(variant: str, args: argparse.Namespace) -> tuple[str, list[str]]:
-    """The recipe and config overrides of ``variant`` (``maddpg[_change...]`` or
-    ``mappo[_shield]``); ValueError naming the variant otherwise."""
-    recipe, *changes = variant.split("_")
-    allowed = MAPPO_CHANGES if recipe == "mappo" else tuple(CHANGES)
-    if recipe not in ("maddpg", "mappo") or any(c not in allowed for c in changes):
+    """The recipe and config overrides of ``variant`` (``maddpg[_change...]``,
+    ``shapley[_change...]`` or ``mappo[_change...]``); ValueError naming the variant
+    otherwise."""
+    token, *changes = variant.split("_")
+    recipe = RECIPES.get(token)
+    if recipe is None or any(c not in RECIPE_CHANGES[token] for c in changes):
         raise ValueError(
-            f"--variants: {variant!r} is not maddpg[_{'|_'.join(CHANGES)}...] or "
-            f"mappo[_{'|_'.join(MAPPO_CHANGES)}...]"
+            f"--variants: {variant!r} is not "
+            + " or ".join(f"{t}[_{'|_'.join(RECIPE_CHANGES[t])}...]" for t in RECIPES)
         )
     roads = args.train_roads
     overrides = [
@@ -103,7 +114,8 @@ def variant_overrides(variant: str, args: argparse.Namespace) -> tuple[str, list
         f"env_config.num_envs={roads}",
         f"env_config.n_vehicles={args.n_vehicles}",
         "env_config.cav_ratio=1.0",
-        "env_config.team_reward=true",
+        # Shapley AC reallocates the CAVs' own rewards (the paper's setting)
+        f"env_config.team_reward={'false' if token == 'shapley' else 'true'}",
         f"total_frames={args.frames}",
         f"eval_interval={args.frames}",
         f"checkpoint_interval={max(args.frames // 4, 1)}",
@@ -111,7 +123,7 @@ def variant_overrides(variant: str, args: argparse.Namespace) -> tuple[str, list
         "progress=false",
         "keep_last=1",
     ]
-    if recipe == "maddpg":
+    if token in ("maddpg", "shapley"):
         overrides += [*OPENAI_MADDPG, f"frames_per_batch={4 * roads}"]
         overrides.append(f"epsilon_anneal_frames={args.anneal_frames}")
     else:

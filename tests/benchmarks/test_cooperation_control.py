@@ -22,7 +22,17 @@ def control(load_script: Callable[[str], ModuleType], monkeypatch) -> ModuleType
     return load_script("benchmarks/cooperation_control.py")
 
 
-@pytest.mark.parametrize("variant", ["maddpg_boltzmann", "mappo_epsilon", "maddpg_short", "sac"])
+@pytest.mark.parametrize(
+    "variant",
+    [
+        "maddpg_boltzmann",
+        "mappo_epsilon",
+        "maddpg_short",
+        "sac",
+        "shapley_gamma99",
+        "shapley_individual",
+    ],
+)
 def test_an_unknown_variant_is_refused_before_any_work(
     control: ModuleType, variant: str, tmp_path: Path
 ) -> None:
@@ -45,6 +55,9 @@ def test_variants_are_one_change_at_a_time(control: ModuleType) -> None:
     _, selfish = control.variant_overrides("maddpg_w1_individual", args)
     assert sorted(set(selfish) - set(weighted)) == ["env_config.team_reward=false"]
     assert "env_config.team_reward=true" not in selfish
+    recipe, shapley = control.variant_overrides("shapley_w1", args)
+    assert recipe == "shapley_ac"  # the same schedule, paid the rewards it reallocates
+    assert sorted(set(shapley) ^ set(selfish)) == []
 
 
 def test_scripted_references_are_scored_with_the_variants_reward(control: ModuleType) -> None:
@@ -81,21 +94,21 @@ def test_a_tiny_control_scores_policies_on_the_roads_of_keep_lane(
             assert path.stat().st_mtime_ns == stamp, path  # nothing trained or scored again
 
 
+@pytest.mark.parametrize("variant", ["maddpg_epsilon", "shapley_epsilon"])
 def test_the_explored_row_scores_the_final_collection_policy(
-    control: ModuleType, tmp_path: Path
+    control: ModuleType, tmp_path: Path, variant: str
 ) -> None:
     # 20 frames of a 200k-frame annealing: epsilon is still about 1, so the collection policy
     # changes lanes at random where the greedy one does not
-    argv = ["--variants", "maddpg_epsilon", *TINY, "--n-vehicles", "8", "--out", str(tmp_path)]
+    argv = ["--variants", variant, *TINY, "--n-vehicles", "8", "--out", str(tmp_path)]
     summary = control.main([*argv, "--explored"])
-    greedy = summary["maddpg_epsilon"]
-    explored = summary["maddpg_epsilon (its final epsilon-greedy)"]
+    greedy = summary[variant]
+    explored = summary[f"{variant} (its final epsilon-greedy)"]
     assert explored["system_reward"] != greedy["system_reward"]
     assert explored["average_comfort"] != greedy["average_comfort"]
-    assert (tmp_path / "evals" / "maddpg_epsilon_seed0_2roads_explored.json").is_file()
-    assert control.main([*argv, "--explored"])["maddpg_epsilon (its final epsilon-greedy)"] == (
-        explored
-    )
+    assert (tmp_path / "evals" / f"{variant}_seed0_2roads_explored.json").is_file()
+    again = control.main([*argv, "--explored"])
+    assert again[f"{variant} (its final epsilon-greedy)"] == explored
 
 
 def test_training_windows_bin_the_episodes_by_the_frame_they_ended(
