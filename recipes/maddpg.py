@@ -50,7 +50,6 @@ from mapets_rl.modules import (
     GumbelSoftmaxHead,
     make_obs_norm,
     make_q_critic,
-    restricted_epsilon_greedy,
     sync_target_statistics,
 )
 from mapets_rl.modules.storage import FilledTensorStorage
@@ -195,17 +194,7 @@ class MADDPG(Experiment):
                     out_keys=[PREACTIVATION, ACTION],
                 ),
             )
-            self.exploration = (
-                restricted_epsilon_greedy(
-                    self.env.full_action_spec_unbatched[ACTION],
-                    config.exploration_actions,
-                    eps_init=config.epsilon_init,
-                    eps_end=config.epsilon_end,
-                    annealing_num_steps=config.epsilon_anneal_frames,
-                )
-                if epsilon
-                else None
-            )
+            self.exploration = config.epsilon_greedy(self.env.full_action_spec_unbatched[ACTION])
             collection_policy = (
                 TensorDictSequential(self.actor, self.exploration) if epsilon else self.actor
             )

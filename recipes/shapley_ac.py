@@ -32,7 +32,7 @@ from torchrl.objectives import SoftUpdate
 
 from mapets_rl.experiment import Experiment, SystemRewardMetrics, check
 from mapets_rl.experiment.training import DiscreteExplorationConfig, check_layer_sizes
-from mapets_rl.modules import AgentGroupSpec, GumbelSoftmaxHead, restricted_epsilon_greedy
+from mapets_rl.modules import AgentGroupSpec, GumbelSoftmaxHead
 from mapets_rl.modules.storage import FilledTensorStorage
 from mapets_rl.objectives import ShapleyActorCriticLoss
 from mapets_rl.shapley import CoalitionCritic, RandomCoalition, make_coalition_actor
@@ -218,17 +218,7 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
             n, group.obs_dim, group.action_dim, num_cells=config.critic_cells, device=device
         )
         self.policy = TensorDictSequential(self.coalition, self.actor)
-        self.exploration = (
-            restricted_epsilon_greedy(
-                self.env.full_action_spec_unbatched[ACTION],
-                config.exploration_actions,
-                eps_init=config.epsilon_init,
-                eps_end=config.epsilon_end,
-                annealing_num_steps=config.epsilon_anneal_frames,
-            )
-            if epsilon
-            else None
-        )
+        self.exploration = config.epsilon_greedy(self.env.full_action_spec_unbatched[ACTION])
 
         # collector (no random warm-up phase: the coalition is written by the policy)
         self.collector = self.make_collector(

@@ -16,8 +16,12 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
+from torchrl.data import TensorSpec
+from torchrl.modules import EGreedyModule
+
 from mapets_rl.config import check
 from mapets_rl.experiment.config import ExperimentConfig
+from mapets_rl.modules import restricted_epsilon_greedy
 from mapets_rl.planning.memory import available_memory
 
 
@@ -191,6 +195,20 @@ class DiscreteExplorationConfig(OffPolicyConfig):
             "exploration_actions",
             "distinct action indices >= 0",
             self.exploration_actions,
+        )
+
+    def epsilon_greedy(self, action_spec: TensorSpec) -> EGreedyModule | None:
+        """The epsilon-greedy module that follows the actor while collecting
+        (``exploration="epsilon"``; ``action_spec``: the group's one-hot action spec
+        ``[n_agents, action_dim]``), or ``None`` (``"gumbel"``: the actor's head samples)."""
+        if self.exploration != "epsilon":
+            return None
+        return restricted_epsilon_greedy(
+            action_spec,
+            self.exploration_actions,
+            eps_init=self.epsilon_init,
+            eps_end=self.epsilon_end,
+            annealing_num_steps=self.epsilon_anneal_frames,
         )
 
 
