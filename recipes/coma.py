@@ -90,16 +90,11 @@ class COMA(SystemRewardMetrics, Experiment):
 
     name = "coma"
     Config = COMAConfig
-    action_kinds = ("discrete",)
+    action_kinds = ("discrete",)  # the baseline sums over an agent's one-hot actions
 
     def __init__(self, config: COMAConfig, run_dir: Any = None) -> None:
         super().__init__(config, run_dir)
         spec = AgentGroupSpec.from_env(self.env)
-        if not spec.discrete:
-            raise ValueError(
-                f"env {config.env!r} must have one-hot (discrete) actions for coma "
-                "(its baseline sums over an agent's actions), e.g. the freeway"
-            )
 
         # modules: decentralised policy o_a -> pi^a (one-hot sample, logits kept);
         # counterfactual critic Q(s, u^{-a}, a, .)

@@ -187,11 +187,6 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
     def __init__(self, config: ShapleyACConfig, run_dir: Any = None) -> None:
         super().__init__(config, run_dir)
         group = AgentGroupSpec.from_env(self.env)
-        if not group.discrete:
-            raise ValueError(
-                f"env {config.env!r} must have one-hot (discrete) actions for "
-                "shapley_ac, e.g. the freeway"
-            )
         n, device = group.n_agents, self.device
 
         # modules: coalition of the timestep -> actors on s^C (-> epsilon-greedy while

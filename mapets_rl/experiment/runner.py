@@ -65,7 +65,7 @@ from mapets_rl.experiment.results import (
     mean_metrics,
     read_json_object,
 )
-from mapets_rl.modules import masked_mean
+from mapets_rl.modules import AgentGroupSpec, masked_mean
 from mapets_rl.threads import config_threads, configure_threads
 
 CONFIG_FILE = "config.yaml"
@@ -269,6 +269,7 @@ class Experiment:
         self.boundaries = 0
         # a bad env_config fails here, before the run directory is touched
         self.env = build_env(config.env, config.unbatched_env_config()) if env is None else env
+        self._refuse_action_kind()
         make_writable_dir(self.run_dir)
         try:
             self._init_run_dir(restoring)
@@ -282,6 +283,19 @@ class Experiment:
         self.eval_policy: TensorDictModuleBase | None = None
         self.latest_metrics: dict[str, float] = {}
         self._video_env: EnvBase | None = None
+
+    def _refuse_action_kind(self) -> None:
+        """ValueError (the env closed, no run directory made) when the env's actions are not
+        of a kind in :attr:`action_kinds`."""
+        if {"continuous", "discrete"} <= set(self.action_kinds):
+            return
+        kind = "discrete" if AgentGroupSpec.from_env(self.env).discrete else "continuous"
+        if kind not in self.action_kinds:
+            self.env.close()
+            raise ValueError(
+                f"{self.name} needs {' or '.join(self.action_kinds)} actions; env "
+                f"{self.config.env!r} has {kind} actions"
+            )
 
     def _init_run_dir(self, restoring: bool) -> None:
         """Lock the (existing) run directory, then prepare it: stale temp files removed,

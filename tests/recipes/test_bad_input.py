@@ -1,7 +1,7 @@
 """MA-PETS refuses bad input before it writes its run directory, with a one-line ValueError: a
 scenario it cannot plan on, a planner or ensemble too large for the memory, planner-reward
 settings beside a reward_fn, and a reward_fn that is not an importable callable or given
-twice."""
+twice. The Shapley actor-critic and COMA refuse continuous actions the same way."""
 
 from __future__ import annotations
 
@@ -38,6 +38,21 @@ def test_mapets_refuses_a_scenario_or_size_before_writing_the_run_dir(
 
     config = MAPETSConfig(env=env, preset="cpu").with_overrides(overrides)
     refused(lambda: MAPETS(config, tmp_path / "run"), match)
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("recipe", ["shapley_ac", "coma"])
+def test_a_discrete_recipe_refuses_continuous_actions_before_writing_the_run_dir(
+    recipe: str, tmp_path: Path
+) -> None:
+    from mapets_rl.app.plugins import load_recipe
+
+    cls = load_recipe(recipe)
+    config = cls.Config(env="figure-eight", env_config={"n_cavs": 2, "n_hvs": 1, "horizon": 5})
+    refused(
+        lambda: cls(config, tmp_path / "run"),
+        f"{recipe} needs discrete actions; env 'figure-eight' has continuous actions",
+    )
     assert not (tmp_path / "run").exists()
 
 
