@@ -44,7 +44,8 @@ Run (resumable: finished runs and every evaluation, scripted ones included, are 
 
 Prints a markdown table (per variant: system reward relative to keep-lane, per seed and mean
 with a bootstrap 95% interval over seeds; ramp vehicles stuck, collisions, shield
-interventions and comfort per episode), then per variant the training episodes
+interventions, comfort and the CAVs' lane changes between mainline lanes near the merge and
+elsewhere, per episode), then per variant the training episodes
 (``train_episodes.jsonl``) in windows of ``--window-frames``: when, in training, the merge
 appears. Writes them with the per-seed numbers to ``<out>/control.md`` and
 ``<out>/control.json``.
@@ -173,6 +174,28 @@ def train(variant: str, seed: int, args: argparse.Namespace) -> Path:
     return run_dir
 
 
+NEAR_MERGE = 100.0
+"""A mainline lane change counts as near the merge from this many metres before the
+acceleration lane to its end (the cooperative rule's yields happen there)."""
+BEHAVIOUR = ("mainline_changes_near_merge", "mainline_changes_elsewhere")
+"""The per-episode behaviour counts of :func:`score` (a cached score without them is stale)."""
+
+
+def cav_lanes(env: EnvBase) -> tuple[torch.Tensor, torch.Tensor]:
+    """The lane ids and x [m] of the CAVs of the batched freeway, ``[roads, CAVs]`` each."""
+    slot = env.sim.state["agents"].get("slot")
+    bodies = env.sim.state["bodies"]
+    return bodies.get("lane").gather(1, slot), bodies.get("x").gather(1, slot)
+
+
+def mainline_change(env: EnvBase, before: torch.Tensor, after: torch.Tensor) -> torch.Tensor:
+    """bool ``[roads, CAVs]``: the CAV moved from one mainline lane to another (a merge from
+    the acceleration lane is not counted)."""
+    table = env.sim.geometry.table
+    ramp = env.sim.geometry.ramp_table
+    return (before != after) & (table[before] != ramp) & (table[after] != ramp)
+
+
 @torch.no_grad()
 def score(
     policy: Callable[[EnvBase], TensorDictModuleBase],
@@ -197,14 +220,28 @@ def score(
     env.set_seed(EVAL_SEED_OFFSET + seed)
     td = env.reset()
     system = torch.zeros(args.eval_roads, dtype=torch.float64)
+    near = torch.zeros(args.eval_roads, dtype=torch.float64)
+    elsewhere = torch.zeros(args.eval_roads, dtype=torch.float64)
     with set_exploration_type(exploration):
         for _ in range(int(env.config["horizon"])):
+            lane, x = cav_lanes(env)
             td = env.step(actor(td))
             system += td.get(("next", "agents", "reward")).double().sum((-2, -1))
             td = td.get("next")
+            after, _ = cav_lanes(env)
+            changed = mainline_change(env, lane, after)
+            by_merge = (x >= env.sim.geometry.merge_start - NEAR_MERGE) & (
+                x <= env.sim.geometry.merge_end
+            )
+            near += (changed & by_merge).sum(-1).double()
+            elsewhere += (changed & ~by_merge).sum(-1).double()
     episodes = env.pop_finished_episodes()
     env.close()
-    out = {"system_reward": system.numpy()}
+    out = {
+        "system_reward": system.numpy(),
+        "mainline_changes_near_merge": near.numpy(),
+        "mainline_changes_elsewhere": elsewhere.numpy(),
+    }
     for key in episodes[0]:
         out[key] = np.array([e[key] for e in episodes], dtype=float)
     return out
@@ -217,7 +254,9 @@ def scripted(seed: int, settings: dict[str, Any], args: argparse.Namespace) -> d
     name = f"scripted_seed{seed}{label}_{args.n_vehicles}vehicles_{args.eval_roads}roads"
     path = Path(args.out) / "evals" / f"{name}.json"
     if path.is_file():
-        return json.loads(path.read_text())
+        cached = json.loads(path.read_text())
+        if all(key in cached["keep lane"] for key in BEHAVIOUR):
+            return cached
     lanes = int(FreewayMergeEnv.resolved_config({"n_vehicles": args.n_vehicles})["lanes"])
     rule = CooperativeMerge(lanes, float("inf"), 60.0, 30.0, 15.0, 15.0, 1.5, torch.int64)
     result = {
@@ -238,7 +277,9 @@ def evaluate(
     name = f"{variant}_seed{seed}_{args.eval_roads}roads{'_explored' if explored else ''}"
     path = Path(args.out) / "evals" / f"{name}.json"
     if path.is_file():
-        return json.loads(path.read_text())
+        cached = json.loads(path.read_text())
+        if all(key in cached for key in BEHAVIOUR):
+            return cached
     recipe, _ = variant_overrides(variant, args)
     exp = load_recipe(recipe).from_run_dir(run_dir)
     try:
@@ -310,11 +351,14 @@ def summarise(name: str, runs: list[dict], references: list[dict]) -> tuple[dict
         "gain_percent_ci95": [low, high],
         "system_reward": float(np.mean([np.mean(r["system_reward"]) for r in runs])),
         **{key: per_episode(key) for key in ("ramp_stuck", "collisions", "shielded")},
+        **{key: per_episode(key) for key in BEHAVIOUR},
         "average_comfort": per_episode("average_comfort"),
     }
     row = (
         f"| {name} | {fields['system_reward']:.1f} | {gains.mean():+.1f}% [{low:+.1f}, "
         f"{high:+.1f}] | {', '.join(f'{g:+.1f}' for g in gains)} | {fields['ramp_stuck']:.1f} "
+        f"| {fields['mainline_changes_near_merge']:.1f} "
+        f"| {fields['mainline_changes_elsewhere']:.1f} "
         f"| {fields['collisions']:.2f} | {fields['shielded']:.1f} "
         f"| {fields['average_comfort']:.3f} |"
     )
@@ -370,8 +414,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "roads, mean over seeds [bootstrap 95% interval]",
         "",
         "| policy | system reward / episode | vs keep lane | per seed | ramp vehicles stuck "
-        "| collisions | shield interventions | comfort |",
-        "|---|---|---|---|---|---|---|---|",
+        f"| mainline lane changes near the merge ({NEAR_MERGE:.0f} m before it to its end) "
+        "| mainline lane changes elsewhere | collisions | shield interventions | comfort |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     rows = []
     for suffix, reference in references.items():

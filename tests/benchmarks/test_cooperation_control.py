@@ -126,3 +126,28 @@ def test_training_windows_bin_the_episodes_by_the_frame_they_ended(
     assert windows[3] == (4.0, 3.0)
     table = control.windows_table("v", {0: windows}, 20)
     assert "| 0 | 2 / 0.5 | 3 / 2.0 | nan / nan | 4 / 3.0 |" in table
+
+
+def test_keep_lane_never_changes_mainline_lanes_and_the_merge_rule_yields_near_the_merge(
+    control: ModuleType,
+) -> None:
+    args = control.argparse.Namespace(eval_roads=4, n_vehicles=30)
+    scores = control.scripted(
+        0, {"shield": False}, control.argparse.Namespace(**vars(args), out="-")
+    )
+    keep, rule = scores["keep lane"], scores["cooperative merge"]
+    assert sum(keep["mainline_changes_near_merge"]) == sum(keep["mainline_changes_elsewhere"]) == 0
+    assert sum(rule["mainline_changes_near_merge"]) > 0  # its yields
+    assert sum(rule["ramp_stuck"]) < sum(keep["ramp_stuck"])
+
+
+def test_a_cached_score_without_the_behaviour_counts_is_scored_again(
+    control: ModuleType, tmp_path: Path
+) -> None:
+    args = control.argparse.Namespace(eval_roads=2, n_vehicles=8, out=str(tmp_path))
+    fresh = control.scripted(0, {"shield": False}, args)
+    (path,) = (tmp_path / "evals").iterdir()
+    stale = {name: {"system_reward": [0.0, 0.0]} for name in fresh}
+    path.write_text(json.dumps(stale))
+    assert control.scripted(0, {"shield": False}, args) == fresh
+    assert json.loads(path.read_text()) == fresh
