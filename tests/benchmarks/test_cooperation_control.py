@@ -78,7 +78,7 @@ def test_a_tiny_control_scores_policies_on_the_roads_of_keep_lane(
 ) -> None:
     argv = ["--variants", "maddpg_shield", *TINY, "--n-vehicles", "8", "--out", str(tmp_path)]
     summary = control.main(argv)
-    assert summary["keep lane (scripted)"]["gain_percent_per_seed"] == [0.0]
+    assert summary["keep lane (scripted, shield)"]["gain_percent_per_seed"] == [0.0]
     run = summary["maddpg_shield"]
     assert len(run["gain_percent_per_seed"]) == 1
     low, high = run["gain_percent_ci95"]
