@@ -129,12 +129,10 @@ def test_training_windows_bin_the_episodes_by_the_frame_they_ended(
 
 
 def test_keep_lane_never_changes_mainline_lanes_and_the_merge_rule_yields_near_the_merge(
-    control: ModuleType,
+    control: ModuleType, tmp_path: Path
 ) -> None:
-    args = control.argparse.Namespace(eval_roads=4, n_vehicles=30)
-    scores = control.scripted(
-        0, {"shield": False}, control.argparse.Namespace(**vars(args), out="-")
-    )
+    args = control.argparse.Namespace(eval_roads=4, n_vehicles=30, out=str(tmp_path))
+    scores = control.scripted(0, {"shield": False}, args)
     keep, rule = scores["keep lane"], scores["cooperative merge"]
     assert sum(keep["mainline_changes_near_merge"]) == sum(keep["mainline_changes_elsewhere"]) == 0
     assert sum(rule["mainline_changes_near_merge"]) > 0  # its yields
