@@ -285,6 +285,7 @@ def evaluate(
     try:
         settings = env_settings(variant)
         if explored:
+            torch.manual_seed(EVAL_SEED_OFFSET + seed)  # the random moves, reproducibly
             policy = TensorDictSequential(exp.eval_policy, exp.exploration)
             scores = score(lambda env: policy, settings, seed, args, ExplorationType.RANDOM)
         else:
