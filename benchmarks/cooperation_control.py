@@ -222,19 +222,20 @@ def score(
     system = torch.zeros(args.eval_roads, dtype=torch.float64)
     near = torch.zeros(args.eval_roads, dtype=torch.float64)
     elsewhere = torch.zeros(args.eval_roads, dtype=torch.float64)
+    lane, x = cav_lanes(env)
     with set_exploration_type(exploration):
         for _ in range(int(env.config["horizon"])):
-            lane, x = cav_lanes(env)
             td = env.step(actor(td))
             system += td.get(("next", "agents", "reward")).double().sum((-2, -1))
             td = td.get("next")
-            after, _ = cav_lanes(env)
+            after, x_after = cav_lanes(env)
             changed = mainline_change(env, lane, after)
             by_merge = (x >= env.sim.geometry.merge_start - NEAR_MERGE) & (
                 x <= env.sim.geometry.merge_end
             )
             near += (changed & by_merge).sum(-1).double()
             elsewhere += (changed & ~by_merge).sum(-1).double()
+            lane, x = after, x_after
     episodes = env.pop_finished_episodes()
     env.close()
     out = {
@@ -304,14 +305,14 @@ def training_windows(run_dir: Path, window_frames: int, frames: int) -> list[tup
     ended episode)."""
     episodes = read_train_episodes(run_dir)
     bins = (episodes["frames"] - 1) // window_frames
+    stuck = episodes.get("ramp_stuck", np.full(len(bins), np.nan))
     out = []
     for index in range(-(-frames // window_frames)):
         inside = bins == index
         if not inside.any():
             out.append((float("nan"), float("nan")))
             continue
-        stuck = episodes.get("ramp_stuck", np.full(len(bins), np.nan))[inside]
-        out.append((float(episodes["system_return"][inside].mean()), float(stuck.mean())))
+        out.append((float(episodes["system_return"][inside].mean()), float(stuck[inside].mean())))
     return out
 
 
@@ -430,12 +431,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     width = args.window_frames or max(args.frames // 10, 1)
     training = []
     for variant in args.variants:
-        runs, windows = [], {}
+        runs, windows, run_dirs = [], {}, {}
         for seed in args.seeds:
             print(f"{variant} seed {seed} ...", flush=True)
-            run_dir = train(variant, seed, args)
-            runs.append(evaluate(variant, seed, run_dir, args))
-            windows[seed] = training_windows(run_dir, width, args.frames)
+            run_dirs[seed] = train(variant, seed, args)
+            runs.append(evaluate(variant, seed, run_dirs[seed], args))
+            windows[seed] = training_windows(run_dirs[seed], width, args.frames)
         summary[f"{variant} training windows"] = {str(k): v for k, v in windows.items()}
         training.append(windows_table(variant, windows, width))
         keep = [r["keep lane"] for r in references[settings_label(env_settings(variant))]]
@@ -444,8 +445,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         if args.explored and "epsilon" in variant.split("_"):
             label = f"{variant} (its final epsilon-greedy)"
             explored = [
-                evaluate(variant, seed, train(variant, seed, args), args, explored=True)
-                for seed in args.seeds
+                evaluate(variant, seed, run_dir, args, explored=True)
+                for seed, run_dir in run_dirs.items()
             ]
             summary[label], row = summarise(label, explored, keep)
             rows.append(row)
