@@ -190,8 +190,8 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
         n, device = group.n_agents, self.device
 
         # modules: coalition of the timestep -> actors on s^C (-> epsilon-greedy while
-        # collecting, or Gumbel samples); coalition critic v(s, a, C)
-        epsilon = config.exploration == "epsilon"
+        # collecting, else the actors' Gumbel samples); coalition critic v(s, a, C)
+        self.exploration = config.epsilon_greedy(self.env.full_action_spec_unbatched[ACTION])
         self.coalition = RandomCoalition(
             n,
             join_prob=config.join_prob,
@@ -206,18 +206,19 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
             num_cells=config.num_cells,
             share_params=config.share_params,
             ego_first=config.ego_first,
-            action_head=GumbelSoftmaxHead(config.gumbel_tau, sample=not epsilon),
+            action_head=GumbelSoftmaxHead(config.gumbel_tau, sample=self.exploration is None),
             device=device,
         )
         self.critic = CoalitionCritic(
             n, group.obs_dim, group.action_dim, num_cells=config.critic_cells, device=device
         )
         self.policy = TensorDictSequential(self.coalition, self.actor)
-        self.exploration = config.epsilon_greedy(self.env.full_action_spec_unbatched[ACTION])
 
         # collector (no random warm-up phase: the coalition is written by the policy)
         self.collector = self.make_collector(
-            TensorDictSequential(self.policy, self.exploration) if epsilon else self.policy
+            self.policy
+            if self.exploration is None
+            else TensorDictSequential(self.policy, self.exploration)
         )
         self.eval_policy = self.policy
 
