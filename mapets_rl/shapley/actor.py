@@ -64,12 +64,18 @@ class CoalitionObservation(TensorDictModuleBase):
                 f"coalition must have shape [..., n_agents={n}], got {tuple(coalition.shape)}"
             )
         coalition = coalition.bool()
-        visible = (coalition.unsqueeze(-1) & coalition.unsqueeze(-2)) | self._eye  # [..., n, n]
-        seen = observation.unsqueeze(-3) * visible.unsqueeze(-1).to(observation.dtype)
-        view = torch.cat([seen, visible.unsqueeze(-1).to(observation.dtype)], dim=-1)
-        if self.ego_first:  # [..., n, n, obs + 1]: reorder the agents axis of every row
-            index = self._order.view(n, n, 1).expand(*view.shape[:-3], n, n, view.shape[-1])
-            view = view.gather(-2, index)
+        if self.ego_first:
+            # row i lists agents (i + k) mod n: windows of the doubled agents axis, a view
+            doubled = torch.cat([observation, observation], dim=-2)  # [..., 2n, obs]
+            rows = doubled.unfold(-2, n, 1)[..., :n, :, :].transpose(-1, -2)  # [..., n, n, obs]
+            visible = (coalition.unsqueeze(-1) & coalition[..., self._order]) | self._eye[0]
+        else:
+            rows = observation.unsqueeze(-3).expand(
+                *observation.shape[:-2], n, *observation.shape[-2:]
+            )
+            visible = (coalition.unsqueeze(-1) & coalition.unsqueeze(-2)) | self._eye
+        bits = visible.unsqueeze(-1).to(observation.dtype)  # [..., n, n, 1]
+        view = torch.cat([rows * bits, bits], dim=-1)
         return view.flatten(-2)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

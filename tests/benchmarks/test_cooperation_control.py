@@ -57,7 +57,11 @@ def test_variants_are_one_change_at_a_time(control: ModuleType) -> None:
     assert "env_config.team_reward=true" not in selfish
     recipe, shapley = control.variant_overrides("shapley_w1", args)
     assert recipe == "shapley_ac"  # the same schedule, paid the rewards it reallocates
-    assert sorted(set(shapley) ^ set(selfish)) == []
+    assert sorted(set(shapley) - set(selfish)) == sorted(control.SHAPLEY_SCHEDULE)
+    assert set(selfish) <= set(shapley)
+    cls = control.load_recipe(recipe)  # every field of the Shapley arm is the recipe's
+    config = cls.Config(env=control.ENV).with_overrides(shapley)
+    assert (config.critic_cells, config.num_cells) == ([64, 64], [64, 64])
 
 
 def test_scripted_references_are_scored_with_the_variants_reward(control: ModuleType) -> None:
