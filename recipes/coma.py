@@ -90,7 +90,8 @@ class COMA(SystemRewardMetrics, Experiment):
 
     name = "coma"
     Config = COMAConfig
-    action_kinds = ("discrete",)  # the baseline sums over an agent's one-hot actions
+    action_kinds = ("discrete",)
+    action_kinds_reason = "its counterfactual baseline sums over an agent's one-hot actions"
 
     def __init__(self, config: COMAConfig, run_dir: Any = None) -> None:
         super().__init__(config, run_dir)

@@ -391,6 +391,7 @@ class MAPETS(Experiment):
     name = "mapets"
     Config = MAPETSConfig
     action_kinds = ("continuous",)
+    action_kinds_reason = "the CEM planner optimises real-valued action sequences"
     progress_unit = "episode"
 
     def __init__(
@@ -409,6 +410,7 @@ class MAPETS(Experiment):
         env = build_env(config.env, config.env_config).append_transform(self.comm)
         group = AgentGroupSpec.from_env(env)
         try:  # refusals before the run directory is written
+            self.refuse_action_kind(env, config.env)
             self._check_scenario(config, group, reward_fn)
             shared = ("agents", "info", "neighbour_cav")
             if config.comm.share_plans and (
@@ -521,16 +523,11 @@ class MAPETS(Experiment):
     def _check_scenario(
         config: MAPETSConfig, group: AgentGroupSpec, reward_fn: RewardFn | None
     ) -> None:
-        """ValueError (one line) when the scenario's actions, observation or size do not fit
-        MA-PETS with ``config``: discrete actions, a ``reward_fn`` given twice (argument and
+        """ValueError (one line) when the scenario's observation or size do not fit MA-PETS
+        with ``config``: a ``reward_fn`` given twice (argument and
         ``config.reward_fn``) or while ``config.planner_reward`` leaves its defaults, no
         ``reward_fn`` for a scenario without a planner reward, or a planner / ensemble larger
         than the memory the device has available (:mod:`mapets_rl.planning.memory`)."""
-        if group.discrete:
-            raise ValueError(
-                f"env {config.env!r} must have continuous actions for mapets (the CEM planner "
-                "optimises real-valued action sequences), e.g. figure-eight"
-            )
         if reward_fn is not None and config.reward_fn:
             raise ValueError(
                 f"reward_fn is given twice, reward_fn={config.reward_fn!r} in the config and "

@@ -205,6 +205,8 @@ class Experiment:
     """The kinds of per-agent actions the recipe handles: ``"continuous"`` (a Bounded spec)
     and/or ``"discrete"`` (one-hot); ``mapets-rl train RECIPE --help`` lists the scenarios
     whose actions are of one of these kinds."""
+    action_kinds_reason: ClassVar[str] = ""
+    """Why the recipe takes only :attr:`action_kinds` (said in the refusal of another kind)."""
     progress_unit: ClassVar[str] = "frame"
     # set by from_run_dir on the instance before __init__ runs: the run directory's checkpoints
     # are the ones being restored; the run directory is written to only once the resumed run
@@ -269,7 +271,11 @@ class Experiment:
         self.boundaries = 0
         # a bad env_config fails here, before the run directory is touched
         self.env = build_env(config.env, config.unbatched_env_config()) if env is None else env
-        self._refuse_action_kind()
+        try:
+            self.refuse_action_kind(self.env, config.env)
+        except ValueError:
+            self.env.close()
+            raise
         make_writable_dir(self.run_dir)
         try:
             self._init_run_dir(restoring)
@@ -284,17 +290,18 @@ class Experiment:
         self.latest_metrics: dict[str, float] = {}
         self._video_env: EnvBase | None = None
 
-    def _refuse_action_kind(self) -> None:
-        """ValueError (the env closed, no run directory made) when the env's actions are not
-        of a kind in :attr:`action_kinds`."""
-        if {"continuous", "discrete"} <= set(self.action_kinds):
+    @classmethod
+    def refuse_action_kind(cls, env: EnvBase, env_name: str) -> None:
+        """ValueError when the actions of ``env`` (scenario ``env_name``) are not of a kind in
+        :attr:`action_kinds`, with :attr:`action_kinds_reason`; the caller closes ``env``."""
+        if {"continuous", "discrete"} <= set(cls.action_kinds):
             return
-        kind = "discrete" if AgentGroupSpec.from_env(self.env).discrete else "continuous"
-        if kind not in self.action_kinds:
-            self.env.close()
+        kind = "discrete" if AgentGroupSpec.from_env(env).discrete else "continuous"
+        if kind not in cls.action_kinds:
+            reason = f" ({cls.action_kinds_reason})" if cls.action_kinds_reason else ""
             raise ValueError(
-                f"{self.name} needs {' or '.join(self.action_kinds)} actions; env "
-                f"{self.config.env!r} has {kind} actions"
+                f"{cls.name} needs {' or '.join(cls.action_kinds)} actions{reason}; env "
+                f"{env_name!r} has {kind} actions"
             )
 
     def _init_run_dir(self, restoring: bool) -> None:
