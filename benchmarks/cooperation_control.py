@@ -70,6 +70,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mapets_rl.app.plugins import load_recipe
 from mapets_rl.envs import FreewayMergeEnv, ScriptedCAVPolicy, make_env
+from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway
 from mapets_rl.experiment import atomic_write_text, latest_checkpoint, read_train_episodes
 from mapets_rl.recipes.maddpg import OPENAI_MADDPG
 from mapets_rl.statistics import bootstrap_interval
@@ -199,19 +200,29 @@ BEHAVIOUR = ("mainline_changes_near_merge", "mainline_changes_elsewhere")
 """The per-episode behaviour counts of :func:`score` (a cached score without them is stale)."""
 
 
-def cav_lanes(env: EnvBase) -> tuple[torch.Tensor, torch.Tensor]:
+def cav_lanes(sim: BatchedFreeway) -> tuple[torch.Tensor, torch.Tensor]:
     """The lane ids and x [m] of the CAVs of the batched freeway, ``[roads, CAVs]`` each."""
-    slot = env.sim.state["agents"].get("slot")
-    bodies = env.sim.state["bodies"]
+    slot = sim.state["agents"].get("slot")
+    bodies = sim.state["bodies"]
     return bodies.get("lane").gather(1, slot), bodies.get("x").gather(1, slot)
 
 
-def mainline_change(env: EnvBase, before: torch.Tensor, after: torch.Tensor) -> torch.Tensor:
+def on_mainline(sim: BatchedFreeway, lane: torch.Tensor) -> torch.Tensor:
+    """bool, shaped like ``lane`` (lane ids): the lane is a mainline lane, not the ramp's."""
+    return sim.geometry.table[lane] != sim.geometry.ramp_table
+
+
+def near_merge(sim: BatchedFreeway, x: torch.Tensor) -> torch.Tensor:
+    """bool, shaped like ``x`` [m]: from :data:`NEAR_MERGE` metres before the acceleration lane
+    to its end."""
+    geometry = sim.geometry
+    return (x >= geometry.merge_start - NEAR_MERGE) & (x <= geometry.merge_end)
+
+
+def mainline_change(sim: BatchedFreeway, before: torch.Tensor, after: torch.Tensor) -> torch.Tensor:
     """bool ``[roads, CAVs]``: the CAV moved from one mainline lane to another (a merge from
     the acceleration lane is not counted)."""
-    table = env.sim.geometry.table
-    ramp = env.sim.geometry.ramp_table
-    return (before != after) & (table[before] != ramp) & (table[after] != ramp)
+    return (before != after) & on_mainline(sim, before) & on_mainline(sim, after)
 
 
 @torch.no_grad()
@@ -240,17 +251,15 @@ def score(
     system = torch.zeros(args.eval_roads, dtype=torch.float64)
     near = torch.zeros(args.eval_roads, dtype=torch.float64)
     elsewhere = torch.zeros(args.eval_roads, dtype=torch.float64)
-    lane, x = cav_lanes(env)
+    lane, x = cav_lanes(env.sim)
     with set_exploration_type(exploration):
         for _ in range(int(env.config["horizon"])):
             td = env.step(actor(td))
             system += td.get(("next", "agents", "reward")).double().sum((-2, -1))
             td = td.get("next")
-            after, x_after = cav_lanes(env)
-            changed = mainline_change(env, lane, after)
-            by_merge = (x >= env.sim.geometry.merge_start - NEAR_MERGE) & (
-                x <= env.sim.geometry.merge_end
-            )
+            after, x_after = cav_lanes(env.sim)
+            changed = mainline_change(env.sim, lane, after)
+            by_merge = near_merge(env.sim, x)
             near += (changed & by_merge).sum(-1).double()
             elsewhere += (changed & ~by_merge).sum(-1).double()
             lane, x = after, x_after

@@ -42,6 +42,19 @@ def test_a_branch_replays_its_road_bit_for_bit() -> None:
     assert torch.equal(ours.observation[0], ours.observation[2])
 
 
+def test_take_copies_several_roads_into_one_batch() -> None:
+    sim = simulator()
+    copies = sim.take(torch.tensor([1, 0, 1]))
+    action = torch.tensor([KL, CL, KL])[: sim.n_cavs]
+    for _ in range(5):
+        ours = copies.step(action.expand(3, -1))
+        theirs = sim.step(action.expand(2, -1))
+    assert torch.equal(ours.observation[[1, 0, 2]], theirs.observation[[0, 1, 1]])
+    assert not torch.equal(theirs.observation[0], theirs.observation[1])  # two roads differ
+    with pytest.raises(ValueError, match=r"roads must be a non-empty list of indices in \[0, 1\]"):
+        sim.take(torch.tensor([2]))
+
+
 def test_values_are_the_rollouts_they_name() -> None:
     sim = simulator()
     values = simulated_game(sim, 0, change_left)

@@ -210,10 +210,27 @@ class BatchedFreeway:
             raise ValueError(f"road must be in [0, {self.n_roads - 1}], got {road}")
         if copies < 1:
             raise ValueError(f"copies must be >= 1, got {copies}")
+        return self.take(torch.full((copies,), road, dtype=torch.long))
+
+    def take(self, roads: torch.Tensor) -> BatchedFreeway:
+        """A new simulator whose road ``k`` is a copy of the current state of road
+        ``roads[k]`` (``roads``: ``[K]`` indices, repeats allowed; same config, device, dtype
+        and kernel): the branches of several roads, rolled out in one batch."""
+        roads = torch.as_tensor(roads, dtype=torch.long).reshape(-1)
+        if roads.numel() < 1 or int(roads.min()) < 0 or int(roads.max()) >= self.n_roads:
+            raise ValueError(
+                f"roads must be a non-empty list of indices in [0, {self.n_roads - 1}], "
+                f"got {roads.tolist()}"
+            )
         twin = BatchedFreeway(
-            self.config, self.merge, copies, self.device, self.dtype, kernel=self.kernel_choice
+            self.config,
+            self.merge,
+            roads.numel(),
+            self.device,
+            self.dtype,
+            kernel=self.kernel_choice,
         )
-        twin.state = self.state[road : road + 1].expand(copies).clone()
+        twin.state = self.state[roads.to(self.state.device)].clone()
         return twin
 
     def rollout_returns(
