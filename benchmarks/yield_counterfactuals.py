@@ -20,7 +20,8 @@ rest of the episode, discounted by ``--gamma`` (default 0.95, the learners' disc
 undiscounted returns of the evaluation):
 
 - ``own``: what the lane change earns the CAV that makes it (its return with the change minus
-  its return with Keep Lane), the quantity a self-interested learner is paid for;
+  its return with Keep Lane), the quantity a self-interested learner is paid for, and the part
+  of it in metres driven (at w = 1 the velocity term; the rest is comfort and crashes);
 - ``system``: what it earns the system (the CAVs' returns summed), the team reward's quantity.
 
 A decision is a *dilemma* when ``own < 0 < system`` (cooperative and costly: what individual
@@ -93,11 +94,12 @@ def returns_per_cav(
     decide: Decide,
     gamma: float,
     keeping: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Every road of ``copies`` plays ``first [K, I]`` now and ``decide`` after (the CAVs of
     ``keeping [K, I]`` (bool) Keep Lane instead), to the end of its episode: each CAV's return
-    from now on ``[K, I]`` (float64, the step ``k`` steps from now weighted by ``gamma ** k``),
-    and the bodies' lateral positions after the first step ``[K, N]``."""
+    from now on ``[K, I]`` and the metres it drives (float64, the step ``k`` steps from now
+    weighted by ``gamma ** k``), and the bodies' lateral positions after the first step
+    ``[K, N]``."""
     if keeping is not None:
         plain = decide
 
@@ -107,14 +109,17 @@ def returns_per_cav(
     result = copies.step(first)
     y = copies.state["bodies"].get("y").clone()
     total = result.reward.double().clone()
+    metres = result.distance.double().clone()
     running = ~(result.truncated | result.terminated)
     discount = 1.0
     while bool(running.any()):
         result = copies.step(decide(result.observation))
         discount *= gamma
-        total += torch.where(running.unsqueeze(-1), discount * result.reward.double(), 0.0)
+        on = running.unsqueeze(-1)
+        total += torch.where(on, discount * result.reward.double(), 0.0)
+        metres += torch.where(on, discount * result.distance.double(), 0.0)
         running &= ~(result.truncated | result.terminated)
-    return total, y
+    return total, metres, y
 
 
 @torch.no_grad()
@@ -136,7 +141,14 @@ def counterfactuals(
     env.set_seed(EVAL_SEED_OFFSET + seed)
     env.reset()
     sim = env.sim
-    out: dict[str, list] = {"step": [], "near": [], "moved": [], "own": [], "system": []}
+    out: dict[str, list] = {
+        "step": [],
+        "near": [],
+        "moved": [],
+        "own": [],
+        "own_metres": [],
+        "system": [],
+    }
     observation = sim.observe()
     for step in range(int(env.config["horizon"])):
         action = decide(observation)
@@ -155,7 +167,7 @@ def counterfactuals(
             if args.deviation == "rest":
                 keeping = torch.zeros_like(first, dtype=torch.bool)
                 keeping[kept, cav] = True
-            returns, y = returns_per_cav(copies, first, decide, args.gamma, keeping)
+            returns, metres, y = returns_per_cav(copies, first, decide, args.gamma, keeping)
             own_base = torch.searchsorted(bases, road)
             base, instead = returns[own_base], returns[kept]  # [K, I]
             out["moved"] += (y[own_base] != y[kept]).any(-1).tolist()
@@ -163,6 +175,8 @@ def counterfactuals(
             out["near"] += near_merge(sim, x)[road, cav].tolist()
             each = torch.arange(road.numel())
             out["own"] += (base[each, cav] - instead[each, cav]).tolist()
+            own_metres = metres[own_base][each, cav] - metres[kept][each, cav]
+            out["own_metres"] += own_metres.tolist()
             out["system"] += (base.sum(-1) - instead.sum(-1)).tolist()
         observation = sim.step(action).observation
     env.close()
@@ -203,7 +217,9 @@ def decisions(variant: str, seed: int, args: argparse.Namespace) -> dict[str, li
         / f"yields_{variant}_seed{seed}_{args.roads}roads_gamma{args.gamma}_{args.deviation}.json"
     )
     if path.is_file():
-        return json.loads(path.read_text())
+        cached = json.loads(path.read_text())
+        if "own_metres" in cached:  # older caches lack it: measured again
+            return cached
     decide, settings, close = run_policy(variant, seed, args)
     try:
         result = counterfactuals(decide, settings, seed, args)
@@ -225,7 +241,7 @@ def summary_row(label: str, per_seed: list[dict[str, np.ndarray]], roads: int) -
     share = sum(int(m.sum()) for m in moved) / max(count, 1)
     head = f"| {label} | {count / (roads * len(per_seed)):.1f} | {share:.2f} "
     if share == 0:
-        return head + "| | | | | | |"
+        return head + "| | | | | | | |"
     own = np.concatenate([d["own"][m] for d, m in zip(per_seed, moved, strict=True)])
     system = np.concatenate([d["system"][m] for d, m in zip(per_seed, moved, strict=True)])
 
@@ -236,7 +252,8 @@ def summary_row(label: str, per_seed: list[dict[str, np.ndarray]], roads: int) -
 
     aligned = ((own > 0) & (system > 0)) | ((own < 0) & (system < 0))
     return head + (
-        f"| {seed_means('own')} | {seed_means('system')} | {(own > 0).mean():.2f} "
+        f"| {seed_means('own')} | {seed_means('own_metres')} | {seed_means('system')} "
+        f"| {(own > 0).mean():.2f} "
         f"| {aligned.mean():.2f} | {((own < 0) & (system > 0)).mean():.2f} "
         f"| {((system < 0) & (own > 0)).mean():.2f} |"
     )
@@ -244,9 +261,10 @@ def summary_row(label: str, per_seed: list[dict[str, np.ndarray]], roads: int) -
 
 HEADER = (
     "| policy, where | lane-change decisions per episode | share that moves the car "
-    "| own effect, mean [95%] | system effect, mean [95%] | own > 0 | aligned (same sign) "
-    "| dilemma (own < 0 < system) | selfish-harmful (system < 0 < own) |\n"
-    "|---|---|---|---|---|---|---|---|---|"
+    "| own effect, mean [95%] | own effect in metres driven | system effect, mean [95%] "
+    "| own > 0 | aligned (same sign) | dilemma (own < 0 < system) "
+    "| selfish-harmful (system < 0 < own) |\n"
+    "|---|---|---|---|---|---|---|---|---|---|"
 )
 
 

@@ -26,6 +26,8 @@ equations); everything else is MADDPG's.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -128,6 +130,11 @@ class MADDPGConfig(DiscreteExplorationConfig):
             saturation (see :mod:`mapets_rl.objectives.ddpg`).
         n_steps: look-ahead (>= 1) of the per-agent n-step returns of the critic's targets
             (:func:`~mapets_rl.objectives.n_step_transitions`; 1 = TD(0)).
+        critic_share_params: one centralised critic network for all agents. It reads the same
+            joint input for every agent, so it gives every agent the same ``Q``: the mean of
+            their returns, which is each agent's own return only under a team reward. False
+            (default, openai/maddpg's): one critic per agent, ``Q_i`` fitted to agent ``i``'s
+            own rewards.
     """
 
     sigma_init: float = 0.3
@@ -136,6 +143,15 @@ class MADDPGConfig(DiscreteExplorationConfig):
     normalize_obs: bool = True
     actor_preactivation_coef: float = 1e-3
     n_steps: int = 1
+    critic_share_params: bool = False
+
+    @classmethod
+    def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
+        """A config written before ``critic_share_params`` existed trained one shared critic:
+        it resumes with ``critic_share_params=True``, not today's default."""
+        data = super().upgrade_dict(data)
+        data.setdefault("critic_share_params", True)
+        return data
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -220,7 +236,11 @@ class MADDPG(Experiment):
             collection_policy = TensorDictSequential(self.actor, self.exploration)
         # centralised critic Q_i(o_1..o_I, a_1..a_I), one output per agent
         self.critic = make_q_critic(
-            spec, cells, centralized=True, share_params=True, obs_norm=norm_module
+            spec,
+            cells,
+            centralized=True,
+            share_params=config.critic_share_params,
+            obs_norm=norm_module,
         )
 
         # collector

@@ -33,7 +33,7 @@ def test_a_command_that_moves_nothing_costs_its_comfort_only(yields: ModuleType)
     assert still.any() and moved.any()  # the leftmost lane is reached, and left before that
     # the same road afterwards: Change Left's comfort (1) against Keep Lane's (3, or 2 when
     # braking or accelerating hard), paid by the CAV and so by the system
-    assert set(out["own"][still].round(9)) <= {-1.0, -2.0}
+    assert set(out["own"][still].round(5)) <= {-1.0, -2.0}  # float32 rewards
     assert np.allclose(out["own"][still], out["system"][still])
     assert not np.allclose(out["own"][moved], out["system"][moved])
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 from PIL import Image
 from torchrl.modules import MultiAgentMLP
 
@@ -101,6 +102,29 @@ def test_variants_on_toy_env(cls, config, tmp_path: Path) -> None:
     before = _params(exp)
     exp.train()
     assert not torch.equal(before, _params(exp))
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_maddpg_critic_values_each_agent_unless_shared(shared: bool, tmp_path: Path) -> None:
+    """One shared centralised critic reads the same joint input for every agent and so gives
+    them all one Q (the mean of their returns); per-agent critics (the default) can give each
+    agent its own return."""
+    config = MADDPGConfig(env="toy", logger="none", progress=False, critic_share_params=shared)
+    exp = MADDPG(config, tmp_path)
+    td = exp.env.rollout(3)
+    q = exp.critic(td.select(*exp.critic.in_keys))["agents", "state_action_value"]
+    same = torch.allclose(q, q[..., :1, :].expand_as(q))
+    assert same == shared
+
+
+def test_a_maddpg_config_written_before_critic_share_params_keeps_its_shared_critic(
+    tmp_path: Path,
+) -> None:
+    data = MADDPGConfig(env="toy").to_dict()
+    assert data.pop("critic_share_params") is False  # today's default
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(data))
+    assert MADDPGConfig.from_yaml(path).critic_share_params is True
 
 
 def test_ippo_value_is_decentralised(tmp_path: Path) -> None:
