@@ -225,6 +225,14 @@ def mainline_change(sim: BatchedFreeway, before: torch.Tensor, after: torch.Tens
     return (before != after) & on_mainline(sim, before) & on_mainline(sim, after)
 
 
+def evaluation_env(roads: int, n_vehicles: int, settings: dict[str, Any]) -> EnvBase:
+    """``roads`` roads of the batched freeway-merge with ``n_vehicles`` vehicles, all CAVs,
+    the scenario changed by ``settings`` (:func:`env_settings` and other config keys)."""
+    return make_env(
+        ENV, backend="torch", num_envs=roads, n_vehicles=n_vehicles, cav_ratio=1.0, **settings
+    )
+
+
 @torch.no_grad()
 def score(
     policy: Callable[[EnvBase], TensorDictModuleBase],
@@ -237,14 +245,7 @@ def score(
     ``--eval-roads`` roads of the evaluation seed of ``seed``, the scenario changed by
     ``settings`` (:func:`env_settings`): per road, the system reward and the scenario's
     episode metrics (``[roads]`` each)."""
-    env = make_env(
-        ENV,
-        backend="torch",
-        num_envs=args.eval_roads,
-        n_vehicles=args.n_vehicles,
-        cav_ratio=1.0,
-        **settings,
-    )
+    env = evaluation_env(args.eval_roads, args.n_vehicles, settings)
     actor = policy(env)
     env.set_seed(EVAL_SEED_OFFSET + seed)
     td = env.reset()

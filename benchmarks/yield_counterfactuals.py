@@ -50,10 +50,10 @@ from pathlib import Path
 import numpy as np
 import torch
 from cooperation_control import (
-    ENV,
     EVAL_SEED_OFFSET,
     cav_lanes,
     env_settings,
+    evaluation_env,
     near_merge,
     on_mainline,
     variant_overrides,
@@ -63,7 +63,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
 from mapets_rl.app.plugins import load_recipe
-from mapets_rl.envs import FreewayMergeEnv, make_env
+from mapets_rl.envs import FreewayMergeEnv
 from mapets_rl.envs.freeway import CL, CR, KL
 from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway
 from mapets_rl.experiment import atomic_write_text, latest_checkpoint
@@ -129,15 +129,8 @@ def counterfactuals(
     """The greedy episodes of ``decide`` on ``--roads`` evaluation roads of ``seed``: per
     lane-change decision of a CAV on a mainline lane, its step, whether it was near the merge,
     and its own and system effects (lists, one entry per decision)."""
-    env = make_env(
-        ENV,
-        backend="torch",
-        num_envs=args.roads,
-        n_vehicles=args.n_vehicles,
-        cav_ratio=1.0,
-        team_reward=False,  # every CAV's own reward; the system's is their sum
-        **settings,
-    )
+    # every CAV's own reward; the system's is their sum
+    env = evaluation_env(args.roads, args.n_vehicles, {**settings, "team_reward": False})
     env.set_seed(EVAL_SEED_OFFSET + seed)
     env.reset()
     sim = env.sim
