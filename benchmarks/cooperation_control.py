@@ -20,6 +20,10 @@ openai/maddpg schedule (``mapets_rl.recipes.maddpg.OPENAI_MADDPG``), the team re
 - ``individual``: the credit question, once a learner can find the merge: every CAV is paid
   its own reward (``team_reward=false``, the Shapley paper's MADDPG baseline) instead of the
   team's;
+- ``shared``: one critic network shared by all CAVs instead of one per CAV (MADDPG's default
+  until 2026-11-27, which gives every CAV the same Q, the mean of their returns: under the
+  individual reward the team's value). The MADDPG rows measured before then were trained this
+  way: their variants with ``_shared`` reproduce them;
 - ``shapley``: the Shapley actor-critic (the paper's method) instead of MADDPG, with the same
   schedule, networks and changes (:data:`SHAPLEY_SCHEDULE`), paid the individual rewards that
   it reallocates by Shapley value;
@@ -89,6 +93,7 @@ CHANGES: dict[str, list[str]] = {
     "gamma99": ["gamma=0.99", "n_steps=5"],
     "w1": ["env_config.velocity_weight=1.0"],
     "individual": ["env_config.team_reward=false"],
+    "shared": ["critic_share_params=true"],
 }
 """The controlled changes of MADDPG, as config overrides."""
 RECIPES = {"maddpg": "maddpg", "shapley": "shapley_ac", "mappo": "mappo"}

@@ -55,6 +55,8 @@ def test_variants_are_one_change_at_a_time(control: ModuleType) -> None:
     _, selfish = control.variant_overrides("maddpg_w1_individual", args)
     assert sorted(set(selfish) - set(weighted)) == ["env_config.team_reward=false"]
     assert "env_config.team_reward=true" not in selfish
+    _, shared = control.variant_overrides("maddpg_w1_individual_shared", args)
+    assert sorted(set(shared) - set(selfish)) == ["critic_share_params=true"]
     recipe, shapley = control.variant_overrides("shapley_w1", args)
     assert recipe == "shapley_ac"  # the same schedule, paid the rewards it reallocates
     assert sorted(set(shapley) - set(selfish)) == sorted(control.SHAPLEY_SCHEDULE)
