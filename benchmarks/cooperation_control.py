@@ -281,6 +281,13 @@ def score(
     return out
 
 
+def cooperative_rule(n_vehicles: int) -> CooperativeMerge:
+    """The cooperative merge rule of ``freeway_headroom.py`` on a road of ``n_vehicles``
+    vehicles, with the settings of every scripted row here."""
+    lanes = int(FreewayMergeEnv.resolved_config({"n_vehicles": n_vehicles})["lanes"])
+    return CooperativeMerge(lanes, float("inf"), 60.0, 30.0, 15.0, 15.0, 1.5, torch.int64)
+
+
 def scripted(seed: int, settings: dict[str, Any], args: argparse.Namespace) -> dict[str, dict]:
     """Keep lane and the cooperative merge rule on the evaluation roads of ``seed``, cached in
     ``<out>/evals/``."""
@@ -291,8 +298,7 @@ def scripted(seed: int, settings: dict[str, Any], args: argparse.Namespace) -> d
         cached = json.loads(path.read_text())
         if all(key in cached["keep lane"] for key in BEHAVIOUR):
             return cached
-    lanes = int(FreewayMergeEnv.resolved_config({"n_vehicles": args.n_vehicles})["lanes"])
-    rule = CooperativeMerge(lanes, float("inf"), 60.0, 30.0, 15.0, 15.0, 1.5, torch.int64)
+    rule = cooperative_rule(args.n_vehicles)
     result = {
         "keep lane": score(ScriptedCAVPolicy, settings, seed, args),
         "cooperative merge": score(lambda env: rule, settings, seed, args),

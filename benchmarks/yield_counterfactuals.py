@@ -52,18 +52,17 @@ import torch
 from cooperation_control import (
     EVAL_SEED_OFFSET,
     cav_lanes,
+    cooperative_rule,
     env_settings,
     evaluation_env,
     near_merge,
     on_mainline,
     variant_overrides,
 )
-from freeway_headroom import CooperativeMerge
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 
 from mapets_rl.app.plugins import load_recipe
-from mapets_rl.envs import FreewayMergeEnv
 from mapets_rl.envs.freeway import CL, CR, KL
 from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway
 from mapets_rl.experiment import atomic_write_text, latest_checkpoint
@@ -161,16 +160,13 @@ def counterfactuals(
                 keeping = torch.zeros_like(first, dtype=torch.bool)
                 keeping[kept, cav] = True
             returns, metres, y = returns_per_cav(copies, first, decide, args.gamma, keeping)
-            own_base = torch.searchsorted(bases, road)
-            base, instead = returns[own_base], returns[kept]  # [K, I]
+            own_base = torch.searchsorted(bases, road)  # [K]: each decision's own road copy
             out["moved"] += (y[own_base] != y[kept]).any(-1).tolist()
             out["step"] += [step] * road.numel()
             out["near"] += near_merge(sim, x)[road, cav].tolist()
-            each = torch.arange(road.numel())
-            out["own"] += (base[each, cav] - instead[each, cav]).tolist()
-            own_metres = metres[own_base][each, cav] - metres[kept][each, cav]
-            out["own_metres"] += own_metres.tolist()
-            out["system"] += (base.sum(-1) - instead.sum(-1)).tolist()
+            out["own"] += (returns[own_base, cav] - returns[kept, cav]).tolist()
+            out["own_metres"] += (metres[own_base, cav] - metres[kept, cav]).tolist()
+            out["system"] += (returns[own_base].sum(-1) - returns[kept].sum(-1)).tolist()
         observation = sim.step(action).observation
     env.close()
     return out
@@ -194,9 +190,7 @@ def run_dir_of(variant: str, seed: int, args: argparse.Namespace) -> Path:
 def run_policy(variant: str, seed: int, args: argparse.Namespace) -> tuple[Decide, dict, Callable]:
     """The greedy decisions of ``variant`` at ``seed``, its scenario settings and a closer."""
     if variant == RULE:
-        lanes = int(FreewayMergeEnv.resolved_config({"n_vehicles": args.n_vehicles})["lanes"])
-        rule = CooperativeMerge(lanes, float("inf"), 60.0, 30.0, 15.0, 15.0, 1.5, torch.int64)
-        return deciding(rule), RULE_SETTINGS, lambda: None
+        return deciding(cooperative_rule(args.n_vehicles)), RULE_SETTINGS, lambda: None
     recipe = recipe_of(variant, args)
     exp = load_recipe(recipe).from_run_dir(run_dir_of(variant, seed, args))
     return deciding(exp.eval_policy), env_settings(variant), exp.close
