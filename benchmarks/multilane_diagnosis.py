@@ -56,6 +56,7 @@ import json
 import platform
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -396,12 +397,14 @@ def drive(
     *,
     record: torch.Tensor | None = None,
     actions: list[torch.Tensor] | None = None,
+    wrap: Callable[[TensorDictModuleBase], TensorDictModuleBase] | None = None,
     **cem: Any,
 ) -> tuple[dict, dict]:
     """One episode: its row, and its trace: ``speeds`` ``[T + 1, I]`` (each CAV's observed own
     speed after each step, NaN once it no longer drives), ``schedules`` (per decision with
     known neighbour speeds: ``(step, schedule [I, H, S], senders [I, K])``) and ``obs_dim``.
-    ``actions``: play these instead of deciding (:class:`ActionReplay`)."""
+    ``actions``: play these instead of deciding (:class:`ActionReplay`); ``wrap``: drive
+    ``wrap(policy)`` instead (e.g. a rule of ``benchmarks/planner_rules.py``)."""
     env = make_env(scenario, seed=seed, horizon=horizon, **(env_config or {}))
     if name.endswith("shared"):  # the step's communication graph, for the broadcasts
         env = env.append_transform(CommunicationRange(comm_range))
@@ -410,6 +413,8 @@ def drive(
         policy = ActionReplay(actions)
     else:
         policy = make_policy(name, env, seed, reward, run, run_overrides, record=record, **cem)
+    if wrap is not None:
+        policy = wrap(policy)
     if hasattr(policy, "reset"):
         policy.reset()
     td = env.reset()
