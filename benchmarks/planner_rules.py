@@ -17,11 +17,16 @@ time and driven over the same seeds as the frontier (``benchmarks/safety_agility
   index goes first) plans as if the crossing were free, provided that CAV can still stop
   before the conflict zone (``crossing_gap``) braking at ``ACC_MIN``; the other one still sees
   it and yields;
-- ``brake``: *inside the margin, brake*. A CAV whose gap ahead is inside its margin
-  (``collision_gap + headway * v``) while it is faster than its leader takes target speed 0
-  and keeps its lane, whatever the planner chose. There every plan is predicted to crash at
-  its first step, so the planner's choice is arbitrary (traces: it accelerates and requests
-  lane changes into the other lane from there).
+- ``brake``: *inside the margin, brake*. A CAV whose gap ahead already fails the planner's
+  gap test (below ``collision_gap``, or below ``collision_gap + headway * v`` while it is
+  faster than its leader) takes target speed 0 and keeps its lane, whatever the planner chose.
+  There every plan is predicted to crash at its first step, so the planner's choice is
+  arbitrary (traces: from there it accelerates into its leader and starts lane changes into
+  gaps of 0-2 m);
+- ``recover``: the same CAVs plan with their gap ahead raised by what puts it just outside
+  the test for every action at the first step (``RECOVER_SLACK`` beyond the margin and the
+  step's closing): the planner chooses again, among plans that do not close the gap further
+  than the first step must, instead of braking to a stop.
 
 Rows are appended to ``OUT/rows.jsonl`` as episodes finish and a stopped run resumes; the
 table (means with 95% percentile-bootstrap intervals over seeds, crash classes per episode)
@@ -54,18 +59,22 @@ from mapets_rl.envs.figure_eight import (
     TWO_LANE_OBS_DIM,
     FigureEightPlannerReward,
 )
-from mapets_rl.envs.vehicles import ACC_MIN
+from mapets_rl.envs.vehicles import ACC_MAX, ACC_MIN
 from mapets_rl.experiment import atomic_write_text
 from mapets_rl.statistics import bootstrap_interval
 
-RULES = ("none", "occupy", "crossing-order", "brake")
+RULES = ("none", "occupy", "crossing-order", "brake", "recover")
 OBS_KEY = ("agents", "observation")
 ACTION_KEY = ("agents", "action")
 NEIGHBOUR_KEY = ("agents", "info", "neighbour_cav")
 LINKS_KEY = ("agents", "neighbors")
+DT = 0.1
+"""The figure-eight's step [s]."""
 LEADER, CONFLICT, OTHER_LEADER = 0, 2, 3
 """Slots of ``info["neighbour_cav"]`` on two lanes: leader, follower, conflicting vehicle,
 other-lane leader, other-lane follower."""
+RECOVER_SLACK = 0.1
+"""Metres ``recover`` adds beyond the gap test's margin and one step's closing [m]."""
 STOP_MARGIN = 1.0
 """Metres a yielding CAV must have to spare, beyond its braking distance, for the other to go
 first [m]."""
@@ -127,10 +136,25 @@ def crossing_order(
 
 
 def inside_margin(obs: torch.Tensor, reward: FigureEightPlannerReward) -> torch.Tensor:
-    """Rule ``brake``'s test, ``[I]`` bool: gap ahead inside ``collision_gap + headway * v``
-    while faster than the leader."""
-    margin = reward.collision_gap + reward.headway * obs[..., 0]
-    return (obs[..., 5] < margin) & (obs[..., 0] > obs[..., 3])
+    """Rule ``brake``'s test, ``[I]`` bool: the gap ahead below ``collision_gap``, or below
+    ``collision_gap + headway * v`` while faster than the leader (the planner's gap test on
+    the current state)."""
+    gap, speed = obs[..., 5], obs[..., 0]
+    margin = reward.collision_gap + reward.headway * speed
+    return (gap < reward.collision_gap) | ((gap < margin) & (speed > obs[..., 3]))
+
+
+def recover_gap(obs: torch.Tensor, reward: FigureEightPlannerReward, dt: float) -> torch.Tensor:
+    """Rule ``recover``: ``obs [I, S]`` with the gap ahead of the CAVs inside the margin
+    raised to the margin at the highest speed of the next step, plus one step of closing at
+    the current speeds and ``RECOVER_SLACK``."""
+    speed, gap = obs[..., 0], obs[..., 5]
+    reach = reward.collision_gap + reward.headway * (speed + ACC_MAX * dt)
+    closing = (speed - obs[..., 3]).clamp_min(0.0) * dt
+    out = obs.clone()
+    lifted = torch.maximum(gap, reach + closing + RECOVER_SLACK)
+    out[..., 5] = torch.where(inside_margin(obs, reward), lifted, gap)
+    return out
 
 
 class RulePolicy(TensorDictModuleBase):
@@ -175,6 +199,11 @@ class RulePolicy(TensorDictModuleBase):
             return tensordict.set(ACTION_KEY, action)
         if self.rule == "none":
             return self.policy(tensordict)
+        if self.rule == "recover":
+            lifted = inside_margin(obs, self.reward)
+            self.applied += int(lifted.sum())
+            view = tensordict.clone(False).set(OBS_KEY, recover_gap(obs, self.reward, DT))
+            return tensordict.set(ACTION_KEY, self.policy(view).get(ACTION_KEY))
         neighbour = tensordict.get(NEIGHBOUR_KEY)
         links = tensordict.get(LINKS_KEY, None)
         if self.rule == "occupy":

@@ -89,13 +89,13 @@ def test_brake_inside_the_margin_while_closing(rules: ModuleType) -> None:
     obs = two_lane_obs(
         [
             {"v": 5.0, "v_ahead": 0.0, "gap": 1.5},  # inside 2 m, closing
-            {"v": 0.0, "v_ahead": 0.0, "gap": 1.5},  # inside, standing: nothing to do
+            {"v": 1.0, "v_ahead": 3.0, "gap": 1.5},  # inside 2 m, opening: still every plan
             {"v": 6.0, "v_ahead": 3.0, "gap": 4.0},  # inside 2 + 0.5 * 6 = 5 m, closing
-            {"v": 6.0, "v_ahead": 3.0, "gap": 6.0},  # outside
+            {"v": 6.0, "v_ahead": 7.0, "gap": 4.0},  # inside 5 m, opening: free
         ]
     )
     reward = FigureEightPlannerReward(headway=0.5)
-    assert rules.inside_margin(obs, reward).tolist() == [True, False, True, False]
+    assert rules.inside_margin(obs, reward).tolist() == [True, True, True, False]
 
     class Forward(TensorDictModuleBase):
         in_keys, out_keys = [("agents", "observation")], [("agents", "action")]
@@ -105,8 +105,8 @@ def test_brake_inside_the_margin_while_closing(rules: ModuleType) -> None:
 
     policy = rules.RulePolicy(Forward(), "brake", reward)
     action = policy(TensorDict({"agents": {"observation": obs}}))["agents", "action"]
-    assert action.tolist() == [[0.0, 0.0], [13.0, 1.0], [0.0, 0.0], [13.0, 1.0]]
-    assert policy.applied == 2
+    assert action.tolist() == [[0.0, 0.0], [0.0, 0.0], [0.0, 0.0], [13.0, 1.0]]
+    assert policy.applied == 3
     with pytest.raises(ValueError, match="rule must be one of"):
         rules.RulePolicy(Forward(), "yield", reward)
 
@@ -125,3 +125,31 @@ def test_tiny_run_resumes_and_refuses_bad_input(rules: ModuleType, tmp_path: Pat
         with pytest.raises(SystemExit):
             rules.main([*argv, *bad])
     assert len((tmp_path / "rows.jsonl").read_text().splitlines()) == 2
+
+
+def test_recover_lifts_the_gap_just_outside_the_test_for_every_first_action(
+    rules: ModuleType,
+) -> None:
+    """After ``recover``, neither braking nor full throttle is predicted to crash at the first
+    step (the exact own-motion model), so the planner can choose; a CAV outside its margin
+    plans with its observation as it is."""
+    from mapets_rl.envs.figure_eight_kinematics import FigureEightKinematicModel
+
+    obs = two_lane_obs(
+        [
+            {"v": 5.0, "v_ahead": 0.0, "gap": 1.5},
+            {"v": 8.0, "v_ahead": 6.0, "gap": 4.0},
+            {"v": 8.0, "v_ahead": 8.0, "gap": 30.0},
+        ]
+    )
+    reward = FigureEightPlannerReward(headway=0.5)
+    lifted = rules.recover_gap(obs, reward, dt=0.1)
+    assert lifted[0, 5] > obs[0, 5] and lifted[1, 5] > obs[1, 5]
+    torch.testing.assert_close(lifted[2], obs[2])
+    torch.testing.assert_close(lifted[:, [0, 1, 2, 3, 4, 6]], obs[:, [0, 1, 2, 3, 4, 6]])
+    model = FigureEightKinematicModel(n_agents=3, obs_dim=15, action_dim=2)
+    for target in (0.0, 13.89):
+        action = torch.tensor([[target, 0.0]]).expand(3, 2)
+        before = reward.collision(obs, action, obs + model.predict(obs, action)[0])
+        after = reward.collision(lifted, action, lifted + model.predict(lifted, action)[0])
+        assert before[:2].all() and not after.any()
