@@ -43,7 +43,7 @@ from typing import Any, ClassVar
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictSequential
+from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.objectives import LossModule
 
 from mapets_rl.comm import CommConfig, CommunicationRange, NeighbourDatasets, clique_cover_number
@@ -471,6 +471,15 @@ class MAPETS(Experiment):
             else None
         )
         decide = self.planner if self.plan_sharing is None else self.plan_sharing
+        fallback = None if config.planner_reward is None else config.planner_reward.fallback
+        if fallback is not None:  # the scenario overrules the plan where no plan can tell
+            action_key = self.planner.out_keys[0]
+            decide = TensorDictSequential(
+                decide,
+                TensorDictModule(
+                    fallback, in_keys=[self.planner.in_keys[0], action_key], out_keys=[action_key]
+                ),
+            )
         self.policy = (
             decide
             if self.action_coder is None

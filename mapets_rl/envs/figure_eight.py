@@ -646,6 +646,14 @@ class FigureEightPlannerReward(PlannerReward):
         collision_reward: the reward ``beta`` of a predicted collision (paper eq. 26: -10;
             <= 0). A predicted collision also ends the particle's trajectory (no reward after
             it, :attr:`termination_fn`), so the paper's -10 suffices.
+        brake_when_lost: a CAV whose gap ahead already fails the gap test (:meth:`lost`)
+            brakes (target speed 0) and keeps its lane instead of the planner's action
+            (:attr:`fallback`; default off, the paper's planner). From there every plan is
+            predicted to crash at its first step (that step's closing does not depend on the
+            action), so all plans score alike and the planner's choice is arbitrary; on two
+            lanes such choices (accelerating into the leader, changing lanes into 0-2 m gaps)
+            were most of the lane-change crashes below the 0.5 s headway
+            (``benchmarks/planner_rules.py``, ``docs/results/mapets.md``).
     """
 
     collision_gap: float = dataclasses.field(default=2.0, metadata={"unit": "m"})
@@ -654,6 +662,7 @@ class FigureEightPlannerReward(PlannerReward):
     lane_change_gap: float = dataclasses.field(default=8.0, metadata={"unit": "m"})
     lane_change_time: float = dataclasses.field(default=1.0, metadata={"unit": "s"})
     collision_reward: float = COLLISION_REWARD
+    brake_when_lost: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -712,3 +721,21 @@ class FigureEightPlannerReward(PlannerReward):
     ) -> Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]:
         """:meth:`collision`: a predicted crash ends the particle's trajectory."""
         return self.collision
+
+    def lost(self, obs: torch.Tensor) -> torch.Tensor:
+        """``[...]`` bool: the gap ahead of ``obs [..., S]`` already fails the gap test of
+        :meth:`collision` (below ``collision_gap``, or below ``collision_gap + headway * v``
+        while faster than the leader): every plan is predicted to crash at its first step."""
+        gap, speed = obs[..., 5], obs[..., 0]
+        inside = gap < self.collision_gap + self.headway * speed
+        return (gap < self.collision_gap) | (inside & (speed > obs[..., 3]))
+
+    def brake_if_lost(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """``action [..., A]`` with the rows of :meth:`lost` CAVs set to 0: target speed 0 and,
+        on two lanes, no lane-change request."""
+        return torch.where(self.lost(obs).unsqueeze(-1), torch.zeros_like(action), action)
+
+    @property
+    def fallback(self) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None:
+        """:meth:`brake_if_lost` with ``brake_when_lost``, else ``None``."""
+        return self.brake_if_lost if self.brake_when_lost else None

@@ -39,3 +39,11 @@ class PlannerReward(ConfigSection):
         """``(obs, action, next_obs) -> done [...]`` bool, a predicted termination that ends a
         planned trajectory; ``None``: trajectories never terminate."""
         return None
+
+    @property
+    def fallback(self) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None:
+        """``(obs [..., S], action [..., A]) -> action [..., A]``: the planner's chosen action
+        replaced where the scenario knows the plans cannot tell their actions apart (e.g.
+        every plan is predicted to crash at its first step); ``None``: the planner's action
+        stands."""
+        return None

@@ -8,6 +8,7 @@ import torch
 
 from mapets_rl.envs import FigureEightPlannerReward, figure_eight_observation_bounds, make_env
 from mapets_rl.envs.figure_eight import TWO_LANE_OBS_DIM, FigureEightEnv, neighbour_speed_columns
+from mapets_rl.envs.figure_eight_kinematics import FigureEightKinematicModel
 from tests.envs.test_envs import place
 
 #: The fixed margins (no time headway, no closing-speed share) these tests were written with.
@@ -176,3 +177,30 @@ def test_neighbour_cav_names_the_cav_whose_speed_is_observed(name: str, slots: i
         torch.testing.assert_close(obs[t, i, column], obs[t, j, 0])
         checked += len(t)
     assert checked > 0 and (named >= -1).all()
+
+
+def test_brake_when_lost_overrules_the_plan_only_where_every_plan_crashes_at_once() -> None:
+    """``lost``: the gap test already failed (below 2 m, or inside the headway margin while
+    closing); ``fallback`` brakes those CAVs and keeps their lane, the others' actions stand;
+    off by default (the paper's planner)."""
+    obs = torch.zeros(4, 15)
+    obs[:, [6, 7, 8, 13, 14]] = 75.0  # nobody behind, at the crossing or in the other lane
+    obs[:, [0, 3, 5]] = torch.tensor(
+        [
+            [5.0, 0.0, 1.5],  # 1.5 m behind a stopped leader
+            [1.0, 3.0, 1.5],  # below 2 m, the leader pulling away: still every plan
+            [6.0, 3.0, 4.0],  # inside 2 + 0.5 * 6 = 5 m, closing
+            [6.0, 7.0, 4.0],  # inside 5 m, opening: free
+        ]
+    )
+    reward = FigureEightPlannerReward(headway=0.5, brake_when_lost=True)
+    assert reward.lost(obs).tolist() == [True, True, True, False]
+    action = torch.tensor([[13.0, 1.0]]).expand(4, 2)
+    assert reward.fallback(obs, action).tolist() == [[0.0, 0.0]] * 3 + [[13.0, 1.0]]
+    assert FigureEightPlannerReward().fallback is None
+    # every first step of the exact own-motion model is a predicted crash for the lost CAVs
+    model = FigureEightKinematicModel(n_agents=4, obs_dim=15, action_dim=2)
+    for target in (0.0, 13.89):
+        step = torch.tensor([[target, 0.0]]).expand(4, 2)
+        crash = reward.collision(obs, step, obs + model.predict(obs, step)[0])
+        assert crash.tolist() == [True, True, True, False]

@@ -438,3 +438,27 @@ def test_old_flat_planner_reward_keys_load_into_the_section(tmp_path):
         "env: freeway\nheadway: 0.5\nreward_fn: tests.recipes.test_recipe_mapets:speed_reward\n"
     )
     assert MAPETSConfig.from_yaml(freeway).planner_reward is None
+
+
+def test_brake_when_lost_overrules_the_planner_in_the_recipes_policy(tmp_path):
+    """``planner_reward.brake_when_lost=true``: the CAV 1.5 m behind a stopped leader brakes
+    whatever the planner chose (its last module turns a full-throttle action into 0 there);
+    the others keep the planner's actions (the same generator state gives the same plan)."""
+    config = tiny(seed=0).with_overrides(["planner_reward.brake_when_lost=true"])
+    exp = MAPETS(config, tmp_path / "run")
+    plain = MAPETS(tiny(seed=0), tmp_path / "plain")
+    td = exp.env.reset()
+    obs = td["agents", "observation"].clone()
+    obs[0, [0, 3, 5]] = torch.tensor([5.0, 0.0, 1.5])
+    td["agents", "observation"] = obs
+    for e in (exp, plain):
+        e.plan_generator.manual_seed(1)
+    action = exp.policy(td.clone())["agents", "action"]
+    reference = plain.policy(td.clone())["agents", "action"]
+    assert action[0].tolist() == [0.0]
+    torch.testing.assert_close(action[1:], reference[1:])
+    throttle = td.clone().set(("agents", "action"), torch.full_like(reference, 13.0))
+    overruled = exp.policy.module[-1](throttle)["agents", "action"]
+    assert overruled[0].tolist() == [0.0] and (overruled[1:] == 13.0).all()
+    exp.close()
+    plain.close()
