@@ -19,7 +19,8 @@ time and driven over the same seeds as the frontier (``benchmarks/safety_agility
   it and yields;
 - ``brake``: *inside the margin, brake*. A CAV whose gap ahead already fails the planner's
   gap test (below ``collision_gap``, or below ``collision_gap + headway * v`` while it is
-  faster than its leader) takes target speed 0 and keeps its lane, whatever the planner chose.
+  faster than its leader: ``FigureEightPlannerReward.lost``) takes target speed 0 and keeps its
+  lane, whatever the planner chose (MA-PETS' ``planner_reward.brake_when_lost``).
   There every plan is predicted to crash at its first step, so the planner's choice is
   arbitrary (traces: from there it accelerates into its leader and starts lane changes into
   gaps of 0-2 m);
@@ -135,15 +136,6 @@ def crossing_order(
     return out, slots, go
 
 
-def inside_margin(obs: torch.Tensor, reward: FigureEightPlannerReward) -> torch.Tensor:
-    """Rule ``brake``'s test, ``[I]`` bool: the gap ahead below ``collision_gap``, or below
-    ``collision_gap + headway * v`` while faster than the leader (the planner's gap test on
-    the current state)."""
-    gap, speed = obs[..., 5], obs[..., 0]
-    margin = reward.collision_gap + reward.headway * speed
-    return (gap < reward.collision_gap) | ((gap < margin) & (speed > obs[..., 3]))
-
-
 def recover_gap(obs: torch.Tensor, reward: FigureEightPlannerReward, dt: float) -> torch.Tensor:
     """Rule ``recover``: ``obs [I, S]`` with the gap ahead of the CAVs inside the margin
     raised to the margin at the highest speed of the next step, plus one step of closing at
@@ -153,7 +145,7 @@ def recover_gap(obs: torch.Tensor, reward: FigureEightPlannerReward, dt: float) 
     closing = (speed - obs[..., 3]).clamp_min(0.0) * dt
     out = obs.clone()
     lifted = torch.maximum(gap, reach + closing + RECOVER_SLACK)
-    out[..., 5] = torch.where(inside_margin(obs, reward), lifted, gap)
+    out[..., 5] = torch.where(reward.lost(obs), lifted, gap)
     return out
 
 
@@ -192,16 +184,14 @@ class RulePolicy(TensorDictModuleBase):
         obs = tensordict.get(OBS_KEY)
         if self.rule == "brake":
             tensordict = self.policy(tensordict)
-            stop = inside_margin(obs, self.reward)
-            action = tensordict.get(ACTION_KEY).clone()
-            action[stop] = 0.0
-            self.applied += int(stop.sum())
-            return tensordict.set(ACTION_KEY, action)
+            self.applied += int(self.reward.lost(obs).sum())
+            return tensordict.set(
+                ACTION_KEY, self.reward.brake_if_lost(obs, tensordict.get(ACTION_KEY))
+            )
         if self.rule == "none":
             return self.policy(tensordict)
         if self.rule == "recover":
-            lifted = inside_margin(obs, self.reward)
-            self.applied += int(lifted.sum())
+            self.applied += int(self.reward.lost(obs).sum())
             view = tensordict.clone(False).set(OBS_KEY, recover_gap(obs, self.reward, DT))
             return tensordict.set(ACTION_KEY, self.policy(view).get(ACTION_KEY))
         neighbour = tensordict.get(NEIGHBOUR_KEY)

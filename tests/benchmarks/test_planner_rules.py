@@ -95,7 +95,7 @@ def test_brake_inside_the_margin_while_closing(rules: ModuleType) -> None:
         ]
     )
     reward = FigureEightPlannerReward(headway=0.5)
-    assert rules.inside_margin(obs, reward).tolist() == [True, True, True, False]
+    assert reward.lost(obs).tolist() == [True, True, True, False]
 
     class Forward(TensorDictModuleBase):
         in_keys, out_keys = [("agents", "observation")], [("agents", "action")]
