@@ -52,6 +52,7 @@ from safety_agility_frontier import load_rows
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from mapets_rl.comm.plans import linked_senders
 from mapets_rl.config import ConfigError, parse_override
 from mapets_rl.envs import make_env
 from mapets_rl.envs.figure_eight import (
@@ -82,14 +83,12 @@ first [m]."""
 
 
 def linked_sender(neighbour: torch.Tensor, links: torch.Tensor | None, slot: int):
-    """``(sender [I], heard [I])``: the agent index in ``slot`` of every CAV (0 where none) and
-    whether it is a CAV linked to it (``links`` None: nobody is)."""
-    sender = neighbour[..., slot].round().long()
-    index = sender.clamp_min(0)
+    """``(sender [I], heard [I])`` of ``slot`` (:func:`~mapets_rl.comm.plans.linked_senders`;
+    ``links`` None: nobody is heard)."""
     if links is None:
-        return index, torch.zeros_like(sender, dtype=torch.bool)
-    heard = torch.gather(links.to(torch.bool), -1, index.unsqueeze(-1)).squeeze(-1)
-    return index, heard & (sender >= 0)
+        links = torch.zeros(*neighbour.shape[:-1], neighbour.shape[-2], dtype=torch.bool)
+    index, heard = linked_senders(neighbour, links.to(torch.bool))
+    return index[..., slot], heard[..., slot]
 
 
 def occupy_both_lanes(
@@ -280,14 +279,16 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error(f"--comm-range must be >= 0 metres, got {args.comm_range}")
     try:
         env_config = dict(map(parse_override, args.env))
-        make_env(SCENARIO, **env_config).close()
+        env = make_env(SCENARIO, **env_config)
+        obs_dim = env.observation_spec[OBS_KEY].shape[-1]
+        env.close()
         reward_fields = dict(map(parse_override, args.reward))
         if "headway" in reward_fields:
             raise ConfigError("headway is the grid's: give it as --headway")
         rewards = {h: FigureEightPlannerReward(**reward_fields, headway=h) for h in args.headway}
     except (ConfigError, ValueError, TypeError) as err:
         parser.error(str(err))
-    if make_env(SCENARIO, **env_config).observation_spec[OBS_KEY].shape[-1] != TWO_LANE_OBS_DIM:
+    if obs_dim != TWO_LANE_OBS_DIM:
         parser.error("the rules read the two-lane observation (observation=crossing)")
     torch.set_num_threads(1)
     print(

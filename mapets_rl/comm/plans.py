@@ -14,7 +14,26 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["plan_schedule"]
+__all__ = ["linked_senders", "plan_schedule"]
+
+
+def linked_senders(
+    neighbour_cav: torch.Tensor, links: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which CAV each observed vehicle slot holds, and whether the receiver hears it.
+
+    Args:
+        neighbour_cav: ``[*, I, K]`` the agent index of the CAV in each slot (``-1``: a human
+            driver or nobody; floats are rounded).
+        links: ``[*, I, I]`` bool, who hears whom this step.
+
+    Returns:
+        ``(index [*, I, K], heard [*, I, K])``: the slot's agent index (0 where there is no
+        CAV) and whether it is a CAV linked to the receiver.
+    """
+    sender = neighbour_cav.round().long()
+    index = sender.clamp_min(0)
+    return index, torch.gather(links, -1, index) & (sender >= 0)
 
 
 def plan_schedule(
@@ -49,14 +68,11 @@ def plan_schedule(
             f"neighbour_cav has {neighbour_cav.shape[-1]} slots but {len(columns)} columns "
             f"were given ({columns})"
         )
-    sender = neighbour_cav.round().long()  # [*, I, K]
-    valid = sender >= 0
-    index = sender.clamp_min(0)
-    heard = torch.gather(links, -1, index) & valid  # [*, I, K]
+    index, heard = linked_senders(neighbour_cav, links)  # [*, I, K]
     # the broadcast of step k + 1 onwards: the receiver's step t reads the sender's k = t + 1
     later = torch.cat([plans[..., 1:], plans[..., -1:]], dim=-1)  # [*, I, H]
     speeds = torch.gather(
-        later.unsqueeze(-3).expand(*later.shape[:-2], sender.shape[-2], *later.shape[-2:]),
+        later.unsqueeze(-3).expand(*later.shape[:-2], index.shape[-2], *later.shape[-2:]),
         -2,
         index.unsqueeze(-1).expand(*index.shape, horizon),
     )  # [*, I (receiver), K, H]

@@ -688,9 +688,7 @@ class FigureEightPlannerReward(PlannerReward):
             ``[...]`` bool.
         """
         gap = next_obs[..., 5]
-        collided = (gap < self.collision_gap) | (
-            (gap < self.collision_gap + self.headway * next_obs[..., 0]) & (gap < obs[..., 5])
-        )
+        collided = self.gap_fails(gap, next_obs[..., 0], gap < obs[..., 5])
         if next_obs.shape[-1] in (CROSSING_OBS_DIM, TWO_LANE_OBS_DIM):
             near = next_obs[..., 7:9]
             inside = (near < self.crossing_gap) & (near > -CROSSING_CLEAR)
@@ -722,13 +720,19 @@ class FigureEightPlannerReward(PlannerReward):
         """:meth:`collision`: a predicted crash ends the particle's trajectory."""
         return self.collision
 
+    def gap_fails(
+        self, gap: torch.Tensor, speed: torch.Tensor, closing: torch.Tensor
+    ) -> torch.Tensor:
+        """The gap test of :meth:`collision`, ``[...]`` bool: ``gap`` ahead below
+        ``collision_gap``, or below ``collision_gap + headway * speed`` while ``closing``."""
+        margin = self.collision_gap + self.headway * speed
+        return (gap < self.collision_gap) | ((gap < margin) & closing)
+
     def lost(self, obs: torch.Tensor) -> torch.Tensor:
-        """``[...]`` bool: the gap ahead of ``obs [..., S]`` already fails the gap test of
-        :meth:`collision` (below ``collision_gap``, or below ``collision_gap + headway * v``
-        while faster than the leader): every plan is predicted to crash at its first step."""
-        gap, speed = obs[..., 5], obs[..., 0]
-        inside = gap < self.collision_gap + self.headway * speed
-        return (gap < self.collision_gap) | (inside & (speed > obs[..., 3]))
+        """``[...]`` bool: the gap ahead of ``obs [..., S]`` already fails the gap test
+        (:meth:`gap_fails`, closing: faster than the leader): every plan is predicted to crash
+        at its first step."""
+        return self.gap_fails(obs[..., 5], obs[..., 0], obs[..., 0] > obs[..., 3])
 
     def brake_if_lost(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """``action [..., A]`` with the rows of :meth:`lost` CAVs set to 0: target speed 0 and,
