@@ -94,3 +94,60 @@ def test_model_free_recipes_train_on_the_gpu_freeway(tmp_path, recipe, sizes):
     exp.train()
     assert any(not torch.equal(before[k], p) for k, p in exp.loss.named_parameters())
     assert exp.evaluate(episodes=1)["length"] > 0
+
+
+def test_mapets_shares_plans_and_brakes_when_lost_on_cuda(tmp_path):
+    """Plan sharing (``comm.share_plans``) and the lost-state brake
+    (``planner_reward.brake_when_lost``) with the CUDA-graph planner: two episodes train and the
+    run evaluates."""
+    config = tiny(
+        episodes=2,
+        device="cuda",
+        planner={"cuda_graph": True},
+        comm={"comm_range": 100.0, "share_plans": True},
+    ).with_overrides(["planner_reward.brake_when_lost=true"])
+    exp = MAPETS(config, tmp_path / "run")
+    entries = exp.train()
+    assert entries[-1]["metrics"]["episode"] == 2.0
+    assert 0.0 <= exp.evaluate(episodes=1)["safety"] <= 1.0
+    exp.close()
+
+
+@pytest.mark.parametrize(
+    ("recipe", "overrides"),
+    [
+        (MADDPG, ["env_config.team_reward=false", "critic_share_params=false"]),
+        (ShapleyAC, ["critic_cells=[64, 64]", "num_permutations=8", "shapley_bf16=true"]),
+    ],
+)
+def test_the_cooperation_control_stack_trains_on_the_gpu_freeway(tmp_path, recipe, overrides):
+    """Issue 32's stack on GPU roads: epsilon exploration without emergency stops, the
+    model-predictive shield, w = 1, individual rewards (MADDPG with one critic per CAV; Shapley
+    AC with its bf16 Shapley estimate): every learned parameter moves and the shield is counted
+    in evaluation."""
+    config = recipe.Config(
+        env="freeway-merge",
+        env_config={"backend": "torch", "num_envs": 8, "device": "cuda", "n_vehicles": 10},
+        total_frames=256,
+        frames_per_batch=64,
+        eval_interval=0,
+        device="cuda",
+        progress=False,
+        batch_size=32,
+        init_random_frames=0,
+    ).with_overrides(
+        [
+            "exploration=epsilon",
+            "exploration_actions=[0, 1, 2]",
+            "env_config.shield=true",
+            "env_config.velocity_weight=1.0",
+            *overrides,
+        ]
+    )
+    exp = recipe(config, tmp_path / "run")
+    before = {k: p.detach().clone() for k, p in exp.loss.named_parameters()}
+    exp.train()
+    assert all(not torch.equal(before[k], p) for k, p in exp.loss.named_parameters())
+    metrics = exp.evaluate(episodes=1)
+    assert metrics["length"] > 0 and "shielded" in metrics
+    exp.close()
