@@ -5,6 +5,11 @@
 # default: all, in that order).
 # Each step has its own time limit and writes OUT_DIR/<step>.log; a failed step does not stop
 # the next. mbrl-lib (the last step) is optional: without it that step prints how to install it.
+# On a lent machine without a package index (the project's wheels carried in .whl/):
+#   python3 -m pip install -q --no-deps --no-index --no-build-isolation --target /tmp/site \
+#       .whl/*.whl . && ln -sfn ../recipes mapets_rl/recipes
+#   PYTHONPATH=/tmp/site:. PATH=/tmp/site/bin:$PATH bash benchmarks/gpu.sh OUT python3
+# (the link: pytest puts the checkout first on the path, where the recipes are not a package).
 set -u
 out=${1:-gpu_results}
 py=${2:-python3}
@@ -29,7 +34,7 @@ step machine 60 bash -c "nvidia-smi --query-gpu=name,driver_version,memory.total
     --format=csv; grep -m1 'model name' /proc/cpuinfo; nproc; $py -c 'import torch; \
     print(torch.__version__, torch.version.cuda, torch.cuda.get_device_name(), \
     torch.backends.cpu.get_cpu_capability())'"
-step tests 200 "$py" -m pytest -q -p no:cacheprovider tests/planning/test_cuda_graph.py tests/recipes/test_cuda_runs.py \
+step tests 260 "$py" -m pytest -q -p no:cacheprovider tests/planning/test_cuda_graph.py tests/recipes/test_cuda_runs.py \
     tests/planning/test_precision.py tests/envs/test_torch_freeway_cuda.py -k "cuda or graph"
 # The batched torch freeway on the GPU: frames/s of 256..65,536 roads beside highway-env and the
 # CPU kernel (issue 30), and the model-free learners with roads, networks and replay on the GPU.
