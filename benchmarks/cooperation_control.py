@@ -27,6 +27,10 @@ openai/maddpg schedule (``mapets_rl.recipes.maddpg.OPENAI_MADDPG``), the team re
 - ``shapley``: the Shapley actor-critic (the paper's method) instead of MADDPG, with the same
   schedule, networks and changes (:data:`SHAPLEY_SCHEDULE`), paid the individual rewards that
   it reallocates by Shapley value;
+- ``uniform`` (Shapley AC): a timestep's coalition drawn with a size uniform over 1..n, then
+  its members (``coalition_sizes=uniform``), instead of every CAV joining with probability 1/2:
+  the critic is trained at every size at which the permutation estimate reads it, the singletons
+  included; ``reg``: the actor's logits penalty of the recipe (0.1) instead of openai's 1e-3;
 - ``mappo``: MAPPO (GAE, gamma 0.99) with the team reward, the on-policy reference, one PPO
   update per 40 steps of every road; ``short``: one per 4 steps (10x the updates).
 
@@ -94,8 +98,10 @@ CHANGES: dict[str, list[str]] = {
     "w1": ["env_config.velocity_weight=1.0"],
     "individual": ["env_config.team_reward=false"],
     "shared": ["critic_share_params=true"],
+    "uniform": ["coalition_sizes=uniform"],
+    "reg": ["logits_reg=0.1"],
 }
-"""The controlled changes of MADDPG, as config overrides."""
+"""The controlled changes, as config overrides (``uniform`` and ``reg`` are Shapley AC's)."""
 RECIPES = {"maddpg": "maddpg", "shapley": "shapley_ac", "mappo": "mappo"}
 """A variant's first word and the recipe it trains."""
 SHAPLEY_SCHEDULE: tuple[str, ...] = (
@@ -111,8 +117,8 @@ and the Shapley estimate that one core affords at 1M frames (4 antithetic pairs 
 minibatch, bf16 autocast: about 0.7 s per update here, against 2.4 s at the recipe's 32
 orderings in fp32)."""
 RECIPE_CHANGES: dict[str, tuple[str, ...]] = {
-    "maddpg": tuple(CHANGES),
-    "shapley": ("epsilon", "shield", "w1"),
+    "maddpg": ("epsilon", "shield", "gamma99", "w1", "individual", "shared"),
+    "shapley": ("epsilon", "shield", "w1", "uniform", "reg"),
     "mappo": ("shield", "short", "w1"),
 }
 """The controlled changes of each recipe (MAPPO's ``short``: ``frames_per_batch`` of 4 steps
