@@ -465,14 +465,17 @@ class MAPETS(Experiment):
             termination_fn=self.termination_fn,
         )
         log.info("planner compute dtype: %s", self.planner.dtype_reason)
+        # the scenario overrules the plan where no plan can tell (a sharing CAV broadcasts it)
+        fallback = None if config.planner_reward is None else config.planner_reward.fallback
         self.plan_sharing = (
-            PlanSharingPlanner(self.planner, neighbour_speed_columns(group.obs_dim))
+            PlanSharingPlanner(
+                self.planner, neighbour_speed_columns(group.obs_dim), fallback=fallback
+            )
             if config.comm.share_plans
             else None
         )
         decide = self.planner if self.plan_sharing is None else self.plan_sharing
-        fallback = None if config.planner_reward is None else config.planner_reward.fallback
-        if fallback is not None:  # the scenario overrules the plan where no plan can tell
+        if fallback is not None and self.plan_sharing is None:
             action_key = self.planner.out_keys[0]
             decide = TensorDictSequential(
                 decide,

@@ -387,7 +387,10 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         return schedule.reshape(-1, n_agents, horizon, obs_dim).transpose(0, 1).float()
 
     def expected_states(
-        self, obs: torch.Tensor, schedule: torch.Tensor | None = None
+        self,
+        obs: torch.Tensor,
+        schedule: torch.Tensor | None = None,
+        sequences: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """The states the last call's optimised sequences lead to through the members' mean
         (no noise; :func:`~mapets_rl.planning.expected_trajectory`): what each agent expects of
@@ -395,6 +398,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
 
         Args:
             obs: ``[*, I, obs]`` the observations of that call; schedule: its schedule.
+            sequences: ``[*, I, H, act]`` action sequences to roll instead of the optimised
+                ones (e.g. :attr:`last_solution` with some agents' actions overruled).
 
         Returns:
             ``[*, I, H, obs]`` (index ``t``: the state after step ``t``).
@@ -404,10 +409,19 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         n_agents, obs_dim = self.model.n_agents, self.model.obs_dim
         obs_p = obs.reshape(-1, n_agents, obs_dim).transpose(0, 1).float()
         known = self._schedule_layout(schedule, obs.shape[:-2])
+        solution = self._solution
+        if sequences is not None:
+            if tuple(sequences.shape) != tuple(self.last_solution.shape):
+                raise ValueError(
+                    f"sequences must be shaped like last_solution "
+                    f"{list(self.last_solution.shape)}, got {list(sequences.shape)}"
+                )
+            solution = sequences.reshape(-1, *solution.shape[:1], *solution.shape[2:])
+            solution = solution.transpose(0, 1).to(self._solution.dtype)
         frozen = getattr(self.model, "frozen_parameters", None)
         with frozen(self.dtype) if frozen is not None else contextlib.nullcontext():
             states = expected_trajectory(
-                self.model, obs_p, self._solution, dtype=self.dtype, schedule=known
+                self.model, obs_p, solution, dtype=self.dtype, schedule=known
             )
         return states.transpose(0, 1).reshape(*obs.shape[:-2], n_agents, -1, obs_dim)
 

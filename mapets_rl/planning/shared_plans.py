@@ -9,6 +9,8 @@ waits for anybody: a plan is received one step after it was made.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -37,6 +39,11 @@ class PlanSharingPlanner(TensorDictModuleBase):
         columns: the ``K`` observation columns that hold the observed vehicles' speeds (in the
             order of ``neighbour_key``'s slots).
         own_column: the column of the agent's own speed (what it broadcasts).
+        fallback: ``(obs [*, I, S], action [*, I, A]) -> action`` that overrules the planner
+            where the scenario says the plans cannot be told apart
+            (:attr:`~mapets_rl.envs.PlannerReward.fallback`); an overruled agent broadcasts what
+            repeating the fallback's action over the horizon leads to, not the plan it did not
+            follow. ``None``: the planner's actions stand.
         neighbors_key / neighbour_key / mask_key: TensorDict keys.
 
     Attributes:
@@ -52,6 +59,7 @@ class PlanSharingPlanner(TensorDictModuleBase):
         columns: tuple[int, ...],
         own_column: int = 0,
         *,
+        fallback: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
         neighbors_key: NestedKey = ("agents", "neighbors"),
         neighbour_key: NestedKey = ("agents", "info", "neighbour_cav"),
         mask_key: NestedKey = ("agents", "mask"),
@@ -66,6 +74,7 @@ class PlanSharingPlanner(TensorDictModuleBase):
         self.planner = planner
         self.columns = tuple(int(c) for c in columns)
         self.own_column = int(own_column)
+        self.fallback = fallback
         self.neighbors_key = neighbors_key
         self.neighbour_key = neighbour_key
         self.mask_key = mask_key
@@ -107,7 +116,16 @@ class PlanSharingPlanner(TensorDictModuleBase):
         )
         is_init = tensordict.get(planner.is_init_key, None)
         action = planner.plan(obs, is_init=is_init, schedule=schedule)
-        states = planner.expected_states(obs, schedule)
+        sequences = None
+        if self.fallback is not None:
+            overruled = self.fallback(obs, action)
+            changed = (overruled != action).any(-1, keepdim=True)  # [*, I, 1]
+            action = overruled
+            if bool(changed.any()):
+                sequences = torch.where(
+                    changed.unsqueeze(-1), action.unsqueeze(-2), planner.last_solution
+                )
+        states = planner.expected_states(obs, schedule, sequences)
         plans = states[..., self.own_column]  # [*, I, H]
         if driving is not None:
             plans = torch.where(driving.unsqueeze(-1), plans, float("nan"))

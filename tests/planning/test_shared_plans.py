@@ -79,3 +79,26 @@ def test_reset_forgets_the_broadcasts() -> None:
 def test_bad_columns_are_refused() -> None:
     with pytest.raises(ValueError, match="columns"):
         PlanSharingPlanner(make_planner(), (3, 40))
+
+
+def test_an_overruled_cav_broadcasts_the_fallbacks_braking() -> None:
+    """A fallback that brakes CAV 1: its action is the fallback's and its broadcast is the
+    expected speeds of braking over the horizon (falling to 0), not the plan it did not
+    follow; CAV 0, not overruled, broadcasts what it broadcasts without the fallback."""
+
+    def brake_cav_1(obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return torch.where(torch.tensor([[False], [True]]), torch.zeros_like(action), action)
+
+    plain = PlanSharingPlanner(make_planner(), neighbour_speed_columns(7))
+    braking = PlanSharingPlanner(make_planner(), neighbour_speed_columns(7), fallback=brake_cav_1)
+    reference = plain(scene(True))["agents", "action"]
+    action = braking(scene(True))["agents", "action"]
+    assert action[1].tolist() == [0.0] and reference[1, 0] > 5.0
+    torch.testing.assert_close(action[0], reference[0])
+    torch.testing.assert_close(braking._plans[0], plain._plans[0])
+    speeds = braking._plans[1]
+    assert (speeds.diff() < 0).all() and speeds[-1] < 1.0 < 5.0 < plain._plans[1].min()
+    obs = scene(True)["agents", "observation"]
+    zeros = torch.zeros(2, 20, 1)
+    with pytest.raises(ValueError, match="sequences must be shaped"):
+        braking.planner.expected_states(obs, None, zeros[:, :5])

@@ -462,3 +462,21 @@ def test_brake_when_lost_overrules_the_planner_in_the_recipes_policy(tmp_path):
     assert overruled[0].tolist() == [0.0] and (overruled[1:] == 13.0).all()
     exp.close()
     plain.close()
+
+
+def test_a_sharing_cav_overruled_by_the_lost_brake_broadcasts_it(tmp_path):
+    """With ``comm.share_plans`` the lost-state brake runs inside the plan-sharing planner
+    (so that the broadcast plan is the braking one, ``tests/planning/test_shared_plans.py``):
+    the CAV 1.5 m behind a stopped leader brakes."""
+    config = tiny(seed=0, comm={"comm_range": 100.0, "share_plans": True}).with_overrides(
+        ["planner_reward.brake_when_lost=true"]
+    )
+    exp = MAPETS(config, tmp_path / "run")
+    assert exp.policy is exp.plan_sharing and exp.plan_sharing.fallback is not None
+    td = exp.env.reset()
+    obs = td["agents", "observation"].clone()
+    obs[0, [0, 3, 5]] = torch.tensor([5.0, 0.0, 1.5])
+    td["agents", "observation"] = obs
+    action = exp.policy(td)["agents", "action"]
+    assert action[0].tolist() == [0.0]
+    exp.close()
