@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 from pathlib import Path
 
@@ -53,6 +52,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type  # noqa: E4
 from mapets_rl.envs import make_env  # noqa: E402
 from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway  # noqa: E402
 from mapets_rl.experiment import atomic_savefig, atomic_write_text  # noqa: E402
+from mapets_rl.machine import machine_line  # noqa: E402
 from mapets_rl.modules import OBS  # noqa: E402
 from mapets_rl.recipes.shapley_ac import COALITION, ShapleyAC  # noqa: E402
 from mapets_rl.shapley import exact_shapley  # noqa: E402
@@ -249,11 +249,7 @@ def main(argv: list[str] | None = None) -> str:
     args = parser.parse_args(argv)
     if args.roads < 1 or any(not 0 <= s < 40 for s in args.steps):
         parser.error("--roads must be >= 1 and --steps in [0, 39]")
-    print(
-        f"# {platform.processor() or platform.machine()}, "
-        f"{torch.backends.cpu.get_cpu_capability()}, torch {torch.__version__}, "
-        f"{torch.get_num_threads()} threads"
-    )
+    print(f"# {machine_line()}")
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "states.jsonl"
     done = [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []

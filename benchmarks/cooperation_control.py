@@ -64,7 +64,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -80,6 +79,7 @@ from mapets_rl.app.plugins import load_recipe
 from mapets_rl.envs import FreewayMergeEnv, ScriptedCAVPolicy, make_env
 from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway
 from mapets_rl.experiment import atomic_write_text, latest_checkpoint, read_train_episodes
+from mapets_rl.machine import machine_line
 from mapets_rl.recipes.maddpg import OPENAI_MADDPG
 from mapets_rl.statistics import bootstrap_interval
 
@@ -442,10 +442,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         parser.error(f"--window-frames must be >= 0, got {args.window_frames}")
     for variant in args.variants:  # a bad name fails before any training
         variant_overrides(variant, args)
-    print(
-        f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-        f"CPU capability {torch.backends.cpu.get_cpu_capability()}"
-    )
+    print(f"# {machine_line()}")
     # the scripted rows of the scenarios the variants are scored in
     scenarios = {settings_label(env_settings(v)): env_settings(v) for v in args.variants}
     references = {

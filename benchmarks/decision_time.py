@@ -41,6 +41,8 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from mapets_rl.machine import machine_line
+
 PAPER_TABLE_IV_MS = {
     "figure-eight": {"mapets": (88.51, 3.105), "mappo": (80.07, 5.486)},
     "figure-eight-multilane": {"mapets": (97.26, 2.615), "mappo": (87.79, 4.607)},
@@ -221,10 +223,7 @@ def main() -> None:
         if args.device.startswith("cuda")
         else "cpu"
     )
-    print(
-        f"torch {torch.__version__}, CPU capability {torch.backends.cpu.get_cpu_capability()}, "
-        f"{args.threads} thread(s), device {args.device} ({device_name}), I = {args.agents}"
-    )
+    print(f"# {machine_line()}; device {args.device} ({device_name}), I = {args.agents}")
     rows = []
     for name in args.methods:
         paper_key, build = METHODS[name]

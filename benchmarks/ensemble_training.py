@@ -36,6 +36,7 @@ from tensordict import TensorDict
 from torch import nn
 from torch.nn import functional as F
 
+from mapets_rl.machine import machine_line
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.objectives import EnsembleNLLLoss, ensemble_optimizer, train_ensemble
 
@@ -144,8 +145,7 @@ def main() -> None:
     data = make_data(args.transitions, args.agents)
     steps = args.epochs * -(-args.transitions // args.batch_size)
     print(
-        f"torch {torch.__version__}, {torch.get_num_threads()} threads, CPU capability "
-        f"{torch.backends.cpu.get_cpu_capability()}; I={args.agents}, "
+        f"# {machine_line()}; I={args.agents}, "
         f"B={args.members}, hidden={args.hidden}, {args.transitions} transitions/agent, "
         f"{args.epochs} epochs x batch {args.batch_size} = {steps} steps"
     )

@@ -36,7 +36,6 @@ wall-second (the GPU works while the process waits), the CPU layers per CPU-seco
 from __future__ import annotations
 
 import argparse
-import platform
 import statistics
 import time
 from collections.abc import Callable
@@ -45,6 +44,7 @@ import torch
 
 from mapets_rl.envs import ScriptedCAVPolicy, make_env, make_parallel_env
 from mapets_rl.envs.vehicles import stock_control
+from mapets_rl.machine import machine_line
 
 CASES = {
     "8+8": ("figure-eight 8 CAVs + 8 HVs", "figure-eight", {"n_cavs": 8, "n_hvs": 8}),
@@ -55,18 +55,6 @@ CASES = {
     ),
     "freeway": ("freeway 30 vehicles", "freeway", {"n_vehicles": 30}),
 }
-
-
-def cpu_model() -> str:
-    """The CPU's model name (``/proc/cpuinfo``), or the platform's processor string."""
-    try:
-        with open("/proc/cpuinfo") as info:
-            for line in info:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def rate(run: Callable[[], int], device: str = "cpu") -> float:
@@ -215,10 +203,7 @@ def main() -> None:
     if args.device == "cuda" and (args.backends is None or not torch.cuda.is_available()):
         parser.error("--device cuda needs --backends and a CUDA device")
     torch.set_num_threads(1)
-    print(
-        f"torch {torch.__version__}, CPU capability {torch.backends.cpu.get_cpu_capability()}, "
-        f"{cpu_model()}"
-    )
+    print(f"# {machine_line()}")
     if args.backends is not None:
         if args.device == "cuda":
             print(f"GPU: {torch.cuda.get_device_name()}")

@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -39,6 +38,7 @@ from mapets_rl.envs import FreewayEnv, FreewayMergeEnv
 from mapets_rl.envs.freeway import KL
 from mapets_rl.envs.torch_freeway.highway_state import load_scene
 from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway
+from mapets_rl.machine import machine_line
 from mapets_rl.modules import ACTION, OBS
 
 METRICS = ("system_return", "average_velocity", "average_comfort", "ramp_stuck")
@@ -151,8 +151,7 @@ def main() -> None:
     torch.set_num_threads(1)
     dtype = getattr(torch, args.dtype)
     print(
-        f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, CPU "
-        f"capability {torch.backends.cpu.get_cpu_capability()}, {args.dtype}, {args.kernel}, "
+        f"# {machine_line()}, {args.dtype}, {args.kernel}, "
         f"{args.episodes} episodes (seeds 0..{args.episodes - 1}) per row"
     )
     print(

@@ -25,7 +25,6 @@ rule's).
 from __future__ import annotations
 
 import argparse
-import platform
 
 import torch
 from tensordict import TensorDictBase
@@ -36,6 +35,7 @@ from mapets_rl.envs import scenario_config
 from mapets_rl.envs.freeway import CL, CR, KL, OBS_DIM
 from mapets_rl.envs.freeway_merge import OBS_DIM as MERGE_OBS_DIM
 from mapets_rl.experiment import ExperimentConfig, evaluate_scripted
+from mapets_rl.machine import machine_line
 from mapets_rl.metrics import MPH_PER_MPS
 from mapets_rl.modules import ACTION, OBS
 from mapets_rl.statistics import mean_ci95
@@ -165,10 +165,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--ratios must lie in (0, 1] (some CAVs), got {args.ratios}")
     if args.eval_episodes < 1:
         parser.error(f"--eval-episodes must be >= 1, got {args.eval_episodes}")
-    print(
-        f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-        f"CPU capability {torch.backends.cpu.get_cpu_capability()}"
-    )
+    print(f"# {machine_line()}")
 
     def overtaking(env: EnvBase) -> TensorDictModuleBase:
         spec = env.full_action_spec[ACTION]

@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import shutil
 import statistics
 import tempfile
@@ -46,6 +45,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from mapets_rl.machine import machine_line
 from mapets_rl.threads import THREADS_ENV, prepare_process
 
 WAIT_POLICY = prepare_process()  # OpenMP threads sleep when idle, as in `mapets-rl`
@@ -54,17 +54,6 @@ import torch  # noqa: E402  (after the OpenMP wait policy is set)
 
 RECIPES = ("maddpg", "m3ddpg", "sac", "shapley_ac", "mappo", "coma")
 PHASES = ("env", "policy", "learner", "other")
-
-
-def cpu_model() -> str:
-    """The CPU's model name (``/proc/cpuinfo``), else what ``platform`` says."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.partition(":")[2].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def load() -> str:
@@ -204,11 +193,7 @@ def main() -> None:
     # an explicit count: the experiments keep it (they would choose by the load otherwise)
     os.environ[THREADS_ENV] = str(args.threads)
     torch.set_num_threads(args.threads)
-    print(f"CPU: {cpu_model()}; torch {torch.__version__}, capability ", end="")
-    print(
-        f"{torch.backends.cpu.get_cpu_capability()}; {torch.get_num_threads()} thread(s), "
-        f"OpenMP wait policy {WAIT_POLICY}"
-    )
+    print(f"# {machine_line()}, OpenMP wait policy {WAIT_POLICY}")
     print(
         f"{args.env}, {args.vehicles} vehicles (cav_ratio {args.cav_ratio}), B = {args.num_envs} "
         f"roads x {args.steps} steps per batch; schedule {args.schedule} {' '.join(args.overrides)}"

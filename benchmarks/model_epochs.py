@@ -44,6 +44,7 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
+from mapets_rl.machine import machine_line
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.objectives.ensemble_nll import EnsembleNLLLoss, fit_ensemble, train_ensemble
 from mapets_rl.recipes.mapets import MAPETS
@@ -145,9 +146,7 @@ def compare(args: argparse.Namespace) -> None:
         f"run {args.run_dir}: {exp.n_agents} agents, |D(i)+| = "
         f"{data.get('mask').sum(0).tolist()}, hidden {cfg.hidden}, B = {cfg.ensemble_size}, "
         f"batch {cfg.batch_size}, lr {cfg.lr}; at most {args.epochs} epochs, early stopping "
-        f"holdout {args.holdout}, min_improvement {args.min_improvement}; torch "
-        f"{torch.__version__}, {torch.backends.cpu.get_cpu_capability()}, "
-        f"{torch.get_num_threads()} threads"
+        f"holdout {args.holdout}, min_improvement {args.min_improvement}; {machine_line()}"
     )
     print(
         "\n| start | seed | setting | epochs run | train s | CPU s | test NLL | gap RMSE all "
@@ -288,8 +287,7 @@ def main() -> None:
     print(
         f"run {args.run_dir}: {exp.n_agents} agents, |D(i)+| = "
         f"{data.get('mask').sum(0).tolist()}, hidden {cfg.hidden}, B = {cfg.ensemble_size}, "
-        f"batch {cfg.batch_size}, lr {cfg.lr}; holdout 20%; torch "
-        f"{torch.__version__}, {torch.backends.cpu.get_cpu_capability()}"
+        f"batch {cfg.batch_size}, lr {cfg.lr}; holdout 20%; {machine_line()}"
     )
     print(
         "| epochs | train NLL | holdout NLL | gap bias [m/step] | gap RMSE | gap pred. std "

@@ -53,7 +53,6 @@ from __future__ import annotations
 import argparse
 import functools
 import json
-import platform
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -71,6 +70,7 @@ from mapets_rl.config import ConfigError, parse_override
 from mapets_rl.envs import ScriptedCAVPolicy, make_env, traffic_env
 from mapets_rl.envs.figure_eight import FigureEightPlannerReward, neighbour_speed_columns
 from mapets_rl.envs.figure_eight_kinematics import FigureEightKinematicModel
+from mapets_rl.machine import machine_line
 from mapets_rl.planning import CPU_PRESET, TrajectorySamplingCEM
 from mapets_rl.planning.shared_plans import PlanSharingPlanner
 
@@ -548,10 +548,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ):
         parser.error(f"--policies learned needs --run RUN_DIR of a MA-PETS run, got {args.run}")
     torch.set_num_threads(1)
-    print(
-        f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-        f"cpu capability {torch.backends.cpu.get_cpu_capability()}"
-    )
+    print(f"# {machine_line()}")
     rows = []
     for name in args.policies:
         for seed in args.seeds:

@@ -49,6 +49,7 @@ from torch.nn import functional as F
 
 from mapets_rl.config import parse_override
 from mapets_rl.envs import registered_scenario
+from mapets_rl.machine import machine_line
 from mapets_rl.models import ProbabilisticEnsemble
 from mapets_rl.planning import PRESETS, Preset, TrajectorySamplingCEM
 
@@ -568,10 +569,7 @@ def main() -> None:
         parser.error("--graph needs --device cuda (CUDA graphs)")
     if DEVICE.type == "cuda":
         print(f"device {torch.cuda.get_device_name(DEVICE)}")
-    print(
-        f"torch {torch.__version__}, {torch.get_num_threads()} threads, "
-        f"CPU capability {torch.backends.cpu.get_cpu_capability()}"
-    )
+    print(f"# {machine_line()}")
     for name in args.configs:
         cfg = PRESETS[name]
         if args.iterations is not None:

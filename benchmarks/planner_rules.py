@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 from pathlib import Path
 
 import numpy as np
@@ -63,6 +62,7 @@ from mapets_rl.envs.figure_eight import (
 )
 from mapets_rl.envs.vehicles import ACC_MAX, ACC_MIN
 from mapets_rl.experiment import atomic_write_text
+from mapets_rl.machine import machine_line
 from mapets_rl.statistics import bootstrap_interval
 
 RULES = ("none", "occupy", "crossing-order", "brake", "recover")
@@ -291,10 +291,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     if obs_dim != TWO_LANE_OBS_DIM:
         parser.error("the rules read the two-lane observation (observation=crossing)")
     torch.set_num_threads(1)
-    print(
-        f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-        f"cpu capability {torch.backends.cpu.get_cpu_capability()}"
-    )
+    print(f"# {machine_line()}")
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "rows.jsonl"
     tag = " ".join([args.policy, *args.env, *args.reward, f"steps={args.steps}"])

@@ -40,7 +40,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import platform
 import re
 from pathlib import Path
 
@@ -53,6 +52,7 @@ from mapets_rl.config import ConfigError, parse_override
 from mapets_rl.envs import make_env
 from mapets_rl.envs.figure_eight import FigureEightPlannerReward
 from mapets_rl.experiment import read_results
+from mapets_rl.machine import machine_line
 from mapets_rl.planning import CPU_PRESET
 from mapets_rl.statistics import bootstrap_interval
 
@@ -271,10 +271,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     except ValueError as err:
         parser.error(str(err))
     torch.set_num_threads(1)
-    print(
-        f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-        f"cpu capability {torch.backends.cpu.get_cpu_capability()}"
-    )
+    print(f"# {machine_line()}")
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "rows.jsonl"
     rows = [

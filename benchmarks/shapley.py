@@ -17,6 +17,7 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDict
 
+from mapets_rl.machine import machine_line
 from mapets_rl.objectives import ShapleyActorCriticLoss
 from mapets_rl.shapley import (
     coalition_masks,
@@ -222,10 +223,7 @@ def main() -> None:
     parser.add_argument("--permutations", type=int, default=1000)
     parser.add_argument("--skip", nargs="*", default=[], choices=["exact", "update", "sampled"])
     args = parser.parse_args()
-    print(
-        f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), CPU capability "
-        f"{torch.backends.cpu.get_cpu_capability()}"
-    )
+    print(f"# {machine_line()}")
     if "exact" not in args.skip:
         exact_benchmark(args.n, args.states, args.obs_dim, args.act_dim, args.repeats, args.chunk)
     if "update" not in args.skip:

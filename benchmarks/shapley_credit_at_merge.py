@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +56,7 @@ from yield_counterfactuals import deciding, returns_per_cav
 from mapets_rl.app.plugins import load_recipe
 from mapets_rl.envs.freeway import CL, CR, KL
 from mapets_rl.experiment import Experiment, atomic_write_text
+from mapets_rl.machine import machine_line
 from mapets_rl.modules import ACTION, OBS, Q_VALUE
 from mapets_rl.recipes.maddpg import PREACTIVATION
 from mapets_rl.recipes.shapley_ac import COALITION, ShapleyAC
@@ -309,10 +309,7 @@ def main(argv: list[str] | None = None) -> str:
             parser.error(f"--runs: {run_dir} is not a Shapley run of cooperation_control.py")
         if not (run_dir / "config.yaml").is_file():
             parser.error(f"--runs: {run_dir} has no config.yaml")
-    print(
-        f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-        f"CPU capability {torch.backends.cpu.get_cpu_capability()}"
-    )
+    print(f"# {machine_line()}")
     rows = {}
     for run_dir in args.runs:
         tag = "" if args.maddpg is None else f"_vs_{args.maddpg.name}"

@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 from collections.abc import Callable
 from pathlib import Path
 
@@ -66,6 +65,7 @@ from mapets_rl.app.plugins import load_recipe
 from mapets_rl.envs.freeway import CL, CR, KL
 from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway
 from mapets_rl.experiment import atomic_write_text, latest_checkpoint
+from mapets_rl.machine import machine_line
 from mapets_rl.modules import ACTION, OBS
 from mapets_rl.statistics import bootstrap_interval
 
@@ -281,10 +281,7 @@ def main(argv: list[str] | None = None) -> str:
             recipe_of(variant, args)
             for seed in args.seeds:
                 run_dir_of(variant, seed, args)
-    print(
-        f"# {platform.machine()}, torch {torch.__version__}, "
-        f"CPU capability {torch.backends.cpu.get_cpu_capability()}"
-    )
+    print(f"# {machine_line()}")
     rows = [HEADER]
     for variant in args.variants:
         per_seed = []

@@ -23,6 +23,7 @@ FLOORS = {
     "mapets_rl._entry_points": 0,
     "mapets_rl._compile_cache": 0,
     "mapets_rl.config": 0,
+    "mapets_rl.machine": 0,
     "mapets_rl.metrics": 0,
     "mapets_rl.statistics": 0,
     "mapets_rl.plotting": 0,

@@ -20,6 +20,7 @@ import torch
 
 from mapets_rl.app.sweep import SweepResult, SweepSpec, run_sweep
 from mapets_rl.experiment import atomic_write_text, read_results
+from mapets_rl.machine import machine_line
 from mapets_rl.statistics import mean_ci95
 
 SCALES: dict[str, list[str]] = {
@@ -60,7 +61,7 @@ def run(
 ) -> SweepResult:
     """Sweep ``grid`` x ``args.seeds`` for MA-PETS on the figure-eight at ``args.scale``;
     exits with 1 (after the others finished) when a trial failed."""
-    print(f"cpu capability: {torch.backends.cpu.get_cpu_capability()}", flush=True)
+    print(f"# {machine_line()}", flush=True)
     overrides = [*SCALES[args.scale], *(cpu_overrides if args.scale == "cpu" else []), *args.set]
     spec = SweepSpec(
         recipe="mapets",

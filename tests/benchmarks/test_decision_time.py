@@ -26,7 +26,8 @@ def _run(*argv: str) -> subprocess.CompletedProcess:
 def test_decision_time_table_for_two_baselines() -> None:
     proc = _run("--methods", "maddpg", "shapley_ac", "--agents", "2", "--decisions", "3")
     assert proc.returncode == 0, proc.stderr
-    assert re.search(r"CPU capability \w+, 1 thread\(s\), device cpu \(cpu\), I = 2", proc.stdout)
+    machine = r"CPU capability \w+, torch \S+, 1 thread\(s\); device cpu \(cpu\), I = 2"
+    assert re.search(machine, proc.stdout)
     table = proc.stdout.split("|---|---|---|---|---|---|---|\n")[1]
     rows = [[c.strip() for c in line.strip("|").split("|")] for line in table.splitlines()]
     assert [r[:3] for r in rows] == [
