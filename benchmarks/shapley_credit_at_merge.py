@@ -237,8 +237,8 @@ def table(rows: dict[str, dict[str, np.ndarray]], roads: int) -> str:
         "| run | decisions per episode | exact own | exact system | credit reference "
         "(own + system) / 2 | critic Delta v({i}) | critic Delta phi_i | critic Delta v(N) "
         "| sign(Delta phi) = sign(reference) | corr(Delta phi, reference) "
-        "| actor logit margin (move - keep) | actor p(move) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| corr(Delta v({i}), own) | actor logit margin (move - keep) | actor p(move) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     calibration = [
         "| run | sim. system return | critic v(N) | corr | sim. own return | critic v({i}) "
@@ -248,7 +248,7 @@ def table(rows: dict[str, dict[str, np.ndarray]], roads: int) -> str:
     for name, d in rows.items():
         m = d.get("moved", np.zeros(0)).astype(bool)
         if not m.any():
-            effects.append(f"| {name} | 0 | | | | | | | | | | |")
+            effects.append(f"| {name} | 0 | | | | | | | | | | | |")
             continue
         ref, phi = d["reference_credit"][m], d["critic_credit"][m]
         effects.append(
@@ -256,7 +256,8 @@ def table(rows: dict[str, dict[str, np.ndarray]], roads: int) -> str:
             f"| {mean_ci(d['system'][m])} "
             f"| {mean_ci(ref)} | {mean_ci(d['critic_own'][m])} | {mean_ci(phi)} "
             f"| {mean_ci(d['critic_system'][m])} | {(np.sign(phi) == np.sign(ref)).mean():.2f} "
-            f"| {pearson(phi, ref):.2f} | {d['logit_margin'][m].mean():+.2f} "
+            f"| {pearson(phi, ref):.2f} | {pearson(d['critic_own'][m], d['own'][m]):.2f} "
+            f"| {d['logit_margin'][m].mean():+.2f} "
             f"| {d['move_prob'][m].mean():.3f} |"
         )
         calibration.append(
