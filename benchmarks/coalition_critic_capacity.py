@@ -1,0 +1,162 @@
+"""Can the coalition critic represent one CAV's state-dependent action effect? A synthetic
+game with a known answer (issue 32).
+
+On ``freeway-merge`` the Shapley arm's critic answers a CAV's lane change with nearly the same
+value change in every coalition, uncorrelated with what the move really earns
+(``benchmarks/shapley_credit_at_merge.py``). Its first layer sums the members' linear
+embeddings of (observation, action) before any nonlinearity, so in a large coalition the head
+may not tell which member's state goes with which member's action. This script tests that
+capacity apart from the freeway, the TD targets and the exploration: an additive game where
+every agent earns ``u_j = o_j[1] + m_j * o_j[0]`` (``m_j`` = 1 if agent ``j`` changes lanes,
+i.e. its one-hot action is Change Left or Change Right, else 0; observations standard normal),
+so that ``v(C) = sum_{j in C} u_j`` and the true value of agent ``i``'s move over keeping its
+lane is ``o_i[0]`` in every coalition that holds it (and its Shapley value's change).
+
+A :class:`~mapets_rl.shapley.CoalitionCritic` is fitted by Adam on fresh batches (states,
+uniformly random actions, coalitions drawn as ``RandomCoalition`` draws them) to ``v(C)``, the
+regression the TD loss does with exact targets. On held-out states, for one random agent per
+state: the correlation of the critic's ``Delta v({i})``, ``Delta phi_i`` (``--permutations``
+random orderings) and ``Delta v(N)`` (move minus keep lane) with the true ``o_i[0]``, and the
+fit of ``v(C)`` (R^2 over held-out coalitions).
+
+    OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/coalition_critic_capacity.py \\
+        --agents 4 30 --cells 64 256 [--sizes binomial uniform] [--steps 3000] [--lr 0.01]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+from mapets_rl.machine import machine_line
+from mapets_rl.shapley import CoalitionCritic
+from mapets_rl.shapley.coalition import uniform_size_coalition
+from mapets_rl.shapley.game import permutation_prefix_masks, sample_permutations
+
+ACTIONS = 4  # KL, CL, CR, ES
+MOVES = (1, 2)  # CL, CR
+
+
+def sample(n: int, obs_dim: int, batch: int, generator: torch.Generator):
+    """States ``[batch, n, obs_dim]``, one-hot uniformly random actions ``[batch, n, 4]`` and
+    every agent's payoff ``u [batch, n]`` of the synthetic game."""
+    obs = torch.randn(batch, n, obs_dim, generator=generator)
+    choice = torch.randint(ACTIONS, (batch, n), generator=generator)
+    action = torch.nn.functional.one_hot(choice, ACTIONS).float()
+    moving = action[..., list(MOVES)].sum(-1)
+    return obs, action, obs[..., 1] + moving * obs[..., 0]
+
+
+def draw_coalitions(sizes: str, n: int, batch: int) -> torch.Tensor:
+    """``[batch, n]`` bool coalitions drawn as ``RandomCoalition`` draws them while collecting:
+    ``binomial`` (every agent joins with probability 1/2) or ``uniform`` (size uniform over
+    ``1..n``, then the members)."""
+    if sizes == "uniform":
+        return uniform_size_coalition(torch.ones(batch, n, dtype=torch.bool))
+    return torch.rand(batch, n) < 0.5
+
+
+def pearson(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Pearson's correlation of two 1-D tensors."""
+    return float(torch.corrcoef(torch.stack([a, b]))[0, 1])
+
+
+def fit_and_score(n: int, cells: int, sizes: str, args: argparse.Namespace) -> dict[str, float]:
+    """Fit a ``[cells, cells]`` critic to the game of ``n`` agents with coalitions drawn by
+    ``sizes``; its correlations with the true move effect and its held-out R^2."""
+    torch.manual_seed(args.seed)
+    generator = torch.Generator().manual_seed(args.seed)
+    critic = CoalitionCritic(n, args.obs_dim, ACTIONS, num_cells=[cells, cells])
+    optimizer = torch.optim.Adam(critic.parameters(), lr=args.lr)
+    start = time.perf_counter()
+    for _ in range(args.steps):
+        obs, action, payoff = sample(n, args.obs_dim, args.batch, generator)
+        members = draw_coalitions(sizes, n, args.batch)
+        target = (payoff * members).sum(-1)
+        value = critic.coalition_values(obs, action, members.unsqueeze(-2)).squeeze(-1)
+        loss = (value - target).pow(2).mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    seconds = time.perf_counter() - start
+    with torch.no_grad():
+        obs, action, payoff = sample(n, args.obs_dim, args.eval_states, generator)
+        members = draw_coalitions(sizes, n, args.eval_states)
+        target = (payoff * members).sum(-1)
+        value = critic.coalition_values(obs, action, members.unsqueeze(-2)).squeeze(-1)
+        r2 = 1 - (value - target).pow(2).mean() / target.var()
+        rows = torch.arange(args.eval_states)
+        agent = torch.randint(n, (args.eval_states,), generator=generator)
+        keep, move = action.clone(), action.clone()
+        keep[rows, agent] = torch.nn.functional.one_hot(torch.tensor(0), ACTIONS).float()
+        move[rows, agent] = torch.nn.functional.one_hot(torch.tensor(MOVES[0]), ACTIONS).float()
+        single = torch.nn.functional.one_hot(agent, n).bool().unsqueeze(-2)
+        # the coalitions with the agent that its Shapley value reads: a random prefix plus it
+        prefixes = permutation_prefix_masks(sample_permutations(args.permutations, n))
+        with_agent = prefixes.transpose(0, 1)[agent].clone()  # [S, P, n]
+        with_agent[rows, :, agent] = True
+        masks = torch.cat([single, torch.ones_like(single), with_agent], dim=-2)  # {i}, N, ...
+        delta = critic.coalition_values(obs, move, masks) - critic.coalition_values(
+            obs, keep, masks
+        )
+        truth = obs[rows, agent, 0]
+    return {
+        "r2": float(r2),
+        "corr_single": pearson(delta[:, 0], truth),
+        "corr_grand": pearson(delta[:, 1], truth),
+        "corr_phi": pearson(delta[:, 2:].mean(-1), truth),
+        "seconds": seconds,
+    }
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--agents", nargs="+", type=int, default=[4, 30])
+    parser.add_argument("--cells", nargs="+", type=int, default=[64, 256])
+    parser.add_argument("--sizes", nargs="+", default=["binomial"], choices=["binomial", "uniform"])
+    parser.add_argument("--obs-dim", type=int, default=8)
+    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--batch", type=int, default=1024)
+    parser.add_argument("--lr", type=float, default=0.01)
+    parser.add_argument("--eval-states", type=int, default=2048)
+    parser.add_argument("--permutations", type=int, default=64, help="orderings for Delta phi")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    if args.permutations < 2 or args.permutations % 2:
+        parser.error(f"--permutations must be even and >= 2, got {args.permutations}")
+    for name in ("obs_dim", "steps", "batch", "eval_states"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if args.obs_dim < 2:
+        parser.error(f"--obs-dim must be >= 2 (the game reads columns 0 and 1), got {args.obs_dim}")
+    if min(args.agents) < 1 or min(args.cells) < 1 or not args.lr > 0:
+        parser.error("--agents and --cells must be >= 1 and --lr > 0")
+    print(f"# {machine_line()}")
+    print(
+        f"synthetic additive game, obs_dim {args.obs_dim}, {args.steps} Adam steps (lr "
+        f"{args.lr}) of batch {args.batch}, {args.eval_states} held-out states, seed {args.seed}"
+    )
+    print(
+        "| agents | critic | coalition sizes | R^2 of v(C) | corr(Delta v({i}), true) "
+        "| corr(Delta phi_i, true) | corr(Delta v(N), true) | fit [s] |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    rows = []
+    for n in args.agents:
+        for cells in args.cells:
+            for sizes in args.sizes:
+                row = {"agents": n, "cells": cells, "sizes": sizes}
+                row.update(fit_and_score(n, cells, sizes, args))
+                rows.append(row)
+                print(
+                    f"| {n} | 2x{cells} | {sizes} | {row['r2']:.3f} | {row['corr_single']:.2f} "
+                    f"| {row['corr_phi']:.2f} | {row['corr_grand']:.2f} | {row['seconds']:.0f} |",
+                    flush=True,
+                )
+    return rows
+
+
+if __name__ == "__main__":
+    main()
