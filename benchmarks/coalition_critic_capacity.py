@@ -20,7 +20,8 @@ random orderings) and ``Delta v(N)`` (move minus keep lane) with the true ``o_i[
 fit of ``v(C)`` (R^2 over held-out coalitions).
 
     OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/coalition_critic_capacity.py \\
-        --agents 4 30 --cells 64 256 [--sizes binomial uniform] [--steps 3000] [--lr 0.01]
+        --agents 4 30 --cells 64 256 [--embed 0 64] [--sizes binomial uniform] \\
+        [--steps 3000] [--lr 0.01]
 """
 
 from __future__ import annotations
@@ -63,12 +64,17 @@ def pearson(a: torch.Tensor, b: torch.Tensor) -> float:
     return float(torch.corrcoef(torch.stack([a, b]))[0, 1])
 
 
-def fit_and_score(n: int, cells: int, sizes: str, args: argparse.Namespace) -> dict[str, float]:
-    """Fit a ``[cells, cells]`` critic to the game of ``n`` agents with coalitions drawn by
-    ``sizes``; its correlations with the true move effect and its held-out R^2."""
+def fit_and_score(
+    n: int, cells: int, sizes: str, embed: int, args: argparse.Namespace
+) -> dict[str, float]:
+    """Fit a ``[cells, cells]`` critic (with a per-agent ``embed``-wide layer before the sum
+    when ``embed > 0``) to the game of ``n`` agents with coalitions drawn by ``sizes``; its
+    correlations with the true move effect and its held-out R^2."""
     torch.manual_seed(args.seed)
     generator = torch.Generator().manual_seed(args.seed)
-    critic = CoalitionCritic(n, args.obs_dim, ACTIONS, num_cells=[cells, cells])
+    critic = CoalitionCritic(
+        n, args.obs_dim, ACTIONS, num_cells=[cells, cells], embed_cells=[embed] if embed else []
+    )
     optimizer = torch.optim.Adam(critic.parameters(), lr=args.lr)
     start = time.perf_counter()
     for _ in range(args.steps):
@@ -116,6 +122,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--agents", nargs="+", type=int, default=[4, 30])
     parser.add_argument("--cells", nargs="+", type=int, default=[64, 256])
     parser.add_argument("--sizes", nargs="+", default=["binomial"], choices=["binomial", "uniform"])
+    parser.add_argument(
+        "--embed",
+        nargs="+",
+        type=int,
+        default=[0],
+        help="widths of a per-agent layer before the members are summed (0: none, the paper's)",
+    )
     parser.add_argument("--obs-dim", type=int, default=8)
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--batch", type=int, default=1024)
@@ -131,30 +144,33 @@ def main(argv: list[str] | None = None) -> list[dict]:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if args.obs_dim < 2:
         parser.error(f"--obs-dim must be >= 2 (the game reads columns 0 and 1), got {args.obs_dim}")
-    if min(args.agents) < 1 or min(args.cells) < 1 or not args.lr > 0:
-        parser.error("--agents and --cells must be >= 1 and --lr > 0")
+    if min(args.agents) < 1 or min(args.cells) < 1 or min(args.embed) < 0 or not args.lr > 0:
+        parser.error("--agents and --cells must be >= 1, --embed >= 0 and --lr > 0")
     print(f"# {machine_line()}")
     print(
         f"synthetic additive game, obs_dim {args.obs_dim}, {args.steps} Adam steps (lr "
         f"{args.lr}) of batch {args.batch}, {args.eval_states} held-out states, seed {args.seed}"
     )
     print(
-        "| agents | critic | coalition sizes | R^2 of v(C) | corr(Delta v({i}), true) "
+        "| agents | critic | per-agent layer | coalition sizes | R^2 of v(C) "
+        "| corr(Delta v({i}), true) "
         "| corr(Delta phi_i, true) | corr(Delta v(N), true) | fit [s] |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     rows = []
     for n in args.agents:
         for cells in args.cells:
-            for sizes in args.sizes:
-                row = {"agents": n, "cells": cells, "sizes": sizes}
-                row.update(fit_and_score(n, cells, sizes, args))
-                rows.append(row)
-                print(
-                    f"| {n} | 2x{cells} | {sizes} | {row['r2']:.3f} | {row['corr_single']:.2f} "
-                    f"| {row['corr_phi']:.2f} | {row['corr_grand']:.2f} | {row['seconds']:.0f} |",
-                    flush=True,
-                )
+            for embed in args.embed:
+                for sizes in args.sizes:
+                    row = {"agents": n, "cells": cells, "embed": embed, "sizes": sizes}
+                    row.update(fit_and_score(n, cells, sizes, embed, args))
+                    rows.append(row)
+                    print(
+                        f"| {n} | 2x{cells} | {embed or 'none'} | {sizes} | {row['r2']:.3f} "
+                        f"| {row['corr_single']:.2f} | {row['corr_phi']:.2f} "
+                        f"| {row['corr_grand']:.2f} | {row['seconds']:.0f} |",
+                        flush=True,
+                    )
     return rows
 
 

@@ -76,6 +76,11 @@ class ShapleyACConfig(DiscreteExplorationConfig):
         init_random_frames: transitions in the buffer before the first update; they are
             collected with the policy (its coalitions are random), not with random actions.
         critic_cells: hidden sizes of the coalition critic.
+        critic_embed_cells: hidden sizes of a nonlinear per-agent network in the coalition
+            critic before its members are summed (``CoalitionCritic(embed_cells=...)``; empty,
+            the default: the paper's MLP on the zero-masked joint input, whose first layer pools
+            the members' linear terms; see docs/results/shapley.md, "Why the Shapley arm stays
+            on keep lane").
         join_prob: probability that a CAV joins the random coalition of a timestep
             (``coalition_sizes="binomial"``).
         coalition_sizes: how a timestep's coalition is drawn while collecting: ``binomial``
@@ -120,6 +125,7 @@ class ShapleyACConfig(DiscreteExplorationConfig):
     batch_size: int = 128
     updates_per_batch: int = 10
     critic_cells: list[int] = dataclasses.field(default_factory=lambda: [128, 128])
+    critic_embed_cells: list[int] = dataclasses.field(default_factory=list)
     join_prob: float = 0.5
     coalition_sizes: str = "binomial"
     eval_coalition: str = "grand"
@@ -142,6 +148,8 @@ class ShapleyACConfig(DiscreteExplorationConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_layer_sizes("critic_cells", self.critic_cells, self.device)
+        if self.critic_embed_cells:
+            check_layer_sizes("critic_embed_cells", self.critic_embed_cells, self.device)
         check(0.0 <= self.join_prob <= 1.0, "join_prob", "in [0, 1]", self.join_prob)
         check(
             self.coalition_sizes in ("binomial", "uniform"),
@@ -210,7 +218,12 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
             device=device,
         )
         self.critic = CoalitionCritic(
-            n, group.obs_dim, group.action_dim, num_cells=config.critic_cells, device=device
+            n,
+            group.obs_dim,
+            group.action_dim,
+            num_cells=config.critic_cells,
+            embed_cells=config.critic_embed_cells,
+            device=device,
         )
         self.policy = TensorDictSequential(self.coalition, self.actor)
 

@@ -12,7 +12,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import MLP
 
-from mapets_rl.modules.arguments import hidden_sizes, require_positive_ints
+from mapets_rl.modules.arguments import hidden_sizes, is_positive_int, require_positive_ints
 from mapets_rl.modules.tensor_checks import as_mask, check_finite_many, check_real, get_tensor
 from mapets_rl.shapley.game import coalition_masks
 
@@ -37,6 +37,12 @@ class CoalitionCritic(TensorDictModuleBase):
         observation_dim: per-agent observation size.
         action_dim: per-agent action size (one-hot width for discrete actions).
         num_cells: hidden sizes; the first is the width of the per-agent layer.
+        embed_cells: hidden sizes of a nonlinear per-agent network before that layer (each
+            agent's own weights; empty: none, the paper's MLP). With it ``h_j = W_j
+            f_j(s_j, a_j) + u_j`` and the coalition is still the sum of its members'
+            ``h_j``, so every fast path here and in the Shapley loss stays valid; what changes
+            is that the head receives a feature of each member's state and action together
+            (after ``f_j``'s nonlinearity), not their linear terms pooled over the coalition.
         activation_class: hidden activation.
         observation_key, action_key, coalition_key, out_key: keys used by :meth:`forward`:
             ``observation [*, n, obs]``, ``action [*, n, act]``, ``coalition [*, n]`` (bool)
@@ -51,6 +57,7 @@ class CoalitionCritic(TensorDictModuleBase):
         action_dim: int,
         *,
         num_cells: Sequence[int] = (128, 128),
+        embed_cells: Sequence[int] = (),
         activation_class: type[nn.Module] = nn.ReLU,
         observation_key: NestedKey = ("agents", "observation"),
         action_key: NestedKey = ("agents", "action"),
@@ -72,6 +79,25 @@ class CoalitionCritic(TensorDictModuleBase):
         self.in_keys = [observation_key, action_key, coalition_key]
         self.out_keys = [out_key]
         in_dim = observation_dim + action_dim
+        embed_cells = list(embed_cells)
+        if not all(is_positive_int(c) for c in embed_cells):
+            raise ValueError(
+                f"embed_cells must be a list of ints >= 1 (empty: none), got {embed_cells}"
+            )
+        self.embed_weights = nn.ParameterList()
+        self.embed_biases = nn.ParameterList()
+        self.embed_activation = activation_class()
+        for width in embed_cells:  # per agent, as nn.Linear(in_dim, width) initialises
+            low = 1.0 / math.sqrt(in_dim)
+            self.embed_weights.append(
+                nn.Parameter(
+                    torch.empty(n_agents, in_dim, width, device=device).uniform_(-low, low)
+                )
+            )
+            self.embed_biases.append(
+                nn.Parameter(torch.empty(n_agents, width, device=device).uniform_(-low, low))
+            )
+            in_dim = width
         hidden = num_cells[0]
         # Same initialisation as nn.Linear on the concatenated [s^C, a^C, 1_C] input.
         bound = 1.0 / math.sqrt(n_agents * (in_dim + 1))
@@ -115,6 +141,8 @@ class CoalitionCritic(TensorDictModuleBase):
         shape = torch.broadcast_shapes(observation.shape[:-1], action.shape[:-1])
         observation, action = observation.expand(*shape, -1), action.expand(*shape, -1)
         x = torch.cat([observation, action.to(observation.dtype)], dim=-1)
+        for weight, bias in zip(self.embed_weights, self.embed_biases, strict=True):
+            x = self.embed_activation(torch.einsum("...ni,nih->...nh", x, weight) + bias)
         return torch.einsum("...ni,nih->...nh", x, self.agent_weight) + self.membership
 
     def values_from_embedding(

@@ -63,6 +63,18 @@ def test_config_validation() -> None:
         _config(eval_coalition="half")
     with pytest.raises(ConfigError, match="coalition_sizes"):
         _config(coalition_sizes="poisson")
+    with pytest.raises(ConfigError, match="critic_embed_cells"):
+        _config(critic_embed_cells=[16, 0])
+
+
+def test_a_per_agent_critic_embedding_reaches_the_critic_and_trains(tmp_path: Path) -> None:
+    exp = ShapleyAC(_config(critic_embed_cells=[8]), tmp_path)
+    weights = exp.critic.embed_weights
+    assert [tuple(w.shape) for w in weights] == [(2, exp.critic.observation_dim + 4, 8)]
+    before = weights[0].detach().clone()
+    exp.train()
+    assert not torch.equal(before, exp.loss.critic_network_params.get(("embed_weights", "0")))
+    exp.close()
 
 
 def test_uniform_coalition_sizes_reach_the_sampler(tmp_path: Path) -> None:

@@ -38,10 +38,10 @@ def _batch(n=N, act=ACT, b=B, seed=0, discrete=True):
     )
 
 
-def _loss(discrete=True, n=N, **kwargs):
+def _loss(discrete=True, n=N, embed_cells=(), **kwargs):
     torch.manual_seed(0)
     actor = make_coalition_actor(n, OBS, ACT, discrete=discrete, num_cells=(16,))
-    critic = CoalitionCritic(n, OBS, ACT, num_cells=(32, 32))
+    critic = CoalitionCritic(n, OBS, ACT, num_cells=(32, 32), embed_cells=embed_cells)
     space = "discrete" if discrete else "continuous"
     return ShapleyActorCriticLoss(actor, critic, action_space=space, **kwargs)
 
@@ -306,8 +306,30 @@ def _naive_sampled_phi(loss, td, seed):
     return torch.stack(phis, -1)
 
 
-def test_sampled_path_value_and_gradient_match_direct_computation():
-    loss = _loss(discrete=False, exact_max_agents=2, num_permutations=6)
+def test_embedded_critic_sums_a_per_agent_network_over_the_members():
+    """``embed_cells``: each member's (observation, action) passes through its own network
+    before the members are summed; ``v(empty) = 0`` still."""
+    torch.manual_seed(2)
+    critic = CoalitionCritic(N, OBS, ACT, num_cells=(8, 8), embed_cells=(5,))
+    obs, act = torch.randn(3, N, OBS), torch.randn(3, N, ACT)
+    values = critic.all_coalition_values(obs, act)
+    assert (values[:, 0] == 0).all()
+    x = torch.cat([obs, act], -1)
+    for k, mask in enumerate(coalition_masks(N)):
+        if not mask.any():
+            continue
+        z = critic.bias.expand(3, -1)
+        for j in mask.nonzero().flatten().tolist():
+            f = torch.relu(x[:, j] @ critic.embed_weights[0][j] + critic.embed_biases[0][j])
+            z = z + f @ critic.agent_weight[j] + critic.membership[j]
+        torch.testing.assert_close(values[:, k], critic.head(z).squeeze(-1))
+    with pytest.raises(ValueError, match="embed_cells"):
+        CoalitionCritic(N, OBS, ACT, embed_cells=(4, 0))
+
+
+@pytest.mark.parametrize("embed_cells", [(), (6,)])
+def test_sampled_path_value_and_gradient_match_direct_computation(embed_cells):
+    loss = _loss(discrete=False, exact_max_agents=2, num_permutations=6, embed_cells=embed_cells)
     td = _batch(discrete=False)
     params = [p for _, p in loss.actor_network_params.items(True, True) if p.requires_grad]
     torch.manual_seed(5)
