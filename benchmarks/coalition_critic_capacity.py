@@ -7,10 +7,13 @@ value change in every coalition, uncorrelated with what the move really earns
 embeddings of (observation, action) before any nonlinearity, so in a large coalition the head
 may not tell which member's state goes with which member's action. This script tests that
 capacity apart from the freeway, the TD targets and the exploration: an additive game where
-every agent earns ``u_j = o_j[1] + m_j * o_j[0]`` (``m_j`` = 1 if agent ``j`` changes lanes,
+every agent earns ``u_j = scale * o_j[1] + m_j * o_j[0]`` (``m_j`` = 1 if agent ``j`` changes lanes,
 i.e. its one-hot action is Change Left or Change Right, else 0; observations standard normal),
 so that ``v(C) = sum_{j in C} u_j`` and the true value of agent ``i``'s move over keeping its
 lane is ``o_i[0]`` in every coalition that holds it (and its Shapley value's change).
+``--scale`` sets how large the state's own part of the payoff is against the move's: on the
+freeway a move changes its CAV's return by tens against returns of hundreds per CAV and
+coalition values of thousands.
 
 A :class:`~mapets_rl.shapley.CoalitionCritic` is fitted by Adam on fresh batches (states,
 uniformly random actions, coalitions drawn as ``RandomCoalition`` draws them) to ``v(C)``, the
@@ -20,13 +23,14 @@ random orderings) and ``Delta v(N)`` (move minus keep lane) with the true ``o_i[
 fit of ``v(C)`` (R^2 over held-out coalitions).
 
     OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/coalition_critic_capacity.py \\
-        --agents 4 30 --cells 64 256 [--embed 0 64] [--sizes binomial uniform] \\
+        --agents 4 30 --cells 64 256 [--scale 1 10] [--embed 0 64] [--sizes binomial uniform] \\
         [--steps 3000] [--lr 0.01]
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import time
 
 import torch
@@ -40,14 +44,15 @@ ACTIONS = 4  # KL, CL, CR, ES
 MOVES = (1, 2)  # CL, CR
 
 
-def sample(n: int, obs_dim: int, batch: int, generator: torch.Generator):
+def sample(n: int, obs_dim: int, batch: int, generator: torch.Generator, scale: float = 1.0):
     """States ``[batch, n, obs_dim]``, one-hot uniformly random actions ``[batch, n, 4]`` and
-    every agent's payoff ``u [batch, n]`` of the synthetic game."""
+    every agent's payoff ``u [batch, n]`` of the synthetic game (``scale``: the weight of the
+    state's own part, ``o[1]``)."""
     obs = torch.randn(batch, n, obs_dim, generator=generator)
     choice = torch.randint(ACTIONS, (batch, n), generator=generator)
     action = torch.nn.functional.one_hot(choice, ACTIONS).float()
     moving = action[..., list(MOVES)].sum(-1)
-    return obs, action, obs[..., 1] + moving * obs[..., 0]
+    return obs, action, scale * obs[..., 1] + moving * obs[..., 0]
 
 
 def draw_coalitions(sizes: str, n: int, batch: int) -> torch.Tensor:
@@ -65,7 +70,7 @@ def pearson(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def fit_and_score(
-    n: int, cells: int, sizes: str, embed: int, args: argparse.Namespace
+    n: int, cells: int, sizes: str, embed: int, scale: float, args: argparse.Namespace
 ) -> dict[str, float]:
     """Fit a ``[cells, cells]`` critic (with a per-agent ``embed``-wide layer before the sum
     when ``embed > 0``) to the game of ``n`` agents with coalitions drawn by ``sizes``; its
@@ -78,7 +83,7 @@ def fit_and_score(
     optimizer = torch.optim.Adam(critic.parameters(), lr=args.lr)
     start = time.perf_counter()
     for _ in range(args.steps):
-        obs, action, payoff = sample(n, args.obs_dim, args.batch, generator)
+        obs, action, payoff = sample(n, args.obs_dim, args.batch, generator, scale)
         members = draw_coalitions(sizes, n, args.batch)
         target = (payoff * members).sum(-1)
         value = critic.coalition_values(obs, action, members.unsqueeze(-2)).squeeze(-1)
@@ -88,7 +93,7 @@ def fit_and_score(
         optimizer.step()
     seconds = time.perf_counter() - start
     with torch.no_grad():
-        obs, action, payoff = sample(n, args.obs_dim, args.eval_states, generator)
+        obs, action, payoff = sample(n, args.obs_dim, args.eval_states, generator, scale)
         members = draw_coalitions(sizes, n, args.eval_states)
         target = (payoff * members).sum(-1)
         value = critic.coalition_values(obs, action, members.unsqueeze(-2)).squeeze(-1)
@@ -129,6 +134,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         default=[0],
         help="widths of a per-agent layer before the members are summed (0: none, the paper's)",
     )
+    parser.add_argument("--scale", nargs="+", type=float, default=[1.0], help="o[1]'s weight")
     parser.add_argument("--obs-dim", type=int, default=8)
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--batch", type=int, default=1024)
@@ -146,31 +152,31 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error(f"--obs-dim must be >= 2 (the game reads columns 0 and 1), got {args.obs_dim}")
     if min(args.agents) < 1 or min(args.cells) < 1 or min(args.embed) < 0 or not args.lr > 0:
         parser.error("--agents and --cells must be >= 1, --embed >= 0 and --lr > 0")
+    if not all(0 <= x < float("inf") for x in args.scale):
+        parser.error(f"--scale must be finite and >= 0, got {args.scale}")
     print(f"# {machine_line()}")
     print(
         f"synthetic additive game, obs_dim {args.obs_dim}, {args.steps} Adam steps (lr "
         f"{args.lr}) of batch {args.batch}, {args.eval_states} held-out states, seed {args.seed}"
     )
     print(
-        "| agents | critic | per-agent layer | coalition sizes | R^2 of v(C) "
+        "| agents | scale | critic | per-agent layer | coalition sizes | R^2 of v(C) "
         "| corr(Delta v({i}), true) "
         "| corr(Delta phi_i, true) | corr(Delta v(N), true) | fit [s] |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     rows = []
-    for n in args.agents:
-        for cells in args.cells:
-            for embed in args.embed:
-                for sizes in args.sizes:
-                    row = {"agents": n, "cells": cells, "embed": embed, "sizes": sizes}
-                    row.update(fit_and_score(n, cells, sizes, embed, args))
-                    rows.append(row)
-                    print(
-                        f"| {n} | 2x{cells} | {embed or 'none'} | {sizes} | {row['r2']:.3f} "
-                        f"| {row['corr_single']:.2f} | {row['corr_phi']:.2f} "
-                        f"| {row['corr_grand']:.2f} | {row['seconds']:.0f} |",
-                        flush=True,
-                    )
+    grid = itertools.product(args.agents, args.scale, args.cells, args.embed, args.sizes)
+    for n, scale, cells, embed, sizes in grid:
+        row = {"agents": n, "scale": scale, "cells": cells, "embed": embed, "sizes": sizes}
+        row.update(fit_and_score(n, cells, sizes, embed, scale, args))
+        rows.append(row)
+        print(
+            f"| {n} | {scale:g} | 2x{cells} | {embed or 'none'} | {sizes} | {row['r2']:.3f} "
+            f"| {row['corr_single']:.2f} | {row['corr_phi']:.2f} | {row['corr_grand']:.2f} "
+            f"| {row['seconds']:.0f} |",
+            flush=True,
+        )
     return rows
 
 

@@ -17,9 +17,9 @@ def capacity(load_script: Callable[[str], ModuleType]) -> ModuleType:
 
 
 def test_the_game_pays_column_one_plus_column_zero_for_a_lane_change(capacity) -> None:
-    obs, action, payoff = capacity.sample(3, 4, 64, torch.Generator().manual_seed(0))
+    obs, action, payoff = capacity.sample(3, 4, 64, torch.Generator().manual_seed(0), 5.0)
     moving = action[..., 1] + action[..., 2]
-    torch.testing.assert_close(payoff, obs[..., 1] + moving * obs[..., 0])
+    torch.testing.assert_close(payoff, 5.0 * obs[..., 1] + moving * obs[..., 0])
     assert set(action.sum(-1).unique().tolist()) == {1.0}
     uniform = capacity.draw_coalitions("uniform", 5, 4000)
     assert uniform.any(-1).all() and set(uniform.sum(-1).unique().tolist()) == {1, 2, 3, 4, 5}
