@@ -75,20 +75,25 @@ def test_model_free_recipes_train_and_evaluate_on_cuda(tmp_path, recipe, sizes):
         (ShapleyAC, {"batch_size": 32, "init_random_frames": 0}),
     ],
 )
-def test_model_free_recipes_train_on_the_gpu_freeway(tmp_path, recipe, sizes):
-    """Roads, networks and replay all on the GPU: the batched torch freeway on CUDA (8 roads)
-    feeds the collector, every learned parameter moves, and evaluation runs on one GPU road."""
-    config = recipe.Config(
+def gpu_freeway_config(recipe, total_frames: int, **sizes):
+    """A tiny run of ``recipe`` on 8 roads of the batched freeway-merge on the GPU (10
+    vehicles), its networks and replay there too."""
+    return recipe.Config(
         env="freeway-merge",
         env_config={"backend": "torch", "num_envs": 8, "device": "cuda", "n_vehicles": 10},
-        total_frames=128,
+        total_frames=total_frames,
         frames_per_batch=64,
         eval_interval=0,
         device="cuda",
         progress=False,
         **sizes,
     )
-    exp = recipe(config, tmp_path / "run")
+
+
+def test_model_free_recipes_train_on_the_gpu_freeway(tmp_path, recipe, sizes):
+    """Roads, networks and replay all on the GPU: the batched torch freeway on CUDA (8 roads)
+    feeds the collector, every learned parameter moves, and evaluation runs on one GPU road."""
+    exp = recipe(gpu_freeway_config(recipe, 128, **sizes), tmp_path / "run")
     assert exp.env.device.type == "cuda"
     before = {k: p.detach().clone() for k, p in exp.loss.named_parameters()}
     exp.train()
@@ -125,17 +130,7 @@ def test_the_cooperation_control_stack_trains_on_the_gpu_freeway(tmp_path, recip
     model-predictive shield, w = 1, individual rewards (MADDPG with one critic per CAV; Shapley
     AC with its bf16 Shapley estimate): every learned parameter moves and the shield is counted
     in evaluation."""
-    config = recipe.Config(
-        env="freeway-merge",
-        env_config={"backend": "torch", "num_envs": 8, "device": "cuda", "n_vehicles": 10},
-        total_frames=256,
-        frames_per_batch=64,
-        eval_interval=0,
-        device="cuda",
-        progress=False,
-        batch_size=32,
-        init_random_frames=0,
-    ).with_overrides(
+    config = gpu_freeway_config(recipe, 256, batch_size=32, init_random_frames=0).with_overrides(
         [
             "exploration=epsilon",
             "exploration_actions=[0, 1, 2]",
