@@ -67,14 +67,6 @@ def test_model_free_recipes_train_and_evaluate_on_cuda(tmp_path, recipe, sizes):
     assert exp.evaluate(episodes=1)["length"] > 0
 
 
-@pytest.mark.parametrize(
-    ("recipe", "sizes"),
-    [
-        (MADDPG, {"batch_size": 32, "init_random_frames": 0}),
-        (MAPPO, {"minibatch_size": 32}),
-        (ShapleyAC, {"batch_size": 32, "init_random_frames": 0}),
-    ],
-)
 def gpu_freeway_config(recipe, total_frames: int, **sizes):
     """A tiny run of ``recipe`` on 8 roads of the batched freeway-merge on the GPU (10
     vehicles), its networks and replay there too."""
@@ -90,6 +82,14 @@ def gpu_freeway_config(recipe, total_frames: int, **sizes):
     )
 
 
+@pytest.mark.parametrize(
+    ("recipe", "sizes"),
+    [
+        (MADDPG, {"batch_size": 32, "init_random_frames": 0}),
+        (MAPPO, {"minibatch_size": 32}),
+        (ShapleyAC, {"batch_size": 32, "init_random_frames": 0}),
+    ],
+)
 def test_model_free_recipes_train_on_the_gpu_freeway(tmp_path, recipe, sizes):
     """Roads, networks and replay all on the GPU: the batched torch freeway on CUDA (8 roads)
     feeds the collector, every learned parameter moves, and evaluation runs on one GPU road."""
