@@ -140,9 +140,12 @@ class ShapleyACConfig(DiscreteExplorationConfig):
     @classmethod
     def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
         """A ``config.yaml`` written before ego-first views existed trained actors that see the
-        agents in index order: it resumes with ``ego_first=False``, not today's default."""
+        agents in index order: it resumes with ``ego_first=False``, not today's default; one
+        written before ``critic_embed_cells`` existed trained the paper's critic (no per-agent
+        layer), today's default."""
         data = super().upgrade_dict(data)
         data.setdefault("ego_first", False)
+        data.setdefault("critic_embed_cells", [])
         return data
 
     def __post_init__(self) -> None:

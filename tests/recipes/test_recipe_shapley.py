@@ -92,3 +92,14 @@ def test_config_written_before_ego_first_views_keeps_index_order(tmp_path: Path)
     path.write_text(yaml.safe_dump(data))
     old = ShapleyACConfig.from_yaml(path)
     assert old.ego_first is False and old.share_params is True
+
+
+def test_a_run_made_before_the_critic_embedding_resumes_without_it(tmp_path: Path) -> None:
+    ShapleyAC(_config(total_frames=10), tmp_path).train()
+    path = tmp_path / "config.yaml"
+    data = yaml.safe_load(path.read_text())
+    del data["critic_embed_cells"]
+    path.write_text(yaml.safe_dump(data))
+    resumed = ShapleyAC.from_run_dir(tmp_path)
+    assert resumed.config.critic_embed_cells == [] and len(resumed.critic.embed_weights) == 0
+    resumed.close()
