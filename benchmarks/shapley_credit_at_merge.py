@@ -51,7 +51,7 @@ from cooperation_control import (
     on_mainline,
 )
 from tensordict import TensorDict
-from yield_counterfactuals import deciding, returns_per_cav
+from yield_counterfactuals import branches, deciding
 
 from mapets_rl.app.plugins import load_recipe
 from mapets_rl.envs.freeway import CL, CR, KL
@@ -73,6 +73,17 @@ def variant_of(run_dir: Path) -> str:
     return run_dir.name.split("_seed", 1)[0]
 
 
+def joint_actions(
+    greedy: torch.Tensor, cav: torch.Tensor, move: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One-hot joint actions ``[K, n, A]`` of ``K`` decisions: the greedy ones (``greedy
+    [K, n]``), and the same with CAV ``cav[k]`` making ``move[k]`` instead."""
+    keep = torch.nn.functional.one_hot(greedy, ACTIONS).float()
+    moved = keep.clone()
+    moved[torch.arange(cav.numel()), cav] = torch.nn.functional.one_hot(move, ACTIONS).float()
+    return keep, moved
+
+
 @torch.no_grad()
 def critic_deltas(
     exp: ShapleyAC,
@@ -88,10 +99,8 @@ def critic_deltas(
     ``v({i})`` at the greedy joint action, each ``[K]`` in reward units."""
     critic, n = exp.critic, observation.shape[-2]
     scale = exp.config.reward_scale
-    keep = torch.nn.functional.one_hot(greedy, ACTIONS).float()  # [K, n, A]
-    moved = keep.clone()
+    keep, moved = joint_actions(greedy, cav, move)
     rows = torch.arange(cav.numel())
-    moved[rows, cav] = torch.nn.functional.one_hot(move, ACTIONS).float()
     # coalitions of the mover: a random prefix plus the mover, per decision [K, P, n]
     perms = sample_permutations(permutations, n, antithetic=True)
     prefixes = permutation_prefix_masks(perms).transpose(0, 1)  # [n, P, n]: the prefix before i
@@ -127,9 +136,7 @@ def maddpg_view(
     lane, the others' actions the Shapley run's greedy ones), ``Q_i`` at the greedy joint
     action, the actor's logit margin and softmax probability of the move, each ``[K]``."""
     rows = torch.arange(cav.numel())
-    keep = torch.nn.functional.one_hot(greedy, ACTIONS).float()
-    moved = keep.clone()
-    moved[rows, cav] = torch.nn.functional.one_hot(move, ACTIONS).float()
+    keep, moved = joint_actions(greedy, cav, move)
     q = {}
     for name, action in (("keep", keep), ("move", moved)):
         td = TensorDict({OBS: observation.float(), ACTION: action}, batch_size=[cav.numel()])
@@ -180,20 +187,14 @@ def decisions(run_dir: Path, args: argparse.Namespace) -> dict[str, list]:
         if bool(chosen.any()):
             road, cav = chosen.nonzero(as_tuple=True)  # [K]
             move = wanted[road, cav]
-            bases = road.unique()
-            copies = sim.take(torch.cat([bases, road]))
-            first = greedy[torch.cat([bases, road])].clone()
-            moving = torch.arange(bases.numel(), bases.numel() + road.numel())
-            first[moving, cav] = move
-            returns, _, y = returns_per_cav(copies, first, decide, gamma)
-            base = torch.searchsorted(bases, road)
+            returns, _, y, base, moving = branches(sim, greedy, road, cav, move, decide, gamma)
             own = returns[moving, cav] - returns[base, cav]
             system = returns[moving].sum(-1) - returns[base].sum(-1)
+            rows = torch.arange(road.numel())
             td = TensorDict({OBS: observation[road].float()}, batch_size=[road.numel()])
             td.set(COALITION, torch.ones(road.numel(), observation.shape[1], dtype=torch.bool))
-            logits = exp.actor(td).get(LOGITS)[torch.arange(road.numel()), cav]  # [K, A]
+            logits = exp.actor(td).get(LOGITS)[rows, cav]  # [K, A]
             prob = logits.softmax(-1)
-            rows = torch.arange(road.numel())
             fields = {
                 "step": torch.full_like(road, step),
                 "moved": (y[moving] != y[base]).any(-1),

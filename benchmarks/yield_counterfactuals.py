@@ -121,6 +121,36 @@ def returns_per_cav(
     return total, metres, y
 
 
+def branches(
+    sim: BatchedFreeway,
+    action: torch.Tensor,
+    road: torch.Tensor,
+    cav: torch.Tensor,
+    replacement: torch.Tensor,
+    decide: Decide,
+    gamma: float,
+    *,
+    keep_lane_after: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Decision ``k`` (CAV ``cav[k]`` of road ``road[k]``, ``[K]`` each) replayed on its own
+    copy of the road with that CAV's action this step replaced by ``replacement[k]``, beside one
+    copy per road that plays ``action [B, I]`` unchanged; all copies then follow ``decide``
+    (with ``keep_lane_after``, the replaced CAVs keep their lane instead, to the end), in one
+    batch (:func:`returns_per_cav`). Returns its ``returns``, ``metres`` and ``y`` rows and,
+    ``[K]`` each, the index of every decision's unchanged copy and of its own copy."""
+    bases = road.unique()  # sorted: the policy's own continuation of each road
+    copies = sim.take(torch.cat([bases, road]))
+    first = action[torch.cat([bases, road])].clone()
+    branch = torch.arange(bases.numel(), bases.numel() + road.numel())
+    first[branch, cav] = replacement
+    keeping = None
+    if keep_lane_after:
+        keeping = torch.zeros_like(first, dtype=torch.bool)
+        keeping[branch, cav] = True
+    returns, metres, y = returns_per_cav(copies, first, decide, gamma, keeping)
+    return returns, metres, y, torch.searchsorted(bases, road), branch
+
+
 @torch.no_grad()
 def counterfactuals(
     decide: Decide, settings: dict, seed: int, args: argparse.Namespace
@@ -150,17 +180,10 @@ def counterfactuals(
         chosen = alive & ((safe == CL) | (safe == CR)) & on_mainline(sim, lane)
         if bool(chosen.any()):
             road, cav = chosen.nonzero(as_tuple=True)  # [K]
-            bases = road.unique()  # sorted: the policy's own continuation of each road
-            copies = sim.take(torch.cat([bases, road]))
-            first = action[torch.cat([bases, road])].clone()
-            kept = torch.arange(bases.numel(), bases.numel() + road.numel())
-            first[kept, cav] = KL
-            keeping = None
-            if args.deviation == "rest":
-                keeping = torch.zeros_like(first, dtype=torch.bool)
-                keeping[kept, cav] = True
-            returns, metres, y = returns_per_cav(copies, first, decide, args.gamma, keeping)
-            own_base = torch.searchsorted(bases, road)  # [K]: each decision's own road copy
+            returns, metres, y, own_base, kept = branches(
+                sim, action, road, cav, torch.full_like(cav, KL), decide, args.gamma,
+                keep_lane_after=args.deviation == "rest",
+            )  # fmt: skip
             out["moved"] += (y[own_base] != y[kept]).any(-1).tolist()
             out["step"] += [step] * road.numel()
             out["near"] += near_merge(sim, x)[road, cav].tolist()

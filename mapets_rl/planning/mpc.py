@@ -416,7 +416,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
                     f"sequences must be shaped like last_solution "
                     f"{list(self.last_solution.shape)}, got {list(sequences.shape)}"
                 )
-            solution = sequences.reshape(-1, *solution.shape[:1], *solution.shape[2:])
+            solution = sequences.reshape(-1, n_agents, *solution.shape[2:])  # [M, I, H, act]
             solution = solution.transpose(0, 1).to(self._solution.dtype)
         frozen = getattr(self.model, "frozen_parameters", None)
         with frozen(self.dtype) if frozen is not None else contextlib.nullcontext():
