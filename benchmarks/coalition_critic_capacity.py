@@ -20,10 +20,13 @@ uniformly random actions, coalitions drawn as ``RandomCoalition`` draws them) to
 regression the TD loss does with exact targets. On held-out states, for one random agent per
 state: the correlation of the critic's ``Delta v({i})``, ``Delta phi_i`` (``--permutations``
 random orderings) and ``Delta v(N)`` (move minus keep lane) with the true ``o_i[0]``, and the
-fit of ``v(C)`` (R^2 over held-out coalitions).
+fit of ``v(C)`` (R^2 over held-out coalitions). ``--heads member`` fits a critic with one head
+output per agent (``CoalitionCritic(member_heads=True)``, ``v(C) = sum_{j in C} q_j``) to each
+member's own payoff ``u_j``, as its TD loss does with the members' rewards.
 
     OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/coalition_critic_capacity.py \\
-        --agents 4 30 --cells 64 256 [--scale 1 10] [--embed 0 64] [--sizes binomial uniform] \\
+        --agents 4 30 --cells 64 256 [--scale 1 10] [--embed 0 64] [--heads sum member]\
+        [--sizes binomial uniform] \\
         [--steps 3000] [--lr 0.01]
 """
 
@@ -70,24 +73,34 @@ def pearson(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def fit_and_score(
-    n: int, cells: int, sizes: str, embed: int, scale: float, args: argparse.Namespace
+    n: int, cells: int, sizes: str, embed: int, scale: float, heads: str, args: argparse.Namespace
 ) -> dict[str, float]:
     """Fit a ``[cells, cells]`` critic (with a per-agent ``embed``-wide layer before the sum
-    when ``embed > 0``) to the game of ``n`` agents with coalitions drawn by ``sizes``; its
-    correlations with the true move effect and its held-out R^2."""
+    when ``embed > 0``; ``heads``: ``sum`` one output fitted to ``v(C)``, ``member`` one per
+    agent fitted to its own payoff) to the game of ``n`` agents with coalitions drawn by
+    ``sizes``; its correlations with the true move effect and its held-out R^2."""
     torch.manual_seed(args.seed)
     generator = torch.Generator().manual_seed(args.seed)
+    member = heads == "member"
     critic = CoalitionCritic(
-        n, args.obs_dim, ACTIONS, num_cells=[cells, cells], embed_cells=[embed] if embed else []
+        n,
+        args.obs_dim,
+        ACTIONS,
+        num_cells=[cells, cells],
+        embed_cells=[embed] if embed else [],
+        member_heads=member,
     )
     optimizer = torch.optim.Adam(critic.parameters(), lr=args.lr)
     start = time.perf_counter()
     for _ in range(args.steps):
         obs, action, payoff = sample(n, args.obs_dim, args.batch, generator, scale)
         members = draw_coalitions(sizes, n, args.batch)
-        target = (payoff * members).sum(-1)
-        value = critic.coalition_values(obs, action, members.unsqueeze(-2)).squeeze(-1)
-        loss = (value - target).pow(2).mean()
+        target = payoff * members  # [batch, n]: each member's payoff
+        value = critic.coalition_values(obs, action, members.unsqueeze(-2), per_member=member)
+        if member:
+            loss = (value.squeeze(-2) - target).pow(2).sum(-1).mean()
+        else:
+            loss = (value.squeeze(-1) - target.sum(-1)).pow(2).mean()
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -135,6 +148,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
         help="widths of a per-agent layer before the members are summed (0: none, the paper's)",
     )
     parser.add_argument("--scale", nargs="+", type=float, default=[1.0], help="o[1]'s weight")
+    parser.add_argument(
+        "--heads",
+        nargs="+",
+        default=["sum"],
+        choices=["sum", "member"],
+        help="sum: one output fitted to v(C) (the paper's); member: one per agent, own payoff",
+    )
     parser.add_argument("--obs-dim", type=int, default=8)
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--batch", type=int, default=1024)
@@ -160,19 +180,29 @@ def main(argv: list[str] | None = None) -> list[dict]:
         f"{args.lr}) of batch {args.batch}, {args.eval_states} held-out states, seed {args.seed}"
     )
     print(
-        "| agents | scale | critic | per-agent layer | coalition sizes | R^2 of v(C) "
+        "| agents | scale | critic | per-agent layer | heads | coalition sizes | R^2 of v(C) "
         "| corr(Delta v({i}), true) "
         "| corr(Delta phi_i, true) | corr(Delta v(N), true) | fit [s] |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     rows = []
-    grid = itertools.product(args.agents, args.scale, args.cells, args.embed, args.sizes)
-    for n, scale, cells, embed, sizes in grid:
-        row = {"agents": n, "scale": scale, "cells": cells, "embed": embed, "sizes": sizes}
-        row.update(fit_and_score(n, cells, sizes, embed, scale, args))
+    grid = itertools.product(
+        args.agents, args.scale, args.cells, args.embed, args.heads, args.sizes
+    )
+    for n, scale, cells, embed, heads, sizes in grid:
+        row = {
+            "agents": n,
+            "scale": scale,
+            "cells": cells,
+            "embed": embed,
+            "heads": heads,
+            "sizes": sizes,
+        }
+        row.update(fit_and_score(n, cells, sizes, embed, scale, heads, args))
         rows.append(row)
         print(
-            f"| {n} | {scale:g} | 2x{cells} | {embed or 'none'} | {sizes} | {row['r2']:.3f} "
+            f"| {n} | {scale:g} | 2x{cells} | {embed or 'none'} | {heads} | {sizes} "
+            f"| {row['r2']:.3f} "
             f"| {row['corr_single']:.2f} | {row['corr_phi']:.2f} | {row['corr_grand']:.2f} "
             f"| {row['seconds']:.0f} |",
             flush=True,

@@ -33,7 +33,9 @@ openai/maddpg schedule (``mapets_rl.recipes.maddpg.OPENAI_MADDPG``), the team re
   included; ``reg``: the actor's logits penalty of the recipe (0.1) instead of openai's 1e-3;
   ``embed``: a 64-wide nonlinear layer per CAV in the coalition critic before the members are
   summed (``critic_embed_cells=[64]``), so that its head sees each member's state and action
-  together;
+  together; ``member``: one critic output per CAV, ``v(C)`` their sum over the members, each
+  fitted to its own member's reward (``critic_member_heads=true``) instead of one output fitted
+  to the coalition's summed reward;
 - ``mappo``: MAPPO (GAE, gamma 0.99) with the team reward, the on-policy reference, one PPO
   update per 40 steps of every road; ``short``: one per 4 steps (10x the updates).
 
@@ -104,8 +106,10 @@ CHANGES: dict[str, list[str]] = {
     "uniform": ["coalition_sizes=uniform"],
     "reg": ["logits_reg=0.1"],
     "embed": ["critic_embed_cells=[64]"],
+    "member": ["critic_member_heads=true"],
 }
-"""The controlled changes, as config overrides (``uniform`` and ``reg`` are Shapley AC's)."""
+"""The controlled changes, as config overrides (``uniform``, ``reg``, ``embed`` and ``member`` are
+Shapley AC's)."""
 RECIPES = {"maddpg": "maddpg", "shapley": "shapley_ac", "mappo": "mappo"}
 """A variant's first word and the recipe it trains."""
 SHAPLEY_SCHEDULE: tuple[str, ...] = (
@@ -122,7 +126,7 @@ minibatch, bf16 autocast: about 0.7 s per update here, against 2.4 s at the reci
 orderings in fp32)."""
 RECIPE_CHANGES: dict[str, tuple[str, ...]] = {
     "maddpg": ("epsilon", "shield", "gamma99", "w1", "individual", "shared"),
-    "shapley": ("epsilon", "shield", "w1", "uniform", "reg", "embed"),
+    "shapley": ("epsilon", "shield", "w1", "uniform", "reg", "embed", "member"),
     "mappo": ("shield", "short", "w1"),
 }
 """The controlled changes of each recipe (MAPPO's ``short``: ``frames_per_batch`` of 4 steps

@@ -81,6 +81,10 @@ class ShapleyACConfig(DiscreteExplorationConfig):
             the default: the paper's MLP on the zero-masked joint input, whose first layer pools
             the members' linear terms; see docs/results/shapley.md, "Why the Shapley arm stays
             on keep lane").
+        critic_member_heads: the coalition critic ends in one output per CAV and ``v(C)`` is
+            the sum of its members' outputs, each fitted to its own member's reward
+            (``CoalitionCritic(member_heads=True)``; the TD targets summed over ``C`` are the
+            paper's). False, the default: one output fitted to ``R(C)``, the paper's.
         join_prob: probability that a CAV joins the random coalition of a timestep
             (``coalition_sizes="binomial"``).
         coalition_sizes: how a timestep's coalition is drawn while collecting: ``binomial``
@@ -126,6 +130,7 @@ class ShapleyACConfig(DiscreteExplorationConfig):
     updates_per_batch: int = 10
     critic_cells: list[int] = dataclasses.field(default_factory=lambda: [128, 128])
     critic_embed_cells: list[int] = dataclasses.field(default_factory=list)
+    critic_member_heads: bool = False
     join_prob: float = 0.5
     coalition_sizes: str = "binomial"
     eval_coalition: str = "grand"
@@ -141,11 +146,12 @@ class ShapleyACConfig(DiscreteExplorationConfig):
     def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
         """A ``config.yaml`` written before ego-first views existed trained actors that see the
         agents in index order: it resumes with ``ego_first=False``, not today's default; one
-        written before ``critic_embed_cells`` existed trained the paper's critic (no per-agent
-        layer), today's default."""
+        written before ``critic_embed_cells`` or ``critic_member_heads`` existed trained the
+        paper's critic (no per-agent layer, one output), today's default."""
         data = super().upgrade_dict(data)
         data.setdefault("ego_first", False)
         data.setdefault("critic_embed_cells", [])
+        data.setdefault("critic_member_heads", False)
         return data
 
     def __post_init__(self) -> None:
@@ -226,6 +232,7 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
             group.action_dim,
             num_cells=config.critic_cells,
             embed_cells=config.critic_embed_cells,
+            member_heads=config.critic_member_heads,
             device=device,
         )
         self.policy = TensorDictSequential(self.coalition, self.actor)

@@ -39,6 +39,11 @@ class ShapleyActorCriticLoss(LossModule):
     ``C' = C`` minus the agents terminated at ``s'`` (a terminated agent earns no future reward;
     ``v(empty) = 0``). Target parameters are refreshed with ``torchrl.objectives.SoftUpdate``.
 
+    With a critic built with ``member_heads`` (``v(C) = sum_{j in C} q_j``), each member's term
+    regresses onto its own ``r_j + gamma * q'_j(s', a', C')`` (zero outside ``C``, and for
+    members terminated at ``s'``): the same targets summed over ``C``, with the members'
+    rewards kept apart instead of pooled.
+
     Actor (lines 12-13): ``loss_actor = -mean_i phi_i(s, a)`` where ``phi_i`` is the Shapley value
     (eq. 3) of the critic's game at the sampled state, with ``a_i = pi_i(s^C)`` and the other
     agents' actions taken from the batch. The gradient reaches agent ``i``'s policy only through
@@ -303,17 +308,23 @@ class ShapleyActorCriticLoss(LossModule):
         inputs = self._inputs(tensordict, target=True)
         obs, coalition = inputs["observation"], inputs["coalition"]
         action = inputs["action"].to(obs.dtype)
+        # member heads: one TD target per member, r_j + gamma q'_j (zero outside C); their sum
+        # is the paper's target for v(C)
+        per_member = self.critic_network.member_heads
         with self.critic_network_params.to_module(self.critic_network, preserve_module_state=False):
-            pred = self.critic_network.coalition_values(obs, action, coalition.unsqueeze(-2))
-        pred = pred.squeeze(-1)  # [*]
+            pred = self.critic_network.coalition_values(
+                obs, action, coalition.unsqueeze(-2), per_member=per_member
+            )
+        pred = pred.squeeze(-2) if per_member else pred.squeeze(-1)  # [*, n] or [*]
         with torch.no_grad():
             next_obs = inputs["next_observation"]
             reward = inputs["reward"].reshape(*coalition.shape)
             terminated = inputs["terminated"]
             terminated = terminated.reshape(*terminated.shape[: coalition.ndim - 1], -1)
             next_coalition = coalition & ~terminated.expand_as(coalition)
-            coalition_reward = (reward * coalition.to(reward.dtype)).sum(-1)  # R(C), eq. 10
-            coalition_reward = coalition_reward * self.reward_scale
+            member_reward = reward * coalition.to(reward.dtype) * self.reward_scale  # [*, n]
+            # R(C), eq. 10
+            coalition_reward = member_reward if per_member else member_reward.sum(-1)
             next_action, _ = self._policy_action(
                 self.target_actor_network_params, next_obs, coalition, greedy=True
             )
@@ -321,10 +332,14 @@ class ShapleyActorCriticLoss(LossModule):
                 self.critic_network, preserve_module_state=False
             ):
                 next_value = self.critic_network.coalition_values(
-                    next_obs, next_action, next_coalition.unsqueeze(-2)
-                ).squeeze(-1)
+                    next_obs, next_action, next_coalition.unsqueeze(-2), per_member=per_member
+                )
+            next_value = next_value.squeeze(-2) if per_member else next_value.squeeze(-1)
             target = coalition_reward.to(pred.dtype) + self.gamma * next_value
-        loss = distance_loss(pred, target, loss_function=self.loss_function).mean()
+        loss = distance_loss(pred, target, loss_function=self.loss_function)
+        if per_member:  # outside C both are zero; sum the members' terms per sample
+            pred, target, loss = pred.sum(-1), target.sum(-1), loss.sum(-1)
+        loss = loss.mean()
         td_error = (pred - target).detach().pow(2)
         meta = {
             "pred_value": pred.detach().mean(),
@@ -384,6 +399,7 @@ class ShapleyActorCriticLoss(LossModule):
         if exact:
             masks = self._masks_with.to(h_batch.dtype)  # [n, K, n]
             weights = self._weights_with.to(h_batch.dtype)  # [n, K]
+            masks_with = masks
         else:
             # one set of orderings for the whole minibatch (antithetic pairs: rows 2q, 2q+1)
             perms = sample_permutations(
@@ -391,7 +407,8 @@ class ShapleyActorCriticLoss(LossModule):
             )
             before = permutation_prefix_masks(perms).transpose(0, 1)  # [n, P, n]
             masks = before.to(h_batch.dtype)
-            nonempty = before.any(-1).to(h_batch.dtype)  # [n, P]
+            own_bit = torch.eye(n, dtype=torch.bool, device=before.device).unsqueeze(-2)
+            masks_with = before | own_bit  # [n, P, n]: the prefix before i, plus i
         need_grad = torch.is_grad_enabled() and delta.requires_grad
         size = h_batch.shape[0] if self.chunk_states is None else self.chunk_states
         autocast = dict(
@@ -400,9 +417,9 @@ class ShapleyActorCriticLoss(LossModule):
             enabled=self.autocast_bf16,
         )
 
-        def head(z: torch.Tensor) -> torch.Tensor:
+        def head(z: torch.Tensor, members: torch.Tensor) -> torch.Tensor:
             with torch.autocast(**autocast):
-                return critic.head(z).squeeze(-1).to(h_batch.dtype)
+                return critic.head_values(z, members).to(h_batch.dtype)
 
         phis, grads, stderrs = [], [], []
         for start in range(0, h_batch.shape[0], size):
@@ -414,7 +431,7 @@ class ShapleyActorCriticLoss(LossModule):
                 # exact: the coalitions already hold h_i(a_batch), add delta_i; sampled: the
                 # prefixes before i do not hold i, add h_i(a_pol) = h_i(a_batch) + delta_i
                 own = d if exact else hb + d
-                v_with = head(base + own.unsqueeze(-2))  # [S_c, n, K]: coalitions with i
+                v_with = head(base + own.unsqueeze(-2), masks_with)  # [S_c, n, K]: with i
                 if exact:
                     phi_with = (v_with * weights).sum(-1)
                 else:
@@ -427,7 +444,7 @@ class ShapleyActorCriticLoss(LossModule):
                     phis.append(phi_with.detach() + v_all @ self._m_without.to(v_all.dtype))
                     stderrs.append(torch.zeros_like(phi_with))
                 else:
-                    marginal = v_with.detach() - head(base) * nonempty  # [S_c, n, P]
+                    marginal = v_with.detach() - head(base, before)  # [S_c, n, P]
                     pairs = marginal.unflatten(-1, (-1, 2)).mean(-1)  # [S_c, n, P/2]
                     phis.append(pairs.mean(-1))
                     stderrs.append(pairs.std(-1, correction=1) / math.sqrt(pairs.shape[-1]))

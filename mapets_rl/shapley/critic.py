@@ -43,6 +43,11 @@ class CoalitionCritic(TensorDictModuleBase):
             ``h_j``, so every fast path here and in the Shapley loss stays valid; what changes
             is that the head receives a feature of each member's state and action together
             (after ``f_j``'s nonlinearity), not their linear terms pooled over the coalition.
+        member_heads: the head ends in one output per agent, ``q_j(z_C)``, and ``v(C) =
+            sum_{j in C} q_j(z_C)``: the coalition's value as the sum of its members' returns
+            (eq. 10), each of which can be fitted to its own member's reward
+            (``coalition_values(..., per_member=True)``). ``False``: one output, ``v(C)``
+            directly (the paper's).
         activation_class: hidden activation.
         observation_key, action_key, coalition_key, out_key: keys used by :meth:`forward`:
             ``observation [*, n, obs]``, ``action [*, n, act]``, ``coalition [*, n]`` (bool)
@@ -58,6 +63,7 @@ class CoalitionCritic(TensorDictModuleBase):
         *,
         num_cells: Sequence[int] = (128, 128),
         embed_cells: Sequence[int] = (),
+        member_heads: bool = False,
         activation_class: type[nn.Module] = nn.ReLU,
         observation_key: NestedKey = ("agents", "observation"),
         action_key: NestedKey = ("agents", "action"),
@@ -71,6 +77,7 @@ class CoalitionCritic(TensorDictModuleBase):
         num_cells = hidden_sizes(num_cells)
         super().__init__()
         self.n_agents = n_agents
+        self.member_heads = bool(member_heads)
         self.observation_dim = observation_dim
         self.action_dim = action_dim
         self.observation_key = observation_key
@@ -112,7 +119,7 @@ class CoalitionCritic(TensorDictModuleBase):
             activation_class(),
             MLP(
                 in_features=hidden,
-                out_features=1,
+                out_features=n_agents if self.member_heads else 1,
                 num_cells=num_cells[1:],
                 activation_class=activation_class,
                 device=device,
@@ -125,6 +132,21 @@ class CoalitionCritic(TensorDictModuleBase):
                 f"masks must have shape [..., K, n_agents={self.n_agents}], "
                 f"got {tuple(masks.shape)}"
             )
+
+    def head_values(
+        self, z: torch.Tensor, masks: torch.Tensor, *, per_member: bool = False
+    ) -> torch.Tensor:
+        """The head on coalition pre-activations: ``z [..., K, H]``, bool or 0/1 ``masks [..., K,
+        n]`` (broadcast) -> ``v(C) [..., K]`` (zero for the empty coalition), or with
+        ``per_member`` each member's term ``[..., K, n]`` (zero outside ``C``; needs
+        ``member_heads``)."""
+        if per_member and not self.member_heads:
+            raise ValueError("per_member values need a critic built with member_heads=True")
+        out = self.head(z).to(z.dtype)
+        if self.member_heads:
+            terms = out * masks.to(out.dtype)
+            return terms if per_member else terms.sum(-1)
+        return out.squeeze(-1) * masks.any(-1).to(out.dtype)
 
     def embed(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Per-agent first-layer terms ``h_j``: ``[..., n, obs], [..., n, act] -> [..., n, H]``."""
@@ -152,6 +174,7 @@ class CoalitionCritic(TensorDictModuleBase):
         *,
         chunk_states: int | None = None,
         autocast_dtype: torch.dtype | None = None,
+        per_member: bool = False,
     ) -> torch.Tensor:
         """``v(s, a, C)`` from the per-agent first-layer terms ``h`` of :meth:`embed`.
 
@@ -162,9 +185,10 @@ class CoalitionCritic(TensorDictModuleBase):
                 ``None``: one pass. The result does not depend on it.
             autocast_dtype: run the hidden layers under ``torch.autocast`` in this dtype (e.g.
                 ``torch.bfloat16``); the values come back in ``h``'s dtype. ``None``: no autocast.
+            per_member: return each member's term (see :meth:`head_values`).
 
         Returns:
-            ``[..., K]``; zero for the empty coalition.
+            ``[..., K]``; zero for the empty coalition (``[..., K, n]`` with ``per_member``).
         """
         self._check_masks(masks)
         if chunk_states is not None and (
@@ -185,9 +209,9 @@ class CoalitionCritic(TensorDictModuleBase):
             with torch.autocast(
                 hc.device.type, dtype=autocast_dtype or torch.bfloat16, enabled=bool(autocast_dtype)
             ):
-                value = self.head(z).squeeze(-1)
-            parts.append(value.to(h.dtype) * mc.any(-1).to(h.dtype))
-        return torch.cat(parts).reshape(*batch, k)
+                value = self.head_values(z, mc, per_member=per_member)
+            parts.append(value.to(h.dtype))
+        return torch.cat(parts).reshape(*batch, k, *parts[0].shape[2:])
 
     def coalition_values(
         self,
@@ -197,21 +221,26 @@ class CoalitionCritic(TensorDictModuleBase):
         *,
         chunk_states: int | None = None,
         autocast_dtype: torch.dtype | None = None,
+        per_member: bool = False,
     ) -> torch.Tensor:
         """``v(s, a, C)`` for ``K`` coalitions per state.
 
         Args:
             observation: ``[..., n, obs]``; action: ``[..., n, act]``.
             masks: bool ``[..., K, n]`` (broadcast against the leading dims).
-            chunk_states, autocast_dtype: see :meth:`values_from_embedding`.
+            chunk_states, autocast_dtype, per_member: see :meth:`values_from_embedding`.
 
         Returns:
-            ``[..., K]``; zero for the empty coalition.
+            ``[..., K]``; zero for the empty coalition (``[..., K, n]`` with ``per_member``).
         """
         self._check_masks(masks)
         h = self.embed(observation, action)  # [..., n, H]
         return self.values_from_embedding(
-            h, masks, chunk_states=chunk_states, autocast_dtype=autocast_dtype
+            h,
+            masks,
+            chunk_states=chunk_states,
+            autocast_dtype=autocast_dtype,
+            per_member=per_member,
         )
 
     def all_coalition_values(

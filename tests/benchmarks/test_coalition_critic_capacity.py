@@ -27,10 +27,15 @@ def test_the_game_pays_column_one_plus_column_zero_for_a_lane_change(capacity) -
 
 def test_two_agents_critic_learns_the_move_effect(capacity) -> None:
     rows = capacity.main(
-        ["--agents", "2", "--cells", "32", "--embed", "0", "8", "--steps", "400", "--batch",
-         "256", "--eval-states", "512", "--permutations", "4"]
+        ["--agents", "2", "--cells", "32", "--embed", "0", "8", "--heads", "sum", "member",
+         "--steps", "400", "--batch", "256", "--eval-states", "512", "--permutations", "4"]
     )  # fmt: skip
-    assert [row["embed"] for row in rows] == [0, 8]
+    assert [(row["embed"], row["heads"]) for row in rows] == [
+        (0, "sum"),
+        (0, "member"),
+        (8, "sum"),
+        (8, "member"),
+    ]
     for row in rows:
         assert row["r2"] > 0.9
         assert min(row["corr_single"], row["corr_phi"], row["corr_grand"]) > 0.8
@@ -44,6 +49,7 @@ def test_two_agents_critic_learns_the_move_effect(capacity) -> None:
         ["--steps", "0"],
         ["--lr", "0"],
         ["--embed", "-1"],
+        ["--heads", "mean"],
     ],
 )
 def test_bad_arguments_are_refused(capacity, argv, capsys) -> None:

@@ -64,6 +64,9 @@ def test_variants_are_one_change_at_a_time(control: ModuleType) -> None:
     cls = control.load_recipe(recipe)  # every field of the Shapley arm is the recipe's
     config = cls.Config(env=control.ENV).with_overrides(shapley)
     assert (config.critic_cells, config.num_cells) == ([64, 64], [64, 64])
+    _, member = control.variant_overrides("shapley_w1_member", args)
+    assert sorted(set(member) - set(shapley)) == ["critic_member_heads=true"]
+    assert cls.Config(env=control.ENV).with_overrides(member).critic_member_heads is True
 
 
 def test_scripted_references_are_scored_with_the_variants_reward(control: ModuleType) -> None:

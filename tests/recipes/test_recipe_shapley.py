@@ -77,6 +77,18 @@ def test_a_per_agent_critic_embedding_reaches_the_critic_and_trains(tmp_path: Pa
     exp.close()
 
 
+def test_member_heads_reach_the_critic_and_train(tmp_path: Path) -> None:
+    exp = ShapleyAC(_config(critic_member_heads=True), tmp_path)
+    assert exp.critic.member_heads and exp.loss.critic_network.member_heads
+    mlp = exp.critic.head[1]
+    assert mlp[-1].out_features == exp.critic.n_agents == 2  # one output per CAV
+    before = mlp[-1].weight.detach().clone()
+    exp.train()
+    trained = exp.loss.critic_network_params.get(("head", "1", str(len(mlp) - 1), "weight"))
+    assert trained.shape == before.shape and not torch.equal(before, trained)
+    exp.close()
+
+
 def test_uniform_coalition_sizes_reach_the_sampler(tmp_path: Path) -> None:
     exp = ShapleyAC(_config(coalition_sizes="uniform"), tmp_path)
     assert exp.coalition.sizes == "uniform"
@@ -98,8 +110,9 @@ def test_a_run_made_before_the_critic_embedding_resumes_without_it(tmp_path: Pat
     ShapleyAC(_config(total_frames=10), tmp_path).train()
     path = tmp_path / "config.yaml"
     data = yaml.safe_load(path.read_text())
-    del data["critic_embed_cells"]
+    del data["critic_embed_cells"], data["critic_member_heads"]
     path.write_text(yaml.safe_dump(data))
     resumed = ShapleyAC.from_run_dir(tmp_path)
     assert resumed.config.critic_embed_cells == [] and len(resumed.critic.embed_weights) == 0
+    assert resumed.config.critic_member_heads is False and not resumed.critic.member_heads
     resumed.close()

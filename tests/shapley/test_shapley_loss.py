@@ -38,10 +38,12 @@ def _batch(n=N, act=ACT, b=B, seed=0, discrete=True):
     )
 
 
-def _loss(discrete=True, n=N, embed_cells=(), **kwargs):
+def _loss(discrete=True, n=N, embed_cells=(), member_heads=False, **kwargs):
     torch.manual_seed(0)
     actor = make_coalition_actor(n, OBS, ACT, discrete=discrete, num_cells=(16,))
-    critic = CoalitionCritic(n, OBS, ACT, num_cells=(32, 32), embed_cells=embed_cells)
+    critic = CoalitionCritic(
+        n, OBS, ACT, num_cells=(32, 32), embed_cells=embed_cells, member_heads=member_heads
+    )
     space = "discrete" if discrete else "continuous"
     return ShapleyActorCriticLoss(actor, critic, action_space=space, **kwargs)
 
@@ -144,8 +146,9 @@ def _reference_phi(loss, td):
     return torch.stack(phis, -1)
 
 
-def test_actor_gradient_flows_only_through_own_action():
-    loss = _loss(discrete=False)
+@pytest.mark.parametrize("member_heads", [False, True])
+def test_actor_gradient_flows_only_through_own_action(member_heads):
+    loss = _loss(discrete=False, member_heads=member_heads)
     td = _batch(discrete=False)
     params = [p for _, p in loss.actor_network_params.items(True, True) if p.requires_grad]
     phi = loss.shapley_values(td)
@@ -327,9 +330,64 @@ def test_embedded_critic_sums_a_per_agent_network_over_the_members():
         CoalitionCritic(N, OBS, ACT, embed_cells=(4, 0))
 
 
-@pytest.mark.parametrize("embed_cells", [(), (6,)])
-def test_sampled_path_value_and_gradient_match_direct_computation(embed_cells):
-    loss = _loss(discrete=False, exact_max_agents=2, num_permutations=6, embed_cells=embed_cells)
+def test_member_heads_sum_one_term_per_member():
+    """``member_heads``: ``v(C) = sum_{j in C} q_j(z_C)``, one head output per agent; the terms
+    of non-members are zero and ``v(empty) = 0``."""
+    torch.manual_seed(3)
+    critic = CoalitionCritic(N, OBS, ACT, num_cells=(8, 8), member_heads=True)
+    obs, act = torch.randn(3, N, OBS), torch.randn(3, N, ACT)
+    masks = coalition_masks(N)
+    terms = critic.coalition_values(obs, act, masks, per_member=True)  # [3, 2**N, N]
+    values = critic.all_coalition_values(obs, act)
+    torch.testing.assert_close(values, terms.sum(-1))
+    assert (terms[:, ~masks] == 0).all() and (values[:, 0] == 0).all()
+    h = critic.embed(obs, act)
+    for k in (1, 6, 15):
+        q = critic.head(masks[k].float() @ h + critic.bias)  # [3, N]: every agent's q_j(z_C)
+        torch.testing.assert_close(values[:, k], (q * masks[k]).sum(-1))
+    with pytest.raises(ValueError, match="member_heads"):
+        CoalitionCritic(N, OBS, ACT).coalition_values(obs, act, masks, per_member=True)
+
+
+def test_member_heads_regress_each_member_on_its_own_reward():
+    """With member heads each member's term has its own TD target ``r_j + gamma q'_j`` (zero
+    outside ``C``); summed, the targets are the paper's ``R(C) + gamma v'(C')``."""
+    loss = _loss(gamma=0.9, member_heads=True)
+    td = _batch()
+    td["next", "agents", "terminated"][:] = True  # y_j = r_j for members
+    coalition = td["agents", "coalition"].float()
+    reward = td["next", "agents", "reward"].squeeze(-1)
+    value, meta = loss.loss_value(td)
+    assert torch.isclose(meta["target_value"], (reward * coalition).sum(-1).mean())
+    obs, act = td["agents", "observation"], td["agents", "action"]
+    with torch.no_grad():
+        q = loss.critic_network.coalition_values(
+            obs, act, td["agents", "coalition"].unsqueeze(-2), per_member=True
+        ).squeeze(-2)
+    # sum over members of (q_j - r_j)^2, not (sum_j q_j - r_j)^2
+    assert torch.isclose(value, ((q - reward * coalition) ** 2).sum(-1).mean())
+    assert not torch.isclose(value, ((q - reward * coalition).sum(-1) ** 2).mean())
+    updater = SoftUpdate(loss, tau=0.05)
+    opt = torch.optim.Adam(loss.critic_network_params.values(True, True), lr=3e-3)
+    first = loss(td)["td_error"].item()
+    for _ in range(150):
+        value_loss = loss.loss_value(td)[0]
+        opt.zero_grad()
+        value_loss.backward()
+        opt.step()
+        updater.step()
+    assert loss(td)["td_error"].item() < 0.2 * first
+
+
+@pytest.mark.parametrize(("embed_cells", "member_heads"), [((), False), ((6,), False), ((), True)])
+def test_sampled_path_value_and_gradient_match_direct_computation(embed_cells, member_heads):
+    loss = _loss(
+        discrete=False,
+        exact_max_agents=2,
+        num_permutations=6,
+        embed_cells=embed_cells,
+        member_heads=member_heads,
+    )
     td = _batch(discrete=False)
     params = [p for _, p in loss.actor_network_params.items(True, True) if p.requires_grad]
     torch.manual_seed(5)
