@@ -39,9 +39,12 @@ import time
 import torch
 
 from mapets_rl.machine import machine_line
-from mapets_rl.shapley import CoalitionCritic
-from mapets_rl.shapley.coalition import uniform_size_coalition
-from mapets_rl.shapley.game import permutation_prefix_masks, sample_permutations
+from mapets_rl.shapley import (
+    CoalitionCritic,
+    prefixes_with_agents,
+    sample_permutations,
+    uniform_size_coalition,
+)
 
 ACTIONS = 4  # KL, CL, CR, ES
 MOVES = (1, 2)  # CL, CR
@@ -118,9 +121,7 @@ def fit_and_score(
         move[rows, agent] = torch.nn.functional.one_hot(torch.tensor(MOVES[0]), ACTIONS).float()
         single = torch.nn.functional.one_hot(agent, n).bool().unsqueeze(-2)
         # the coalitions with the agent that its Shapley value reads: a random prefix plus it
-        prefixes = permutation_prefix_masks(sample_permutations(args.permutations, n))
-        with_agent = prefixes.transpose(0, 1)[agent].clone()  # [S, P, n]
-        with_agent[rows, :, agent] = True
+        with_agent = prefixes_with_agents(sample_permutations(args.permutations, n), agent)
         masks = torch.cat([single, torch.ones_like(single), with_agent], dim=-2)  # {i}, N, ...
         delta = critic.coalition_values(obs, move, masks) - critic.coalition_values(
             obs, keep, masks

@@ -60,7 +60,7 @@ from mapets_rl.machine import machine_line
 from mapets_rl.modules import ACTION, OBS, Q_VALUE
 from mapets_rl.recipes.maddpg import PREACTIVATION
 from mapets_rl.recipes.shapley_ac import COALITION, ShapleyAC
-from mapets_rl.shapley.game import permutation_prefix_masks, sample_permutations
+from mapets_rl.shapley import prefixes_with_agents, sample_permutations
 from mapets_rl.statistics import bootstrap_interval
 
 LOGITS = ("agents", "logits")
@@ -100,12 +100,8 @@ def critic_deltas(
     critic, n = exp.critic, observation.shape[-2]
     scale = exp.config.reward_scale
     keep, moved = joint_actions(greedy, cav, move)
-    rows = torch.arange(cav.numel())
     # coalitions of the mover: a random prefix plus the mover, per decision [K, P, n]
-    perms = sample_permutations(permutations, n, antithetic=True)
-    prefixes = permutation_prefix_masks(perms).transpose(0, 1)  # [n, P, n]: the prefix before i
-    with_mover = prefixes[cav].clone()
-    with_mover[rows, :, cav] = True
+    with_mover = prefixes_with_agents(sample_permutations(permutations, n, antithetic=True), cav)
     single = torch.nn.functional.one_hot(cav, n).bool().unsqueeze(-2)  # [K, 1, n]
     grand = torch.ones_like(single)
     masks = torch.cat([single, with_mover, grand], dim=-2)  # [K, 2 + P, n]

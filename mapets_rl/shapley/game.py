@@ -27,6 +27,7 @@ __all__ = [
     "exact_shapley",
     "sample_permutations",
     "permutation_prefix_masks",
+    "prefixes_with_agents",
     "sampled_shapley",
     "is_efficient",
     "is_convex",
@@ -155,6 +156,15 @@ def permutation_prefix_masks(perms: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"perms must have shape [P, n], got {tuple(perms.shape)}")
     pos = perms.argsort(dim=-1)  # pos[p, i] = position of agent i in ordering p
     return pos.unsqueeze(-1) > pos.unsqueeze(-2)
+
+
+def prefixes_with_agents(perms: torch.Tensor, agents: torch.Tensor) -> torch.Tensor:
+    """The coalitions at which a permutation estimate reads each given agent's value with it:
+    ``perms [P, n]``, agent indices ``[K]`` -> bool ``[K, P, n]``, row ``k`` holding the agents
+    before ``agents[k]`` in each ordering, plus ``agents[k]``."""
+    before = permutation_prefix_masks(perms).transpose(0, 1)[agents]  # [K, P, n]
+    own = torch.nn.functional.one_hot(agents, perms.shape[-1]).bool().unsqueeze(-2)
+    return before | own
 
 
 def sampled_shapley(

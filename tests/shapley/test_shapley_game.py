@@ -13,6 +13,7 @@ from mapets_rl.shapley import (
     is_convex,
     is_efficient,
     permutation_prefix_masks,
+    prefixes_with_agents,
     sample_permutations,
     sampled_shapley,
     shapley_matrix,
@@ -185,6 +186,12 @@ def test_permutations_and_prefixes():
     assert (perms[1] == perms[0].flip(0)).all()  # antithetic pair
     pre = permutation_prefix_masks(torch.tensor([[2, 0, 1]]))
     assert pre[0].tolist() == [[False, False, True], [True, False, True], [False, False, False]]
+    # ordering 2, 0, 1 and its reverse; agents 0 and 2 (twice): the agents before it, plus it
+    with_agents = prefixes_with_agents(torch.tensor([[2, 0, 1], [1, 0, 2]]), torch.tensor([0, 2]))
+    assert with_agents.tolist() == [
+        [[True, False, True], [True, True, False]],
+        [[False, False, True], [True, True, True]],
+    ]
 
 
 def test_convex_game_shapley_in_core():
