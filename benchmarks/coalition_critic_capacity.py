@@ -22,11 +22,14 @@ state: the correlation of the critic's ``Delta v({i})``, ``Delta phi_i`` (``--pe
 random orderings) and ``Delta v(N)`` (move minus keep lane) with the true ``o_i[0]``, and the
 fit of ``v(C)`` (R^2 over held-out coalitions). ``--heads member`` fits a critic with one head
 output per agent (``CoalitionCritic(member_heads=True)``, ``v(C) = sum_{j in C} q_j``) to each
-member's own payoff ``u_j``, as its TD loss does with the members' rewards.
+member's own payoff ``u_j``, as its TD loss does with the members' rewards. ``--noise`` adds
+independent zero-mean Gaussian noise of that standard deviation to every agent's payoff in the
+training targets (the part of a return that the state and action do not predict, which a TD
+target carries); the held-out scores are against the noiseless game.
 
     OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/coalition_critic_capacity.py \\
         --agents 4 30 --cells 64 256 [--scale 1 10] [--embed 0 64] [--heads sum member]\
-        [--sizes binomial uniform] \\
+        [--noise 0 10] [--sizes binomial uniform] \\
         [--steps 3000] [--lr 0.01]
 """
 
@@ -76,12 +79,20 @@ def pearson(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def fit_and_score(
-    n: int, cells: int, sizes: str, embed: int, scale: float, heads: str, args: argparse.Namespace
+    n: int,
+    cells: int,
+    sizes: str,
+    embed: int,
+    scale: float,
+    heads: str,
+    noise: float,
+    args: argparse.Namespace,
 ) -> dict[str, float]:
     """Fit a ``[cells, cells]`` critic (with a per-agent ``embed``-wide layer before the sum
     when ``embed > 0``; ``heads``: ``sum`` one output fitted to ``v(C)``, ``member`` one per
     agent fitted to its own payoff) to the game of ``n`` agents with coalitions drawn by
-    ``sizes``; its correlations with the true move effect and its held-out R^2."""
+    ``sizes``, every payoff in the targets plus Gaussian ``noise``; its correlations with the
+    true move effect and its held-out R^2."""
     torch.manual_seed(args.seed)
     generator = torch.Generator().manual_seed(args.seed)
     member = heads == "member"
@@ -98,6 +109,8 @@ def fit_and_score(
     for _ in range(args.steps):
         obs, action, payoff = sample(n, args.obs_dim, args.batch, generator, scale)
         members = draw_coalitions(sizes, n, args.batch)
+        if noise > 0:
+            payoff = payoff + noise * torch.randn(payoff.shape, generator=generator)
         target = payoff * members  # [batch, n]: each member's payoff
         value = critic.coalition_values(obs, action, members.unsqueeze(-2), per_member=member)
         if member:
@@ -156,6 +169,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
         choices=["sum", "member"],
         help="sum: one output fitted to v(C) (the paper's); member: one per agent, own payoff",
     )
+    parser.add_argument(
+        "--noise", nargs="+", type=float, default=[0.0], help="sd of the payoffs' target noise"
+    )
     parser.add_argument("--obs-dim", type=int, default=8)
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--batch", type=int, default=1024)
@@ -173,36 +189,39 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error(f"--obs-dim must be >= 2 (the game reads columns 0 and 1), got {args.obs_dim}")
     if min(args.agents) < 1 or min(args.cells) < 1 or min(args.embed) < 0 or not args.lr > 0:
         parser.error("--agents and --cells must be >= 1, --embed >= 0 and --lr > 0")
-    if not all(0 <= x < float("inf") for x in args.scale):
-        parser.error(f"--scale must be finite and >= 0, got {args.scale}")
+    for name in ("scale", "noise"):
+        if not all(0 <= x < float("inf") for x in getattr(args, name)):
+            parser.error(f"--{name} must be finite and >= 0, got {getattr(args, name)}")
     print(f"# {machine_line()}")
     print(
         f"synthetic additive game, obs_dim {args.obs_dim}, {args.steps} Adam steps (lr "
         f"{args.lr}) of batch {args.batch}, {args.eval_states} held-out states, seed {args.seed}"
     )
     print(
-        "| agents | scale | critic | per-agent layer | heads | coalition sizes | R^2 of v(C) "
+        "| agents | scale | noise | critic | per-agent layer | heads | coalition sizes "
+        "| R^2 of v(C) "
         "| corr(Delta v({i}), true) "
         "| corr(Delta phi_i, true) | corr(Delta v(N), true) | fit [s] |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     rows = []
     grid = itertools.product(
-        args.agents, args.scale, args.cells, args.embed, args.heads, args.sizes
+        args.agents, args.scale, args.noise, args.cells, args.embed, args.heads, args.sizes
     )
-    for n, scale, cells, embed, heads, sizes in grid:
+    for n, scale, noise, cells, embed, heads, sizes in grid:
         row = {
             "agents": n,
             "scale": scale,
+            "noise": noise,
             "cells": cells,
             "embed": embed,
             "heads": heads,
             "sizes": sizes,
         }
-        row.update(fit_and_score(n, cells, sizes, embed, scale, heads, args))
+        row.update(fit_and_score(n, cells, sizes, embed, scale, heads, noise, args))
         rows.append(row)
         print(
-            f"| {n} | {scale:g} | 2x{cells} | {embed or 'none'} | {heads} | {sizes} "
+            f"| {n} | {scale:g} | {noise:g} | 2x{cells} | {embed or 'none'} | {heads} | {sizes} "
             f"| {row['r2']:.3f} "
             f"| {row['corr_single']:.2f} | {row['corr_phi']:.2f} | {row['corr_grand']:.2f} "
             f"| {row['seconds']:.0f} |",

@@ -41,6 +41,14 @@ def test_two_agents_critic_learns_the_move_effect(capacity) -> None:
         assert min(row["corr_single"], row["corr_phi"], row["corr_grand"]) > 0.8
 
 
+def test_target_noise_costs_fit_but_is_scored_against_the_noiseless_game(capacity) -> None:
+    argv = ["--agents", "2", "--cells", "16", "--steps", "200", "--batch", "128",
+            "--eval-states", "256", "--permutations", "4", "--noise", "0", "3"]  # fmt: skip
+    clean, noisy = capacity.main(argv)
+    assert (clean["noise"], noisy["noise"]) == (0.0, 3.0)
+    assert clean["r2"] > 0.9 and noisy["r2"] < clean["r2"]
+
+
 @pytest.mark.parametrize(
     "argv",
     [
@@ -50,6 +58,7 @@ def test_two_agents_critic_learns_the_move_effect(capacity) -> None:
         ["--lr", "0"],
         ["--embed", "-1"],
         ["--heads", "mean"],
+        ["--noise", "-1"],
     ],
 )
 def test_bad_arguments_are_refused(capacity, argv, capsys) -> None:
