@@ -103,8 +103,9 @@ def test_is_loss_module_with_keys():
     assert ("next", ("agents", "reward")) in loss.in_keys
 
 
-def test_critic_td_error_falls_on_fixed_batch():
-    loss = _loss()
+@pytest.mark.parametrize("member_heads", [False, True])
+def test_critic_td_error_falls_on_fixed_batch(member_heads):
+    loss = _loss(member_heads=member_heads)
     updater = SoftUpdate(loss, tau=0.05)
     td = _batch(b=64)
     opt = torch.optim.Adam(loss.critic_network_params.values(True, True), lr=3e-3)
@@ -367,16 +368,6 @@ def test_member_heads_regress_each_member_on_its_own_reward():
     # sum over members of (q_j - r_j)^2, not (sum_j q_j - r_j)^2
     assert torch.isclose(value, ((q - reward * coalition) ** 2).sum(-1).mean())
     assert not torch.isclose(value, ((q - reward * coalition).sum(-1) ** 2).mean())
-    updater = SoftUpdate(loss, tau=0.05)
-    opt = torch.optim.Adam(loss.critic_network_params.values(True, True), lr=3e-3)
-    first = loss(td)["td_error"].item()
-    for _ in range(150):
-        value_loss = loss.loss_value(td)[0]
-        opt.zero_grad()
-        value_loss.backward()
-        opt.step()
-        updater.step()
-    assert loss(td)["td_error"].item() < 0.2 * first
 
 
 @pytest.mark.parametrize(("embed_cells", "member_heads"), [((), False), ((6,), False), ((), True)])
