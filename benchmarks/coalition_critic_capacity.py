@@ -28,7 +28,7 @@ training targets (the part of a return that the state and action do not predict,
 target carries); the held-out scores are against the noiseless game.
 
     OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/coalition_critic_capacity.py \\
-        --agents 4 30 --cells 64 256 [--scale 1 10] [--embed 0 64] [--heads sum member]\
+        --agents 4 30 --cells 64 256 [--scale 1 10] [--embed 0 64] [--heads sum member] \\
         [--noise 0 10] [--sizes binomial uniform] \\
         [--steps 3000] [--lr 0.01]
 """
