@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The GPU measurements of docs/results/gpu.md in one command, on a machine with a CUDA device:
 #   bash benchmarks/gpu.sh [OUT_DIR] [PYTHON] [STEP ...]
-# (STEPs: machine tests freeway learners control planner decision_time mbrl_reference train_smoke;
-# default: all, in that order).
+# (STEPs: machine tests freeway learners control concurrent planner decision_time mbrl_reference
+# train_smoke; default: all, in that order).
 # Each step has its own time limit and writes OUT_DIR/<step>.log; a failed step does not stop
 # the next. mbrl-lib (the last step) is optional: without it that step prints how to install it.
 # On a lent machine without a package index (the project's wheels carried in .whl/):
@@ -49,12 +49,13 @@ step learners 300 bash -c "set -e; \
         --frames 40960 --rounds 3 --threads 1 --schedule openai"
 # Issue 32's training stack (epsilon exploration without emergency stops, the model-predictive
 # shield, w = 1, individual rewards; MADDPG with one critic per CAV, Shapley AC with the Shapley
-# arm's schedule of benchmarks/cooperation_control.py) on GPU roads, and on one core of this
-# host at the 256 roads of the CPU runs: what a 1M-frame seed of each arm costs on each.
+# arm's schedule of benchmarks/cooperation_control.py and the three changes with which it finds
+# the merge: uniform coalition sizes, a per-agent layer, member heads) on GPU roads, and on one
+# core of this host at the 256 roads of the CPU runs: what a 1M-frame seed of each arm costs.
 stack="exploration=epsilon 'exploration_actions=[0, 1, 2]' env_config.shield=true \
     env_config.velocity_weight=1.0 env_config.team_reward=false"
 shapley_arm="critic_cells='[64, 64]' logits_reg=0.001 num_permutations=8 shapley_chunk_states=32 \
-    shapley_bf16=true"
+    shapley_bf16=true coalition_sizes=uniform 'critic_embed_cells=[64]' critic_member_heads=true"
 step control 330 bash -c "set -e; \
     $py benchmarks/learner_throughput.py --device cuda --recipes maddpg --num-envs 1024 \
         --frames 40960 --rounds 2 --threads 1 --schedule openai --budget 1000000 $stack \
@@ -66,6 +67,13 @@ step control 330 bash -c "set -e; \
         --rounds 2 --threads 1 --schedule openai --budget 1000000 $stack critic_share_params=false; \
     $py benchmarks/learner_throughput.py --recipes shapley_ac --num-envs 256 --frames 2048 \
         --rounds 2 --threads 1 --schedule openai --budget 1000000 $stack $shapley_arm"
+# Five seeds of the Shapley arm at once on the one GPU (one process each, as five seeds of a
+# paper-budget experiment would run): each process's frames/s; their sum is what the GPU
+# delivers when its launch-bound processes overlap.
+step concurrent 200 bash -c "logs=\$(mktemp -d); for s in 0 1 2 3 4; do \
+    $py benchmarks/learner_throughput.py --device cuda --recipes shapley_ac --num-envs 1024 \
+        --frames 8192 --rounds 2 --threads 1 --schedule openai --budget 1000000 seed=\$s $stack \
+        $shapley_arm > \$logs/seed\$s.log 2>&1 & done; wait; cat \$logs/seed*.log"
 step planner 200 "$py" benchmarks/planner.py --device cuda --configs paper cpu \
     --agents 1 8 22 --dtypes fp32 bf16 --graph --repeats 5 --naive-max-agents 0 --no-separate
 step decision_time 150 "$py" benchmarks/decision_time.py --device cuda --decisions 20 \

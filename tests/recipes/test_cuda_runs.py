@@ -123,13 +123,25 @@ def test_mapets_shares_plans_and_brakes_when_lost_on_cuda(tmp_path):
     [
         (MADDPG, ["env_config.team_reward=false", "critic_share_params=false"]),
         (ShapleyAC, ["critic_cells=[64, 64]", "num_permutations=8", "shapley_bf16=true"]),
+        (
+            ShapleyAC,
+            [
+                "num_permutations=8",
+                "shapley_bf16=true",
+                "coalition_sizes=uniform",
+                "critic_embed_cells=[64]",
+                "critic_member_heads=true",
+            ],
+        ),
     ],
+    ids=["maddpg-per-agent-critics", "shapley-paper-critic", "shapley-uniform-embed-member"],
 )
 def test_the_cooperation_control_stack_trains_on_the_gpu_freeway(tmp_path, recipe, overrides):
     """Issue 32's stack on GPU roads: epsilon exploration without emergency stops, the
     model-predictive shield, w = 1, individual rewards (MADDPG with one critic per CAV; Shapley
-    AC with its bf16 Shapley estimate): every learned parameter moves and the shield is counted
-    in evaluation."""
+    AC with its bf16 Shapley estimate, with the paper's critic and with the arm that finds the
+    merge on the CPU: uniform coalition sizes, a per-agent layer, member heads): every learned
+    parameter moves and the shield is counted in evaluation."""
     config = gpu_freeway_config(recipe, 256, batch_size=32, init_random_frames=0).with_overrides(
         [
             "exploration=epsilon",
