@@ -54,6 +54,25 @@ def test_the_shield_leaves_the_roads_as_they_were_and_replaces_only_moves() -> N
     assert replaced_any
 
 
+def test_the_predicted_first_step_is_the_real_step() -> None:
+    """The shield's check steps a copy deterministically: its first row is exactly the crashes
+    of the real step with the same decisions (random ones, unshielded, so that some crash)."""
+    env = make_env("freeway-merge", backend="torch", num_envs=ROADS, shield=False)
+    env.set_seed(5)
+    env.reset()
+    sim = env.sim
+    generator = torch.Generator().manual_seed(5)
+    crashes = 0
+    for _ in range(12):
+        action = torch.randint(0, 4, (ROADS, sim.n_cavs), generator=generator)
+        predicted = sim.predicted_crashes(action)
+        assert predicted.shape == (sim.config["shield_horizon"], ROADS, sim.n_cavs)
+        collided = sim.step(action).collided
+        assert torch.equal(predicted[0], collided)
+        crashes += int(collided.sum())
+    assert crashes > 0
+
+
 def test_the_shield_prevents_most_crashes_of_random_decisions_and_counts_itself() -> None:
     unshielded = _random_episode(shield=False)
     shielded = _random_episode(shield=True)

@@ -289,24 +289,33 @@ class BatchedFreeway:
         self.state = state.to(self.device)
         self.generator.set_state(snapshot.get("rng").cpu())
 
+    def predicted_crashes(self, action: torch.Tensor) -> torch.Tensor:
+        """The shield's check: which CAVs crash, ``[shield_horizon, B, I]`` (bool, one row per
+        policy step), when a copy of every road is stepped with the decisions ``action [B, I]``
+        and then ``shield_horizon - 1`` more steps in which every CAV keeps its lane (the backup
+        policy). The roads' state is the same afterwards. Stepping is deterministic, so row 0
+        is exactly the crashes that ``action`` would cause in the real step."""
+        action = action.to(self.device).long()
+        saved = self.state.clone()
+        keep = torch.full_like(action, KL)
+        rows = [self._advance(action).collided]
+        for _ in range(int(self.config["shield_horizon"]) - 1):
+            rows.append(self._advance(keep).collided)
+        self.state = saved
+        return torch.stack(rows)
+
     def shield(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """A model-predictive shield (the Shapley paper's "safe learning process"): the CAVs'
         decisions ``[B, I]`` with every lane change or emergency stop that this simulator
         predicts to end in a crash replaced by Keep Lane, and which were replaced ``[B, I]``
         (bool). The roads' state is the same afterwards.
 
-        The check steps a copy of every road with the decisions, then ``shield_horizon - 1``
-        more steps in which every CAV keeps its lane (the backup policy): a lane change takes
-        several policy steps, so a crash it causes may come after the first. A CAV that crashes
-        in the copy and did not keep its lane is given Keep Lane. (A crash that Keep Lane does
-        not avoid stays, as it would for a human driver.)"""
+        The prediction is :meth:`predicted_crashes` (a lane change takes several policy steps,
+        so a crash it causes may come after the first). A CAV that crashes in the copy and did
+        not keep its lane is given Keep Lane. (A crash that Keep Lane does not avoid stays, as
+        it would for a human driver; the replaced decisions are not checked again together.)"""
         action = action.to(self.device).long()
-        saved = self.state.clone()
-        keep = torch.full_like(action, KL)
-        crashed = self._advance(action).collided
-        for _ in range(int(self.config["shield_horizon"]) - 1):
-            crashed |= self._advance(keep).collided
-        self.state = saved
+        crashed = self.predicted_crashes(action).any(0)
         safe = torch.where(crashed & (action != KL), KL, action)
         return safe, safe != action
 
