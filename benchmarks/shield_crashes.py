@@ -95,8 +95,8 @@ def classify(policy: TensorDictModuleBase, env: EnvBase, seed: int) -> dict[str,
             bodies = sim.state["bodies"]
             mid_change = bodies.get("lane").gather(1, slot) != bodies.get("target").gather(1, slot)
             lane, x = cav_lanes(sim)
+            crashed_before = bodies.get("crashed").clone()  # the check steps these bodies
             predicted = sim.predicted_crashes(proposed)[0]
-            crashed_before = bodies.get("crashed").clone()
             td = env.step(td)
             crashed = td.get(("next", "agents", "info", "collided")).reshape(proposed.shape) > 0
             shielded = td.get(("next", "agents", "info", "shielded")).reshape(proposed.shape) > 0
@@ -104,8 +104,8 @@ def classify(policy: TensorDictModuleBase, env: EnvBase, seed: int) -> dict[str,
             classes = {
                 "replaced": crashed & shielded,
                 "kept, predicted": crashed & ~shielded & predicted & (proposed == KL),
-                "others replaced": crashed & ~predicted & others_replaced,
-                "unexplained": crashed & ~predicted & ~others_replaced,
+                "others replaced": crashed & ~shielded & ~predicted & others_replaced,
+                "unexplained": crashed & ~shielded & ~predicted & ~others_replaced,
             }
             new_bodies = sim.state["bodies"].get("crashed") & ~crashed_before
             other_vehicle = (new_bodies.sum(1, keepdim=True) - crashed.long()) > 0

@@ -11,6 +11,7 @@ from pathlib import Path
 from types import ModuleType
 
 import pytest
+import torch
 from torchrl.envs.utils import RandomPolicy
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -25,12 +26,14 @@ def crashes(load_script: Callable[[str], ModuleType], monkeypatch) -> ModuleType
 def test_every_crash_of_random_decisions_has_one_class(crashes: ModuleType) -> None:
     settings = {"shield": True, "velocity_weight": 1.0}
     env = crashes.evaluation_env(16, 12, settings)
+    torch.manual_seed(3)  # decisions under which one road's replaced CAVs crash
     counts = crashes.classify(RandomPolicy(env.full_action_spec), env, 0)
     env.close()
     total = sum(counts[k] for k in crashes.CLASSES)
     assert total == counts["collisions"] > 0
+    assert counts["replaced"] > 0 and counts["vehicle"] > 0
     assert counts["unexplained"] == 0  # the check's first step is the real step
-    assert counts["shielded"] > 0 and counts["replaced"] + counts["others replaced"] > 0
+    assert counts["shielded"] > 0
     assert counts["obstacle"] + counts["vehicle"] == total
     assert counts["ramp"] + counts["mainline near merge"] + counts["mainline elsewhere"] == total
     assert counts["mid change"] <= counts["kept, predicted"]
