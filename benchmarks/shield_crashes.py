@@ -28,7 +28,12 @@ Each run is scored on the evaluation roads of its own seed (``EVAL_SEED_OFFSET +
 on those of ``--seeds``, with the first run's scenario settings (shield, ``velocity_weight``).
 
     PYTHONPATH=.:benchmarks OMP_NUM_THREADS=1 python benchmarks/shield_crashes.py \\
-        --runs RUN_DIR ... [--seeds 0 1] [--eval-roads 256] [--out DIR]
+        --runs RUN_DIR ... [--seeds 0 1] [--eval-roads 256] [--shield-passes 1] [--out DIR]
+
+``--shield-passes N`` evaluates the same policies under a shield that checks its corrected
+decisions again (``env_config.shield_passes``), up to ``N`` passes, so that no move runs that
+the check predicts to crash beside the decisions that run: what gets through then are crashes
+of CAVs that keep their lane (the classes stay those of the proposed decisions' check).
 
 Prints a markdown table, crashes per episode in each class, summed over the rows' seeds;
 each row's counts are cached in ``DIR/<row>.json`` (a second call reads them).
@@ -164,14 +169,16 @@ def cached(out: Path, key: str, compute: Callable[..., dict[str, Any]], *args: A
     return counts
 
 
-def trained_counts(run_dir: Path, info: dict[str, Any], roads: int) -> dict[str, Any]:
+def trained_counts(run_dir: Path, info: dict[str, Any], roads: int, passes: int) -> dict[str, Any]:
     """:func:`classify` of the run's greedy policy on ``roads`` evaluation roads of its seed,
-    with its own scenario settings; the settings are returned under ``"settings"``."""
+    with its own scenario settings and a shield of ``passes`` passes; the settings are returned
+    under ``"settings"``."""
     exp = load_recipe(info["recipe"]).from_run_dir(run_dir)
     try:
         env_config = exp.config.env_config
         settings = {
             "shield": True,
+            "shield_passes": passes,
             "velocity_weight": float(env_config.get("velocity_weight", 0.1)),
         }
         env = evaluation_env(roads, int(env_config["n_vehicles"]), settings)
@@ -219,26 +226,39 @@ def main(argv: list[str] | None = None) -> dict[str, list[dict[str, Any]]]:
     parser.add_argument("--seeds", type=int, nargs="*", default=[0], help="scripted rows' seeds")
     parser.add_argument("--eval-roads", type=int, default=256)
     parser.add_argument("--n-vehicles", type=int, default=30, help="scripted rows without --runs")
+    parser.add_argument(
+        "--shield-passes",
+        type=int,
+        default=1,
+        help="the evaluation's shield_passes (1: the shield the runs trained with; more: the "
+        "corrected decisions are checked again until nothing is replaced)",
+    )
     parser.add_argument("--out", default="outputs/shield_crashes")
     args = parser.parse_args(argv)
     if args.eval_roads < 1:
         parser.error(f"--eval-roads must be >= 1, got {args.eval_roads}")
+    if not 1 <= args.shield_passes <= 40:
+        parser.error(f"--shield-passes must be in [1, 40], got {args.shield_passes}")
     if any(s < 0 for s in args.seeds):
         parser.error(f"--seeds must be >= 0, got {args.seeds}")
     runs = checked_runs(args.runs)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     print(machine_line())
+    passes = args.shield_passes
+    suffix = f", {passes} shield passes" if passes > 1 else ""
     rows: dict[str, list[dict[str, Any]]] = {}
     for run_dir, info, checkpoint in runs:
-        name = row_name(run_dir, checkpoint)
-        key = f"{name}_seed{info['seed']}_{args.eval_roads}roads"
-        counts = cached(out, key, trained_counts, run_dir, info, args.eval_roads)
+        name = row_name(run_dir, checkpoint) + suffix
+        key = f"{name}_seed{info['seed']}_{args.eval_roads}roads".replace(", ", "_")
+        counts = cached(out, key, trained_counts, run_dir, info, args.eval_roads, passes)
         rows.setdefault(name, []).append(counts)
     first = rows and next(iter(rows.values()))[0]
-    settings = first["settings"] if first else {"shield": True, "velocity_weight": 1.0}
+    default = {"shield": True, "shield_passes": passes, "velocity_weight": 1.0}
+    settings = first["settings"] if first else default
     vehicles = first["n_vehicles"] if first else args.n_vehicles
     label = f"w{settings['velocity_weight']}_{vehicles}vehicles_{args.eval_roads}roads"
+    label += f"_{passes}passes" if passes > 1 else ""
     scripted = {
         "keep lane": ScriptedCAVPolicy,
         "cooperative merge": lambda env: cooperative_rule(vehicles),
@@ -249,7 +269,7 @@ def main(argv: list[str] | None = None) -> dict[str, list[dict[str, Any]]]:
             counts = cached(
                 out, key, scripted_counts, policy, seed, vehicles, settings, args.eval_roads
             )
-            rows.setdefault(name, []).append(counts)
+            rows.setdefault(name + suffix, []).append(counts)
     print(table(rows))
     return rows
 

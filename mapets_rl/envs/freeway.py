@@ -137,7 +137,9 @@ class FreewayEnv(MultiAgentTrafficEnv):
     reward; the system reward, the sum over CAVs, is the same), ``shield=False`` (True: a
     model-predictive shield replaces every decision predicted to crash in the next step; the
     torch backend only, see ``BatchedFreeway.shield``), ``shield_horizon=3`` (policy steps the
-    shield looks ahead).
+    shield looks ahead), ``shield_passes=1`` (1: the proposed decisions are checked once;
+    ``n > 1``: the corrected decisions are checked again, up to ``n`` passes in all, until a
+    pass replaces nothing, so that no move runs beside a replacement it was not checked with).
     """
 
     obs_dim = OBS_DIM
@@ -187,6 +189,7 @@ class FreewayEnv(MultiAgentTrafficEnv):
                 "team_reward": False,
                 "shield": False,
                 "shield_horizon": 3,
+                "shield_passes": 1,
                 "comfort_threshold": 1.5,
                 "perception": 100.0,
                 "screen_width": 900,
@@ -221,6 +224,10 @@ class FreewayEnv(MultiAgentTrafficEnv):
         require(
             is_integer(config["shield_horizon"]) and 1 <= config["shield_horizon"] <= 40,
             f"shield_horizon must be an integer in [1, 40], got {config['shield_horizon']!r}",
+        )
+        require(
+            is_integer(config["shield_passes"]) and 1 <= config["shield_passes"] <= 40,
+            f"shield_passes must be an integer in [1, 40], got {config['shield_passes']!r}",
         )
         for key in ("team_reward", "shield"):
             require(

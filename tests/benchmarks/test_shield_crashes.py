@@ -23,8 +23,9 @@ def crashes(load_script: Callable[[str], ModuleType], monkeypatch) -> ModuleType
     return load_script("benchmarks/shield_crashes.py")
 
 
-def test_every_crash_of_random_decisions_has_one_class(crashes: ModuleType) -> None:
-    settings = {"shield": True, "velocity_weight": 1.0}
+@pytest.mark.parametrize("passes", [1, 40])
+def test_every_crash_of_random_decisions_has_one_class(crashes: ModuleType, passes: int) -> None:
+    settings = {"shield": True, "shield_passes": passes, "velocity_weight": 1.0}
     env = crashes.evaluation_env(16, 12, settings)
     torch.manual_seed(3)  # decisions under which one road's replaced CAVs crash
     counts = crashes.classify(RandomPolicy(env.full_action_spec), env, 0)
@@ -87,4 +88,6 @@ def test_runs_that_are_not_shielded_freeway_runs_are_refused_first(
     for bad, match in [(tmp_path / "nothing", "not a run directory"), (unshielded, "shield")]:
         with pytest.raises(ValueError, match="--runs: .*" + match):
             crashes.main(["--runs", str(run), str(bad), "--out", str(out)])
+    with pytest.raises(SystemExit):
+        crashes.main(["--runs", str(run), "--shield-passes", "0", "--out", str(out)])
     assert not out.exists()

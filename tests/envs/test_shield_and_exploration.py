@@ -73,6 +73,29 @@ def test_the_predicted_first_step_is_the_real_step() -> None:
     assert crashes > 0
 
 
+def test_repeated_passes_leave_no_move_that_the_check_predicts_to_crash() -> None:
+    """With ``shield_passes`` large the corrected decisions are a fixed point of the check: no
+    move that runs is predicted to crash beside the others that run; one pass leaves some
+    (random lane changes on a crowded merge), and more passes only add replacements."""
+    env = make_env("freeway-merge", backend="torch", num_envs=ROADS, shield=True)
+    env.set_seed(0)
+    env.reset()
+    sim = env.sim
+    generator = torch.Generator().manual_seed(0)
+    left_by_one_pass = 0
+    for _ in range(25):
+        action = torch.randint(0, ES, (ROADS, sim.n_cavs), generator=generator)  # KL, CL, CR
+        sim.config["shield_passes"] = 1
+        once, replaced_once = sim.shield(action)
+        sim.config["shield_passes"] = 40
+        safe, replaced = sim.shield(action)
+        assert not bool((sim.predicted_crashes(safe).any(0) & (safe != KL)).any())
+        assert bool((replaced >= replaced_once).all())
+        left_by_one_pass += int((sim.predicted_crashes(once).any(0) & (once != KL)).sum())
+        sim.step(action)
+    assert left_by_one_pass > 0
+
+
 def test_the_shield_prevents_most_crashes_of_random_decisions_and_counts_itself() -> None:
     unshielded = _random_episode(shield=False)
     shielded = _random_episode(shield=True)
@@ -97,6 +120,8 @@ def test_a_shielded_env_reports_its_interventions_in_the_specs() -> None:
         ("torch", {"shield": "yes"}, "shield"),
         ("torch", {"shield": True, "shield_horizon": 0}, "shield_horizon"),
         ("torch", {"shield": True, "shield_horizon": 2.5}, "shield_horizon"),
+        ("torch", {"shield": True, "shield_passes": 0}, "shield_passes"),
+        ("torch", {"shield": True, "shield_passes": 41}, "shield_passes"),
     ],
 )
 def test_a_bad_shield_is_refused(backend: str, config: dict, match: str) -> None:

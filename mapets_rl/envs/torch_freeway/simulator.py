@@ -313,10 +313,18 @@ class BatchedFreeway:
         The prediction is :meth:`predicted_crashes` (a lane change takes several policy steps,
         so a crash it causes may come after the first). A CAV that crashes in the copy and did
         not keep its lane is given Keep Lane. (A crash that Keep Lane does not avoid stays, as
-        it would for a human driver; the replaced decisions are not checked again together.)"""
+        it would for a human driver.) With ``config["shield_passes"]`` above 1 the corrected
+        decisions are checked again, and so on until a pass replaces nothing (at most that many
+        passes): a move that was safe beside a neighbour's checked move may not be safe beside
+        the Keep Lane that replaced it."""
         action = action.to(self.device).long()
-        crashed = self.predicted_crashes(action).any(0)
-        safe = torch.where(crashed & (action != KL), KL, action)
+        passes = int(self.config["shield_passes"])
+        safe = action
+        for done in range(1, passes + 1):
+            unsafe = self.predicted_crashes(safe).any(0) & (safe != KL)
+            safe = torch.where(unsafe, KL, safe)
+            if done < passes and not bool(unsafe.any()):  # (one pass: no host sync)
+                break
         return safe, safe != action
 
     # --- reset ---------------------------------------------------------------------------------
