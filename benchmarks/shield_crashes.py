@@ -35,7 +35,8 @@ decisions again (``env_config.shield_passes``), up to ``N`` passes, so that no m
 the check predicts to crash beside the decisions that run: what gets through then are crashes
 of CAVs that keep their lane (the classes stay those of the proposed decisions' check).
 
-Prints a markdown table, crashes per episode in each class, summed over the rows' seeds;
+Prints a markdown table, the system reward and the crashes per episode in each class, over
+the rows' seeds;
 each row's counts are cached in ``DIR/<row>.json`` (a second call reads them).
 """
 
@@ -86,10 +87,11 @@ def decisions(env: EnvBase, td: Any) -> torch.Tensor:
 def classify(policy: TensorDictModuleBase, env: EnvBase, seed: int) -> dict[str, float | int]:
     """One greedy episode of ``policy`` on every road of ``env`` (the evaluation roads of
     ``seed``): the number of CAV crashes in each class of :data:`CLASSES` and :data:`DETAILS`,
-    the shield's interventions, the number of episodes (roads) and the env's own count of
-    collisions (equal to the classes' sum)."""
+    the shield's interventions, the system reward (the CAVs' rewards summed over CAVs, steps and
+    roads), the number of episodes (roads) and the env's own count of collisions (equal to the
+    classes' sum)."""
     sim = env.sim
-    counts = dict.fromkeys(CLASSES + DETAILS + ("shielded",), 0)
+    counts = dict.fromkeys(CLASSES + DETAILS + ("shielded", "system_reward"), 0)
     env.set_seed(EVAL_SEED_OFFSET + seed)
     td = env.reset()
     with set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -126,6 +128,7 @@ def classify(policy: TensorDictModuleBase, env: EnvBase, seed: int) -> dict[str,
             for key, mask in {**classes, **details}.items():
                 counts[key] += int(mask.sum())
             counts["shielded"] += int(shielded.sum())
+            counts["system_reward"] += float(td.get(("next", "agents", "reward")).double().sum())
             td = td.get("next")
     counts["episodes"] = sim.n_roads
     counts["collisions"] = int(sum(e["collisions"] for e in env.pop_finished_episodes()))
@@ -160,10 +163,13 @@ def row_name(run_dir: Path, checkpoint: Path) -> str:
 
 
 def cached(out: Path, key: str, compute: Callable[..., dict[str, Any]], *args: Any) -> dict:
-    """``compute(*args)``'s counts, kept in ``out/<key>.json`` (read back on a later call)."""
+    """``compute(*args)``'s counts, kept in ``out/<key>.json`` (read back on a later call unless
+    it lacks the system reward: then it is computed again)."""
     path = out / f"{key}.json"
     if path.is_file():
-        return json.loads(path.read_text())
+        counts = json.loads(path.read_text())
+        if "system_reward" in counts:
+            return counts
     counts = compute(*args)
     atomic_write_text(path, json.dumps(counts))
     return counts
@@ -205,8 +211,9 @@ def scripted_counts(
 
 
 def table(rows: dict[str, list[dict[str, Any]]]) -> str:
-    """Markdown: per row, crashes per episode (all seeds' episodes pooled) in each class."""
-    columns = ("crashes", *CLASSES, *DETAILS, "shielded")
+    """Markdown: per row, the system reward and the crashes per episode (all seeds' episodes
+    pooled) in each class."""
+    columns = ("system reward", "crashes", *CLASSES, *DETAILS, "shielded")
     lines = [
         "| policy | seeds | " + " | ".join(columns) + " |",
         "|---|---|" + "---|" * len(columns),
@@ -215,7 +222,10 @@ def table(rows: dict[str, list[dict[str, Any]]]) -> str:
         episodes = sum(c["episodes"] for c in seeds)
         total = {k: sum(c[k] for c in seeds) for k in CLASSES + DETAILS + ("shielded",)}
         total["crashes"] = sum(total[k] for k in CLASSES)
-        cells = " | ".join(f"{total[k] / episodes:.3f}" for k in columns)
+        total["system reward"] = sum(c["system_reward"] for c in seeds)
+        cells = " | ".join(
+            f"{total[k] / episodes:.{1 if k == 'system reward' else 3}f}" for k in columns
+        )
         lines.append(f"| {name} | {len(seeds)} | {cells} |")
     return "\n".join(lines)
 

@@ -52,12 +52,8 @@ def tiny_shielded_run(load_script: Callable[[str], ModuleType], out: Path) -> Pa
 def test_a_trained_run_is_classified_and_cached(
     crashes: ModuleType, load_script: Callable[[str], ModuleType], tmp_path: Path
 ) -> None:
+    run = tiny_shielded_run(load_script, tmp_path)
     control = load_script("benchmarks/cooperation_control.py")
-    tiny = ["--seeds", "0", "--frames", "20", "--train-roads", "4", "--eval-roads", "2"]
-    control.main(
-        ["--variants", "maddpg_shield", *tiny, "--n-vehicles", "8", "--out", str(tmp_path)]
-    )
-    run = tmp_path / "runs" / "maddpg_shield_seed0"
     out = tmp_path / "crashes"
     argv = ["--runs", str(run), "--seeds", "0", "--eval-roads", "3", "--out", str(out)]
     rows = crashes.main(argv)
@@ -65,6 +61,10 @@ def test_a_trained_run_is_classified_and_cached(
     counts = rows["maddpg_shield@0k"][0]
     assert counts["episodes"] == 3 and counts["n_vehicles"] == 8
     assert sum(counts[k] for k in crashes.CLASSES) == counts["collisions"]
+    # the system reward is cooperation_control's on the same roads (keep lane, 3 roads)
+    args = control.argparse.Namespace(eval_roads=3, n_vehicles=8)
+    keep = control.score(control.ScriptedCAVPolicy, counts["settings"], 0, args)
+    assert rows["keep lane"][0]["system_reward"] == pytest.approx(keep["system_reward"].sum())
     stamps = {f: f.stat().st_mtime_ns for f in out.iterdir()}
     assert len(stamps) == 3
     assert crashes.main(argv) == rows
@@ -74,12 +74,7 @@ def test_a_trained_run_is_classified_and_cached(
 def test_runs_that_are_not_shielded_freeway_runs_are_refused_first(
     crashes: ModuleType, load_script: Callable[[str], ModuleType], tmp_path: Path
 ) -> None:
-    control = load_script("benchmarks/cooperation_control.py")
-    tiny = ["--seeds", "0", "--frames", "20", "--train-roads", "4", "--eval-roads", "2"]
-    control.main(
-        ["--variants", "maddpg_shield", *tiny, "--n-vehicles", "8", "--out", str(tmp_path)]
-    )
-    run = tmp_path / "runs" / "maddpg_shield_seed0"
+    run = tiny_shielded_run(load_script, tmp_path)
     unshielded = tmp_path / "unshielded"
     shutil.copytree(run, unshielded)
     config = unshielded / "config.yaml"
