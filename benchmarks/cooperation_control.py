@@ -47,7 +47,8 @@ reward settings. The system reward of a road is the CAVs' rewards summed over CA
 
 ``--explored`` adds, for each epsilon variant, the scores of its final collection policy
 (greedy plus the last epsilon of random moves), to tell a policy that merges only when its
-co-players are perturbed from one that does not merge.
+co-players are perturbed from one that does not merge, and keep lane with random moves at the
+variant's ``epsilon_end`` (what the moves alone give, once epsilon has annealed).
 
 Run (resumable: finished runs and every evaluation, scripted ones included, are kept under
 ``--out``):
@@ -85,6 +86,7 @@ from mapets_rl.envs import FreewayMergeEnv, ScriptedCAVPolicy, make_env
 from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway
 from mapets_rl.experiment import atomic_write_text, latest_checkpoint, read_train_episodes
 from mapets_rl.machine import machine_line
+from mapets_rl.modules.exploration import restricted_epsilon_greedy
 from mapets_rl.recipes.maddpg import OPENAI_MADDPG
 from mapets_rl.statistics import bootstrap_interval
 
@@ -322,6 +324,37 @@ def scripted(seed: int, settings: dict[str, Any], args: argparse.Namespace) -> d
     return result
 
 
+def keep_lane_explored(
+    seed: int, settings: dict[str, Any], args: argparse.Namespace, variant: str
+) -> dict[str, list]:
+    """Keep lane with the random moves of ``variant``'s collection policy once annealed (each
+    CAV's decision replaced, with probability ``epsilon_end``, by one drawn uniformly from its
+    ``exploration_actions``) on the evaluation roads of ``seed``, cached in ``<out>/evals/``:
+    what the random moves alone give, beside a trained policy's ``explored`` row."""
+    recipe, overrides = variant_overrides(variant, args)
+    config = load_recipe(recipe).Config(env=ENV).with_overrides(overrides)
+    epsilon, actions = float(config.epsilon_end), list(config.exploration_actions)
+    label = settings_label(settings).replace(", ", "_").replace("=", "")
+    moves = "".join(map(str, actions))
+    name = f"keep_lane_explored_seed{seed}{label}_eps{epsilon}_moves{moves}_{args.eval_roads}roads"
+    path = Path(args.out) / "evals" / f"{args.n_vehicles}vehicles_{name}.json"
+    if path.is_file():
+        return json.loads(path.read_text())
+
+    def policy(env: EnvBase) -> TensorDictModuleBase:
+        spec = env.full_action_spec[("agents", "action")]
+        moves = restricted_epsilon_greedy(
+            spec, actions, eps_init=epsilon, eps_end=epsilon, annealing_num_steps=1
+        )
+        return TensorDictSequential(ScriptedCAVPolicy(env), moves)
+
+    torch.manual_seed(EVAL_SEED_OFFSET + seed)  # the random moves, as `evaluate` draws them
+    scores = score(policy, settings, seed, args, ExplorationType.RANDOM)
+    result = {k: v.tolist() for k, v in scores.items()}
+    atomic_write_text(path, json.dumps(result))
+    return result
+
+
 def evaluate(
     variant: str, seed: int, run_dir: Path, args: argparse.Namespace, *, explored: bool = False
 ) -> dict:
@@ -499,6 +532,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 for seed, run_dir in run_dirs.items()
             ]
             summary[label], row = summarise(label, explored, keep)
+            rows.append(row)
+            settings = env_settings(variant)
+            label = f"keep lane + random moves at {variant}'s epsilon_end (scripted)"
+            noisy = [keep_lane_explored(seed, settings, args, variant) for seed in args.seeds]
+            summary[label], row = summarise(label, noisy, keep)
             rows.append(row)
     table = "\n\n".join(["\n".join([*header, *rows]), *training])
     out = Path(args.out)

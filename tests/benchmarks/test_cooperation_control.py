@@ -116,8 +116,14 @@ def test_the_explored_row_scores_the_final_collection_policy(
     assert explored["system_reward"] != greedy["system_reward"]
     assert explored["average_comfort"] != greedy["average_comfort"]
     assert (tmp_path / "evals" / f"{variant}_seed0_2roads_explored.json").is_file()
+    # keep lane with random moves at the variant's epsilon_end: lane changes keep lane never makes
+    label = f"keep lane + random moves at {variant}'s epsilon_end (scripted)"
+    noisy, keep = summary[label], summary["keep lane (scripted)"]
+    moves = noisy["mainline_changes_near_merge"] + noisy["mainline_changes_elsewhere"]
+    assert moves > 0 == keep["mainline_changes_near_merge"] + keep["mainline_changes_elsewhere"]
     again = control.main([*argv, "--explored"])
     assert again[f"{variant} (its final epsilon-greedy)"] == explored
+    assert again[label] == noisy
 
 
 def test_training_windows_bin_the_episodes_by_the_frame_they_ended(
