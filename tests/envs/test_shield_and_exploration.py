@@ -4,6 +4,7 @@ the Shapley actor-critic."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -12,6 +13,7 @@ from torchrl.envs.utils import check_env_specs
 
 from mapets_rl.envs import make_env
 from mapets_rl.envs.freeway import ES, KL
+from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway
 from mapets_rl.experiment import ConfigError
 from mapets_rl.recipes.maddpg import MADDPG, MADDPGConfig
 from mapets_rl.recipes.shapley_ac import ShapleyAC, ShapleyACConfig
@@ -32,15 +34,22 @@ def _random_episode(shield: bool, seed: int = 0) -> list[dict[str, float]]:
     return env.pop_finished_episodes()
 
 
-def test_the_shield_leaves_the_roads_as_they_were_and_replaces_only_moves() -> None:
-    env = make_env("freeway-merge", backend="torch", num_envs=ROADS, shield=True)
-    env.set_seed(3)
+def _random_decisions(
+    shield: bool, seed: int, steps: int, high: int = 4
+) -> Iterator[tuple[BatchedFreeway, torch.Tensor]]:
+    """``ROADS`` roads of freeway-merge (30 CAVs) reset with ``seed``, and ``steps`` draws of
+    uniformly random decisions ``[ROADS, CAVs]`` in ``[0, high)``; the caller steps the roads."""
+    env = make_env("freeway-merge", backend="torch", num_envs=ROADS, shield=shield)
+    env.set_seed(seed)
     env.reset()
-    sim = env.sim
-    generator = torch.Generator().manual_seed(3)
+    generator = torch.Generator().manual_seed(seed)
+    for _ in range(steps):
+        yield env.sim, torch.randint(0, high, (ROADS, env.sim.n_cavs), generator=generator)
+
+
+def test_the_shield_leaves_the_roads_as_they_were_and_replaces_only_moves() -> None:
     replaced_any = False
-    for _ in range(12):
-        action = torch.randint(0, 4, (ROADS, sim.n_cavs), generator=generator)
+    for sim, action in _random_decisions(shield=True, seed=3, steps=12):
         before = sim.snapshot()
         safe, replaced = sim.shield(action)
         after = sim.snapshot()
@@ -57,14 +66,8 @@ def test_the_shield_leaves_the_roads_as_they_were_and_replaces_only_moves() -> N
 def test_the_predicted_first_step_is_the_real_step() -> None:
     """The shield's check steps a copy deterministically: its first row is exactly the crashes
     of the real step with the same decisions (random ones, unshielded, so that some crash)."""
-    env = make_env("freeway-merge", backend="torch", num_envs=ROADS, shield=False)
-    env.set_seed(5)
-    env.reset()
-    sim = env.sim
-    generator = torch.Generator().manual_seed(5)
     crashes = 0
-    for _ in range(12):
-        action = torch.randint(0, 4, (ROADS, sim.n_cavs), generator=generator)
+    for sim, action in _random_decisions(shield=False, seed=5, steps=12):
         predicted = sim.predicted_crashes(action)
         assert predicted.shape == (sim.config["shield_horizon"], ROADS, sim.n_cavs)
         collided = sim.step(action).collided
@@ -77,14 +80,8 @@ def test_repeated_passes_leave_no_move_that_the_check_predicts_to_crash() -> Non
     """With ``shield_passes`` large the corrected decisions are a fixed point of the check: no
     move that runs is predicted to crash beside the others that run; one pass leaves some
     (random lane changes on a crowded merge), and more passes only add replacements."""
-    env = make_env("freeway-merge", backend="torch", num_envs=ROADS, shield=True)
-    env.set_seed(0)
-    env.reset()
-    sim = env.sim
-    generator = torch.Generator().manual_seed(0)
     left_by_one_pass = 0
-    for _ in range(25):
-        action = torch.randint(0, ES, (ROADS, sim.n_cavs), generator=generator)  # KL, CL, CR
+    for sim, action in _random_decisions(shield=True, seed=0, steps=25, high=ES):  # KL, CL, CR
         sim.config["shield_passes"] = 1
         once, replaced_once = sim.shield(action)
         sim.config["shield_passes"] = 40
