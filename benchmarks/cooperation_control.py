@@ -304,24 +304,40 @@ def cooperative_rule(n_vehicles: int) -> CooperativeMerge:
     return CooperativeMerge(lanes, float("inf"), 60.0, 30.0, 15.0, 15.0, 1.5, torch.int64)
 
 
+def cached_json(
+    path: Path, compute: Callable[[], dict], current: Callable[[dict], bool] = lambda kept: True
+) -> dict:
+    """The JSON object kept at ``path`` when there is one and ``current(kept)`` holds (one kept
+    before a field was added is stale), else ``compute()``'s, written there atomically."""
+    if path.is_file():
+        kept = json.loads(path.read_text())
+        if current(kept):
+            return kept
+    result = compute()
+    atomic_write_text(path, json.dumps(result))
+    return result
+
+
+def settings_tag(settings: dict[str, Any]) -> str:
+    """``"_shield_w1.0"``-style part of a cached scripted row's file name."""
+    return settings_label(settings).replace(", ", "_").replace("=", "")
+
+
 def scripted(seed: int, settings: dict[str, Any], args: argparse.Namespace) -> dict[str, dict]:
     """Keep lane and the cooperative merge rule on the evaluation roads of ``seed``, cached in
     ``<out>/evals/``."""
-    label = settings_label(settings).replace(", ", "_").replace("=", "")
-    name = f"scripted_seed{seed}{label}_{args.n_vehicles}vehicles_{args.eval_roads}roads"
-    path = Path(args.out) / "evals" / f"{name}.json"
-    if path.is_file():
-        cached = json.loads(path.read_text())
-        if all(key in cached["keep lane"] for key in BEHAVIOUR):
-            return cached
-    rule = cooperative_rule(args.n_vehicles)
-    result = {
-        "keep lane": score(ScriptedCAVPolicy, settings, seed, args),
-        "cooperative merge": score(lambda env: rule, settings, seed, args),
-    }
-    result = {name: {k: v.tolist() for k, v in scores.items()} for name, scores in result.items()}
-    atomic_write_text(path, json.dumps(result))
-    return result
+    name = f"scripted_seed{seed}{settings_tag(settings)}_{args.n_vehicles}vehicles"
+    path = Path(args.out) / "evals" / f"{name}_{args.eval_roads}roads.json"
+
+    def compute() -> dict[str, dict]:
+        rule = cooperative_rule(args.n_vehicles)
+        result = {
+            "keep lane": score(ScriptedCAVPolicy, settings, seed, args),
+            "cooperative merge": score(lambda env: rule, settings, seed, args),
+        }
+        return {row: {k: v.tolist() for k, v in s.items()} for row, s in result.items()}
+
+    return cached_json(path, compute, lambda kept: all(k in kept["keep lane"] for k in BEHAVIOUR))
 
 
 def keep_lane_explored(
@@ -334,12 +350,10 @@ def keep_lane_explored(
     recipe, overrides = variant_overrides(variant, args)
     config = load_recipe(recipe).Config(env=ENV).with_overrides(overrides)
     epsilon, actions = float(config.epsilon_end), list(config.exploration_actions)
-    label = settings_label(settings).replace(", ", "_").replace("=", "")
     moves = "".join(map(str, actions))
-    name = f"keep_lane_explored_seed{seed}{label}_eps{epsilon}_moves{moves}_{args.eval_roads}roads"
-    path = Path(args.out) / "evals" / f"{args.n_vehicles}vehicles_{name}.json"
-    if path.is_file():
-        return json.loads(path.read_text())
+    name = f"keep_lane_explored_seed{seed}{settings_tag(settings)}_eps{epsilon}_moves{moves}"
+    file = f"{args.n_vehicles}vehicles_{name}_{args.eval_roads}roads.json"
+    path = Path(args.out) / "evals" / file
 
     def policy(env: EnvBase) -> TensorDictModuleBase:
         spec = env.full_action_spec[("agents", "action")]
@@ -348,11 +362,12 @@ def keep_lane_explored(
         )
         return TensorDictSequential(ScriptedCAVPolicy(env), moves)
 
-    torch.manual_seed(EVAL_SEED_OFFSET + seed)  # the random moves, as `evaluate` draws them
-    scores = score(policy, settings, seed, args, ExplorationType.RANDOM)
-    result = {k: v.tolist() for k, v in scores.items()}
-    atomic_write_text(path, json.dumps(result))
-    return result
+    def compute() -> dict[str, list]:
+        torch.manual_seed(EVAL_SEED_OFFSET + seed)  # the random moves, as `evaluate` draws them
+        scores = score(policy, settings, seed, args, ExplorationType.RANDOM)
+        return {k: v.tolist() for k, v in scores.items()}
+
+    return cached_json(path, compute)
 
 
 def evaluate(
@@ -362,26 +377,24 @@ def evaluate(
     scores of its final epsilon-greedy collection policy instead (the actions its last
     training episodes took)."""
     name = f"{variant}_seed{seed}_{args.eval_roads}roads{'_explored' if explored else ''}"
+
+    def compute() -> dict[str, list]:
+        recipe, _ = variant_overrides(variant, args)
+        exp = load_recipe(recipe).from_run_dir(run_dir)
+        try:
+            settings = env_settings(variant)
+            if explored:
+                torch.manual_seed(EVAL_SEED_OFFSET + seed)  # the random moves, reproducibly
+                policy = TensorDictSequential(exp.eval_policy, exp.exploration)
+                scores = score(lambda env: policy, settings, seed, args, ExplorationType.RANDOM)
+            else:
+                scores = score(lambda env: exp.eval_policy, settings, seed, args)
+            return {k: v.tolist() for k, v in scores.items()}
+        finally:
+            exp.close()
+
     path = Path(args.out) / "evals" / f"{name}.json"
-    if path.is_file():
-        cached = json.loads(path.read_text())
-        if all(key in cached for key in BEHAVIOUR):
-            return cached
-    recipe, _ = variant_overrides(variant, args)
-    exp = load_recipe(recipe).from_run_dir(run_dir)
-    try:
-        settings = env_settings(variant)
-        if explored:
-            torch.manual_seed(EVAL_SEED_OFFSET + seed)  # the random moves, reproducibly
-            policy = TensorDictSequential(exp.eval_policy, exp.exploration)
-            scores = score(lambda env: policy, settings, seed, args, ExplorationType.RANDOM)
-        else:
-            scores = score(lambda env: exp.eval_policy, settings, seed, args)
-        result = {k: v.tolist() for k, v in scores.items()}
-    finally:
-        exp.close()
-    atomic_write_text(path, json.dumps(result))
-    return result
+    return cached_json(path, compute, lambda kept: all(key in kept for key in BEHAVIOUR))
 
 
 def training_windows(run_dir: Path, window_frames: int, frames: int) -> list[tuple[float, float]]:

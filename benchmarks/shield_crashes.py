@@ -46,6 +46,7 @@ import argparse
 import json
 import re
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +54,7 @@ import torch
 import yaml
 from cooperation_control import (
     EVAL_SEED_OFFSET,
+    cached_json,
     cav_lanes,
     cooperative_rule,
     evaluation_env,
@@ -66,7 +68,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from mapets_rl.app.plugins import load_recipe
 from mapets_rl.envs import ScriptedCAVPolicy
 from mapets_rl.envs.freeway import KL
-from mapets_rl.experiment import atomic_write_text, latest_checkpoint
+from mapets_rl.experiment import latest_checkpoint
 from mapets_rl.machine import machine_line
 
 CLASSES = ("replaced", "kept, predicted", "others replaced", "unexplained")
@@ -116,14 +118,14 @@ def classify(policy: TensorDictModuleBase, env: EnvBase, seed: int) -> dict[str,
             }
             new_bodies = sim.state["bodies"].get("crashed") & ~crashed_before
             other_vehicle = (new_bodies.sum(1, keepdim=True) - crashed.long()) > 0
-            mainline = on_mainline(sim, lane)
+            mainline, by_merge = on_mainline(sim, lane), near_merge(sim, x)
             details = {
                 "mid change": classes["kept, predicted"] & mid_change,
                 "obstacle": crashed & ~other_vehicle,
                 "vehicle": crashed & other_vehicle,
                 "ramp": crashed & ~mainline,
-                "mainline near merge": crashed & mainline & near_merge(sim, x),
-                "mainline elsewhere": crashed & mainline & ~near_merge(sim, x),
+                "mainline near merge": crashed & mainline & by_merge,
+                "mainline elsewhere": crashed & mainline & ~by_merge,
             }
             for key, mask in {**classes, **details}.items():
                 counts[key] += int(mask.sum())
@@ -162,17 +164,10 @@ def row_name(run_dir: Path, checkpoint: Path) -> str:
     return f"{variant}@{round(frames / 1000)}k"
 
 
-def cached(out: Path, key: str, compute: Callable[..., dict[str, Any]], *args: Any) -> dict:
-    """``compute(*args)``'s counts, kept in ``out/<key>.json`` (read back on a later call unless
-    it lacks the system reward: then it is computed again)."""
-    path = out / f"{key}.json"
-    if path.is_file():
-        counts = json.loads(path.read_text())
-        if "system_reward" in counts:
-            return counts
-    counts = compute(*args)
-    atomic_write_text(path, json.dumps(counts))
-    return counts
+def has_system_reward(counts: dict[str, Any]) -> bool:
+    """Whether cached ``counts`` are current (those kept before the system reward was added are
+    computed again)."""
+    return "system_reward" in counts
 
 
 def trained_counts(run_dir: Path, info: dict[str, Any], roads: int, passes: int) -> dict[str, Any]:
@@ -261,7 +256,11 @@ def main(argv: list[str] | None = None) -> dict[str, list[dict[str, Any]]]:
     for run_dir, info, checkpoint in runs:
         name = row_name(run_dir, checkpoint) + suffix
         key = f"{name}_seed{info['seed']}_{args.eval_roads}roads".replace(", ", "_")
-        counts = cached(out, key, trained_counts, run_dir, info, args.eval_roads, passes)
+        counts = cached_json(
+            out / f"{key}.json",
+            partial(trained_counts, run_dir, info, args.eval_roads, passes),
+            has_system_reward,
+        )
         rows.setdefault(name, []).append(counts)
     first = rows and next(iter(rows.values()))[0]
     default = {"shield": True, "shield_passes": passes, "velocity_weight": 1.0}
@@ -276,8 +275,10 @@ def main(argv: list[str] | None = None) -> dict[str, list[dict[str, Any]]]:
     for name, policy in scripted.items():
         for seed in args.seeds:
             key = f"{name.replace(' ', '_')}_seed{seed}_{label}"
-            counts = cached(
-                out, key, scripted_counts, policy, seed, vehicles, settings, args.eval_roads
+            counts = cached_json(
+                out / f"{key}.json",
+                partial(scripted_counts, policy, seed, vehicles, settings, args.eval_roads),
+                has_system_reward,
             )
             rows.setdefault(name + suffix, []).append(counts)
     print(table(rows))
