@@ -37,7 +37,9 @@ openai/maddpg schedule (``mapets_rl.recipes.maddpg.OPENAI_MADDPG``), the team re
   fitted to its own member's reward (``critic_member_heads=true``) instead of one output fitted
   to the coalition's summed reward;
 - ``mappo``: MAPPO (GAE, gamma 0.99) with the team reward, the on-policy reference, one PPO
-  update per 40 steps of every road; ``short``: one per 4 steps (10x the updates).
+  update per 40 steps of every road; ``short``: one per 4 steps (10x the updates);
+- ``coma``: COMA (TD(lambda) critic on the team reward, counterfactual advantage, gamma 0.99),
+  the paper's other comparator, on MAPPO's schedule of batches (``short`` alike).
 
 Every trained policy is scored greedily on ``--eval-roads`` roads of the same evaluation seeds
 as the scripted keep-lane policy and the cooperative merge rule
@@ -112,7 +114,7 @@ CHANGES: dict[str, list[str]] = {
 }
 """The controlled changes, as config overrides (``uniform``, ``reg``, ``embed`` and ``member`` are
 Shapley AC's)."""
-RECIPES = {"maddpg": "maddpg", "shapley": "shapley_ac", "mappo": "mappo"}
+RECIPES = {"maddpg": "maddpg", "shapley": "shapley_ac", "mappo": "mappo", "coma": "coma"}
 """A variant's first word and the recipe it trains."""
 SHAPLEY_SCHEDULE: tuple[str, ...] = (
     "critic_cells=[64, 64]",
@@ -130,16 +132,17 @@ RECIPE_CHANGES: dict[str, tuple[str, ...]] = {
     "maddpg": ("epsilon", "shield", "gamma99", "w1", "individual", "shared"),
     "shapley": ("epsilon", "shield", "w1", "uniform", "reg", "embed", "member"),
     "mappo": ("shield", "short", "w1"),
+    "coma": ("shield", "short", "w1"),
 }
-"""The controlled changes of each recipe (MAPPO's ``short``: ``frames_per_batch`` of 4 steps
-per road; Shapley AC is always paid the individual rewards it reallocates and has no n-step
+"""The controlled changes of each recipe (MAPPO's and COMA's ``short``: ``frames_per_batch`` of
+4 steps per road; Shapley AC is always paid the individual rewards it reallocates and has no n-step
 targets)."""
 
 
 def variant_overrides(variant: str, args: argparse.Namespace) -> tuple[str, list[str]]:
     """The recipe and config overrides of ``variant`` (``maddpg[_change...]``,
-    ``shapley[_change...]`` or ``mappo[_change...]``); ValueError naming the variant
-    otherwise."""
+    ``shapley[_change...]``, ``mappo[_change...]`` or ``coma[_change...]``); ValueError naming
+    the variant otherwise."""
     token, *changes = variant.split("_")
     recipe = RECIPES.get(token)
     if recipe is None or any(c not in RECIPE_CHANGES[token] for c in changes):
@@ -168,10 +171,11 @@ def variant_overrides(variant: str, args: argparse.Namespace) -> tuple[str, list
         if token == "shapley":
             overrides += SHAPLEY_SCHEDULE
     else:
-        steps = 4 if "short" in changes else 40
-        overrides += [f"frames_per_batch={steps * roads}", "gamma=0.99"]
+        batch = (4 if "short" in changes else 40) * roads
+        minibatch = min(load_recipe(recipe).Config.minibatch_size, batch)
+        overrides += [f"frames_per_batch={batch}", f"minibatch_size={minibatch}", "gamma=0.99"]
     for change in changes:
-        overrides += CHANGES.get(change, [])  # MAPPO's "short" is its frames_per_batch
+        overrides += CHANGES.get(change, [])  # "short" is the on-policy frames_per_batch
     # a change replaces the base's value of its key (gamma99's gamma=0.99 the schedule's 0.95)
     by_key = {item.split("=", 1)[0]: item for item in overrides}
     return recipe, list(by_key.values())

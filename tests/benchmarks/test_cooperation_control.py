@@ -164,3 +164,21 @@ def test_a_cached_score_without_the_behaviour_counts_is_scored_again(
     path.write_text(json.dumps(stale))
     assert control.scripted(0, {"shield": False}, args) == fresh
     assert json.loads(path.read_text()) == fresh
+
+
+def test_coma_is_the_on_policy_arm_with_mappos_schedule_of_batches(
+    control: ModuleType, tmp_path: Path
+) -> None:
+    args = control.argparse.Namespace(train_roads=4, n_vehicles=8, frames=16, anneal_frames=8)
+    recipe, coma = control.variant_overrides("coma_shield_short_w1", args)
+    _, mappo = control.variant_overrides("mappo_shield_short_w1", args)
+    assert recipe == "coma"
+    assert set(coma) == set(mappo)  # the same env, reward and batches: the learner differs
+    assert {"frames_per_batch=16", "minibatch_size=16", "gamma=0.99"} <= set(coma)
+    argv = ["--variants", "coma_shield_short", *TINY, "--n-vehicles", "8", "--out", str(tmp_path)]
+    run = control.main(argv)["coma_shield_short"]
+    assert len(run["gain_percent_per_seed"]) == 1
+    run_dir = tmp_path / "runs" / "coma_shield_short_seed0"
+    assert json.loads((run_dir / "run.json").read_text())["recipe"] == "coma"
+    config = control.load_recipe("coma").Config.from_yaml(run_dir / "config.yaml")
+    assert config.env_config["shield"] is True and config.frames_per_batch == 16
