@@ -52,6 +52,13 @@ reward settings. The system reward of a road is the CAVs' rewards summed over CA
 co-players are perturbed from one that does not merge, and keep lane with random moves at the
 variant's ``epsilon_end`` (what the moves alone give, once epsilon has annealed).
 
+``--score-every FRAMES`` also scores each run's greedy policy every ``FRAMES`` training frames
+(a table per variant: gain over keep lane per seed and stage): the run trains in stages of
+``FRAMES``, each resumed from the last one's checkpoint (a resume is exact: the same final
+policy as one uninterrupted run), and keeps one checkpoint on disk. Does a greedy policy settle,
+or swing between checkpoints while its training return holds? A stage that a run had gone past
+before it was asked for is marked ``-``.
+
 Run (resumable: finished runs and every evaluation, scripted ones included, are kept under
 ``--out``):
 
@@ -199,23 +206,32 @@ def settings_label(settings: dict[str, Any]) -> str:
     return "".join(f", {p}" for p in parts)
 
 
-def train(variant: str, seed: int, args: argparse.Namespace) -> Path:
-    """Train (or finish training) one run; returns its run directory."""
+def train(variant: str, seed: int, args: argparse.Namespace, frames: int) -> tuple[Path, int]:
+    """Train (or go on training) one run until it has done ``frames`` frames; returns its run
+    directory and the frames it has done (a run that had done more already is left as it is;
+    whole batches: a few more than ``frames``)."""
     recipe, overrides = variant_overrides(variant, args)
     cls = load_recipe(recipe)
     run_dir = Path(args.out) / "runs" / f"{variant}_seed{seed}"
     if latest_checkpoint(run_dir) is not None:
-        exp = cls.from_run_dir(run_dir)  # a finished run may have done more (whole batches)
-        if exp.frames >= args.frames:
+        exp = cls.from_run_dir(run_dir)
+        if exp.frames >= frames:
             exp.close()
-            return run_dir
+            return run_dir, exp.frames
         exp.close()
-        exp = cls.from_run_dir(run_dir, overrides=[f"total_frames={args.frames}"])
+        exp = cls.from_run_dir(run_dir, overrides=[f"total_frames={frames}"])
     else:
-        config = cls.Config(env=ENV, seed=seed).with_overrides(overrides)
+        budget = [o for o in overrides if not o.startswith("total_frames=")]
+        config = cls.Config(env=ENV, seed=seed).with_overrides([*budget, f"total_frames={frames}"])
         exp = cls(config, run_dir)
     exp.train()
-    return run_dir
+    return run_dir, exp.frames
+
+
+def score_stages(frames: int, every: int) -> list[int]:
+    """The training frames at which a run's greedy policy is scored: every ``every`` frames
+    (``--score-every``; 0: none) and at the end, ``frames``."""
+    return [*range(every, frames, every), frames] if every else [frames]
 
 
 NEAR_MERGE = 100.0
@@ -375,12 +391,18 @@ def keep_lane_explored(
 
 
 def evaluate(
-    variant: str, seed: int, run_dir: Path, args: argparse.Namespace, *, explored: bool = False
+    variant: str,
+    seed: int,
+    run_dir: Path,
+    args: argparse.Namespace,
+    *,
+    explored: bool = False,
+    stage: int | None = None,
 ) -> dict:
-    """The greedy scores of the trained run, cached in ``<out>/evals/``; ``explored``: the
-    scores of its final epsilon-greedy collection policy instead (the actions its last
-    training episodes took)."""
-    name = f"{variant}_seed{seed}_{args.eval_roads}roads{'_explored' if explored else ''}"
+    """The greedy scores of the run's newest checkpoint, cached in ``<out>/evals/``;
+    ``explored``: the scores of its final epsilon-greedy collection policy instead (the actions
+    its last training episodes took); ``stage``: cached as the scores at ``stage`` training
+    frames (:func:`score_stages`) rather than at the end."""
 
     def compute() -> dict[str, list]:
         recipe, _ = variant_overrides(variant, args)
@@ -397,8 +419,22 @@ def evaluate(
         finally:
             exp.close()
 
-    path = Path(args.out) / "evals" / f"{name}.json"
+    path = evaluation_path(variant, seed, args, explored=explored, stage=stage)
     return cached_json(path, compute, lambda kept: all(key in kept for key in BEHAVIOUR))
+
+
+def evaluation_path(
+    variant: str,
+    seed: int,
+    args: argparse.Namespace,
+    *,
+    explored: bool = False,
+    stage: int | None = None,
+) -> Path:
+    """Where :func:`evaluate` keeps the scores of the run of ``variant`` and ``seed``."""
+    at = "" if stage is None else f"_at{stage}"
+    name = f"{variant}_seed{seed}_{args.eval_roads}roads{at}{'_explored' if explored else ''}"
+    return Path(args.out) / "evals" / f"{name}.json"
 
 
 def training_windows(run_dir: Path, window_frames: int, frames: int) -> list[tuple[float, float]]:
@@ -436,15 +472,38 @@ def windows_table(name: str, windows: dict[int, list[tuple[float, float]]], widt
     return "\n".join(lines)
 
 
+def gain_percent(run: dict, reference: dict) -> float:
+    """The system reward of ``run``'s roads over ``reference``'s (keep lane on the same roads),
+    in percent above it."""
+    return float(100 * (np.mean(run["system_reward"]) / np.mean(reference["system_reward"]) - 1))
+
+
+def frames_label(frames: int) -> str:
+    """``"75k"`` for 75,000 frames, the number itself when it is not whole thousands."""
+    return f"{frames // 1000}k" if frames % 1000 == 0 else str(frames)
+
+
+def stages_table(name: str, gains: dict[int, dict[int, float | None]]) -> str:
+    """A markdown table of the greedy gain over keep lane per seed (rows) at each scored stage
+    (columns, :func:`score_stages`); ``-`` where a stage was not scored (the run had gone past
+    it before ``--score-every`` asked for it)."""
+    stages = sorted({stage for row in gains.values() for stage in row})
+    lines = [
+        f"{name}: greedy system reward vs keep lane at every scored stage of training",
+        "",
+        "| seed | " + " | ".join(frames_label(stage) for stage in stages) + " |",
+        "|---|" + "---|" * len(stages),
+    ]
+    for seed, row in gains.items():
+        cells = ["-" if row.get(s) is None else f"{row[s]:+.1f}%" for s in stages]
+        lines.append(f"| {seed} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def summarise(name: str, runs: list[dict], references: list[dict]) -> tuple[dict, str]:
     """Summary fields and the table row of ``runs`` (one per seed) against keep lane on the
     same roads (``references``)."""
-    gains = np.array(
-        [
-            100 * (np.mean(r["system_reward"]) / np.mean(k["system_reward"]) - 1)
-            for r, k in zip(runs, references, strict=True)
-        ]
-    )
+    gains = np.array([gain_percent(r, k) for r, k in zip(runs, references, strict=True)])
     _, low, high = bootstrap_interval(gains)
 
     def per_episode(key: str) -> float:
@@ -492,12 +551,21 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         help="also score each epsilon variant's final collection policy (greedy + its final "
         "epsilon of random moves): does the policy merge only when its co-players are perturbed?",
     )
+    parser.add_argument(
+        "--score-every",
+        type=int,
+        default=0,
+        help="also score each run's greedy policy every this many training frames (0: only "
+        "at the end): the run trains in stages of this many frames, resuming from its "
+        "checkpoint, and keeps one checkpoint on disk",
+    )
     args = parser.parse_args(argv)
     for name in ("frames", "anneal_frames", "train_roads", "eval_roads", "n_vehicles"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
-    if args.window_frames < 0:
-        parser.error(f"--window-frames must be >= 0, got {args.window_frames}")
+    for name in ("window_frames", "score_every"):
+        if getattr(args, name) < 0:
+            parser.error(f"--{name.replace('_', '-')} must be >= 0, got {getattr(args, name)}")
     for variant in args.variants:  # a bad name fails before any training
         variant_overrides(variant, args)
     print(f"# {machine_line()}")
@@ -530,16 +598,33 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             rows.append(row)
     width = args.window_frames or max(args.frames // 10, 1)
     training = []
+    stages = score_stages(args.frames, args.score_every)
     for variant in args.variants:
-        runs, windows, run_dirs = [], {}, {}
-        for seed in args.seeds:
+        runs, windows, run_dirs, staged = [], {}, {}, {}
+        keep = [r["keep lane"] for r in references[settings_label(env_settings(variant))]]
+        for seed, reference in zip(args.seeds, keep, strict=True):
             print(f"{variant} seed {seed} ...", flush=True)
-            run_dirs[seed] = train(variant, seed, args)
+            staged[seed] = {}
+            for stage, following in zip(stages[:-1], stages[1:], strict=True):
+                run_dirs[seed], done = train(variant, seed, args, stage)
+                # scored from the newest checkpoint: one written at this stage, before the next
+                fresh = done < following
+                if fresh or evaluation_path(variant, seed, args, stage=stage).is_file():
+                    scores = evaluate(variant, seed, run_dirs[seed], args, stage=stage)
+                    staged[seed][stage] = gain_percent(scores, reference)
+                else:
+                    staged[seed][stage] = None
+            run_dirs[seed], _ = train(variant, seed, args, args.frames)
             runs.append(evaluate(variant, seed, run_dirs[seed], args))
+            staged[seed][args.frames] = gain_percent(runs[-1], reference)
             windows[seed] = training_windows(run_dirs[seed], width, args.frames)
         summary[f"{variant} training windows"] = {str(k): v for k, v in windows.items()}
         training.append(windows_table(variant, windows, width))
-        keep = [r["keep lane"] for r in references[settings_label(env_settings(variant))]]
+        if args.score_every:
+            summary[f"{variant} greedy gain by stage"] = {
+                str(seed): {str(k): v for k, v in row.items()} for seed, row in staged.items()
+            }
+            training.append(stages_table(variant, staged))
         summary[variant], row = summarise(variant, runs, keep)
         rows.append(row)
         if args.explored and "epsilon" in variant.split("_"):

@@ -182,3 +182,37 @@ def test_coma_is_the_on_policy_arm_with_mappos_schedule_of_batches(
     assert json.loads((run_dir / "run.json").read_text())["recipe"] == "coma"
     config = control.load_recipe("coma").Config.from_yaml(run_dir / "config.yaml")
     assert config.env_config["shield"] is True and config.frames_per_batch == 16
+
+
+def test_score_every_scores_the_greedy_policy_at_each_stage_of_one_uninterrupted_run(
+    control: ModuleType, tmp_path: Path
+) -> None:
+    # batches of 4 roads x 4 steps = 16 frames: stages at 16 and 32 frames, the end at 40 (48)
+    argv = ["--variants", "maddpg_shield", *TINY, "--n-vehicles", "8", "--frames", "40"]
+    staged = control.main([*argv, "--score-every", "16", "--out", str(tmp_path / "staged")])
+    plain = control.main([*argv, "--out", str(tmp_path / "plain")])
+    # training in stages resumes bit-exactly: the same final policy and scores
+    assert staged["maddpg_shield"] == plain["maddpg_shield"]
+    by_stage = staged["maddpg_shield greedy gain by stage"]["0"]
+    assert list(by_stage) == ["16", "32", "40"]
+    assert by_stage["40"] == staged["maddpg_shield"]["gain_percent_per_seed"][0]
+    evals = tmp_path / "staged" / "evals"
+    assert {p.name for p in evals.glob("maddpg_shield_seed0_2roads_at*.json")} == {
+        "maddpg_shield_seed0_2roads_at16.json",
+        "maddpg_shield_seed0_2roads_at32.json",
+    }
+    run_dir = tmp_path / "staged" / "runs" / "maddpg_shield_seed0"
+    assert len(list((run_dir / "checkpoints").glob("*.pt"))) == 1
+    # a run that has gone past a stage cannot be scored there: marked, not scored from later
+    again = control.main([*argv, "--score-every", "8", "--out", str(tmp_path / "staged")])
+    finer = again["maddpg_shield greedy gain by stage"]["0"]
+    assert finer == {
+        "8": None,
+        "16": by_stage["16"],
+        "24": None,
+        "32": by_stage["32"],
+        "40": by_stage["40"],
+    }
+    table = (tmp_path / "staged" / "control.md").read_text()
+    assert "| seed | 8 | 16 | 24 | 32 | 40 |" in table
+    assert f"| 0 | - | {by_stage['16']:+.1f}% | - |" in table
