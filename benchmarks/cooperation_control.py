@@ -54,10 +54,11 @@ variant's ``epsilon_end`` (what the moves alone give, once epsilon has annealed)
 
 ``--score-every FRAMES`` also scores each run's greedy policy every ``FRAMES`` training frames
 (a table per variant: gain over keep lane per seed and stage): the run trains in stages of
-``FRAMES``, each resumed from the last one's checkpoint (a resume is exact: the same final
-policy as one uninterrupted run), and keeps one checkpoint on disk. Does a greedy policy settle,
-or swing between checkpoints while its training return holds? A stage that a run had gone past
-before it was asked for is marked ``-``.
+``FRAMES``, each resumed from the last one's checkpoint, and keeps one checkpoint on disk. A
+new run then checkpoints every ``FRAMES`` frames, so the stages are exactly one uninterrupted
+run with that checkpoint interval (the collector restarts its episodes at every checkpoint).
+Does a greedy policy settle, or swing between checkpoints while its training return holds? A
+stage that a run had gone past before it was asked for is marked ``-``.
 
 Run (resumable: finished runs and every evaluation, scripted ones included, are kept under
 ``--out``):
@@ -221,8 +222,15 @@ def train(variant: str, seed: int, args: argparse.Namespace, frames: int) -> tup
         exp.close()
         exp = cls.from_run_dir(run_dir, overrides=[f"total_frames={frames}"])
     else:
-        budget = [o for o in overrides if not o.startswith("total_frames=")]
-        config = cls.Config(env=ENV, seed=seed).with_overrides([*budget, f"total_frames={frames}"])
+        # staged (--score-every): a checkpoint at every stage, as a resumed stage makes one
+        # (the collector restarts its episodes at each), so the stages are one uninterrupted run
+        budget = {"total_frames": frames}
+        if args.score_every:
+            budget["checkpoint_interval"] = args.score_every
+        kept = [o for o in overrides if o.split("=", 1)[0] not in budget]
+        config = cls.Config(env=ENV, seed=seed).with_overrides(
+            [*kept, *(f"{key}={value}" for key, value in budget.items())]
+        )
         exp = cls(config, run_dir)
     exp.train()
     return run_dir, exp.frames

@@ -187,32 +187,43 @@ def test_coma_is_the_on_policy_arm_with_mappos_schedule_of_batches(
 def test_score_every_scores_the_greedy_policy_at_each_stage_of_one_uninterrupted_run(
     control: ModuleType, tmp_path: Path
 ) -> None:
-    # batches of 4 roads x 4 steps = 16 frames: stages at 16 and 32 frames, the end at 40 (48)
-    argv = ["--variants", "maddpg_shield", *TINY, "--n-vehicles", "8", "--frames", "40"]
-    staged = control.main([*argv, "--score-every", "16", "--out", str(tmp_path / "staged")])
+    # one road, batches of 4 steps; the uninterrupted run checkpoints every 192 // 4 = 48
+    # frames, as the stages do: one 40-step episode ends between two checkpoints
+    argv = ["--variants", "maddpg_shield", *TINY, "--train-roads", "1", "--n-vehicles", "8"]
+    argv += ["--frames", "192"]
+    staged = control.main([*argv, "--score-every", "48", "--out", str(tmp_path / "staged")])
     plain = control.main([*argv, "--out", str(tmp_path / "plain")])
-    # training in stages resumes bit-exactly: the same final policy and scores
+    # training in stages resumes bit-exactly: the same training episodes, final policy, scores
     assert staged["maddpg_shield"] == plain["maddpg_shield"]
+    episodes = [
+        tmp_path / out / "runs" / "maddpg_shield_seed0" / "train_episodes.jsonl"
+        for out in ("staged", "plain")
+    ]
+    assert episodes[0].read_text() == episodes[1].read_text() != ""
     by_stage = staged["maddpg_shield greedy gain by stage"]["0"]
-    assert list(by_stage) == ["16", "32", "40"]
-    assert by_stage["40"] == staged["maddpg_shield"]["gain_percent_per_seed"][0]
+    assert list(by_stage) == ["48", "96", "144", "192"]
+    assert by_stage["192"] == staged["maddpg_shield"]["gain_percent_per_seed"][0]
     evals = tmp_path / "staged" / "evals"
     assert {p.name for p in evals.glob("maddpg_shield_seed0_2roads_at*.json")} == {
-        "maddpg_shield_seed0_2roads_at16.json",
-        "maddpg_shield_seed0_2roads_at32.json",
+        "maddpg_shield_seed0_2roads_at48.json",
+        "maddpg_shield_seed0_2roads_at96.json",
+        "maddpg_shield_seed0_2roads_at144.json",
     }
     run_dir = tmp_path / "staged" / "runs" / "maddpg_shield_seed0"
     assert len(list((run_dir / "checkpoints").glob("*.pt"))) == 1
     # a run that has gone past a stage cannot be scored there: marked, not scored from later
-    again = control.main([*argv, "--score-every", "8", "--out", str(tmp_path / "staged")])
+    again = control.main([*argv, "--score-every", "24", "--out", str(tmp_path / "staged")])
     finer = again["maddpg_shield greedy gain by stage"]["0"]
     assert finer == {
-        "8": None,
-        "16": by_stage["16"],
         "24": None,
-        "32": by_stage["32"],
-        "40": by_stage["40"],
+        "48": by_stage["48"],
+        "72": None,
+        "96": by_stage["96"],
+        "120": None,
+        "144": by_stage["144"],
+        "168": None,
+        "192": by_stage["192"],
     }
     table = (tmp_path / "staged" / "control.md").read_text()
-    assert "| seed | 8 | 16 | 24 | 32 | 40 |" in table
-    assert f"| 0 | - | {by_stage['16']:+.1f}% | - |" in table
+    assert "| seed | 24 | 48 | 72 | 96 | 120 | 144 | 168 | 192 |" in table
+    assert f"| 0 | - | {by_stage['48']:+.1f}% | - |" in table
