@@ -487,7 +487,10 @@ def gain_percent(run: dict, reference: dict) -> float:
 
 
 def frames_label(frames: int) -> str:
-    """``"75k"`` for 75,000 frames, the number itself when it is not whole thousands."""
+    """``"1M"`` for 1,000,000 frames, ``"75k"`` for 75,000, the number itself when it is not
+    whole thousands."""
+    if frames and frames % 1_000_000 == 0:
+        return f"{frames // 1_000_000}M"
     return f"{frames // 1000}k" if frames % 1000 == 0 else str(frames)
 
 

@@ -227,3 +227,8 @@ def test_score_every_scores_the_greedy_policy_at_each_stage_of_one_uninterrupted
     table = (tmp_path / "staged" / "control.md").read_text()
     assert "| seed | 24 | 48 | 72 | 96 | 120 | 144 | 168 | 192 |" in table
     assert f"| 0 | - | {by_stage['48']:+.1f}% | - |" in table
+
+
+def test_stage_labels_name_millions_and_thousands(control: ModuleType) -> None:
+    labels = [control.frames_label(f) for f in (1_000_000, 2_000_000, 975_000, 75_000, 192)]
+    assert labels == ["1M", "2M", "975k", "75k", "192"]
