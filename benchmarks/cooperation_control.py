@@ -94,7 +94,12 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from mapets_rl.app.plugins import load_recipe
 from mapets_rl.envs import FreewayMergeEnv, ScriptedCAVPolicy, make_env
 from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway
-from mapets_rl.experiment import atomic_write_text, latest_checkpoint, read_train_episodes
+from mapets_rl.experiment import (
+    atomic_write_text,
+    checkpoint_frames,
+    latest_checkpoint,
+    read_train_episodes,
+)
 from mapets_rl.machine import machine_line
 from mapets_rl.modules.exploration import restricted_epsilon_greedy
 from mapets_rl.recipes.maddpg import OPENAI_MADDPG
@@ -214,12 +219,11 @@ def train(variant: str, seed: int, args: argparse.Namespace, frames: int) -> tup
     recipe, overrides = variant_overrides(variant, args)
     cls = load_recipe(recipe)
     run_dir = Path(args.out) / "runs" / f"{variant}_seed{seed}"
-    if latest_checkpoint(run_dir) is not None:
-        exp = cls.from_run_dir(run_dir)
-        if exp.frames >= frames:
-            exp.close()
-            return run_dir, exp.frames
-        exp.close()
+    latest = latest_checkpoint(run_dir)
+    if latest is not None:
+        done = checkpoint_frames(latest)  # from its name: no checkpoint loaded to ask
+        if done >= frames:
+            return run_dir, done
         exp = cls.from_run_dir(run_dir, overrides=[f"total_frames={frames}"])
     else:
         # staged (--score-every): a checkpoint at every stage, as a resumed stage makes one

@@ -85,6 +85,7 @@ from mapets_rl.envs.registry import available_envs, build_env, register_env
 from mapets_rl.experiment.checkpoint import (
     CheckpointError,
     atomic_torch_save,
+    checkpoint_frames,
     checkpoint_problem,
     digest_path,
     file_sha256,
@@ -145,6 +146,7 @@ __all__ = [
     "available_envs",
     "build_env",
     "check",
+    "checkpoint_frames",
     "checkpoint_problem",
     "default_run_dir",
     "digest_path",

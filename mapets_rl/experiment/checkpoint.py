@@ -183,6 +183,15 @@ def list_checkpoints(run_dir: str | os.PathLike) -> list[Path]:
     return [p for _, p in sorted(found)]
 
 
+def checkpoint_frames(path: str | os.PathLike) -> int:
+    """The frames a checkpoint was saved at, read from its name (``ckpt_<frames>.pt``) without
+    opening the file; ValueError naming a file that is not named like a checkpoint."""
+    match = _NAME.match(Path(path).name)
+    if match is None:
+        raise ValueError(f"{str(path)!r} is not named like a checkpoint (ckpt_<frames>.pt)")
+    return int(match.group(1))
+
+
 def verified_checkpoints(run_dir: str | os.PathLike) -> list[Path]:
     """The checkpoints of ``run_dir`` that verify (see :func:`checkpoint_problem`), oldest
     first; files that do not are left out silently."""

@@ -21,6 +21,7 @@ from toy_recipe import ToyConfig, ToyLearner
 from mapets_rl.experiment import (
     CheckpointError,
     ConfigError,
+    checkpoint_frames,
     checkpoint_problem,
     digest_path,
     file_sha256,
@@ -50,6 +51,16 @@ def _trained(tmp_path: Path, frames: int = 40) -> Path:
         "ckpt_000000000040.pt",
     ]
     return run
+
+
+def test_a_checkpoints_name_gives_the_frames_its_run_resumes_at(tmp_path: Path) -> None:
+    run = _trained(tmp_path)
+    assert [checkpoint_frames(p) for p in list_checkpoints(run)] == [20, 40]
+    resumed = ToyLearner.from_run_dir(run)
+    resumed.close()
+    assert resumed.frames == checkpoint_frames(latest_checkpoint(run))
+    with pytest.raises(ValueError, match="results.json.*not named like a checkpoint"):
+        checkpoint_frames(run / "results.json")
 
 
 # --------------------------------------------------------------------- ways to break a file
