@@ -37,7 +37,7 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-from mapets_rl.experiment.files import atomic_write_text, write_failed
+from mapets_rl.experiment.files import atomic_write_text, open_append, read_own_file, write_failed
 
 log = logging.getLogger(__name__)
 
@@ -176,14 +176,18 @@ class EpisodeLog:
 
     def open(self, keep_frames: int | None) -> None:
         """Cut the file back to the episodes of frame counts up to ``keep_frames`` (``None``:
-        leave it as it is) and write the episodes kept meanwhile; no-op once open."""
+        leave it as it is) and write the episodes kept meanwhile; no-op once open. A file that
+        is a symbolic link is removed, never read or written through, and one with other names
+        (a hard link) is replaced by a file of its own
+        (:func:`~mapets_rl.experiment.files.read_own_file`)."""
         if self._pending is None:
             return
         pending, self._pending = self._pending, None
-        if keep_frames is not None and self.path.is_file():
+        read = read_own_file(self.path) if keep_frames is not None else None
+        if read is not None:  # rewritten: a hard link is replaced by a file of its own
             kept = [
                 line
-                for line in self.path.read_text(errors="replace").splitlines(keepends=True)
+                for line in read[0].splitlines(keepends=True)
                 if _line_frames(line) is not None and _line_frames(line) <= keep_frames
             ]
             if kept:
@@ -207,7 +211,7 @@ class EpisodeLog:
         if not lines:
             return
         try:
-            with open(self.path, "a", encoding="utf-8") as f:
+            with open_append(self.path) as f:
                 f.write("".join(lines))
         except OSError as err:
             raise write_failed(self.path, err) from None

@@ -14,19 +14,24 @@ Nothing a run writes or deletes lies outside its run directory, even in a run di
 came from elsewhere (downloaded, shared): ``.lock`` is opened without following a symbolic link
 and must be a regular file of this user's own with no other name, and the directories a run
 writes and prunes (``checkpoints/``, ``videos/``, ``logs/`` and everything below them) must not
-be symbolic links (:func:`check_run_subdirs`).
+be symbolic links (:func:`check_run_subdirs`). The logs a run appends to are opened the same
+way (:func:`open_append`), and one that is a symbolic link is removed, never read or written
+through, before a run cuts it back (:func:`read_own_file`).
 """
 
 from __future__ import annotations
 
 import errno
 import fcntl
+import logging
 import os
 import stat
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
+
+log = logging.getLogger(__name__)
 
 LOCK_FILE = ".lock"
 """Name of the lock file in a run directory (see :class:`RunDirLock`)."""
@@ -57,6 +62,8 @@ __all__ = [
     "check_run_subdirs",
     "check_writable_dir",
     "make_writable_dir",
+    "open_append",
+    "read_own_file",
     "write_failed",
 ]
 
@@ -214,6 +221,62 @@ def _subdir_problem(path: Path) -> str | None:
     if st.st_uid != os.geteuid():
         return f"{str(path)!r} belongs to another user (uid {st.st_uid})"
     return None
+
+
+def open_append(path: str | os.PathLike) -> TextIO:
+    """``path`` opened for appending text (created ``0666 & ~umask`` when missing), without
+    following a symbolic link: a run appends only to a regular file of its own with no other
+    name, never to a file outside its run directory.
+
+    Raises:
+        ValueError: one line naming ``path`` when it is a symbolic link (dangling or not), not a
+            regular file, another user's or has other names (a hard link); a run that cuts its
+            logs back first replaces such a file (:func:`read_own_file`).
+        WriteFailed: it cannot be opened (permission denied, disk full).
+    """
+    flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW | os.O_NONBLOCK
+    try:
+        fd = os.open(path, flags, 0o666)
+    except OSError as err:
+        if err.errno not in (errno.ELOOP, errno.ENXIO):  # ENXIO: a FIFO nobody reads
+            raise write_failed(path, err) from None
+        problem = "is a symbolic link" if err.errno == errno.ELOOP else "is not a regular file"
+    else:
+        problem = _lock_file_problem(os.fstat(fd))
+        if problem is None:
+            return os.fdopen(fd, "a", encoding="utf-8")
+        os.close(fd)
+    raise ValueError(
+        f"cannot append to {str(path)!r}: it {problem}; a run appends only to a regular file "
+        "of its own inside its run directory (remove it)"
+    )
+
+
+def read_own_file(path: Path) -> tuple[str, bool] | None:
+    """The text of ``path``, a file a run appends to, read back before the run cuts it: ``None``
+    when there is none, when it is not a regular file (left for :func:`open_append` to refuse)
+    or when it is a symbolic link, which is removed (dangling or not; its target is neither
+    read nor written, and a warning names it). Else ``(text, own)``: ``own`` is false for a
+    file that has other names (a hard link) or belongs to another user, which the caller must
+    replace (an atomic rewrite makes a new file of its own) even when its text is kept."""
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return None
+    if stat.S_ISLNK(st.st_mode):
+        log.warning("removed %r: it was a symbolic link, not a file of the run", str(path))
+        path.unlink()
+        return None
+    if not stat.S_ISREG(st.st_mode):
+        return None
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError as err:
+        raise ValueError(
+            f"cannot read {str(path)!r}: {err.strerror or type(err).__name__}"
+        ) from None
+    with os.fdopen(fd, encoding="utf-8", errors="replace") as fh:
+        return fh.read(), _lock_file_problem(os.fstat(fh.fileno())) is None
 
 
 class RunDirLocked(ValueError):

@@ -11,9 +11,15 @@ from pathlib import Path
 from typing import Any
 
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLogger
+from torchrl.record.loggers.csv import CSVExperiment
 
 from mapets_rl.experiment.config import LOGGERS, check_logger_package
-from mapets_rl.experiment.files import atomic_write_text, write_failed
+from mapets_rl.experiment.files import (
+    atomic_write_text,
+    open_append,
+    read_own_file,
+    write_failed,
+)
 from mapets_rl.metrics import METRIC_UNITS, is_timing_metric, metric_unit
 
 log = logging.getLogger(__name__)
@@ -54,7 +60,7 @@ def make_logger(
     # the logged scalars are named prefix/metric (train/agility); their units, once per run
     atomic_write_text(Path(log_dir) / UNITS_FILE, json.dumps(METRIC_UNITS, indent=1))
     if kind == "csv":
-        return CSVLogger(exp_name=exp_name, log_dir=log_dir)
+        return _NoFollowCSVLogger(exp_name=exp_name, log_dir=log_dir)
     if kind == "tensorboard":
         if purge_step is not None:
             return _PurgingTensorboardLogger(exp_name, log_dir, purge_step)
@@ -64,6 +70,30 @@ def make_logger(
         save_dir=log_dir,
         offline=os.environ.get("WANDB_MODE", "offline") == "offline",
     )
+
+
+class _NoFollowCSVExperiment(CSVExperiment):
+    """torchrl's CSV experiment whose scalar files are opened by
+    :func:`~mapets_rl.experiment.files.open_append`: never through a symbolic link (torchrl
+    opens them in append mode, following one out of the run directory)."""
+
+    def add_scalar(self, name: str, value: float, global_step: int | None = None) -> None:
+        path = os.path.join(self.log_dir, "scalars", f"{name}.csv")
+        if path not in self.files:
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            self.files[path] = open_append(path)
+        super().add_scalar(name, value, global_step)
+
+
+class _NoFollowCSVLogger(CSVLogger):
+    """torchrl's CSV logger on :class:`_NoFollowCSVExperiment`."""
+
+    def _create_experiment(self) -> CSVExperiment:
+        return _NoFollowCSVExperiment(
+            os.path.join(self.log_dir, self.exp_name),
+            video_format=self.video_format,
+            video_fps=self.video_fps,
+        )
 
 
 class _PurgingTensorboardLogger(TensorboardLogger):
@@ -85,8 +115,10 @@ def truncate_csv_scalars(log_dir: str | os.PathLike, keep: Mapping[str, int]) ->
     (``scalars/<name>.csv``, rows ``step,value``) back to what a checkpoint saw: the rows of
     ``name`` whose step is at most ``keep[name]``; a file whose name ``keep`` lacks (logged
     only after the checkpoint) is deleted, and so is an unreadable or partly written row (a
-    process killed mid-write). Files are rewritten atomically, only when they change. Returns
-    the files changed."""
+    process killed mid-write). Files are rewritten atomically, only when they change (or have
+    other names than this one, a hard link); a symbolic link among them is removed, never read
+    or written through (:func:`~mapets_rl.experiment.files.read_own_file`). Returns the files
+    changed."""
     scalars = Path(log_dir) / "scalars"
     if not scalars.is_dir():
         return []
@@ -94,7 +126,12 @@ def truncate_csv_scalars(log_dir: str | os.PathLike, keep: Mapping[str, int]) ->
     for path in sorted(scalars.rglob("*.csv")):
         name = path.relative_to(scalars).with_suffix("").as_posix()
         last = keep.get(name)
-        text = path.read_text(errors="replace")
+        read = read_own_file(path)
+        if read is None:
+            if not os.path.lexists(path):  # a symbolic link, which read_own_file removed
+                changed.append(path)
+            continue
+        text, own = read
         rows = []
         for line in text.splitlines(keepends=True):
             step, _, value = line.rstrip("\n").partition(",")
@@ -105,7 +142,7 @@ def truncate_csv_scalars(log_dir: str | os.PathLike, keep: Mapping[str, int]) ->
                 ok = False
             if ok:
                 rows.append(line)
-        if "".join(rows) == text:
+        if "".join(rows) == text and own:
             continue
         if rows:
             atomic_write_text(path, "".join(rows))
