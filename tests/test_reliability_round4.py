@@ -15,6 +15,7 @@ from toy_recipe import ToyConfig, ToyLearner
 
 from mapets_rl.experiment.episodes import TRAIN_EPISODES_FILE
 from mapets_rl.experiment.files import open_append
+from tests.cli_run import run_cli
 
 
 # ------------------------------------------------------------- no append through a link
@@ -85,3 +86,29 @@ def test_open_append_refuses_a_file_that_is_not_a_plain_one_of_ours(tmp_path, ki
         open_append(path)
     assert "\n" not in str(err.value)
     assert victim.read_text() == "precious\n"
+
+
+# ------------------------------------------------- --out of compare and sweep is no run dir
+def _files(folder: Path) -> dict[Path, bytes]:
+    return {p: p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("inside", [False, True])
+def test_compare_refuses_an_out_in_a_run_directory(tmp_path, csv_toy_run, capsys, inside):
+    other = tmp_path / "other"
+    ToyLearner(ToyConfig(total_frames=20), other).train()
+    before = _files(other)
+    out = other / "figures" if inside else other
+    code, _, err = run_cli(["compare", str(csv_toy_run), "--out", str(out)], capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert "is a run directory (it holds run.json)" in err
+    assert _files(other) == before
+
+
+def test_sweep_refuses_an_out_that_is_a_run_directory(tmp_path, csv_toy_run, toy_recipe, capsys):
+    before = _files(csv_toy_run)
+    argv = ["sweep", "toy", "--env", "toy", "--seeds", "0", "--out", str(csv_toy_run)]
+    code, _, err = run_cli([*argv, "total_frames=20"], capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert "out" in err and "is a run directory (it holds run.json)" in err
+    assert _files(csv_toy_run) == before

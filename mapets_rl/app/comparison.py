@@ -49,6 +49,7 @@ from mapets_rl.experiment.files import (
     make_writable_dir,
 )
 from mapets_rl.experiment.results import ENTRY_LISTS, SOURCES, read_evaluation, read_results
+from mapets_rl.experiment.runner import refuse_run_dir_as_out
 from mapets_rl.metrics import (
     MPH_PER_MPS,
     is_task_metric,
@@ -341,6 +342,7 @@ def compare(
     if any(not f or not isinstance(f, str) for f in fields):
         raise ValueError(f"group_by must name config fields, got {group_by!r}")
     _check_distinct(run_dirs, out_dir)
+    refuse_run_dir_as_out(out_dir, "out_dir")
     check_writable_dir(out_dir, "out_dir")
     runs = [str(d) for d in run_dirs]
     results = [read_results(d, legacy_as=legacy_as) for d in run_dirs]

@@ -674,6 +674,9 @@ def run_sweep(spec: SweepSpec, echo: Callable[[str], None] = print) -> SweepResu
     Everything is validated before the first trial starts (see :func:`plan_trials`); a trial
     that fails does not stop the others. ``echo`` receives one line per event.
     """
+    from mapets_rl.experiment.runner import refuse_run_dir_as_out
+
+    refuse_run_dir_as_out(spec.out, "out")
     check_writable_dir(spec.out, "out")
     cls, trials = plan_trials(spec)
     if spec.backend == "ray":

@@ -403,9 +403,9 @@ class Experiment:
     ) -> BaseCollector:
         """An endless torchrl collector for ``policy``, of the kind ``config.collector`` names
         (see :class:`ExperimentConfig`): ``Collector`` in this process, ``MultiSyncCollector``
-        with ``num_envs`` worker processes, or torchrl's ``RayCollector`` with ``num_envs``
-        remote collectors (one CPU each; synchronous, so each batch holds
-        ``frames_per_batch / num_envs`` steps of every env); the run loop stops it at
+        with ``collector_workers`` worker processes, or torchrl's ``RayCollector`` with
+        ``collector_workers`` remote collectors (one CPU each; synchronous, so each batch holds
+        ``frames_per_batch / collector_workers`` steps of every env); the run loop stops it at
         ``total_frames``. A batched env (``env_config.num_envs = B`` roads) is stepped by one
         ``Collector``, whose batches are ``[B, frames_per_batch / B]`` (road, time). The
         first ``init_random_frames`` frames of the run use uniformly random actions (counted
@@ -420,7 +420,7 @@ class Experiment:
         env_fn = functools.partial(build_env, cfg.env, cfg.env_config)
         kind = cfg.collector
         if kind == "auto":
-            kind = "single" if cfg.num_envs == 1 else "multi_sync"
+            kind = "single" if cfg.collector_workers == 1 else "multi_sync"
         if kind == "ray":
             return _ray_collector(env_fn, policy, cfg, self.device, remaining, kwargs)
         if remaining:
@@ -435,7 +435,7 @@ class Experiment:
         common.update(kwargs)
         if kind == "single":
             return Collector(env_fn, policy, **common)
-        return MultiSyncCollector([env_fn] * cfg.num_envs, policy, **common)
+        return MultiSyncCollector([env_fn] * cfg.collector_workers, policy, **common)
 
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
         """Consume one collected batch (extend buffers, optimise); return scalar losses."""
@@ -999,8 +999,8 @@ def _ray_collector(
     init_random_frames: int,
     kwargs: Mapping[str, Any],
 ) -> BaseCollector:
-    """torchrl's ``RayCollector`` with ``cfg.num_envs`` remote ``Collector`` actors (1 CPU
-    each), synchronous, on the Ray instance of this process, else the cluster of
+    """torchrl's ``RayCollector`` with ``cfg.collector_workers`` remote ``Collector`` actors (1
+    CPU each), synchronous, on the Ray instance of this process, else the cluster of
     ``RAY_ADDRESS``, else a local instance started for it (and stopped at its ``shutdown``)."""
     import ray
     from torchrl.collectors.distributed import RayCollector
@@ -1019,7 +1019,7 @@ def _ray_collector(
             ray.get([c.reset.remote() for c in self.remote_collectors])
 
     return _Collector(
-        [env_fn] * cfg.num_envs,
+        [env_fn] * cfg.collector_workers,
         policy,
         frames_per_batch=cfg.frames_per_batch,
         total_frames=RAY_COLLECTOR_FRAMES,
@@ -1074,6 +1074,20 @@ def run_recipe_name(run_dir: str | os.PathLike) -> str:
             f'"recipe": "<name>" entry, got {recipe!r})'
         )
     return recipe
+
+
+def refuse_run_dir_as_out(out: str | os.PathLike, what: str = "out") -> None:
+    """ValueError (one line naming ``what``) when the output folder ``out`` is a run directory
+    or lies inside one (it, or a directory above it, holds a ``run.json``): a run directory is
+    not an output folder (``compare`` and ``sweep`` would write their files into a run)."""
+    out = Path(out).resolve()
+    for folder in (out, *out.parents):
+        if (folder / RUN_FILE).is_file():
+            where = "is" if folder == out else f"lies inside {str(folder)!r}, which is"
+            raise ValueError(
+                f"{what} {str(out)!r} {where} a run directory (it holds {RUN_FILE}); choose an "
+                "output folder outside every run"
+            )
 
 
 def env_shapes(env: EnvBase) -> dict[str, list[int]]:
