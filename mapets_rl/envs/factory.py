@@ -144,6 +144,12 @@ def make_env(
     )
 
 
+def has_batched_backend(name: str) -> bool:
+    """Whether scenario ``name`` also runs as a batched env (``backend="torch"``)."""
+    scenario = registered_scenario(name)
+    return scenario is not None and scenario.parallel_env in TORCH_BACKEND
+
+
 def _register_builtin(
     name: str,
     parallel_env: type[TrafficParallelEnv],
