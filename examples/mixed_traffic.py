@@ -217,7 +217,7 @@ def train_and_evaluate(
     if latest_checkpoint(run_dir) is not None:
         exp = recipe.from_run_dir(run_dir, overrides=[f"total_frames={args.frames}"])
     else:
-        batch = args.frames_per_batch or config_cls.frames_per_batch
+        batch = args.frames_per_batch or config_cls.default_frames_per_batch
         sizes = {}
         if method == "coma":
             sizes["minibatch_size"] = min(config_cls.minibatch_size, batch)

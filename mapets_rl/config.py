@@ -31,8 +31,9 @@ import re
 import stat
 import types
 import typing
+import warnings
 from collections.abc import Hashable, Iterable, Mapping
-from typing import Any, Literal, Union, get_args, get_origin
+from typing import Any, ClassVar, Literal, Union, get_args, get_origin
 
 import yaml
 
@@ -161,10 +162,41 @@ def unknown_key_error(cls: type, key: str) -> ConfigError:
     return ConfigError(f"unknown config key {key!r} for {cls.__name__} (known: {', '.join(names)})")
 
 
-class ConfigFields:
+class _ConfigFieldsMeta(type):
+    """Renames a config class's deprecated keywords (:attr:`ConfigFields.deprecated_names`)
+    before the dataclass ``__init__`` sees them."""
+
+    def __call__(cls, *args: Any, **kwargs: Any) -> Any:
+        return super().__call__(*args, **cls.current_names(kwargs))
+
+
+class ConfigFields(metaclass=_ConfigFieldsMeta):
     """What every config dataclass shares: a keyword that is not a field is a ConfigError
     naming it (the dataclass ``__init__`` would raise a TypeError), in the constructor and in
-    :meth:`from_dict`."""
+    :meth:`from_dict`; a deprecated name of a field (:attr:`deprecated_names`) is read under
+    the field's name, with a DeprecationWarning."""
+
+    # old name -> the field that took its place; the old name still works as a keyword, in
+    # from_dict (config files) and as a key=value override, with a DeprecationWarning
+    deprecated_names: ClassVar[Mapping[str, str]] = {}
+
+    @classmethod
+    def current_names(cls, data: Mapping[str, Any]) -> dict[str, Any]:
+        """``data`` with each deprecated key renamed to its field (a DeprecationWarning naming
+        both); a ConfigError when both names are given."""
+        out = dict(data)
+        for old, new in cls.deprecated_names.items():
+            if old not in out:
+                continue
+            if new in out:
+                raise ConfigError(f"{old!r} is the deprecated name of {new!r}: give {new!r} only")
+            warnings.warn(
+                f"config key {old!r} of {cls.__name__} is deprecated: it is now {new!r}",
+                DeprecationWarning,
+                stacklevel=3,
+            )
+            out[new] = out.pop(old)
+        return out
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Any:
         unknown = sorted(set(kwargs) - set(cls.field_names()))
@@ -178,7 +210,9 @@ class ConfigFields:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Any:
-        """Build from a mapping of fields; unknown keys raise ConfigError naming them."""
+        """Build from a mapping of fields (deprecated names read under their field's);
+        unknown keys raise ConfigError naming them."""
+        data = cls.current_names(data)
         unknown = sorted(set(data) - set(cls.field_names()))
         if unknown:
             raise unknown_key_error(cls, unknown[0])

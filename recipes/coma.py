@@ -20,7 +20,7 @@ or ``mapets-rl train coma env_config.cav_ratio=0.5``.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from tensordict import TensorDictBase
@@ -60,10 +60,11 @@ class COMAConfig(OnPolicyConfig):
         tau: soft target-critic update rate per gradient step, in (0, 1].
     """
 
+    default_frames_per_batch: ClassVar[int] = 40  # one road's batch, see ExperimentConfig
+
     env: str = "freeway"
     env_config: dict[str, Any] = dataclasses.field(default_factory=_default_env_config)
     total_frames: int = 4000
-    frames_per_batch: int = 40
     eval_interval: int = 400
     eval_episodes: int = 2
     minibatch_size: int = 40

@@ -118,10 +118,11 @@ class ShapleyACConfig(DiscreteExplorationConfig):
         "gumbel_temperature": ("gumbel_tau",),
     }
 
+    default_frames_per_batch: ClassVar[int] = 40  # one road's batch, see ExperimentConfig
+
     env: str = "freeway"
     env_config: dict[str, Any] = dataclasses.field(default_factory=_default_env_config)
     total_frames: int = 4000
-    frames_per_batch: int = 40
     eval_interval: int = 400
     eval_episodes: int = 2
     checkpoint_interval: int = 1000

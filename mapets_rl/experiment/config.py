@@ -122,6 +122,7 @@ class RunConfig(ConfigFields):
         check(self.keep_last >= 1, "keep_last", ">= 1", self.keep_last)
         check(self.logger in LOGGERS, "logger", f"one of {list(LOGGERS)}", self.logger)
         check_logger_package(self.logger)
+        self._derived_fields: set[str] = set()
         if not self.collects_env_batches:
             check(
                 self.env_batch_size is None,
@@ -130,6 +131,13 @@ class RunConfig(ConfigFields):
                 "the collectors of the frame-budget recipes)",
                 self.env_batch_size,
             )
+
+    def derive(self, name: str, value: Any) -> None:
+        """Set field ``name``, which was left to its default ``None``, to ``value`` derived from
+        the other fields; :meth:`with_overrides` derives it again from the new values instead
+        of keeping this one."""
+        setattr(self, name, value)
+        self._derived_fields.add(name)
 
     # ------------------------------------------------------------------------- batched envs
     @property
@@ -148,8 +156,9 @@ class RunConfig(ConfigFields):
     def rename_old_keys(cls, data: Mapping[str, Any], source: str) -> dict[str, Any]:
         """``data`` with the old keys of :attr:`renamed_fields` renamed to their new names (a
         ``UserWarning`` naming the old key and ``source`` for each); a new key already present
-        in ``data`` wins over the old one."""
-        out = dict(data)
+        in ``data`` wins over the old one. Deprecated names (:attr:`deprecated_names`) are
+        renamed too, with a DeprecationWarning."""
+        out = cls.current_names(data)
         for old, new in cls.renamed_fields.items():
             if old not in out or old in cls.field_names():
                 continue
@@ -197,8 +206,10 @@ class RunConfig(ConfigFields):
 
     def with_overrides(self, overrides: Iterable[str]) -> RunConfig:
         """A new config with ``key=value`` strings applied (values parsed as YAML); dotted keys
-        reach into dict fields and nested config sections (``planner.horizon=25``)."""
-        return type(self).from_dict(self._apply_overrides(self.to_dict(), overrides))
+        reach into dict fields and nested config sections (``planner.horizon=25``). A field
+        this config derived (:meth:`derive`) is derived again from the new values."""
+        data = {k: v for k, v in self.to_dict().items() if k not in self._derived_fields}
+        return type(self).from_dict(self._apply_overrides(data, overrides))
 
     @classmethod
     def _apply_overrides(cls, data: dict[str, Any], overrides: Iterable[str]) -> dict[str, Any]:
@@ -209,6 +220,9 @@ class RunConfig(ConfigFields):
         given: dict[str, str] = {}
         for item in overrides:
             key, value = parse_override(item)
+            head, dot, rest = key.partition(".")
+            (head,) = cls.current_names({head: None})  # a deprecated name: its field
+            key = f"{head}{dot}{rest}"
             clash = next(
                 (
                     k
@@ -221,7 +235,6 @@ class RunConfig(ConfigFields):
                 inner = min(clash, key, key=len)
                 raise ConfigError(f"{given[clash]!r} and {item!r} both set {inner}: give it once")
             given[key] = item
-            head, _, rest = key.partition(".")
             if head not in data and head in cls.field_names():
                 data[head] = cls._plain_default(head)
             if head not in data:
@@ -270,25 +283,32 @@ class ExperimentConfig(RunConfig):
 
     Attributes:
         total_frames: environment steps to train for (> 0).
-        frames_per_batch: environment steps per collected batch (> 0).
-        num_envs: environment copies, one per collector process (``multi_sync``) or Ray
-            collector (``ray``); 1 with ``collector="single"``.
+        frames_per_batch: environment steps per collected batch (> 0, a multiple of the
+            environment copies: ``collector_workers`` times the roads ``env_config.num_envs``
+            of a batched env). Left out (``None``), it is the recipe's
+            :attr:`default_frames_per_batch` (200; 40 for ``coma`` and ``shapley_ac``) rounded
+            up to a multiple of the copies: the recipe's batch on one road, one step per road
+            on 256 roads (256 frames); an explicit value that is not a multiple is refused.
+        collector_workers: environment copies, one per collector process (``multi_sync``) or
+            Ray collector (``ray``); 1 with ``collector="single"`` and with a batched env. Its
+            old name ``num_envs`` still works, with a DeprecationWarning.
         collector: the torchrl collector that gathers the batches: ``"single"``
             (``Collector`` in this process), ``"multi_sync"`` (``MultiSyncCollector``,
-            ``num_envs`` worker processes), ``"ray"`` (torchrl's ``RayCollector``, ``num_envs``
-            remote collectors on a local Ray instance, or the cluster of ``RAY_ADDRESS``;
-            needs ``mapets-rl[ray]``) or ``"auto"`` (default: ``single`` when ``num_envs == 1``,
-            else ``multi_sync``).
+            ``collector_workers`` worker processes), ``"ray"`` (torchrl's ``RayCollector``,
+            ``collector_workers`` remote collectors on a local Ray instance, or the cluster of
+            ``RAY_ADDRESS``; needs ``mapets-rl[ray]``) or ``"auto"`` (default: ``single`` when
+            ``collector_workers == 1``, else ``multi_sync``).
         eval_interval: evaluate every this many frames (0: only at the end).
         checkpoint_interval: write a checkpoint every this many frames (0: only at the end).
             Environments are re-seeded and reset at every checkpoint boundary so that a resumed
             run continues exactly like an uninterrupted one (an episode in flight is cut there;
-            bit-exact with ``num_envs=1``; worker processes of ``num_envs > 1`` re-seed their
-            environments but not their own torch RNG).
+            bit-exact with ``collector_workers=1``; worker processes of
+            ``collector_workers > 1`` re-seed their environments but not their own torch RNG).
 
     A batched env (``env_config={"backend": "torch", "num_envs": B, ...}``: ``B`` roads of the
     torch freeway as one env of ``batch_size=[B]``) is collected by one ``Collector`` in this
-    process (``num_envs`` 1, ``collector`` ``auto`` or ``single``); a frame is then one step of
+    process (``collector_workers`` 1, ``collector`` ``auto`` or ``single``); a frame is then one
+    step of
     one road (all its agents), so a batch of ``frames_per_batch`` frames holds
     ``frames_per_batch / B`` steps of every road (a ``[B, T]`` TensorDict) and
     ``frames_per_batch`` must be a multiple of ``B``. Evaluation and video run on one road of
@@ -296,16 +316,22 @@ class ExperimentConfig(RunConfig):
     """
 
     collects_env_batches: ClassVar[bool] = True
+    deprecated_names: ClassVar[Mapping[str, str]] = {"num_envs": "collector_workers"}
+    # the recipe's frames per batch on one road, which a frames_per_batch left out rounds up
+    default_frames_per_batch: ClassVar[int] = 200
 
     total_frames: int = dataclasses.field(default=3000, metadata=_FRAMES)
-    frames_per_batch: int = dataclasses.field(default=200, metadata=_FRAMES)
-    num_envs: int = 1
+    frames_per_batch: int | None = dataclasses.field(default=None, metadata=_FRAMES)
+    collector_workers: int = 1
     collector: str = "auto"
     eval_interval: int = dataclasses.field(default=1000, metadata=_FRAMES)
     checkpoint_interval: int = dataclasses.field(default=1000, metadata=_FRAMES)
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        if self.frames_per_batch is None:
+            copies = self.env_copies()
+            self.derive("frames_per_batch", -(-self.default_frames_per_batch // copies) * copies)
         check(self.total_frames > 0, "total_frames", "> 0", self.total_frames)
         check(self.frames_per_batch > 0, "frames_per_batch", "> 0", self.frames_per_batch)
         check(
@@ -314,15 +340,15 @@ class ExperimentConfig(RunConfig):
             f">= frames_per_batch={self.frames_per_batch} (one collected batch)",
             self.total_frames,
         )
-        check(self.num_envs >= 1, "num_envs", ">= 1", self.num_envs)
+        check(self.collector_workers >= 1, "collector_workers", ">= 1", self.collector_workers)
         check(
             self.collector in COLLECTORS, "collector", f"one of {list(COLLECTORS)}", self.collector
         )
         check(
-            self.collector != "single" or self.num_envs == 1,
-            "num_envs",
+            self.collector != "single" or self.collector_workers == 1,
+            "collector_workers",
             "1 with collector='single' (several envs: collector='multi_sync' or 'ray')",
-            self.num_envs,
+            self.collector_workers,
         )
         if self.collector == "ray" and importlib.util.find_spec("ray") is None:
             raise ConfigError(
@@ -330,9 +356,9 @@ class ExperimentConfig(RunConfig):
                 "pip install 'mapets-rl[ray]' (or use collector='multi_sync')"
             )
         check(
-            self.frames_per_batch % self.num_envs == 0,
+            self.frames_per_batch % self.collector_workers == 0,
             "frames_per_batch",
-            f"a multiple of num_envs={self.num_envs}",
+            f"a multiple of collector_workers={self.collector_workers}",
             self.frames_per_batch,
         )
         check(self.eval_interval >= 0, "eval_interval", ">= 0", self.eval_interval)
@@ -354,11 +380,11 @@ class ExperimentConfig(RunConfig):
             batch,
         )
         check(
-            self.num_envs == 1 and self.collector in ("auto", "single"),
-            "num_envs",
+            self.collector_workers == 1 and self.collector in ("auto", "single"),
+            "collector_workers",
             f"1 with collector 'auto' or 'single' when env_config.num_envs={batch} batches the "
             f"env (one Collector steps the {batch} roads; got collector={self.collector!r})",
-            self.num_envs,
+            self.collector_workers,
         )
         check(
             self.frames_per_batch % batch == 0,
@@ -368,10 +394,19 @@ class ExperimentConfig(RunConfig):
             self.frames_per_batch,
         )
 
+    def env_copies(self) -> int:
+        """The environment copies a batch holds the same number of steps of:
+        ``collector_workers`` times the roads of a batched env (1 where either is not a valid
+        count yet; the checks name it)."""
+        roads = self.env_batch_size
+        roads_ok = isinstance(roads, int) and not isinstance(roads, bool) and roads >= 1
+        workers_ok = isinstance(self.collector_workers, int) and self.collector_workers >= 1
+        return (roads if roads_ok else 1) * (self.collector_workers if workers_ok else 1)
+
     @classmethod
     def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
         """A config written before ``collector`` existed gets ``"auto"``: the collector that
-        ``num_envs`` chose then."""
+        ``num_envs`` (now ``collector_workers``) chose then."""
         data = super().upgrade_dict(data)
         data.setdefault("collector", "auto")
         return data

@@ -71,6 +71,11 @@ class ModelFreeConfig(ExperimentConfig):
         check_layer_sizes("num_cells", self.num_cells, self.device)
 
 
+DEFAULT_INIT_RANDOM_FRAMES = 200
+"""The random frames of :class:`OffPolicyConfig` left to its default, before rounding up to
+whole collected batches."""
+
+
 @dataclasses.dataclass
 class OffPolicyConfig(ModelFreeConfig):
     """Replay-buffer actor-critic training (plus :class:`ModelFreeConfig`).
@@ -94,7 +99,9 @@ class OffPolicyConfig(ModelFreeConfig):
             ``update_interval=100, updates_per_batch=1``.
         init_random_frames: frames collected before the first update (>= 0); ``maddpg`` and
             ``sac`` act uniformly at random during them, ``shapley_ac`` acts with its policy
-            (see the recipe).
+            (see the recipe). Updates start after whole collected batches, so left out
+            (``None``) it is 200 rounded up to a multiple of ``frames_per_batch`` (what the
+            collector would round 200 to; 200 with the default batches on one road).
         lr_actor, lr_critic: Adam learning rates of the actor(s) and the critic(s) (> 0).
     """
 
@@ -103,12 +110,15 @@ class OffPolicyConfig(ModelFreeConfig):
     batch_size: int = dataclasses.field(default=256, metadata={"unit": "transitions"})
     updates_per_batch: int = 20
     update_interval: int = dataclasses.field(default=0, metadata={"unit": "frames"})
-    init_random_frames: int = dataclasses.field(default=200, metadata={"unit": "frames"})
+    init_random_frames: int | None = dataclasses.field(default=None, metadata={"unit": "frames"})
     lr_actor: float = 1e-3
     lr_critic: float = 1e-3
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        if self.init_random_frames is None:
+            batch = self.frames_per_batch
+            self.derive("init_random_frames", -(-DEFAULT_INIT_RANDOM_FRAMES // batch) * batch)
         check(0 < self.tau <= 1, "tau", "in (0, 1]", self.tau)
         check(self.batch_size >= 1, "batch_size", ">= 1", self.batch_size)
         check(

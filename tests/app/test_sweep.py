@@ -241,7 +241,7 @@ def test_collector_field_is_validated_and_old_configs_get_auto():
 
     with pytest.raises(ConfigError, match="collector must be one of"):
         MAPPOConfig(collector="threads")
-    with pytest.raises(ConfigError, match="num_envs must be 1 with collector='single'"):
+    with pytest.raises(ConfigError, match="collector_workers must be 1 with collector='single'"):
         MAPPOConfig(collector="single", num_envs=2)
     old = {k: v for k, v in MAPPOConfig(num_envs=2).to_dict().items() if k != "collector"}
     assert MAPPOConfig.upgrade_dict(old)["collector"] == "auto"
