@@ -7,8 +7,10 @@ step as :meth:`~mapets_rl.envs.torch_freeway.physics.RoadPhysics.substep` (repea
 simulation steps, with their bookkeeping) in one loop per road, vehicle by vehicle in
 highway-env's order. It is compiled with ``torch.utils.cpp_extension`` (a C++ compiler and
 ``ninja`` are needed) into a private build directory (:func:`build_directory`; a shared one
-would let another user plant the module that every run loads). Where it cannot be built,
-:func:`load_kernel` says why and the simulator runs its torch program instead.
+would let another user plant the module that every run loads). A process about to build it
+logs one warning saying so and how long it may take (35 s to 6 minutes on a loaded machine; the
+``mapets-rl`` command prints it); where it cannot be built, :func:`load_kernel` logs one warning
+saying why and that the simulator runs its torch program instead.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from __future__ import annotations
 import fcntl
 import logging
 import os
+import time
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
@@ -27,6 +30,8 @@ from mapets_rl._compile_cache import cache_dir_problem, private_default
 log = logging.getLogger(__name__)
 
 SOURCE = Path(__file__).with_name("native_step.cpp")
+NAME = "mapets_rl_freeway_step"
+"""The module's name, and the stem of the shared library built in :func:`build_directory`."""
 _KERNEL: ModuleType | None = None
 _FAILURE: str | None = None
 
@@ -65,10 +70,23 @@ def build_exclusively(directory: Path, build: Callable[[], ModuleType]) -> Modul
             fcntl.flock(handle, fcntl.LOCK_UN)
 
 
+def needs_build(directory: Path) -> bool:
+    """Whether loading the kernel from ``directory`` compiles it: no shared library there, one
+    older than :data:`SOURCE`, or one built from another checkout's source (torch's build
+    file names the source it compiles)."""
+    library = directory / f"{NAME}.so"
+    ninja = directory / "build.ninja"
+    if not library.is_file() or not ninja.is_file():
+        return True
+    built_from_here = str(SOURCE) in ninja.read_text(encoding="utf-8", errors="replace")
+    return not built_from_here or library.stat().st_mtime < SOURCE.stat().st_mtime
+
+
 def load_kernel() -> ModuleType | None:
     """The compiled kernel module, or None (and :func:`kernel_unavailable` says why) where it
-    cannot be built. Built once per process (seconds to a minute the first time on a machine;
-    later processes load the cached build)."""
+    cannot be built (a warning says why). Loaded once per process; the first process of a
+    machine, torch version and checkout builds it (35 s to 6 minutes, announced by a warning)
+    and later ones load the cached build."""
     global _KERNEL, _FAILURE
     if _KERNEL is not None or _FAILURE is not None:
         return _KERNEL
@@ -76,10 +94,19 @@ def load_kernel() -> ModuleType | None:
         from torch.utils.cpp_extension import load
 
         directory = build_directory()
+        building = needs_build(directory)
+        if building:
+            log.warning(
+                "building the batched freeway's C++ step kernel (%s, into %s): once per machine, "
+                "torch version and checkout, 35 s to 6 minutes on a loaded machine",
+                SOURCE.name,
+                directory,
+            )
+        start = time.perf_counter()
         _KERNEL = build_exclusively(
             directory,
             lambda: load(
-                name="mapets_rl_freeway_step",
+                name=NAME,
                 sources=[str(SOURCE)],
                 extra_cflags=["-O3", "-fno-math-errno"],
                 build_directory=str(directory),
@@ -91,7 +118,14 @@ def load_kernel() -> ModuleType | None:
         while root.__cause__ is not None:
             root = root.__cause__
         _FAILURE = f"{type(root).__name__}: {root}".splitlines()[0]
-        log.warning("the freeway's fused CPU kernel is unavailable (%s); using torch ops", _FAILURE)
+        log.warning(
+            "the batched freeway's C++ step kernel is unavailable (%s); its roads run the torch "
+            "program instead (4-5x slower on CPUs)",
+            _FAILURE,
+        )
+        return None
+    if building:
+        log.info("the freeway's C++ step kernel built in %.0f s", time.perf_counter() - start)
     return _KERNEL
 
 
