@@ -69,18 +69,16 @@ class ShapleyACConfig(DiscreteExplorationConfig):
     Attributes:
         num_cells: hidden sizes of the per-agent actors (``critic_cells``: of the critic).
         share_params: one actor for all CAVs instead of one per CAV (default True, with
-            ``ego_first``: at 30 CAVs (freeway, ratio 1) one actor per CAV, each fed the
-            690-wide view of all CAVs and 1/30 of the data, still crashed 2-8 times per
-            evaluation episode at 800-1,600 frames (3 seeds), while the shared ego-first actor
-            was collision-free from 400-800 frames on, 3 of 3 seeds).
+            ``ego_first``); one actor per CAV sees 1/n of the data each. Measured in
+            docs/results/history.md#fig-2-at-30-cavs-on-the-freeway-shapley-ac-maddpg-coma-mappo.
         init_random_frames: transitions in the buffer before the first update; they are
             collected with the policy (its coalitions are random), not with random actions.
         critic_cells: hidden sizes of the coalition critic.
         critic_embed_cells: hidden sizes of a nonlinear per-agent network in the coalition
             critic before its members are summed (``CoalitionCritic(embed_cells=...)``; empty,
             the default: the paper's MLP on the zero-masked joint input, whose first layer pools
-            the members' linear terms; see docs/results/shapley.md, "Why the Shapley arm stays
-            on keep lane").
+            the members' linear terms). Results:
+            docs/results/shapley.md#which-of-the-three-changes-are-needed-and-five-seeds-at-300k-frames.
         critic_member_heads: the coalition critic ends in one output per CAV and ``v(C)`` is
             the sum of its members' outputs, each fitted to its own member's reward
             (``CoalitionCritic(member_heads=True)``; the TD targets summed over ``C`` are the
@@ -94,7 +92,7 @@ class ShapleyACConfig(DiscreteExplorationConfig):
         eval_coalition: coalition used in evaluation: ``grand``, ``empty`` or ``random``.
         logits_reg: weight of the squared-logits penalty in the actor loss (keeps the discrete
             policies from saturating early; 0.1 suits the freeway, whose values are in the
-            hundreds: at 1e-3 some CAVs locked onto CL/CR within 400 frames).
+            hundreds; docs/results/history.md#fig-2-at-4-cavs-on-the-freeway).
         exact_max_agents: Shapley exact up to this many CAVs, permutation sampling beyond.
         num_permutations: orderings per update on the sampled path (even, >= 4: antithetic
             pairs, shared by the whole minibatch; the standard error is logged as
@@ -102,8 +100,9 @@ class ShapleyACConfig(DiscreteExplorationConfig):
         reward_scale: multiplies the coalition reward ``R(C)`` in the critic target (> 0).
         ego_first: every actor's coalition view lists its own observation first (needed for
             ``share_params``: one actor for all CAVs must know which slot is its own).
-        shapley_chunk_states: states per pass of the Shapley computation (None: all at once;
-            8 measured fastest on a 2-core AVX2 CPU at n = 30, see docs/results/performance.md).
+        shapley_chunk_states: states per pass of the Shapley computation (None: all at once).
+            Timings:
+            docs/results/performance.md#shapley-values-batched-against-loops-benchmarksshapleypy.
         shapley_bf16: evaluate the Shapley critic passes under bf16 autocast (pays on CPUs with
             AVX512-BF16/AMX and on GPUs; about 9x slower on AVX2-only CPUs).
     """
