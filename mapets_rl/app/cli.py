@@ -34,9 +34,8 @@ from typing import Any, NoReturn
 
 from mapets_rl import quiet_dependencies
 from mapets_rl._compile_cache import prepare_compile_cache
+from mapets_rl.app.prog import PROG
 from mapets_rl.threads import prepare_process
-
-PROG = "mapets-rl"
 
 
 class _Parser(argparse.ArgumentParser):

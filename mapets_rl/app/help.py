@@ -34,8 +34,8 @@ from typing import Any
 
 import mapets_rl
 from mapets_rl._compile_cache import make_private_dir, private_default
-from mapets_rl.app.cli import PROG
 from mapets_rl.app.plugins import RECIPE_GROUP, load_recipe
+from mapets_rl.app.prog import PROG
 from mapets_rl.config import ConfigSection
 
 WIDTH = 100
