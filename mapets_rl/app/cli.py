@@ -1,11 +1,14 @@
 """``mapets-rl``: train, resume, evaluate and compare recipes from the command line.
 
     mapets-rl train RECIPE --env SCENARIO [--seed N] [--config FILE] [--run-dir DIR] [key=value ...]
+    mapets-rl train --config NAME [--seed N] [key=value ...]   (a published configuration)
+    mapets-rl configs                      (the published configurations, one line each)
     mapets-rl train RECIPE [key=value ...] --help
                                            (RECIPE's scenarios, and its config fields with type,
                                             value, unit and description; see mapets_rl.app.help)
     mapets-rl resume RUN_DIR [key=value ...]
     mapets-rl evaluate RUN_DIR [--episodes N] [--video]
+    mapets-rl evaluate RUN_DIR --roads B [--references NAME ...]   (the evaluation protocol)
     mapets-rl sweep RECIPE --env SCENARIO --out DIR [--seeds N ...] [--grid KEY=v1,v2 ...]
                     [--backend local|ray] [key=value ...]     (see mapets_rl.app.sweep)
     mapets-rl compare RUN_DIR... --out DIR [--metrics a,b,...] [--source eval|train]
@@ -142,14 +145,21 @@ def build_parser() -> argparse.ArgumentParser:
         "(nested sections too) with defaults, units and descriptions. "
         "Recipes are the installed packages' entry points of the group mapets_rl.recipes.",
     )
-    train.add_argument("recipe", metavar="RECIPE", help=f"algorithm: {_recipe_names()}")
+    train.add_argument(
+        "recipe",
+        nargs="?",
+        default=None,
+        metavar="RECIPE",
+        help=f"algorithm: {_recipe_names()} (default: the one --config names)",
+    )
     train.add_argument(
         "--env",
-        required=True,
+        default=None,
         metavar="SCENARIO",
         help="scenario name, e.g. figure-eight, figure-eight-multilane, freeway, or one an "
         "installed package declares (entry-point group mapets_rl.scenarios); "
-        "`mapets-rl train RECIPE --help` lists those RECIPE supports",
+        "`mapets-rl train RECIPE --help` lists those RECIPE supports (default: the "
+        "--config's env)",
     )
     train.add_argument(
         "--seed",
@@ -161,8 +171,10 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument(
         "--config",
         default=None,
-        metavar="FILE",
-        help="YAML file of config fields, applied before key=value overrides",
+        metavar="NAME|FILE",
+        help="a published configuration (`mapets-rl configs` lists them, e.g. "
+        "freeway-merge/maddpg-individual) or a YAML file of config fields, applied before "
+        "key=value overrides",
     )
     train.add_argument(
         "--run-dir",
@@ -216,6 +228,31 @@ def build_parser() -> argparse.ArgumentParser:
         "--video",
         action="store_true",
         help="save the first episode as RUN_DIR/videos/eval_<frames>.gif",
+    )
+    evaluate.add_argument(
+        "--roads",
+        type=int,
+        default=None,
+        metavar="B",
+        help="the evaluation protocol: one greedy episode on each of B evaluation roads of a "
+        "batched env (B episodes on a scenario without one), beside the --references on the "
+        "same roads; writes RUN_DIR/evaluation_protocol.json",
+    )
+    evaluate.add_argument(
+        "--references",
+        nargs="+",
+        default=None,
+        metavar="NAME",
+        help="reference policies scored on the same roads (with --roads; default: every one "
+        "registered for the scenario, e.g. keep-lane cooperative-merge on freeway-merge)",
+    )
+
+    sub.add_parser(
+        "configs",
+        help="list the published configurations",
+        description="The configurations behind the published tables, shipped with the "
+        "package: train one with `mapets-rl train --config NAME`, sweep its seeds with "
+        "`mapets-rl sweep --config NAME --seeds 0 1 2 3 4 --out DIR`.",
     )
 
     compare = sub.add_parser(
@@ -392,22 +429,58 @@ def _check_env(name: str) -> None:
         _fail(f"unknown scenario {name!r} (choose from: {', '.join(known)})")
 
 
+def _published(name_or_path: str) -> Any:
+    """The published configuration or config file ``--config`` names (exit 2, one line, when
+    it is neither)."""
+    from mapets_rl.config import ConfigError
+    from mapets_rl.experiment.published import load_published
+
+    try:
+        return load_published(name_or_path)
+    except ConfigError as err:
+        _fail(str(err))
+
+
+def _recipe_and_env(args: argparse.Namespace, published: Any) -> tuple[str, str]:
+    """RECIPE and --env, each given or read from the ``--config`` (a given one must agree
+    with the config's recipe)."""
+    named = published.recipe if published is not None else None
+    if args.recipe is not None and named is not None and args.recipe != named:
+        _fail(f"RECIPE {args.recipe!r} differs from --config {args.config!r}'s recipe, {named}")
+    recipe = args.recipe or named
+    if recipe is None:
+        _fail("train needs RECIPE, or a --config that names one (`mapets-rl configs` lists them)")
+    env = args.env or (published.fields.get("env") if published is not None else None)
+    if not isinstance(env, str):
+        _fail("train needs --env SCENARIO, or a --config that sets env")
+    return recipe, env
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
-    cls = _recipe_class(args.recipe)  # an unknown name fails before torch is imported
-    _check_env(args.env)
+    if args.recipe is not None and "=" in args.recipe:  # `train --config NAME key=value`
+        args.overrides = [args.recipe, *args.overrides]
+        args.recipe = None
+    published = _published(args.config) if args.config else None
+    recipe, env = _recipe_and_env(args, published)
+    cls = _recipe_class(recipe)  # an unknown name fails before torch is imported
+    _check_env(env)
     user_overrides = _overrides(args.overrides)
+    args.env = env
     _check_flag_conflicts(args, user_overrides)
-    _check_action_kind(cls, args.env)
+    _check_action_kind(cls, env)
     from mapets_rl.config import ConfigError
     from mapets_rl.experiment.files import check_writable_dir
     from mapets_rl.experiment.runner import default_run_dir
 
-    overrides = [f"env={args.env}"]
+    overrides = [f"env={env}"]
     if args.seed is not None:
         overrides.append(f"seed={args.seed}")
     try:
-        if args.config:  # validated once, with the overrides applied to the file's fields
-            config = cls.Config.from_yaml(args.config, overrides + user_overrides)
+        if published is not None:  # validated once, with the overrides applied to its fields
+            source = f"config {published.name!r}"
+            if published.path.as_posix() == published.name:
+                source = f"config file {published.name!r}"
+            config = cls.Config.from_fields(published.fields, overrides + user_overrides, source)
         else:
             config = cls.Config().with_overrides(overrides + user_overrides)
     except ConfigError as err:
@@ -494,7 +567,66 @@ def _cmd_resume(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_configs(args: argparse.Namespace) -> int:
+    from mapets_rl.config import ConfigError
+    from mapets_rl.experiment.published import available_configs
+
+    try:
+        configs = available_configs()
+    except ConfigError as err:
+        _fail(str(err))
+    width = max(len(c.name) for c in configs)
+    for config in configs:
+        print(f"{config.name:<{width}}  {config.recipe:<10}  {config.summary}")
+    return 0
+
+
+def _cmd_evaluate_protocol(args: argparse.Namespace) -> int:
+    """``evaluate --roads B``: the evaluation protocol (mapets_rl.experiment.protocol)."""
+    from mapets_rl.experiment.protocol import check_roads
+
+    try:
+        check_roads(args.roads)
+    except ValueError as err:
+        _fail(f"--{err}")
+    if args.episodes is not None or args.video:
+        _fail("--roads scores the protocol's roads: give it without --episodes and --video")
+    exp = _load_run(args.run_dir)
+    from mapets_rl.envs.references import check_reference_names, reference_names
+    from mapets_rl.experiment.protocol import evaluate_protocol
+
+    names = args.references if args.references is not None else reference_names(exp.config.env)
+    try:
+        check_reference_names(exp.config.env, names)
+        result = evaluate_protocol(exp, args.roads, names)
+    except ValueError as err:
+        _fail(f"--{err}" if str(err).startswith("references") else str(err))
+    policy = result["policy"]
+    print(
+        json.dumps(
+            {
+                "run_dir": str(exp.run_dir),
+                "frames": result["frames"],
+                "roads": result["roads"],
+                "eval_seed": result["eval_seed"],
+                "system_reward": policy["system_reward_mean"],
+                "gain_percent": result["gain_percent"],
+                "metrics": policy["metrics"],
+                "references": {
+                    name: {"system_reward": ref["system_reward_mean"], "metrics": ref["metrics"]}
+                    for name, ref in result["references"].items()
+                },
+            }
+        )
+    )
+    return 0
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
+    if args.roads is not None:
+        return _cmd_evaluate_protocol(args)
+    if args.references is not None:
+        _fail("--references needs --roads B (the protocol's evaluation roads)")
     if args.episodes is not None and args.episodes < 1:
         _fail(f"--episodes must be >= 1, got {args.episodes}")
     exp = _load_run(args.run_dir)
@@ -552,6 +684,8 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     except ValueError as err:
         _fail(str(err))
     print(out["table"].read_text(), end="")
+    if "protocol" in out:
+        print(out["protocol"].read_text(), end="")
     print(json.dumps({k: str(v) for k, v in out.items()}))
     return 0
 
@@ -601,6 +735,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "train": _cmd_train,
         "resume": _cmd_resume,
         "evaluate": _cmd_evaluate,
+        "configs": _cmd_configs,
         "compare": _cmd_compare,
         "sweep": _cmd_sweep,
     }

@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from mapets_rl.app.protocol_report import protocol_summary, protocol_table, read_protocols
 from mapets_rl.experiment.files import (
     atomic_savefig,
     atomic_write_text,
@@ -317,7 +318,11 @@ def compare(
         marl_eval: also write ``marl_eval.json`` (the input of InstaDeep's marl-eval tools).
     Returns:
         ``{"plot": Path, "table": Path, "summary": Path, "curves": Path}``, and
-        ``"marl_eval": Path`` with ``marl_eval``.
+        ``"marl_eval": Path`` with ``marl_eval``; when every run was scored by the evaluation
+        protocol (``mapets-rl evaluate RUN --roads B``), ``"protocol"`` (``protocol.md``: the
+        gains over each reference per seed, their mean and IQM with bootstrap intervals, the
+        training return, the behaviour metrics; :mod:`mapets_rl.app.protocol_report`) and
+        ``"protocol_summary"`` (``protocol.json``).
     Raises:
         ValueError: one line, before anything is written, when a run has no usable results
             (or a malformed ``evaluation.json``), a run is given twice (paths resolved),
@@ -347,6 +352,7 @@ def compare(
     runs = [str(d) for d in run_dirs]
     results = [read_results(d, legacy_as=legacy_as) for d in run_dirs]
     evaluations = [read_evaluation(d) for d in run_dirs]
+    protocols = read_protocols(runs)
 
     # what each run contributes
     sources: list[str] = []
@@ -563,6 +569,14 @@ def compare(
     if marl_eval:
         written["marl_eval"] = out_dir / MARL_EVAL_FILE
         atomic_write_text(written["marl_eval"], json.dumps(_marl_eval(groups, metrics), indent=1))
+    if protocols is not None:
+        by_run = dict(zip(runs, protocols, strict=True))
+        members = {label: group["runs"] for label, group in groups.items()}
+        report = protocol_summary(members, {k: [by_run[r] for r in v] for k, v in members.items()})
+        written["protocol"] = out_dir / "protocol.md"
+        atomic_write_text(written["protocol"], protocol_table(report, protocols[0]["roads"]))
+        written["protocol_summary"] = out_dir / "protocol.json"
+        atomic_write_text(written["protocol_summary"], json.dumps(report, indent=1))
     return written
 
 
