@@ -101,11 +101,13 @@ def raw_runner(name: str, config: dict, steps: int, stock: bool = False) -> Call
 def pettingzoo_runner(name: str, config: dict, steps: int) -> Callable[[], int]:
     env = make_parallel_env(name, **config)
 
+    index = env.agent_index
+
     def run() -> int:
         env.reset(seed=0)
         for _ in range(steps):
             joint = env.env.scripted_action()
-            actions = {a: joint[env._index[a]] for a in env.agents}
+            actions = {a: joint[index[a]] for a in env.agents}
             env.step(actions)
             if not env.agents:
                 env.reset()

@@ -1,7 +1,7 @@
 """Learner throughput: frames per second of the model-free recipes on the batched torch freeway,
 and where the time goes.
 
-Each recipe trains through the iteration of ``Experiment.train`` (``_train_on_batch``:
+Each recipe trains through the iteration of ``Experiment.train`` (``train_on_batch``:
 collector -> ``train_step`` -> metrics -> policy weights) on
 ``make_env(ENV, backend="torch", num_envs=B)``, after a warm-up
 that fills its replay buffer past ``batch_size`` (and ``init_random_frames``) so that every
@@ -122,7 +122,7 @@ def measure(recipe: str, args: argparse.Namespace, run_dir: Path) -> list[dict[s
     """Per round: frames/s and the seconds of each phase."""
     exp = build(recipe, args, run_dir)
     clock = dict.fromkeys(("env", "collect", "learner"), 0.0)
-    exp._reset_collector()
+    exp.reset_collector()
     env = exp.collector.env
     timed(env, "_step", clock, "env", args.device)
     timed(env, "_reset", clock, "env", args.device)
@@ -132,7 +132,7 @@ def measure(recipe: str, args: argparse.Namespace, run_dir: Path) -> list[dict[s
     warm = max(getattr(cfg, "batch_size", 0), getattr(cfg, "init_random_frames", 0))
     warm = max(warm + cfg.frames_per_batch, args.warmup_frames)
     while exp.frames < warm:
-        exp._train_on_batch()
+        exp.train_on_batch()
     rounds = []
     for _ in range(args.rounds):
         for key in clock:
@@ -140,7 +140,7 @@ def measure(recipe: str, args: argparse.Namespace, run_dir: Path) -> list[dict[s
         drain(args.device)
         start, frames = time.perf_counter(), exp.frames
         while exp.frames - frames < args.frames:
-            exp._train_on_batch()
+            exp.train_on_batch()
         drain(args.device)
         wall = time.perf_counter() - start
         rounds.append(

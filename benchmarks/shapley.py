@@ -137,7 +137,7 @@ def update_benchmark(
         # The formulation before the first-layer sharing: n substituted joint actions per state,
         # every prefix coalition through the critic with autograd over all of it.
         obs, a_batch = td["agents", "observation"], td["agents", "action"]
-        a_pol, _ = direct_loss._policy_action(
+        a_pol, _ = direct_loss.policy_action(
             direct_loss.actor_network_params, obs, td["agents", "coalition"], greedy=False
         )
         joint = torch.where(eye.unsqueeze(-1), a_pol.unsqueeze(-3), a_batch.unsqueeze(-3))

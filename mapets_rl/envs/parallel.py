@@ -13,6 +13,7 @@ episode ends.
 from __future__ import annotations
 
 import functools
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -49,6 +50,12 @@ class TrafficParallelEnv(ParallelEnv):
         else:
             self._action_space = spaces.Box(joint.low[0], joint.high[0], dtype=np.float32)
             self._default_action = np.array(joint.low, dtype=np.float32)
+
+    @property
+    def agent_index(self) -> MappingProxyType[str, int]:
+        """Each agent's index in the joint arrays (the raw env's observation rows and joint
+        action): ``joint[env.agent_index[agent]]`` is ``agent``'s entry. Read-only."""
+        return MappingProxyType(self._index)
 
     @functools.cache  # noqa: B019 - spaces must be the same object each call
     def observation_space(self, agent: str) -> spaces.Box:

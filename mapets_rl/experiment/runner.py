@@ -208,6 +208,24 @@ class Experiment:
     action_kinds_reason: ClassVar[str] = ""
     """Why the recipe takes only :attr:`action_kinds` (said in the refusal of another kind)."""
     progress_unit: ClassVar[str] = "frame"
+    resumable_fields: ClassVar[frozenset[str]] = frozenset(
+        {
+            "total_frames",
+            "eval_interval",
+            "checkpoint_interval",
+            "keep_last",
+            "device",
+            "logger",
+            "progress",
+            "video",
+        }
+    )
+    """The config fields a resume may change (:meth:`from_run_dir`): the budget
+    (``total_frames``; a recipe with another unit adds its own, MA-PETS ``episodes``), the
+    intervals (``eval_interval``, ``checkpoint_interval``) and where and how the run is kept
+    and shown (``keep_last``, ``device``, ``logger``, ``progress``, ``video``). A resume that
+    changes any other field (``gamma``, a network size, the scenario's settings) is refused:
+    the run's results would be attributed to settings it was not trained with."""
     # set by from_run_dir on the instance before __init__ runs: the run directory's checkpoints
     # are the ones being restored; the run directory is written to only once the resumed run
     # has started (see _start_writing)
@@ -501,9 +519,9 @@ class Experiment:
                 raise RuntimeError(
                     f"{type(self).__name__}.__init__ must set self.collector and self.eval_policy"
                 )
-            self._reset_collector()
+            self.reset_collector()
             while not loop.finished:
-                loop.end_iteration(self._train_on_batch())
+                loop.end_iteration(self.train_on_batch())
         self.collector.shutdown()
         return self.results.evaluations
 
@@ -576,7 +594,7 @@ class Experiment:
         """The progress bar's default postfix: frames per second and the latest metrics."""
         return {"fps": f"{fps:.0f}", **{k: f"{v:.3g}" for k, v in self.latest_metrics.items()}}
 
-    def _train_on_batch(self) -> dict[str, float]:
+    def train_on_batch(self) -> dict[str, float]:
         """One iteration of :meth:`train`: collect a batch (its environment steps counted in
         ``self.frames``), :meth:`train_step` on it; returns its training metrics, with those of
         the training episodes that ended in the batch (:meth:`training_episodes`)."""
@@ -609,9 +627,9 @@ class Experiment:
         self.boundaries += 1
         self.save_checkpoint()
         if not last and self.collector is not None:
-            self._reset_collector()
+            self.reset_collector()
 
-    def _reset_collector(self) -> None:
+    def reset_collector(self) -> None:
         """Re-seed and reset the collector's envs: a function of (seed, boundary) only, so a
         resumed run and an uninterrupted one see the same episodes after a checkpoint."""
         self.collector.set_seed(self.config.seed + BOUNDARY_SEED_STRIDE * self.boundaries)
@@ -864,12 +882,13 @@ class Experiment:
     ) -> Experiment:
         """:meth:`from_run_dir` once ``lock`` (of ``run_dir``) is held."""
         check_run_subdirs(run_dir)
-        saved, config, on_disk = cls._run_config(run_dir, overrides)
+        saved, config, on_disk, absent = cls._run_config(run_dir, overrides)
         if config.env != saved.env:
             raise ConfigError(
                 f"env cannot change when resuming: run_dir {str(run_dir)!r} was "
                 f"trained on {saved.env!r}; start a new run for {config.env!r}"
             )
+        cls._refuse_relabel(run_dir, saved, config, absent)
         state = ckpt = None
         if load:
             ckpt, state = load_latest_checkpoint(run_dir, map_location=config.device)
@@ -895,12 +914,46 @@ class Experiment:
         return exp
 
     @classmethod
+    def check_resume(cls, run_dir: str | os.PathLike, overrides: list[str] | None = None) -> None:
+        """ConfigError (one line) when :meth:`from_run_dir` would refuse ``overrides`` for the
+        config of ``run_dir`` (a bad ``config.yaml`` or override, or a change of a field that
+        :attr:`resumable_fields` does not list); reads ``config.yaml`` only, writes nothing
+        and takes no lock (a sweep checks its trials with it before any of them starts)."""
+        run_dir = Path(run_dir)
+        saved, config, _, absent = cls._run_config(run_dir, list(overrides or []))
+        cls._refuse_relabel(run_dir, saved, config, absent)
+
+    @classmethod
+    def _refuse_relabel(
+        cls, run_dir: Path, saved: RunConfig, config: RunConfig, absent: set[str]
+    ) -> None:
+        """ConfigError naming the fields, old and new values, when ``config`` (the resumed
+        run's) differs from ``saved`` (``run_dir``'s) in a field that :attr:`resumable_fields`
+        does not list; a field that ``config.yaml`` lacked (``absent``: the recipe gained it
+        after the run was made) is filled in, not changed."""
+        old, new = _flatten(saved.to_dict()), _flatten(config.to_dict())
+        changed = [
+            key
+            for key in _changed_keys(saved.to_dict(), config.to_dict())
+            if key.partition(".")[0] not in cls.resumable_fields | absent
+        ]
+        if not changed:
+            return
+        shown = ", ".join(f"{key}: {old.get(key)!r} -> {new.get(key)!r}" for key in changed)
+        allowed = sorted(cls.resumable_fields & set(cls.Config.field_names()))
+        raise ConfigError(
+            f"cannot resume with {', '.join(changed)} changed ({shown}): run_dir "
+            f"{str(run_dir)!r} was trained with the old values, and a resume changes only "
+            f"{', '.join(allowed)}; start a new run for other settings"
+        )
+
+    @classmethod
     def _run_config(
         cls, run_dir: Path, overrides: list[str]
-    ) -> tuple[ExperimentConfig, ExperimentConfig, dict[str, Any]]:
+    ) -> tuple[RunConfig, RunConfig, dict[str, Any], set[str]]:
         """(saved config of ``run_dir``, the config with ``overrides``, the mapping in
-        ``config.yaml``); one-line ConfigErrors naming ``config.yaml`` when it is missing,
-        malformed, incomplete or another recipe's."""
+        ``config.yaml``, the fields that mapping lacks); one-line ConfigErrors naming
+        ``config.yaml`` when it is missing, malformed, incomplete or another recipe's."""
         path = run_dir / CONFIG_FILE
         if not path.is_file():
             raise ConfigError(f"run_dir {str(run_dir)!r} has no {CONFIG_FILE}")
@@ -935,7 +988,8 @@ class Experiment:
             saved = cls.Config.from_dict(data)
         except ConfigError as err:
             raise ConfigError(f"{str(path)!r}: {err}") from None
-        return saved, saved.with_overrides(overrides) if overrides else saved, on_disk
+        config = saved.with_overrides(overrides) if overrides else saved
+        return saved, config, on_disk, {name for name in fields if name not in data}
 
     def _restore(self, state: Mapping[str, Any], path: Path, changed: list[str]) -> None:
         """Load checkpoint ``state`` (from ``path``) into this fresh experiment; ValueError

@@ -285,7 +285,7 @@ class ShapleyActorCriticLoss(LossModule):
         check_finite_many({repr(key): out[name] for name, key in names.items()})
         return out
 
-    def _policy_action(
+    def policy_action(
         self, params: TensorDictBase, obs: torch.Tensor, coalition: torch.Tensor, greedy: bool
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """``pi(s^C)`` under ``params``: action ``[*, n, act]`` (one-hot if discrete) and the
@@ -325,7 +325,7 @@ class ShapleyActorCriticLoss(LossModule):
             member_reward = reward * coalition.to(reward.dtype) * self.reward_scale  # [*, n]
             # R(C), eq. 10
             coalition_reward = member_reward if per_member else member_reward.sum(-1)
-            next_action, _ = self._policy_action(
+            next_action, _ = self.policy_action(
                 self.target_actor_network_params, next_obs, coalition, greedy=True
             )
             with self.target_critic_network_params.to_module(
@@ -367,7 +367,7 @@ class ShapleyActorCriticLoss(LossModule):
         inputs = self._inputs(tensordict, target=False)
         obs, coalition = inputs["observation"], inputs["coalition"]
         a_batch = inputs["action"].to(obs.dtype)
-        a_pol, logits = self._policy_action(self.actor_network_params, obs, coalition, greedy=False)
+        a_pol, logits = self.policy_action(self.actor_network_params, obs, coalition, greedy=False)
         critic = self.critic_network
         with self.critic_network_params.detach().to_module(critic, preserve_module_state=False):
             # First-layer factorisation: a coalition's pre-activation is masks @ h + bias, and

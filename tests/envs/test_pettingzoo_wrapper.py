@@ -125,6 +125,20 @@ def test_traffic_parallel_env_takes_the_vectorised_path() -> None:
     assert env.rollout(2)["next", "agents", "position"].shape == (2, 4, 2)
 
 
+def test_agent_index_places_each_agent_in_the_joint_arrays() -> None:
+    """``agent_index[agent]`` is the agent's row of the raw env's joint arrays: an action
+    written there is the one ``joint_action`` builds from the agents' dict; read-only."""
+    env = make_parallel_env("freeway", n_vehicles=4, horizon=3)
+    env.reset(seed=0)
+    assert dict(env.agent_index) == {agent: i for i, agent in enumerate(env.possible_agents)}
+    actions = {agent: (i + 1) % 3 for i, agent in enumerate(env.agents)}
+    joint = env.joint_action(actions)
+    assert all(joint[env.agent_index[agent]] == move for agent, move in actions.items())
+    with pytest.raises(TypeError):
+        env.agent_index["cav_0"] = 1  # type: ignore[index]
+    env.close()
+
+
 def test_wrap_parallel_env_is_a_deprecated_name() -> None:
     with pytest.warns(DeprecationWarning, match="use mapets_rl.envs.wrap_pettingzoo"):
         env = wrap_parallel_env(make_parallel_env("freeway", n_vehicles=4, horizon=3))

@@ -123,6 +123,24 @@ def test_toy_learner_trains_and_writes_run_dir(tmp_path: Path) -> None:
         ToyLearner(ToyConfig(), run)  # a fresh run must not mix with the old checkpoints
 
 
+def test_public_training_steps_reseed_and_count(tmp_path: Path) -> None:
+    """``reset_collector`` re-seeds the collector from (seed, boundary), so two resets give the
+    same first observations; ``train_on_batch`` is one iteration of ``train``: it counts the
+    batch's frames and returns its training metrics."""
+    exp = ToyLearner(ToyConfig(), tmp_path / "run")
+    exp.reset_collector()
+    first = exp.collector.next()
+    exp.reset_collector()
+    again = exp.collector.next()
+    # the episodes restart from the same states (the policy's noise is not re-seeded)
+    assert torch.equal(first["agents", "observation"][0], again["agents", "observation"][0])
+    exp.reset_collector()
+    metrics = exp.train_on_batch()
+    assert (exp.frames, exp.batches) == (first.numel(), 1)
+    assert metrics and all(isinstance(value, float) for value in metrics.values())
+    exp.close()
+
+
 def test_resume_reproduces_uninterrupted_run(tmp_path: Path) -> None:
     full = ToyLearner(ToyConfig(), tmp_path / "full")
     full_evals = full.train()
@@ -162,7 +180,7 @@ def test_training_entries_and_checkpoints_of_a_recipe_loop(tmp_path: Path) -> No
     ) as loop:
         exp.collector.reset()
         while not loop.finished:
-            metrics = exp._train_on_batch()
+            metrics = exp.train_on_batch()
             loop.end_iteration(metrics)
     assert [entry["frames"] for entry in exp.results.train] == list(range(10, 61, 10))
     assert [entry["metrics"] for entry in exp.results.train] == seen

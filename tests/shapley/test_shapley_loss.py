@@ -481,3 +481,20 @@ def test_uniform_size_coalitions_have_uniform_sizes_over_the_alive_agents():
         assert torch.equal(module(td)["agents", "coalition"], alive)  # grand coalition
     with pytest.raises(ValueError, match="sizes must be one of"):
         RandomCoalition(n, sizes="poisson")
+
+
+def test_policy_action_is_the_actor_under_given_parameters():
+    """``policy_action``: the greedy action is the one-hot argmax of the actor's logits under
+    the parameters passed (here the target's, equal to the online ones at the start), the
+    sampled one a one-hot of the same shape; continuous actors return no logits."""
+    loss, td = _loss(), _batch()
+    obs, coalition = td["agents", "observation"], td["agents", "coalition"]
+    greedy, logits = loss.policy_action(loss.actor_network_params, obs, coalition, greedy=True)
+    assert logits.shape == (B, N, ACT)
+    assert torch.equal(greedy.argmax(-1), logits.argmax(-1))
+    assert torch.equal(greedy.sum(-1), torch.ones(B, N))
+    sampled, _ = loss.policy_action(loss.actor_network_params, obs, coalition, greedy=False)
+    assert sampled.shape == (B, N, ACT) and torch.equal(sampled.sum(-1), torch.ones(B, N))
+    cont = _loss(discrete=False)
+    action, none = cont.policy_action(cont.actor_network_params, obs, coalition, greedy=True)
+    assert action.shape == (B, N, ACT) and none is None
