@@ -393,6 +393,8 @@ class MAPETS(Experiment):
     action_kinds = ("continuous",)
     action_kinds_reason = "the CEM planner optimises real-valued action sequences"
     progress_unit = "episode"
+    # a resume may also extend the episode budget and change the torch threads
+    resumable_fields = Experiment.resumable_fields | {"episodes", "num_threads"}
 
     def __init__(
         self,

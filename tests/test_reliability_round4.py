@@ -8,11 +8,15 @@ directory.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 from toy_recipe import ToyConfig, ToyLearner
 
+from mapets_rl.app import sweep
+from mapets_rl.app.sweep import SweepResult, SweepSpec, run_sweep, run_trial
 from mapets_rl.experiment.episodes import TRAIN_EPISODES_FILE
 from mapets_rl.experiment.files import open_append
 from tests.cli_run import run_cli
@@ -112,3 +116,112 @@ def test_sweep_refuses_an_out_that_is_a_run_directory(tmp_path, csv_toy_run, toy
     assert code == 2 and err.count("\n") == 1, err
     assert "out" in err and "is a run directory (it holds run.json)" in err
     assert _files(csv_toy_run) == before
+
+
+# ------------------------------------------------- a resume cannot relabel a finished run
+def _run_files(run_dir: Path) -> dict[Path, bytes]:
+    """Every file of a run but its lock (whose pid record a resume rewrites in place)."""
+    return {p: b for p, b in _files(run_dir).items() if p.name != ".lock"}
+
+
+@pytest.mark.parametrize("override", ["lr=0.5", "eval_episodes=3", "sigma=0.1"])
+def test_a_resume_that_changes_a_setting_is_refused_and_changes_no_file(
+    csv_toy_run, toy_recipe, capsys, override
+):
+    before = _run_files(csv_toy_run)
+    code, _, err = run_cli(["resume", str(csv_toy_run), override], capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    key = override.partition("=")[0]
+    assert f"cannot resume with {key} changed" in err and "start a new run" in err
+    assert _run_files(csv_toy_run) == before
+    with pytest.raises(ValueError, match=f"cannot resume with {key} changed"):
+        ToyLearner.from_run_dir(csv_toy_run, ["total_frames=40", override])
+    assert _run_files(csv_toy_run) == before
+
+
+def test_a_resume_may_change_the_budget_intervals_and_bookkeeping(csv_toy_run):
+    overrides = [
+        "total_frames=40",
+        "eval_interval=10",
+        "checkpoint_interval=10",
+        "keep_last=3",
+        "logger=none",
+        "progress=false",
+        "video=false",
+        "device=cpu",
+    ]
+    resumed = ToyLearner.from_run_dir(csv_toy_run, overrides)
+    resumed.train()
+    assert resumed.frames == 40 and resumed.config.eval_interval == 10
+    assert [e["frames"] for e in resumed.results.evaluations] == [20, 30, 40]
+    assert ToyLearner.check_resume(csv_toy_run, ["total_frames=80", "lr=0.05"]) is None
+
+
+def test_a_mapets_resume_may_extend_its_episodes_only(tmp_path):
+    from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
+    from tests.recipes.test_recipe_mapets import TINY
+
+    run_dir = tmp_path / "run"
+    MAPETS(MAPETSConfig(**{**TINY, "episodes": 1}), run_dir).close()  # config.yaml only
+    MAPETS.check_resume(run_dir, ["episodes=3", "num_threads=2", "keep_last=4"])
+    with pytest.raises(ValueError, match=r"planner.horizon changed \(planner.horizon: 3 -> 4\)"):
+        MAPETS.check_resume(run_dir, ["episodes=3", "planner.horizon=4"])
+
+
+# ----------------------------------------------------------------------------- sweeps
+SWEEP_TINY = [
+    "total_frames=20",
+    "frames_per_batch=10",
+    "eval_interval=10",
+    "checkpoint_interval=10",
+]
+
+
+@pytest.fixture
+def sweep_here(toy_recipe, monkeypatch) -> Callable[..., SweepResult]:
+    """``sweep_here(out, **spec fields)``: a toy sweep (seed 0, :data:`SWEEP_TINY` unless its
+    ``overrides`` set the key) whose trials run in this process, one after the other (the
+    local backend's pool spawns a process per worker)."""
+    monkeypatch.setattr(
+        sweep, "run_local", lambda payloads, _: ((i, run_trial(p)) for i, p in enumerate(payloads))
+    )
+
+    def run(out: Path, **fields: Any) -> SweepResult:
+        spec = {"recipe": "toy", "env": "toy", "seeds": [0], "out": out, **fields}
+        given = {o.partition("=")[0] for o in spec.get("overrides", [])}
+        tiny = [o for o in SWEEP_TINY if o.partition("=")[0] not in given]
+        spec["overrides"] = [*tiny, *spec.get("overrides", [])]
+        return run_sweep(SweepSpec(**spec), echo=lambda _: None)
+
+    return run
+
+
+def test_a_sweep_rerun_with_an_added_override_is_refused_before_any_trial(tmp_path, sweep_here):
+    out = tmp_path / "sweep"
+    assert not sweep_here(out, grid={"lr": [0.05]}).failed
+    trial = out / "trials" / "lr=0.05__seed=0"
+    before = {**_run_files(trial), **_files(out / "summary")}
+    manifest = (out / "sweep.json").read_bytes()
+    with pytest.raises(ValueError, match="trial lr=0.05__seed=0: cannot resume with sigma changed"):
+        sweep_here(out, grid={"lr": [0.05]}, overrides=["sigma=0.1"])
+    assert {**_run_files(trial), **_files(out / "summary")} == before
+    assert (out / "sweep.json").read_bytes() == manifest
+    # a longer budget resumes the finished trial
+    result = sweep_here(out, grid={"lr": [0.05]}, overrides=["total_frames=30"])
+    assert result.records["lr=0.05__seed=0"]["resumed"] and not result.failed
+
+
+@pytest.mark.parametrize("where", ["override", "config file"])
+def test_a_sweep_takes_progress_false_and_a_config_file_with_progress(tmp_path, sweep_here, where):
+    fields: dict[str, Any] = {"overrides": ["progress=false"]}
+    if where == "config file":
+        config = tmp_path / "config.yaml"
+        config.write_text("progress: true\nlr: 0.1\n")
+        fields = {"config_file": str(config)}
+    result = sweep_here(tmp_path / "sweep", **fields)
+    assert not result.failed and result.records["seed=0"]["state"] == "done"
+
+
+def test_a_sweep_refuses_progress_true_naming_it(tmp_path, toy_recipe):
+    with pytest.raises(ValueError, match="progress must be false or unset in a sweep"):
+        SweepSpec(recipe="toy", env="toy", seeds=[0], out=tmp_path, overrides=["progress=true"])

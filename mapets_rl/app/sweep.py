@@ -193,6 +193,15 @@ class SweepSpec:
         keys = [*self.grid, *(parse_override(o)[0] for o in self.overrides)]
         for key, option in RESERVED_KEYS.items():
             check(key not in keys, key, f"set with {option}, not as a grid or override", key)
+        check("progress" not in self.grid, "grid", "keys other than progress", "progress")
+        for item in self.overrides:
+            key, value = parse_override(item)
+            check(
+                key != "progress" or value is False,
+                "progress",
+                "false or unset in a sweep (its trials draw no progress bars)",
+                value,
+            )
         fixed = {parse_override(o)[0] for o in self.overrides}
         both = sorted(fixed & set(self.grid))
         check(not both, "grid", "keys that no key=value override also sets", both)
@@ -211,7 +220,9 @@ class Trial:
         seed: the seed.
         values: grid key -> value of this trial.
         overrides: every ``key=value`` of the trial, in order: the config file's fields,
-            ``progress=false``, ``env``, ``seed``, the sweep's overrides, the grid values.
+            ``progress=false``, ``env``, ``seed``, the sweep's overrides, the grid values (the
+            sweep sets ``progress`` itself: a ``progress`` of the config file or the
+            overrides is left out).
         config: the resolved config (``to_dict``), to tell a finished trial of the same config.
     """
 
@@ -294,6 +305,11 @@ def _config_file_items(path: str | None) -> list[str]:
     return [f"{k}={json.dumps(v)}" for k, v in read_yaml_mapping(path).items()]
 
 
+def _sets_progress(item: str) -> bool:
+    """Whether the ``key=value`` ``item`` sets ``progress``."""
+    return parse_override(item)[0] == "progress"
+
+
 def _import_path(obj: Any, what: str) -> str:
     """``module:qualname`` of a module-level object; ValueError when other processes could
     not import it."""
@@ -343,7 +359,11 @@ def plan_trials(spec: SweepSpec) -> tuple[type, list[Trial]]:
     cls = load_recipe(spec.recipe)
     known = available_envs()
     check(spec.env in known, "env", f"one of the registered scenarios {known}", spec.env)
-    head = [*_config_file_items(spec.config_file), "progress=false"]
+    # the sweep's trials draw no progress bars: its own progress=false replaces the config
+    # file's progress and the user's progress=false (SweepSpec refuses progress=true)
+    head = [i for i in _config_file_items(spec.config_file) if not _sets_progress(i)]
+    head.append("progress=false")
+    fixed = [i for i in spec.overrides if not _sets_progress(i)]
     base = cls.Config().with_overrides(head)
     trials: list[Trial] = []
     envs: dict[str, Any] = {}
@@ -352,7 +372,7 @@ def plan_trials(spec: SweepSpec) -> tuple[type, list[Trial]]:
         values = dict(zip(spec.grid, combo, strict=True))
         grid_items = [f"{k}={_value_text(v)}" for k, v in values.items()]
         for seed in spec.seeds:
-            overrides = [*head, f"env={spec.env}", f"seed={seed}", *spec.overrides, *grid_items]
+            overrides = [*head, f"env={spec.env}", f"seed={seed}", *fixed, *grid_items]
             # a trial's GPU is on the node Ray places it on, not necessarily on this machine:
             # its device is checked there
             devices = [v for k, v in map(parse_override, overrides) if k == "device"]
@@ -631,6 +651,25 @@ def _check_manifest(spec: SweepSpec) -> None:
             )
 
 
+def _check_resumes(cls: type, spec: SweepSpec, trials: Sequence[Trial]) -> None:
+    """ConfigError (one line naming the trial) when a trial that has checkpoints and is not
+    finished with the same config would be resumed with a change that a resume refuses
+    (:meth:`~mapets_rl.experiment.Experiment.check_resume`: an added or changed override
+    other than the budget and the intervals), before any trial starts."""
+    from mapets_rl.experiment.checkpoint import latest_checkpoint
+
+    for trial in trials:
+        if _finished(trial) or latest_checkpoint(trial.run_dir) is None:
+            continue
+        try:
+            cls.check_resume(trial.run_dir, trial.overrides)
+        except ConfigError as err:
+            raise ConfigError(
+                f"out {str(spec.out)!r}: trial {trial.id}: {err} (a sweep with other "
+                "settings needs another --out)"
+            ) from None
+
+
 def _finished(trial: Trial) -> bool:
     record = read_trial_record(trial.run_dir)
     return bool(record and record.get("state") == "done" and record.get("config") == trial.config)
@@ -682,6 +721,7 @@ def run_sweep(spec: SweepSpec, echo: Callable[[str], None] = print) -> SweepResu
     if spec.backend == "ray":
         import_ray()
     _check_manifest(spec)
+    _check_resumes(cls, spec, trials)
     recipe = _import_path(cls, f"recipe {spec.recipe!r}")
     scenarios = trial_scenarios(spec.env)
     make_writable_dir(spec.out, "out")

@@ -275,14 +275,16 @@ def test_failed_resume_leaves_the_run_directory_usable(
 
 
 def test_override_that_keeps_shapes_is_saved_after_the_restore(tmp_path: Path) -> None:
+    # (a resume may change only the budget, the intervals and keep_last, device, logger,
+    # progress, video: issue 51)
     run = _trained(tmp_path)
-    resumed = ToyLearner.from_run_dir(run, overrides=["total_frames=60", "lr=0.01"])
-    assert resumed.frames == 40 and resumed.config.lr == 0.01
+    resumed = ToyLearner.from_run_dir(run, overrides=["total_frames=60", "keep_last=3"])
+    assert resumed.frames == 40 and resumed.config.keep_last == 3
     # the old config stays until the resumed run has started (issue 23: a resume that fails
     # in its first iteration leaves the run directory as it was)
-    assert "lr: 0.05" in (run / "config.yaml").read_text()
+    assert "keep_last: 2" in (run / "config.yaml").read_text()
     resumed.train()
-    assert "lr: 0.01" in (run / "config.yaml").read_text()
+    assert "keep_last: 3" in (run / "config.yaml").read_text()
 
 
 @pytest.mark.parametrize(

@@ -149,19 +149,19 @@ def test_a_resume_override_that_fails_in_the_first_iteration_changes_nothing(
     train_step = MAPPO.train_step
 
     def out_of_memory(self: MAPPO, batch: Any) -> dict[str, float]:
-        if self.config.minibatch_size == 5:
+        if self.config.keep_last == 5:  # (a resume changes only budget, intervals, ...)
             raise torch.OutOfMemoryError("CUDA out of memory (simulated)")
         return train_step(self, batch)
 
     monkeypatch.setattr(MAPPO, "train_step", out_of_memory)
-    failing = MAPPO.from_run_dir(run, overrides=["total_frames=80", "minibatch_size=5"])
+    failing = MAPPO.from_run_dir(run, overrides=["total_frames=80", "keep_last=5"])
     with pytest.raises(torch.OutOfMemoryError):
         failing.train()
     del failing
     assert _snapshot(run) == before  # every file, byte for byte
     # a plain resume continues the run as it was configured
     resumed = MAPPO.from_run_dir(run, overrides=["total_frames=80"])
-    assert resumed.config.minibatch_size == 10
+    assert resumed.config.keep_last == 2
     assert resumed.train() == full.results.evaluations
     assert yaml.safe_load((run / "config.yaml").read_text())["total_frames"] == 80
     _assert_equal(
@@ -179,18 +179,18 @@ def test_a_mapets_resume_override_that_fails_changes_nothing(
     run_episode = MAPETS.run_episode
 
     def out_of_memory(self: MAPETS, random_actions: bool) -> Any:
-        if self.config.planner.population == 4096:
+        if self.config.keep_last == 5:  # (a resume changes only budget, intervals, ...)
             raise torch.OutOfMemoryError("CUDA out of memory (simulated)")
         return run_episode(self, random_actions)
 
     monkeypatch.setattr(MAPETS, "run_episode", out_of_memory)
-    failing = MAPETS.from_run_dir(run, overrides=["episodes=2", "planner.population=4096"])
+    failing = MAPETS.from_run_dir(run, overrides=["episodes=2", "keep_last=5"])
     with pytest.raises(torch.OutOfMemoryError):
         failing.train()
     del failing
     assert _snapshot(run) == before
     resumed = MAPETS.from_run_dir(run, overrides=["episodes=2"])
-    assert resumed.config.planner.population == TINY["planner"]["population"]
+    assert resumed.config.keep_last == 2
     assert [e["metrics"]["episode"] for e in resumed.train()] == [1.0, 2.0]
 
 
