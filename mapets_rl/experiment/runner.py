@@ -849,8 +849,10 @@ class Experiment:
         that verifies (newer ones that do not are skipped with a logged warning).
 
         Nothing in ``run_dir`` changes unless the resumed run starts: overrides are validated
-        first, overrides that change the shape of the saved state (scenario, agent count,
-        network sizes) are refused naming the key, and the new ``config.yaml`` (with the
+        first, an override that changes a field :attr:`resumable_fields` does not list (any
+        but the budget, the intervals, ``keep_last``, ``device``, ``logger``, ``progress`` and
+        ``video``) is refused naming the field (the run was trained with the old value; see
+        :meth:`check_resume`), and the new ``config.yaml`` (with the
         overrides), ``results.json`` (as the checkpoint has it) and the logs (cut back to the
         checkpoint) are written only once the first iteration of :meth:`train` has succeeded
         (or a checkpoint is saved): a resume whose override fails then (out of memory) leaves
