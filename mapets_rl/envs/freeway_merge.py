@@ -35,6 +35,23 @@ the ramp and the *left* block the rightmost lane; then ``(merge_start - x, merge
 the distances [m] along the road to the start of the acceleration lane and to the merge
 point, clipped to ``+-perception``.
 
+Behaviour counts (in :meth:`FreewayMergeEnv.episode_metrics`, with the same definitions on the
+torch backend, :class:`~mapets_rl.envs.torch_freeway.simulator.BatchedFreeway`), read per policy
+step by comparing every vehicle's lane before and after the step (:data:`BEHAVIOUR_COUNTS`):
+
+- ``mainline_changes_near_merge``: CAV moves from one mainline lane to another that start (the
+  CAV's x at the step's start) from :data:`NEAR_MERGE` metres before the acceleration lane to
+  its end (``merge_start - NEAR_MERGE <= x <= merge_end``); ``mainline_changes_elsewhere``:
+  the other mainline-to-mainline CAV moves (a merge from the ramp is neither);
+- ``ramp_forced_merges``: ramp CAVs that reach the mainline through their own Change Left on the
+  acceleration lane (a forced merge: the CAV's ``CL`` sets its target lane, without MOBIL's
+  safety test); ``ramp_mobil_merges``: every other ramp vehicle, CAV or human driver, that
+  reaches the mainline (MOBIL chose the change). A CAV's move onto the mainline counts as forced
+  while the target lane its ``CL`` set is pending (from the step of the decision until the
+  CAV crosses or MOBIL's abort rule cancels the change at the end of a step);
+  ``ramp_forced_merges + ramp_mobil_merges + ramp_stuck`` plus the ramp vehicles that crashed
+  on the ramp is the number of ramp vehicles.
+
 Why an on-ramp rather than a lane drop. With a lane drop every CAV in the dropped lane must
 change lanes or stop, so "keep lane" is not a policy but a crash into the lane's end, and the
 scripted reference every learner is compared with would be meaningless. With an on-ramp
@@ -73,6 +90,16 @@ OBS_DIM = FREEWAY_OBS_DIM + 2
 RAMP_ROAD = ("r", "0")
 """Road segment (from, to) of the slanted ramp lane ``("r", "0", 0)``; the acceleration lane
 is ``("0", "1", lanes)``, beside the mainline lanes ``("0", "1", 0 .. lanes - 1)``."""
+NEAR_MERGE = 100.0
+"""A mainline lane change counts as near the merge from this many metres before the
+acceleration lane to its end [m] (where a cooperative CAV yields to the ramp)."""
+BEHAVIOUR_COUNTS = (
+    "mainline_changes_near_merge",
+    "mainline_changes_elsewhere",
+    "ramp_forced_merges",
+    "ramp_mobil_merges",
+)
+"""The episode's behaviour counts of ``freeway-merge`` (module docstring), on both backends."""
 
 
 def ramp_vehicle_count(config: dict) -> int:
@@ -96,10 +123,17 @@ class MergeDecisionAction(LaneDecisionAction):
         return MergeCAV
 
     def act(self, action: np.ndarray) -> None:
+        """Apply ``action [I]``; a CAV on the acceleration lane whose ``CL`` sets its target
+        lane (it is not already changing lanes) is marked as forcing its merge
+        (``FreewayMergeEnv.forcing``)."""
+        env = self.env
         action = np.array(action, dtype=np.int64)
-        for i, cav in enumerate(self.env.cavs):
+        acceleration_lane = ("0", "1", env.config["lanes"])
+        for i, cav in enumerate(env.cavs):
             if cav.lane_index[:2] == RAMP_ROAD and action[i] in (CL, CR):
                 action[i] = KL
+            settled = cav.lane_index == acceleration_lane == cav.target_lane_index
+            env.forcing[i] |= bool(env.alive[i] and settled and action[i] == CL)
         super().act(action)
 
 
@@ -116,6 +150,10 @@ class FreewayMergeEnv(FreewayEnv):
 
     obs_dim = OBS_DIM
     cav_class = MergeCAV
+    forcing: np.ndarray
+    """``[I]`` the CAVs whose pending change onto the mainline their own ``CL`` set."""
+    behaviour: dict[str, int]
+    """The episode's behaviour counts so far (:data:`BEHAVIOUR_COUNTS`, module docstring)."""
 
     @classmethod
     def default_config(cls) -> dict:
@@ -252,6 +290,39 @@ class FreewayMergeEnv(FreewayEnv):
         """Whether ``vehicle`` is on the ramp (slanted lane or acceleration lane)."""
         return self.lane_id(vehicle.lane_index) == self.config["lanes"]
 
+    # --- behaviour counts ----------------------------------------------------------------------
+    def _reset(self) -> None:
+        super()._reset()
+        self.forcing = np.zeros(len(self.cavs), dtype=bool)
+        self.behaviour = dict.fromkeys(BEHAVIOUR_COUNTS, 0)
+
+    def _simulate(self, action: np.ndarray | None = None) -> None:
+        lanes_before = [v.lane_index for v in self.vehicles_all]
+        x_before = [float(cav.position[0]) for cav in self.cavs]
+        super()._simulate(action)
+        self._count_behaviour(lanes_before, x_before)
+
+    def _count_behaviour(self, lanes_before: list[tuple], x_before: list[float]) -> None:
+        """Add the step's lane changes and merges to :attr:`behaviour` (module docstring), from
+        every vehicle's lane index before the step (``vehicles_all`` order) and the CAVs' x at
+        its start [m]; then keep the forcing mark only of CAVs still waiting on the ramp for the
+        change their ``CL`` set."""
+        lanes = self.config["lanes"]
+        forcing = {id(cav): bool(self.forcing[i]) for i, cav in enumerate(self.cavs)}
+        before_of = {}
+        for vehicle, before in zip(self.vehicles_all, lanes_before, strict=True):
+            before_of[id(vehicle)] = before
+            if self.lane_id(before) == lanes and self.lane_id(vehicle.lane_index) < lanes:
+                forced = forcing.get(id(vehicle), False)
+                self.behaviour["ramp_forced_merges" if forced else "ramp_mobil_merges"] += 1
+        near = (self.config["merge_start"] - NEAR_MERGE, self.merge_end)
+        for i, cav in enumerate(self.cavs):
+            before, after = before_of[id(cav)], cav.lane_index
+            if before != after and max(self.lane_id(before), self.lane_id(after)) < lanes:
+                where = "near_merge" if near[0] <= x_before[i] <= near[1] else "elsewhere"
+                self.behaviour[f"mainline_changes_{where}"] += 1
+            self.forcing[i] &= self.on_ramp(cav) and cav.target_lane_index != after
+
     # --- observations ------------------------------------------------------------------------
     def define_spaces(self) -> None:
         super().define_spaces()
@@ -279,9 +350,11 @@ class FreewayMergeEnv(FreewayEnv):
         return obs
 
     def episode_metrics(self) -> dict[str, float]:
-        """The freeway's, plus ``ramp_stuck``: vehicles still on the ramp at the end."""
+        """The freeway's, plus ``ramp_stuck`` (vehicles still on the ramp at the end) and the
+        behaviour counts of :data:`BEHAVIOUR_COUNTS` (module docstring)."""
         metrics = super().episode_metrics()
         metrics["ramp_stuck"] = sum(self.on_ramp(v) for v in self.road.vehicles)
+        metrics.update(self.behaviour)
         return metrics
 
 

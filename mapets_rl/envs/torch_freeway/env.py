@@ -12,6 +12,27 @@ A road whose episode ended is reset inside the batch when torchrl passes ``"_res
 reset: collectors never wait for the slowest road). After every step, :attr:`last_episode_metrics`
 holds the metrics of the most recent episode that ended (as the highway-env env reports them);
 :meth:`pop_finished_episodes` returns every episode that ended since it was last called.
+
+The shield and the action that ran. With ``shield=True`` the simulator replaces every move
+that its model predicts to crash by Keep Lane before the step (``BatchedFreeway.shield``):
+post-posed shielding (Alshiekh et al. 2018, "Safe Reinforcement Learning via Shielding"), in
+the variant where the learner is updated with the action that ran. ``_step`` rewrites the
+input tensordict, which torchrl's ``EnvBase.step`` passes to it and returns with its
+``"next"`` (so a collector stores it): ``("agents", "action")`` becomes the executed action
+(Keep Lane where the shield replaced a move) and the proposed one is kept beside it under
+``("agents", "proposed_action")`` (:data:`PROPOSED_ACTION`, in the action spec's form, declared
+in the state spec), so an off-policy critic is fitted to the action whose reward it sees, and a
+learner may still read what was proposed (with ``("agents", "info", "shielded")``). The
+paper's other option, a second update of the unsafe proposal with a punishment, is left to the
+learner: a penalty added to the reward here would be charged to Keep Lane, the action stored.
+Only the tensordict that ``step`` is given is rewritten: ``env.step``, ``env.rollout`` and a
+torchrl ``Collector`` whose policy and env share a device (the experiment runner's) store the
+executed action; a ``TransformedEnv``, or a collector that moves its data to the env's device,
+steps a copy and stores the proposed action under ``("agents", "action")`` (then
+``("next", "agents", "info", "shielded")`` says which moves ran as Keep Lane). The slanted
+ramp lane's ``CL`` / ``CR`` are stored as played: there they are ``KL`` by the scenario's rules
+(the same motion and the same comfort reward), so the critic learns their true value, and
+rewriting them would leave those actions untrained although the policy can still choose them.
 """
 
 from __future__ import annotations
@@ -21,11 +42,12 @@ from typing import Any
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torch.nn.functional import one_hot
 from torchrl.data import Categorical, Composite, OneHot, Unbounded
 from torchrl.envs import EnvBase
 
-from mapets_rl.envs.freeway import FreewayEnv
-from mapets_rl.envs.freeway_merge import FreewayMergeEnv
+from mapets_rl.envs.freeway import KL, FreewayEnv
+from mapets_rl.envs.freeway_merge import BEHAVIOUR_COUNTS, FreewayMergeEnv
 from mapets_rl.envs.torch_freeway.highway_state import draw_scene
 from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway, StepResult
 from mapets_rl.envs.traffic import require
@@ -39,6 +61,9 @@ RENDER_KEYS = frozenset(
 )
 """Keys that only change how a road is drawn (passed to the highway-env viewer)."""
 INFO_KEYS = ("distance", "speed", "collided", "traffic_velocity", "traffic_comfort")
+ACTION = ("agents", "action")
+PROPOSED_ACTION = ("agents", "proposed_action")
+"""Where a shielded env keeps the CAVs' proposed action; ``ACTION`` holds the executed one."""
 
 
 def scenario_config(env_class: type[FreewayEnv], config: dict[str, Any]) -> dict[str, Any]:
@@ -76,6 +101,10 @@ class TorchFreewayEnv(EnvBase):
         render_mode: None or ``"rgb_array"`` (draws road 0 with highway-env's viewer).
         kernel: how a CPU simulator steps (``"auto"``, ``"native"``, ``"torch"``; see
             :class:`~mapets_rl.envs.torch_freeway.simulator.BatchedFreeway`).
+
+    With ``shield=True`` a step leaves the executed action under ``("agents", "action")`` and
+    the proposed one under ``("agents", "proposed_action")`` (post-posed shielding, the
+    learner updated with the action that ran: module docstring).
     """
 
     def __init__(
@@ -166,6 +195,14 @@ class TorchFreewayEnv(EnvBase):
             shape=batch,
             device=dev,
         )
+        if self.config["shield"]:
+            self.state_spec = Composite(
+                agents=Composite(
+                    proposed_action=action.clone(), shape=torch.Size(group), device=dev
+                ),
+                shape=batch,
+                device=dev,
+            )
         self.reward_spec = Composite(
             agents=Composite(reward=unbounded(*group, 1), shape=torch.Size(group), device=dev),
             shape=batch,
@@ -203,12 +240,12 @@ class TorchFreewayEnv(EnvBase):
         return self._output(self.sim.observe(acting), info, acting, false, false)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get(("agents", "action"), None)
+        action = tensordict.get(ACTION, None)
         if action is None:
             raise ValueError(
                 "step needs the CAVs' actions under ('agents', 'action'); the tensordict has none"
             )
-        spec = self.full_action_spec[("agents", "action")]
+        spec = self.full_action_spec[ACTION]
         if action.shape != spec.shape:
             raise ValueError(
                 f"('agents', 'action') must have shape {list(spec.shape)}, got {list(action.shape)}"
@@ -221,6 +258,8 @@ class TorchFreewayEnv(EnvBase):
             "('agents', 'action') values must be integers in [0, 3] (KL, CL, CR, ES)",
         )
         result = self.sim.step(index.reshape(self.sim.n_roads, -1))
+        if self.config["shield"]:
+            self._record_executed(tensordict, action, index, result.shielded)
         self._record_episodes(result)
         terminated = ~result.alive
         truncated = torch.where(result.acting, result.truncated.unsqueeze(-1) & ~terminated, True)
@@ -279,6 +318,29 @@ class TorchFreewayEnv(EnvBase):
         agents = TensorDict._new_unsafe(entries, batch_size=group, device=dev)
         return TensorDict._new_unsafe({"agents": agents, **root}, batch_size=batch, device=dev)
 
+    def _record_executed(
+        self,
+        tensordict: TensorDictBase,
+        proposed: torch.Tensor,
+        index: torch.Tensor,
+        replaced: torch.Tensor,
+    ) -> None:
+        """Write the executed action into ``tensordict`` under :data:`ACTION` (Keep Lane where
+        the shield replaced a move, ``replaced [R, I]``, else the ``proposed`` action
+        ``[*batch, I, 4]`` one-hot or ``[*batch, I]`` indices, in its dtype, the policy's) and
+        the proposed decisions ``index [*batch, I]`` under :data:`PROPOSED_ACTION`, in the
+        form and dtype of its spec (int64: a collector preallocates that key from the spec)."""
+        replaced = replaced.reshape(index.shape)
+        spec = self.full_state_spec[PROPOSED_ACTION]
+        if self.categorical_actions:
+            executed = torch.where(replaced, KL, proposed)
+            tensordict.set(PROPOSED_ACTION, index.to(spec.dtype))
+        else:
+            keep = (torch.arange(proposed.shape[-1], device=proposed.device) == KL).to(proposed)
+            executed = torch.where(replaced.unsqueeze(-1), keep, proposed)
+            tensordict.set(PROPOSED_ACTION, one_hot(index, proposed.shape[-1]).to(spec.dtype))
+        tensordict.set(ACTION, executed)
+
     # --- episodes ------------------------------------------------------------------------------
     def _record_episodes(self, result: StepResult) -> None:
         ended = (result.truncated | result.terminated).nonzero().squeeze(-1).tolist()
@@ -287,7 +349,7 @@ class TorchFreewayEnv(EnvBase):
         metrics = {k: v.cpu() for k, v in self.sim.episode_metrics().items()}
         for road in ended:
             episode = {key: float(value[road]) for key, value in metrics.items()}
-            for key in ("collisions", "ramp_stuck", "shielded"):
+            for key in ("collisions", "ramp_stuck", "shielded", *BEHAVIOUR_COUNTS):
                 if key in episode:
                     episode[key] = int(episode[key])
             self._finished.append(episode)

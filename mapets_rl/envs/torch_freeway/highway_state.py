@@ -3,7 +3,8 @@
 :func:`load_scene` copies the scene of a highway-env :class:`~mapets_rl.envs.FreewayEnv` (or
 ``FreewayMergeEnv``) into one road of a :class:`BatchedFreeway`: positions, headings, speeds,
 lanes and target lanes, target speeds, IDM exponents, lane-change timers, last commands,
-crashes, pending impacts, CAV decisions and the episode's bookkeeping. From such a scene both
+crashes, pending impacts, CAV decisions and the episode's bookkeeping (its behaviour counts
+included). From such a scene both
 simulators step the same vehicles (the calibration of ``benchmarks/freeway_calibration.py``
 and ``tests/envs/test_torch_freeway.py``). :func:`draw_scene` does the reverse for rendering:
 it puts one road's vehicles on a highway-env road, whose viewer then draws it.
@@ -16,7 +17,7 @@ import torch
 from highway_env.vehicle.kinematics import Vehicle
 
 from mapets_rl.envs.freeway import KL, FreewayEnv
-from mapets_rl.envs.freeway_merge import RAMP_ROAD, FreewayMergeEnv
+from mapets_rl.envs.freeway_merge import BEHAVIOUR_COUNTS, RAMP_ROAD, FreewayMergeEnv
 from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway
 from mapets_rl.envs.vehicles import HumanVehicle
 
@@ -100,6 +101,10 @@ def load_scene(sim: BatchedFreeway, road: int, env: FreewayEnv) -> None:
     sim.state.get("speed_sum")[road] = float(np.nansum(speeds))
     sim.state.get("comfort_sum")[road] = float(np.nansum(comforts))
     sim.state.get("samples")[road] = float((~np.isnan(speeds)).sum())
+    if sim.merge:
+        agents.get("forcing")[road] = torch.as_tensor(env.forcing.copy())
+        for key in BEHAVIOUR_COUNTS:
+            sim.state.get(key)[road] = env.behaviour[key]
 
 
 def draw_scene(sim: BatchedFreeway, road: int, env: FreewayEnv) -> None:

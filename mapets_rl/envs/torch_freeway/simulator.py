@@ -29,6 +29,7 @@ from tensordict import TensorDict
 
 from mapets_rl.envs.freeway import CL, CR, ES, KL
 from mapets_rl.envs.freeway import OBS_DIM as FREEWAY_OBS_DIM
+from mapets_rl.envs.freeway_merge import BEHAVIOUR_COUNTS, NEAR_MERGE
 from mapets_rl.envs.torch_freeway.dynamics import (
     COMFORT_ACC_MAX,
     COMFORT_ACC_MIN,
@@ -184,6 +185,10 @@ class BatchedFreeway:
             "samples": torch.zeros(b, dtype=torch.float64, device=dev),
             "shielded": torch.zeros(b, dtype=torch.long, device=dev),
         }
+        if self.merge:  # the behaviour counts (FreewayMergeEnv's)
+            agents["forcing"] = torch.zeros(b, i, dtype=torch.bool, device=dev)
+            roads.update({key: torch.zeros(b, dtype=torch.long, device=dev)
+                          for key in BEHAVIOUR_COUNTS})  # fmt: skip
         return TensorDict(
             {
                 "bodies": TensorDict(bodies, batch_size=[b, n], device=dev),
@@ -410,8 +415,11 @@ class BatchedFreeway:
         agents = self.state["agents"][idx].clone()
         agents.set("slot", order[:, : self.n_cavs])
         agents.set("alive", torch.ones(k, self.n_cavs, dtype=torch.bool, device=self.device))
+        if self.merge:
+            agents.set("forcing", torch.zeros(k, self.n_cavs, dtype=torch.bool, device=self.device))
         self.state["agents"][idx] = agents
-        for key in ("steps", "speed_sum", "comfort_sum", "samples", "shielded"):
+        counts = BEHAVIOUR_COUNTS if self.merge else ()
+        for key in ("steps", "speed_sum", "comfort_sum", "samples", "shielded", *counts):
             self.state.get(key)[idx] = 0
 
     # --- one policy step -----------------------------------------------------------------------
@@ -450,9 +458,20 @@ class BatchedFreeway:
         new_target = torch.where(change, wanted, target.gather(1, slot))
         bodies.set("target", target.scatter(1, slot, new_target))
         bodies.set("decision", decision)
+        if self.merge:  # what the behaviour counts compare after the step
+            before = (lane.clone(), bodies.get("x").gather(1, slot))
+            forcing = agents.get("forcing") | (change & (cav_lane == geo.lanes))
+        result = self._move(slot, acting)
+        if self.merge:
+            self._count_behaviour(*before, forcing)
+        return result
 
+    def _move(self, slot: torch.Tensor, acting: torch.Tensor) -> StepResult:
+        """The simulation steps of a policy step, once the decisions are set (``slot``: the
+        CAVs' bodies ``[B, I]``; ``acting``: the CAVs driving at its start ``[B, I]``)."""
         if self.kernel is not None:
             return self._native_step(slot, acting)
+        bodies = self.state["bodies"]
         state = dict(bodies.items())
         front, rear = self.physics.neighbours(state)
         zeros = torch.zeros(self.n_roads, self.n_bodies, dtype=self.dtype, device=self.device)
@@ -473,6 +492,32 @@ class BatchedFreeway:
             book["crashed_now"],
             book["distance"],
         )
+
+    def _count_behaviour(
+        self, lane_before: torch.Tensor, x_before: torch.Tensor, forcing: torch.Tensor
+    ) -> None:
+        """Add one policy step to the behaviour counts of every road (``freeway-merge``; the
+        definitions of ``FreewayMergeEnv``'s module docstring), from every body's lane id
+        before the step ``[B, N]``, the CAVs' x at its start ``[B, I]`` [m] and which CAVs'
+        pending change onto the mainline their own ``CL`` set ``[B, I]``; then keep that mark
+        only for CAVs still on the ramp with the change pending."""
+        geo, bodies, agents = self.geometry, self.state["bodies"], self.state["agents"]
+        slot = agents.get("slot")
+        lane = bodies.get("lane")
+        main_before = geo.table[lane_before] < geo.lanes  # [B, N]
+        main_after = geo.table[lane] < geo.lanes
+        cav_lane = lane.gather(1, slot)
+        changed = (lane_before.gather(1, slot) != cav_lane) & (
+            main_before.gather(1, slot) & main_after.gather(1, slot)
+        )
+        near = (x_before >= geo.merge_start - NEAR_MERGE) & (x_before <= geo.merge_end)
+        merged = ~main_before & main_after  # [B, N]: ramp -> mainline (the obstacle stays)
+        forced = torch.zeros_like(merged).scatter(1, slot, forcing) & merged
+        events = (changed & near, changed & ~near, forced, merged & ~forced)
+        for key, happened in zip(BEHAVIOUR_COUNTS, events, strict=True):
+            self.state.set(key, self.state.get(key) + happened.sum(1))
+        pending = bodies.get("target").gather(1, slot) != cav_lane
+        agents.set("forcing", forcing & ~main_after.gather(1, slot) & pending)
 
     def _native_constants(self) -> tuple:
         """The fixed arguments of the fused kernel (lanes, bodies, highway-env's constants)."""
@@ -690,7 +735,9 @@ class BatchedFreeway:
         """The episode so far of every road, as ``FreewayEnv.episode_metrics`` reports it:
         ``average_velocity`` [m/s] and ``average_comfort`` over all vehicles and steps,
         ``collisions`` (CAVs crashed), with the ramp ``ramp_stuck`` (vehicles still on it) and
-        with the shield ``shielded`` (decisions it replaced); each ``[B]``."""
+        the behaviour counts (``FreewayMergeEnv``'s ``BEHAVIOUR_COUNTS``: lane changes near the
+        merge and elsewhere, forced and MOBIL merges), with the shield ``shielded`` (decisions
+        it replaced); each ``[B]``."""
         samples = self.state.get("samples").clamp(min=1)
         metrics = {
             "average_velocity": self.state.get("speed_sum") / samples,
@@ -704,6 +751,8 @@ class BatchedFreeway:
             on_ramp = self.geometry.table[bodies.get("lane")] == self.geometry.ramp_table
             stuck = bodies.get("present") & ~self.is_obstacle & on_ramp
             metrics["ramp_stuck"] = stuck.sum(1).double()
+            for key in BEHAVIOUR_COUNTS:
+                metrics[key] = self.state.get(key).double()
         return metrics
 
     def positions(self) -> torch.Tensor:
