@@ -7,6 +7,7 @@ directory.
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -225,3 +226,49 @@ def test_a_sweep_takes_progress_false_and_a_config_file_with_progress(tmp_path, 
 def test_a_sweep_refuses_progress_true_naming_it(tmp_path, toy_recipe):
     with pytest.raises(ValueError, match="progress must be false or unset in a sweep"):
         SweepSpec(recipe="toy", env="toy", seeds=[0], out=tmp_path, overrides=["progress=true"])
+
+
+def test_a_sweep_rerun_with_another_grid_keeps_the_earlier_trials(tmp_path, sweep_here):
+    out = tmp_path / "sweep"
+    assert not sweep_here(out, grid={"lr": [0.05, 0.2]}).failed
+    result = sweep_here(out, grid={"sigma": [0.1]})
+    assert not result.failed and [t.id for t in result.trials] == ["sigma=0.1__seed=0"]
+    manifest = json.loads((out / "sweep.json").read_text())
+    states = {t["id"]: (t["state"], t["ran"]) for t in manifest["trials"]}
+    assert states == {
+        "sigma=0.1__seed=0": ("done", True),
+        "lr=0.05__seed=0": ("done", False),
+        "lr=0.2__seed=0": ("done", False),
+    }
+    summary = json.loads((out / "summary" / "summary.json").read_text())
+    assert sorted(summary) == [
+        "toy sigma=0.1 lr=0.05",
+        "toy sigma=0.3 lr=0.05",
+        "toy sigma=0.3 lr=0.2",
+    ]
+
+
+def test_a_bogus_x_is_refused_before_any_trial(tmp_path, sweep_here):
+    out = tmp_path / "sweep"
+    with pytest.raises(ValueError, match="x must be one of .*'frames'.*got 'bogus'"):
+        sweep_here(out, x="bogus")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "fields, match",
+    [
+        ({"x": "bogus"}, "x must be 'auto', 'frames' or a metric of every finished trial"),
+        ({"metrics": ["return", "nosuch"]}, r"metrics must be metrics of every finished trial"),
+    ],
+)
+def test_bad_summary_options_are_refused_before_a_rerun_runs_a_trial(
+    tmp_path, sweep_here, fields, match
+):
+    out = tmp_path / "sweep"
+    assert not sweep_here(out, grid={"lr": [0.05]}).failed
+    manifest = (out / "sweep.json").read_bytes()
+    with pytest.raises(ValueError, match=match):
+        sweep_here(out, grid={"lr": [0.05, 0.2]}, **fields)
+    assert not (out / "trials" / "lr=0.2__seed=0").exists()
+    assert (out / "sweep.json").read_bytes() == manifest

@@ -23,9 +23,16 @@ once for each distinct ``env_config``), the backend and its resources; errors ar
 
 Re-running the same command skips the trials whose ``trial.json`` records a finished run of
 the same config, resumes the others from their latest checkpoint (``from_run_dir`` with the
-trial's overrides) and starts the ones without checkpoints. A trial that raises is recorded as
-failed (the traceback in its ``error.txt``, the last line in the manifest); the other trials
-still run, and :func:`run_sweep` reports the failed ones (the command then exits with 1).
+trial's overrides) and starts the ones without checkpoints; a trial it would resume with a
+change a resume refuses (anything but the budget and the intervals, see
+:meth:`~mapets_rl.experiment.Experiment.check_resume`) stops the sweep before any trial
+starts. A re-run with another grid or seeds keeps the trials of the earlier ones in
+``sweep.json`` and the summary (grouped by every grid key, and by the settings their configs
+differ in). ``--x`` and ``--metrics`` are checked before any trial starts, against the trials
+already finished (``--x`` of a sweep with none against the metrics that have a unit). A
+trial that raises is recorded as failed (the traceback in its ``error.txt``, the last line in
+the manifest); the other trials still run, and :func:`run_sweep` reports the failed ones (the
+command then exits with 1).
 
 One writer per trial: the local backend's workers die with the sweep process (kill -9
 included), and a trial whose run directory another writer still holds (its lock, see
@@ -608,8 +615,13 @@ def run_ray(
 
 # ------------------------------------------------------------------------------ the sweep
 def _manifest_data(
-    spec: SweepSpec, trials: Sequence[Trial], records: Mapping[str, Mapping[str, Any]]
+    spec: SweepSpec,
+    trials: Sequence[Trial],
+    records: Mapping[str, Mapping[str, Any]],
+    earlier: Sequence[Mapping[str, Any]] = (),
 ) -> dict[str, Any]:
+    """``sweep.json``: the spec, every trial of it with its record, then the ``earlier``
+    trials of ``OUT`` that this spec does not plan (:func:`_earlier_trials`)."""
     return {
         "recipe": spec.recipe,
         "env": spec.env,
@@ -631,8 +643,35 @@ def _manifest_data(
                 **records[t.id],
             }
             for t in trials
-        ],
+        ]
+        + [dict(entry) for entry in earlier],
     }
+
+
+def _earlier_trials(spec: SweepSpec, trials: Sequence[Trial]) -> list[dict[str, Any]]:
+    """The trials that ``OUT/sweep.json`` lists and ``trials`` (this spec's) do not: those of
+    an earlier sweep into ``OUT`` with another grid or seeds, which its manifest and summary
+    keep (marked ``"ran": false``). An entry whose id is not a plain directory name, or whose
+    directory is gone, is dropped."""
+    path = spec.out / MANIFEST
+    if not path.is_file():
+        return []
+    from mapets_rl.experiment.results import read_json_object
+
+    entries = read_json_object(path).get("trials")
+    planned = {t.id for t in trials}
+    kept = []
+    for entry in entries if isinstance(entries, list) else []:
+        tid = entry.get("id") if isinstance(entry, dict) else None
+        if (
+            isinstance(tid, str)
+            and tid not in planned
+            and tid not in (".", "..")
+            and "/" not in tid
+            and (spec.out / TRIALS_DIR / tid).is_dir()
+        ):
+            kept.append({**entry, "run_dir": str(Path(TRIALS_DIR) / tid), "ran": False})
+    return kept
 
 
 def _check_manifest(spec: SweepSpec) -> None:
@@ -688,8 +727,75 @@ def default_x(run_dirs: Sequence[Path], source: str) -> str:
     return "episode"
 
 
-def summarise(spec: SweepSpec, run_dirs: Sequence[Path]) -> dict[str, Path]:
-    """:func:`compare` of ``run_dirs`` grouped by the grid keys into ``OUT/summary``."""
+def _summary_fields(
+    spec: SweepSpec, earlier: Sequence[Mapping[str, Any]], run_dirs: Sequence[Path]
+) -> list[str]:
+    """What the summary of the finished trials ``run_dirs`` groups by: the grid keys of
+    ``spec``, then those of the ``earlier`` trials it keeps and, when there are such trials,
+    every other config key whose value differs among ``run_dirs`` (their ``trial.json``; the
+    seed aside), so that trials of different settings never share a group."""
+    fields = list(spec.grid)
+    for entry in earlier:
+        values = entry.get("values")
+        fields += [k for k in (values if isinstance(values, dict) else {}) if k not in fields]
+    if not earlier:
+        return fields
+    configs = [_flat_config((read_trial_record(d) or {}).get("config")) for d in run_dirs]
+    for key in sorted(set().union(*configs)):
+        differs = len({json.dumps(c.get(key), sort_keys=True) for c in configs}) > 1
+        nested = any(key == f or key.startswith(f"{f}.") for f in fields)
+        if differs and key != "seed" and not nested:
+            fields.append(key)
+    return fields
+
+
+def _flat_config(config: Any, prefix: str = "") -> dict[str, Any]:
+    """A ``to_dict`` config as ``{"dotted.key": leaf}`` (``{}`` for what is not a mapping)."""
+    if not isinstance(config, Mapping):
+        return {prefix: config} if prefix else {}
+    out: dict[str, Any] = {}
+    for key, value in config.items():
+        out.update(_flat_config(value, f"{prefix}.{key}" if prefix else str(key)))
+    return out
+
+
+def _check_summary_options(spec: SweepSpec, run_dirs: Sequence[Path]) -> None:
+    """ConfigError naming ``x`` or ``metrics`` when the summary could not compare them,
+    before any trial starts: against the metrics every entry of the finished trials
+    ``run_dirs`` holds (a re-run), else ``x`` against the metrics of
+    :data:`~mapets_rl.metrics.METRIC_UNITS` (an x axis is a counter with a unit: ``episode``,
+    ``train_time``, ...). The metrics of a sweep that has not finished a trial are only known
+    once one has."""
+    from mapets_rl.experiment.results import ENTRY_LISTS, read_results
+    from mapets_rl.metrics import METRIC_UNITS
+
+    if not run_dirs:
+        axes = ["auto", "frames", *METRIC_UNITS]
+        check(spec.x in axes, "x", f"one of {axes}", spec.x)
+        return
+    common: set[str] | None = None
+    for run_dir in run_dirs:
+        res = read_results(run_dir)
+        for entry in res[ENTRY_LISTS[spec.source]] or res["train"]:
+            names = set(entry["metrics"])
+            common = names if common is None else common & names
+    common = common or set()
+    if spec.x not in ("auto", "frames"):
+        check(
+            spec.x in common,
+            "x",
+            f"'auto', 'frames' or a metric of every finished trial {sorted(common)}",
+            spec.x,
+        )
+    unknown = [m for m in spec.metrics or [] if m not in common]
+    check(not unknown, "metrics", f"metrics of every finished trial {sorted(common)}", unknown)
+
+
+def summarise(
+    spec: SweepSpec, run_dirs: Sequence[Path], group_by: Sequence[str] | None = None
+) -> dict[str, Path]:
+    """:func:`compare` of ``run_dirs`` grouped by ``group_by`` (default: the grid keys) into
+    ``OUT/summary``."""
     from mapets_rl.app.comparison import compare
 
     x = default_x(run_dirs, spec.source) if spec.x == "auto" else spec.x
@@ -699,7 +805,7 @@ def summarise(spec: SweepSpec, run_dirs: Sequence[Path]) -> dict[str, Path]:
         spec.out / SUMMARY_DIR,
         spec.metrics,
         source=spec.source,
-        group_by=list(spec.grid),
+        group_by=list(spec.grid) if group_by is None else list(group_by),
         x=x,
         title=title,
     )
@@ -722,6 +828,9 @@ def run_sweep(spec: SweepSpec, echo: Callable[[str], None] = print) -> SweepResu
         import_ray()
     _check_manifest(spec)
     _check_resumes(cls, spec, trials)
+    earlier = _earlier_trials(spec, trials)
+    earlier_done = [spec.out / e["run_dir"] for e in earlier if e.get("state") == "done"]
+    _check_summary_options(spec, [*(t.run_dir for t in trials if _finished(t)), *earlier_done])
     recipe = _import_path(cls, f"recipe {spec.recipe!r}")
     scenarios = trial_scenarios(spec.env)
     make_writable_dir(spec.out, "out")
@@ -741,10 +850,13 @@ def run_sweep(spec: SweepSpec, echo: Callable[[str], None] = print) -> SweepResu
             records[trial.id] = {"state": "pending", "ran": True, "error": None}
             todo.append(trial)
     manifest = spec.out / MANIFEST
-    atomic_write_text(manifest, json.dumps(_manifest_data(spec, trials, records), indent=1))
+    atomic_write_text(
+        manifest, json.dumps(_manifest_data(spec, trials, records, earlier), indent=1)
+    )
     echo(
         f"sweep: {len(trials)} trials ({len(trials) - len(todo)} already finished), "
         f"{len(todo)} to run on the {spec.backend} backend"
+        + (f"; {len(earlier)} trials of earlier grids kept" if earlier else "")
     )
     payloads = [
         {
@@ -773,7 +885,9 @@ def run_sweep(spec: SweepSpec, echo: Callable[[str], None] = print) -> SweepResu
                 # the worker died before it could record why
                 atomic_write_text(trial.run_dir / ERROR_FILE, str(result["error"]) + "\n")
             records[trial.id] = {"ran": True, **result}
-            atomic_write_text(manifest, json.dumps(_manifest_data(spec, trials, records), indent=1))
+            atomic_write_text(
+                manifest, json.dumps(_manifest_data(spec, trials, records, earlier), indent=1)
+            )
             how = "resumed, " if result.get("resumed") else ""
             seconds = result.get("seconds")
             took = f"{seconds:.1f} s" if seconds is not None else "?"
@@ -783,11 +897,12 @@ def run_sweep(spec: SweepSpec, echo: Callable[[str], None] = print) -> SweepResu
             )
     failed = [t.id for t in trials if records[t.id]["state"] == "failed"]
     finished = [t.run_dir for t in trials if records[t.id]["state"] == "done"]
+    finished += earlier_done
     summary: dict[str, Path] = {}
     summary_error = None
     if finished:
         try:
-            summary = summarise(spec, finished)
+            summary = summarise(spec, finished, _summary_fields(spec, earlier, finished))
         except ValueError as err:
             summary_error = str(err)
     else:
