@@ -132,7 +132,8 @@ def main() -> None:
     torch.set_num_threads(1)
     base = CPU_PRESET.planner.to_dict()
     base = {k: base[k] for k in ("horizon", "iterations", "alpha", "epsilon")}
-    base.update(dtype="fp32", anchor_candidates=not args.plain, keep_best=not args.plain)
+    base.update(optimizer="icem", dtype="fp32")  # every option off in "cem" (--plain)
+    base.update(anchor_candidates=not args.plain, keep_best=not args.plain)
     variants = {
         "cem": {},
         "+colored": {"noise_beta": args.beta},

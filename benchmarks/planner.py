@@ -514,7 +514,8 @@ def main() -> None:
         default=[],
         metavar="key=value",
         help="override PlannerConfig fields of the presets, e.g. noise_beta=2 keep_elites=0.3 "
-        "(the FLOP counts keep assuming Q candidates per iteration)",
+        "(iCEM's options: add optimizer=icem to the paper preset's; the FLOP counts keep "
+        "assuming Q candidates per iteration)",
     )
     parser.add_argument(
         "--compile",

@@ -74,12 +74,7 @@ from mapets_rl.planning import (
     TerminationFn,
     TrajectorySamplingCEM,
 )
-from mapets_rl.planning.memory import (
-    available_memory,
-    dataset_bytes,
-    ensemble_bytes,
-    planner_bytes,
-)
+from mapets_rl.planning.memory import available_memory, dataset_bytes, ensemble_bytes
 from mapets_rl.planning.shared_plans import PlanSharingPlanner
 
 OBS = ("agents", "observation")
@@ -270,7 +265,9 @@ class MAPETSConfig(RunConfig):
         """Drop the retired frame-budget keys and map the flat names of :data:`FLAT_FIELDS` to
         their sections (one warning line); a nested value given too wins. The flat
         planner-reward keys of a scenario without a planner reward (the defaults that a given
-        ``reward_fn`` left unused) are dropped."""
+        ``reward_fn`` left unused) are dropped. A planner section written before
+        ``planner.optimizer`` existed names the optimiser its iCEM fields chose
+        (:meth:`PlannerConfig.upgrade_dict`)."""
         data = super().upgrade_dict(data)
         if _reward_section(data.get("env", cls.env)) is None:
             data = {
@@ -278,7 +275,7 @@ class MAPETSConfig(RunConfig):
             }
         flat = [k for k in data if k in FLAT_FIELDS]
         if not flat:
-            return data
+            return _upgrade_planner(data)
         log.warning(
             "config written with the flat MA-PETS field names %s; read as %s",
             ", ".join(flat),
@@ -291,7 +288,7 @@ class MAPETSConfig(RunConfig):
             nested = dict(nested) if isinstance(nested, Mapping) else {}
             nested.setdefault(leaf, data[key])
             out[section] = nested
-        return out
+        return _upgrade_planner(out)
 
     def with_overrides(self, overrides: Iterable[str]) -> MAPETSConfig:
         """``key=value`` overrides (dotted for the sections, ``planner.horizon=15``);
@@ -311,6 +308,14 @@ class MAPETSConfig(RunConfig):
                 defaults = getattr(old, name).to_dict()
                 data[name] = {k: v for k, v in data[name].items() if v != defaults[k]}
         return type(self).from_dict(self._apply_overrides(data, overrides))
+
+
+def _upgrade_planner(data: dict[str, Any]) -> dict[str, Any]:
+    """``data`` with its planner section, when it is a mapping, upgraded by
+    :meth:`PlannerConfig.upgrade_dict`."""
+    if isinstance(data.get("planner"), Mapping):
+        data["planner"] = PlannerConfig.upgrade_dict(data["planner"])
+    return data
 
 
 def _reward_section(env: str) -> type[PlannerReward] | None:
@@ -569,9 +574,7 @@ class MAPETS(Experiment):
         planner, model = config.planner, config.model
         dims = (group.n_agents, group.obs_dim, group.action_dim)
         need = (
-            planner_bytes(
-                *dims, model.hidden, planner.population, planner.particles, planner.horizon
-            )
+            planner.decision_bytes(*dims, model.hidden)
             + ensemble_bytes(*dims, model.hidden, model.ensemble_size)
             + dataset_bytes(*dims, model.buffer_size)
         )

@@ -606,7 +606,7 @@ def test_a_run_dir_with_a_deeply_nested_config_yaml_is_one_error(finished_toy_ru
 def test_a_huge_population_decay_is_no_overflow():
     from mapets_rl.recipes.mapets import MAPETSConfig
 
-    config = MAPETSConfig(planner={"population_decay": 1e200, "iterations": 3})
+    config = MAPETSConfig(planner={"optimizer": "icem", "population_decay": 1e200, "iterations": 3})
     sizes = config.planner.candidates_per_iteration()
     assert len(sizes) == 3 and sizes[1] == sizes[2] < sizes[0]
 

@@ -3,16 +3,38 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import torch
 
 from mapets_rl.config import ConfigSection, check
 from mapets_rl.models.config import EnsembleConfig
 from mapets_rl.planning.cem import CEMOptimizer, ICEMOptimizer, kept_elite_count, sample_sizes
+from mapets_rl.planning.memory import planner_bytes
 from mapets_rl.planning.precision import DTYPE_CHOICES
 from mapets_rl.planning.trajectory_sampling import PROPAGATIONS, particle_layout_error
 
-__all__ = ["PlannerConfig", "Preset", "PAPER_PRESET", "CPU_PRESET", "PRESETS", "PROPAGATIONS"]
+__all__ = [
+    "OPTIMIZERS",
+    "PlannerConfig",
+    "Preset",
+    "PAPER_PRESET",
+    "CPU_PRESET",
+    "PRESETS",
+    "PROPAGATIONS",
+]
+
+OPTIMIZERS = ("cem", "icem")
+"""The optimisers a :class:`PlannerConfig` names: the paper's CEM and iCEM."""
+ICEM_DEFAULTS: dict[str, Any] = {
+    "anchor_candidates": False,
+    "keep_best": False,
+    "noise_beta": 0.0,
+    "keep_elites": 0.0,
+    "population_decay": 1.0,
+}
+"""iCEM's fields and their values under ``optimizer="cem"`` (every option off)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,6 +57,12 @@ class PlannerConfig(ConfigSection):
         dtype: compute dtype of the ensemble forward while planning: ``"auto"`` (bf16 on
             CPUs with AVX512-BF16/AMX and on CUDA devices with bf16, fp32 elsewhere),
             ``"fp32"`` or ``"bf16"``.
+        optimizer: ``"cem"``, the paper's CEM (:class:`~mapets_rl.planning.CEMOptimizer`;
+            iCEM's fields below must keep their defaults), or ``"icem"``
+            (:class:`~mapets_rl.planning.ICEMOptimizer` with the options below; with every
+            option off it plans the same sequences as ``"cem"``). The cpu preset's is
+            ``"icem"``. A config file written before this field names none: it is read as
+            ``"icem"`` when one of iCEM's fields is set (:meth:`upgrade_dict`).
         anchor_candidates: also score the current mean, "stop" (the constant sequence at the
             lowest action) and "hold" (the warm start's first action held) in every CEM
             iteration (iCEM's fallbacks; see :class:`~mapets_rl.planning.TrajectorySamplingCEM`).
@@ -76,6 +104,7 @@ class PlannerConfig(ConfigSection):
     epsilon: float = 1e-3
     alpha: float = 0.1
     dtype: str = "auto"
+    optimizer: str = "cem"
     anchor_candidates: bool = False
     keep_best: bool = False
     noise_beta: float = 0.0
@@ -107,26 +136,44 @@ class PlannerConfig(ConfigSection):
         check(0.0 <= self.keep_elites <= 1.0, "keep_elites", "in [0, 1]", self.keep_elites)
         check(self.population_decay >= 1.0, "population_decay", ">= 1", self.population_decay)
         check(self.dtype in DTYPE_CHOICES, "dtype", f"one of {list(DTYPE_CHOICES)}", self.dtype)
-
-    @property
-    def icem(self) -> bool:
-        """Whether any of iCEM's options is on (:meth:`make_optimizer` then builds an
-        :class:`~mapets_rl.planning.ICEMOptimizer`)."""
-        return (
-            self.anchor_candidates
-            or self.keep_best
-            or self.noise_beta > 0
-            or self.keep_elites > 0
-            or self.population_decay > 1
+        check(
+            self.optimizer in OPTIMIZERS, "optimizer", f"one of {list(OPTIMIZERS)}", self.optimizer
         )
+        options = self.icem_options() if self.optimizer == "cem" else []
+        if options:
+            first = options[0]
+            check(
+                False,
+                first,
+                f"{ICEM_DEFAULTS[first]!r} with optimizer='cem' ({', '.join(options)}: iCEM's "
+                "options; set optimizer='icem' to use them)",
+                getattr(self, first),
+            )
+
+    def icem_options(self) -> list[str]:
+        """The iCEM fields that are not at their ``"cem"`` values (:data:`ICEM_DEFAULTS`)."""
+        return [name for name, off in ICEM_DEFAULTS.items() if getattr(self, name) != off]
+
+    @classmethod
+    def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
+        """The fields of a planner section written before ``optimizer`` existed (which chose
+        iCEM when one of its options was set), naming ``"icem"`` when one of them is set; a
+        section without them keeps the default or its preset's optimiser (the same
+        sequences), and one that names its optimiser is kept."""
+        out = dict(data)
+        if "optimizer" not in out and any(
+            out.get(k, off) != off for k, off in ICEM_DEFAULTS.items()
+        ):
+            out["optimizer"] = "icem"
+        return out
 
     def make_optimizer(self, generator: torch.Generator | None = None) -> CEMOptimizer:
-        """The optimiser of these settings: an :class:`~mapets_rl.planning.ICEMOptimizer` with
-        iCEM's options (:attr:`icem`), else the paper's :class:`~mapets_rl.planning.CEMOptimizer`
-        (the same sequences as an ICEMOptimizer with every option off), drawing its candidate
+        """The optimiser :attr:`optimizer` names: the paper's
+        :class:`~mapets_rl.planning.CEMOptimizer` or an
+        :class:`~mapets_rl.planning.ICEMOptimizer` with iCEM's options, drawing its candidate
         noise from ``generator``."""
         sizes = (self.population, self.elites, self.iterations, self.epsilon, self.alpha)
-        if not self.icem:
+        if self.optimizer == "cem":
             return CEMOptimizer(*sizes, generator)
         return ICEMOptimizer(
             *sizes,
@@ -146,6 +193,24 @@ class PlannerConfig(ConfigSection):
         first = kept if self.shift_elites else 0
         sizes = sample_sizes(self.population, self.elites, self.iterations, self.population_decay)
         return [n + extra + (kept if k else first) for k, n in enumerate(sizes)]
+
+    def decision_bytes(
+        self, n_agents: int, obs_dim: int, action_dim: int, hidden: Sequence[int]
+    ) -> int:
+        """Bytes of the largest tensors of one planning decision (fp32 upper bound,
+        :func:`~mapets_rl.planning.memory.planner_bytes`) with the most candidates an iteration
+        scores (:meth:`candidates_per_iteration`: the population plus anchors and kept
+        elites), for ``n_agents`` agents of ``obs_dim`` / ``action_dim`` and a model of hidden
+        sizes ``hidden``: the one estimate the planner and MA-PETS check."""
+        return planner_bytes(
+            n_agents,
+            obs_dim,
+            action_dim,
+            tuple(hidden),
+            max(self.candidates_per_iteration()),
+            self.particles,
+            self.horizon,
+        )
 
     def layout_error(self, members: int) -> str | None:
         """Why the particles cannot be split over ``members`` ensemble members (one line), or
@@ -195,6 +260,7 @@ CPU_PRESET = Preset(
         elites=4,
         iterations=2,
         particles=5,
+        optimizer="icem",
         anchor_candidates=True,
         keep_best=True,
         compile=True,

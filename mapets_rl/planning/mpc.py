@@ -23,11 +23,10 @@ from tensordict.utils import NestedKey
 
 from mapets_rl.modules.memory import check_memory
 from mapets_rl.modules.tensor_checks import as_mask, check_finite, check_real, get_tensor
-from mapets_rl.planning.cem import kept_elite_count
+from mapets_rl.planning.cem import CEMOptimizer, kept_elite_count
 from mapets_rl.planning.compiled import CompiledStep
 from mapets_rl.planning.config import PlannerConfig
 from mapets_rl.planning.cuda_graph import GraphedStep
-from mapets_rl.planning.memory import planner_bytes
 from mapets_rl.planning.precision import resolve_dtype
 from mapets_rl.planning.trajectory_sampling import (
     DynamicsModel,
@@ -257,14 +256,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
                 "(move the model with .cuda() first, or leave cuda_graph False)."
             )
         check_memory(  # a planner built from the Python API gets the estimate MA-PETS makes
-            planner_bytes(
-                model.n_agents,
-                model.obs_dim,
-                model.action_dim,
-                tuple(getattr(model, "hidden", ())),
-                max(config.candidates_per_iteration()),
-                config.particles,
-                config.horizon,
+            config.decision_bytes(
+                model.n_agents, model.obs_dim, model.action_dim, getattr(model, "hidden", ())
             ),
             device,
             f"the tensors of one planner decision (population={config.population} x particles="
@@ -286,7 +279,7 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             self._step = CompiledStep() if compiled else propagate_step
         if previous is not None and previous.horizon != config.horizon:
             self.reset()
-        self.optimizer = config.make_optimizer(self.generator)
+        self._optimizer = config.make_optimizer(self.generator)
         self._config = config
 
     @property
@@ -347,9 +340,15 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
         )
 
     @property
+    def optimizer(self) -> CEMOptimizer:
+        """The optimiser that ``config.optimizer`` names, built with the config (a
+        :class:`~mapets_rl.planning.CEMOptimizer` or its ICEMOptimizer subclass)."""
+        return self._optimizer
+
+    @property
     def last_iterations(self) -> int:
         """CEM iterations run by the last call (early stopping may cut them short)."""
-        return self.optimizer.last_iterations
+        return self._optimizer.last_iterations
 
     @property
     def warm_start_mean(self) -> torch.Tensor | None:
@@ -525,8 +524,8 @@ class TrajectorySamplingCEM(TensorDictModuleBase):
             icem["initial_elites"], icem["initial_valid"] = shifted
         frozen = getattr(self.model, "frozen_parameters", None)  # optional (DynamicsModel)
         with frozen(self.dtype) if frozen is not None else contextlib.nullcontext():
-            mu = self.optimizer.optimize(score, mean, self.action_low, self.action_high, **icem)
-        return (mu, nonfinite, self.optimizer.last_elites) if shifted else (mu, nonfinite)
+            mu = self._optimizer.optimize(score, mean, self.action_low, self.action_high, **icem)
+        return (mu, nonfinite, self._optimizer.last_elites) if shifted else (mu, nonfinite)
 
     def _graph_key(self, obs: torch.Tensor) -> tuple:
         """What a captured decision depends on beyond its inputs' values: shapes, settings,

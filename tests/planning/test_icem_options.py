@@ -78,6 +78,7 @@ def test_planner_with_anchors_finds_the_stop_when_every_sampled_plan_crashes() -
             13.89,
             termination_fn=crash,
             seed=0,
+            optimizer="icem" if icem else "cem",
             anchor_candidates=icem,
             keep_best=icem,
             **kwargs,

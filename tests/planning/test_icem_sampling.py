@@ -23,8 +23,9 @@ from tests.planning.test_planner import ExactPointMass as PointMass
 
 
 def point_mass_planner(seed: int = 0, **settings) -> TrajectorySamplingCEM:
+    """iCEM (with every option off: the plain CEM's sequences) on the point mass."""
     options = dict(horizon=8, population=16, elites=4, iterations=3, particles=1)
-    options.update(propagation="expectation", dtype="fp32", **settings)
+    options.update(propagation="expectation", dtype="fp32", optimizer="icem", **settings)
     return TrajectorySamplingCEM(PointMass(), quadratic_reward, -20.0, 20.0, seed=seed, **options)
 
 
@@ -299,6 +300,7 @@ def test_ts1_layout_counts_the_extra_candidates():
             elites=4,
             particles=1,
             propagation="ts1",
+            optimizer="icem",
             keep_elites=0.25,  # 16 + 1 rows: odd
         )
 

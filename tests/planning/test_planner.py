@@ -254,10 +254,11 @@ def test_a_replaced_config_is_validated_and_used_from_the_next_decision():
     assert planner.optimizer.population == 16
 
 
-def test_the_config_chooses_the_optimizer_class():
+def test_the_config_names_the_optimizer_class():
     model = linear_ensemble([point_mass_matrix()])
     plain = make_planner(model)
-    assert type(plain.optimizer) is CEMOptimizer
+    assert plain.config.optimizer == "cem" and type(plain.optimizer) is CEMOptimizer
+    assert type(make_planner(model, optimizer="icem").optimizer) is ICEMOptimizer
     for option in (
         {"anchor_candidates": True},
         {"keep_best": True},
@@ -265,8 +266,11 @@ def test_the_config_chooses_the_optimizer_class():
         {"keep_elites": 0.5},
         {"population_decay": 2.0},
     ):
-        assert type(make_planner(model, **option).optimizer) is ICEMOptimizer
-    plain.config = plain.config.replace(keep_best=True)
+        assert type(make_planner(model, optimizer="icem", **option).optimizer) is ICEMOptimizer
+        (name,) = option
+        with pytest.raises(ConfigError, match=rf"^{name} must be .* with optimizer='cem'"):
+            make_planner(model, **option)
+    plain.config = plain.config.replace(optimizer="icem", keep_best=True)
     assert type(plain.optimizer) is ICEMOptimizer and plain.optimizer.keep_best
 
 

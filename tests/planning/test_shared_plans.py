@@ -29,6 +29,7 @@ def make_planner() -> TrajectorySamplingCEM:
         iterations=4,
         particles=1,
         propagation="expectation",
+        optimizer="icem",
         anchor_candidates=True,
         keep_best=True,
     )

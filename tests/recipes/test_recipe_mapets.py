@@ -319,6 +319,7 @@ def test_run_with_flat_field_names_resumes_with_nested_sections(tmp_path, caplog
     flat.update(nested["planner"], **nested["model"], **nested["comm"])
     flat["cem_momentum"] = flat.pop("alpha")
     newer_planner = ("noise_beta", "keep_elites", "shift_elites", "population_decay", "compile")
+    newer_planner += ("optimizer",)
     newer_model = ("holdout", "patience", "min_improvement")
     for newer in ("dtype", "anchor_candidates", "keep_best", "cuda_graph", *newer_planner):
         del flat[newer]  # flat config.yaml files predate these planner fields
