@@ -47,10 +47,14 @@ step by comparing every vehicle's lane before and after the step (:data:`BEHAVIO
   acceleration lane (a forced merge: the CAV's ``CL`` sets its target lane, without MOBIL's
   safety test); ``ramp_mobil_merges``: every other ramp vehicle, CAV or human driver, that
   reaches the mainline (MOBIL chose the change). A CAV's move onto the mainline counts as forced
-  while the target lane its ``CL`` set is pending (from the step of the decision until the
-  CAV crosses or MOBIL's abort rule cancels the change at the end of a step);
+  when its own ``CL`` set the pending change (the mark is dropped at the end of a step that
+  finds the change cancelled by MOBIL's abort rule, so an abort followed by MOBIL's own change
+  within one policy step still counts as forced);
   ``ramp_forced_merges + ramp_mobil_merges + ramp_stuck`` plus the ramp vehicles that crashed
   on the ramp is the number of ramp vehicles.
+
+The freeway without a ramp reports none of them: its lane changes have no merge to be near, and
+its metrics stay those of the paper's freeway.
 
 Why an on-ramp rather than a lane drop. With a lane drop every CAV in the dropped lane must
 change lanes or stop, so "keep lane" is not a policy but a crash into the lane's end, and the
