@@ -226,7 +226,7 @@ COLLECTOR_RUN = {
     "env_config": {"n_cavs": 3, "n_hvs": 2, "horizon": 40},
     "total_frames": 80,
     "frames_per_batch": 40,
-    "num_envs": 2,
+    "collector_workers": 2,
     "eval_interval": 0,
     "checkpoint_interval": 0,
     "progress": False,
@@ -242,14 +242,14 @@ def test_collector_field_is_validated_and_old_configs_get_auto():
     with pytest.raises(ConfigError, match="collector must be one of"):
         MAPPOConfig(collector="threads")
     with pytest.raises(ConfigError, match="collector_workers must be 1 with collector='single'"):
-        MAPPOConfig(collector="single", num_envs=2)
-    old = {k: v for k, v in MAPPOConfig(num_envs=2).to_dict().items() if k != "collector"}
+        MAPPOConfig(collector="single", collector_workers=2)
+    old = {k: v for k, v in MAPPOConfig(collector_workers=2).to_dict().items() if k != "collector"}
     assert MAPPOConfig.upgrade_dict(old)["collector"] == "auto"
 
 
 @pytest.mark.parametrize("kind", ["multi_sync", "ray"])
 def test_model_free_recipe_collects_with_torchrl_collector(kind, tmp_path):
-    """MAPPO trains with ``num_envs`` environment copies gathered by torchrl's
+    """MAPPO trains with ``collector_workers`` environment copies gathered by torchrl's
     ``MultiSyncCollector`` (worker processes) or ``RayCollector`` (remote collectors on a local
     Ray instance): batches of the configured size, the budget reached, the policy moved."""
     if kind == "ray":

@@ -91,7 +91,7 @@ def test_recipe_trains_on_batched_roads_and_writes_results(recipe: str, tmp_path
         ({"frames_per_batch": 42}, "frames_per_batch"),  # not a multiple of the 4 roads
         ({"env_config": {**ENV_CONFIG, "num_envs": 0}}, "env_config.num_envs"),
         ({"env_config": {**ENV_CONFIG, "num_envs": 2.5}}, "env_config.num_envs"),
-        ({"num_envs": 2, "collector": "multi_sync"}, "num_envs"),
+        ({"collector_workers": 2, "collector": "multi_sync"}, "collector_workers"),
     ],
 )
 def test_a_bad_batch_of_roads_is_refused_before_any_work(
