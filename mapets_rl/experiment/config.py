@@ -308,11 +308,11 @@ class ExperimentConfig(RunConfig):
     A batched env (``env_config={"backend": "torch", "num_envs": B, ...}``: ``B`` roads of the
     torch freeway as one env of ``batch_size=[B]``) is collected by one ``Collector`` in this
     process (``collector_workers`` 1, ``collector`` ``auto`` or ``single``); a frame is then one
-    step of
-    one road (all its agents), so a batch of ``frames_per_batch`` frames holds
+    step of one road (all its agents), so a batch of ``frames_per_batch`` frames holds
     ``frames_per_batch / B`` steps of every road (a ``[B, T]`` TensorDict) and
-    ``frames_per_batch`` must be a multiple of ``B``. Evaluation and video run on one road of
-    the same backend (``env_config`` without ``num_envs``).
+    ``frames_per_batch`` must be a multiple of ``B`` (left out, it is one: see above).
+    Evaluation and video run on one road of the same backend (``env_config`` without
+    ``num_envs``).
     """
 
     collects_env_batches: ClassVar[bool] = True
