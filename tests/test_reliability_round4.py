@@ -14,10 +14,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from tensordict import TensorDict
 from toy_recipe import ToyConfig, ToyLearner
+from toy_scenario import ToyAgentsEnv
 
 from mapets_rl.app import sweep
 from mapets_rl.app.sweep import SweepResult, SweepSpec, run_sweep, run_trial
+from mapets_rl.envs import registry
+from mapets_rl.experiment import register_env
 from mapets_rl.experiment.episodes import TRAIN_EPISODES_FILE
 from mapets_rl.experiment.files import open_append
 from tests.cli_run import run_cli
@@ -272,3 +276,57 @@ def test_bad_summary_options_are_refused_before_a_rerun_runs_a_trial(
         sweep_here(out, grid={"lr": [0.05, 0.2]}, **fields)
     assert not (out / "trials" / "lr=0.2__seed=0").exists()
     assert (out / "sweep.json").read_bytes() == manifest
+
+
+# ------------------------------------------------ no silent training on NaN, no empty run
+class NaNToyEnv(ToyAgentsEnv):
+    """The toy scenario whose ``entry`` (``"observation"`` or ``"reward"``) turns NaN for one
+    agent from its ``after``-th step on (counted over every episode)."""
+
+    def __init__(self, entry: str = "reward", after: int = 15, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.entry, self.after, self.steps = entry, after, 0
+
+    def _step(self, td: TensorDict) -> TensorDict:
+        out = super()._step(td)
+        self.steps += 1
+        if self.steps > self.after:
+            out["agents", self.entry][0] = float("nan")
+        return out
+
+
+@pytest.mark.parametrize("entry", ["observation", "reward"])
+def test_a_model_free_run_refuses_non_finite_data(tmp_path, toy_scenario, monkeypatch, entry):
+    monkeypatch.setattr(registry, "_SCENARIOS", dict(registry._SCENARIOS))
+    register_env("nantoy", NaNToyEnv)
+    config = ToyConfig(
+        env="nantoy",
+        env_config={"entry": entry},
+        total_frames=40,
+        eval_interval=10,
+        checkpoint_interval=10,
+    )
+    exp = ToyLearner(config, tmp_path / "run")
+    with pytest.raises(ValueError) as err:
+        exp.train()
+    message = str(err.value)
+    assert "\n" not in message and "must be finite" in message
+    assert f"agents/{entry} of the batch toy collected after frame 10" in message
+    results = (tmp_path / "run" / "results.json").read_text()
+    assert exp.frames == 10 and '"frames": 10' in results and "NaN" not in results
+    assert [p.name for p in (tmp_path / "run" / "checkpoints").glob("*.pt")] == [
+        "ckpt_000000000010.pt"
+    ]
+
+
+def test_an_update_interval_beyond_the_budget_is_refused_naming_it():
+    from mapets_rl.recipes.maddpg import MADDPGConfig
+
+    fields = dict(total_frames=400, frames_per_batch=100, batch_size=100)
+    with pytest.raises(ValueError, match="update_interval must be a number of frames with a"):
+        MADDPGConfig(**fields, update_interval=10**9)
+    # rounds at frames 150 and 300 come before the buffer holds 350 transitions (at 400)
+    with pytest.raises(ValueError, match="between frame 301 and frame 400"):
+        MADDPGConfig(**{**fields, "batch_size": 350}, update_interval=150)
+    assert MADDPGConfig(**fields, update_interval=400).update_interval == 400
+    assert MADDPGConfig(**{**fields, "batch_size": 350}, update_interval=200).batch_size == 350

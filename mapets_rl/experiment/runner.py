@@ -66,6 +66,7 @@ from mapets_rl.experiment.results import (
     read_json_object,
 )
 from mapets_rl.modules import AgentGroupSpec, masked_mean
+from mapets_rl.modules.tensor_checks import check_finite_many
 from mapets_rl.threads import config_threads, configure_threads
 
 CONFIG_FILE = "config.yaml"
@@ -599,12 +600,32 @@ class Experiment:
         ``self.frames``), :meth:`train_step` on it; returns its training metrics, with those of
         the training episodes that ended in the batch (:meth:`training_episodes`)."""
         batch = self.collector.next()
+        self.refuse_non_finite(batch)
         self.frames += batch.numel()
         self.batches += 1
         episodes = self.training_episodes(batch)
         losses = self.train_step(batch)
         self.collector.update_policy_weights_()
         return {**self.batch_metrics(batch), **summarize_episodes(episodes), **losses}
+
+    def refuse_non_finite(self, batch: TensorDictBase) -> None:
+        """ValueError (one line naming the entry and the frames) when an observation or a
+        reward of the collected ``batch`` (every float entry named ``observation`` or
+        ``reward``, at the step and in ``next``) is NaN or infinite, before anything trains
+        on it: an update on it would spread NaN into every weight. The checkpoints written
+        before are kept. One host sync per batch when all is finite."""
+        where = f"of the batch {self.name} collected after frame {self.frames}"
+        entries = {
+            f"{'/'.join(key)} {where}": batch.get(key)
+            for key in batch.keys(include_nested=True, leaves_only=True)
+            if isinstance(key, tuple) and key[-1] in ("observation", "reward")
+        }
+        try:
+            check_finite_many({k: v for k, v in entries.items() if v.is_floating_point()})
+        except ValueError as err:
+            raise ValueError(
+                f"{err}: the environment produced them, and a run does not train on non-finite data"
+            ) from None
 
     def training_episodes(self, batch: TensorDictBase) -> list[dict[str, float]]:
         """The training episodes that ended in the collected ``batch`` [*, T] (see

@@ -129,9 +129,31 @@ class OffPolicyConfig(ModelFreeConfig):
         )
         check(self.updates_per_batch >= 1, "updates_per_batch", ">= 1", self.updates_per_batch)
         check(self.update_interval >= 0, "update_interval", ">= 0", self.update_interval)
+        self._check_an_update_round()
         check(self.init_random_frames >= 0, "init_random_frames", ">= 0", self.init_random_frames)
         check(self.lr_actor > 0, "lr_actor", "> 0", self.lr_actor)
         check(self.lr_critic > 0, "lr_critic", "> 0", self.lr_critic)
+
+    def _check_an_update_round(self) -> None:
+        """ConfigError naming ``update_interval`` when no update round of the run falls at or
+        after the batch whose end first fills the replay buffer with ``batch_size``
+        transitions (one per frame): such a run would make no gradient step. (A budget too
+        short to fill the buffer at all is left to the recipe: tiny runs that check the
+        plumbing make no step either.)"""
+        batch, interval = self.frames_per_batch, self.update_interval
+        last = -(-self.total_frames // batch) * batch  # the frame count after the last batch
+        ready = -(-self.batch_size // batch) * batch  # ... after the batch that fills the buffer
+        if interval == 0 or ready > last:
+            return
+        check(
+            last // interval > (ready - batch) // interval,
+            "update_interval",
+            f"a number of frames with a multiple between frame {ready - batch + 1} and frame "
+            f"{last} (the replay buffer first holds batch_size={self.batch_size} transitions "
+            f"after the batch ending at frame {ready}, the last batch ends at frame {last}); "
+            "else the run makes no gradient step",
+            interval,
+        )
 
     @classmethod
     def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
