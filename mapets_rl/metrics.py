@@ -110,6 +110,11 @@ METRIC_RANGES: dict[str, tuple[float, float]] = {
     "frames": (0.0, math.inf),
     "clique_cover_number": (0.0, math.inf),
     "ramp_stuck": (0.0, math.inf),
+    "ramp_forced_merges": (0.0, math.inf),
+    "ramp_mobil_merges": (0.0, math.inf),
+    "mainline_changes_near_merge": (0.0, math.inf),
+    "mainline_changes_elsewhere": (0.0, math.inf),
+    "shielded": (0.0, math.inf),
     "nonfinite_rewards": (0.0, math.inf),
     "random": (0.0, 1.0),
 }

@@ -50,6 +50,7 @@ from mapets_rl.modules import (
     TRANSITION_KEYS,
     AgentGroupSpec,
     GumbelSoftmaxHead,
+    make_discrete_actor,
     make_obs_norm,
     make_q_critic,
     sync_target_statistics,
@@ -189,26 +190,16 @@ class MADDPG(Experiment):
         self.obs_norm, norm_module = make_obs_norm(spec) if config.normalize_obs else (None, None)
         obs_key = OBS if norm_module is None else OBS_NORM
         front = [] if norm_module is None else [norm_module]
-        actor_mlp = MultiAgentMLP(
-            n_agent_inputs=spec.obs_dim,
-            n_agent_outputs=spec.action_dim,
-            n_agents=spec.n_agents,
-            centralized=False,
-            share_params=config.share_params,
-            depth=depth,
-            num_cells=cells,
-            activation_class=nn.ReLU,
-        )
         if spec.discrete:
             epsilon = config.exploration == "epsilon"
             head = GumbelSoftmaxHead(config.gumbel_tau, return_logits=True, sample=not epsilon)
-            self.actor = TensorDictSequential(
-                *front,
-                TensorDictModule(
-                    nn.Sequential(actor_mlp, head),
-                    in_keys=[obs_key],
-                    out_keys=[PREACTIVATION, ACTION],
-                ),
+            self.actor = make_discrete_actor(
+                spec,
+                cells,
+                config.share_params,
+                head,
+                logits_key=PREACTIVATION,
+                obs_norm=norm_module,
             )
             self.exploration = config.epsilon_greedy(self.env.full_action_spec_unbatched[ACTION])
             collection_policy = (
@@ -220,6 +211,16 @@ class MADDPG(Experiment):
                     f"exploration={config.exploration!r} is for discrete actions; "
                     f"{config.env!r} has continuous ones (their exploration is Gaussian noise)"
                 )
+            actor_mlp = MultiAgentMLP(
+                n_agent_inputs=spec.obs_dim,
+                n_agent_outputs=spec.action_dim,
+                n_agents=spec.n_agents,
+                centralized=False,
+                share_params=config.share_params,
+                depth=depth,
+                num_cells=cells,
+                activation_class=nn.ReLU,
+            )
             self.actor = TensorDictSequential(
                 *front,
                 TensorDictModule(actor_mlp, in_keys=[obs_key], out_keys=[PREACTIVATION]),

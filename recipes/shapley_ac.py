@@ -32,19 +32,28 @@ from torchrl.objectives import SoftUpdate
 
 from mapets_rl.experiment import Experiment, SystemRewardMetrics, check
 from mapets_rl.experiment.training import DiscreteExplorationConfig, check_layer_sizes
-from mapets_rl.modules import AgentGroupSpec, GumbelSoftmaxHead
+from mapets_rl.modules import (
+    ACTION,
+    MASK,
+    OBS,
+    OBS_NORM,
+    AgentGroupSpec,
+    GumbelSoftmaxHead,
+    make_discrete_actor,
+    make_obs_norm,
+    sync_target_statistics,
+)
 from mapets_rl.modules.storage import FilledTensorStorage
 from mapets_rl.objectives import ShapleyActorCriticLoss
 from mapets_rl.shapley import CoalitionCritic, RandomCoalition, make_coalition_actor
 
-OBS = ("agents", "observation")
-ACTION = ("agents", "action")
 COALITION = ("agents", "coalition")
+LOGITS = ("agents", "logits")
 REPLAY_KEYS = [
     OBS,
     ACTION,
     COALITION,
-    ("agents", "mask"),
+    MASK,
     ("next", "agents", "observation"),
     ("next", "agents", "reward"),
     ("next", "agents", "terminated"),
@@ -93,6 +102,17 @@ class ShapleyACConfig(DiscreteExplorationConfig):
         logits_reg: weight of the squared-logits penalty in the actor loss (keeps the discrete
             policies from saturating early; 0.1 suits the freeway, whose values are in the
             hundreds; docs/results/history.md#fig-2-at-4-cavs-on-the-freeway).
+        actor_view: what each CAV's actor reads: ``coalition`` (the paper's ``pi_i(s^C)``: a
+            Tanh MLP on the zero-masked joint observation of the timestep's coalition, ordered
+            by ``ego_first``) or ``own`` (MADDPG's actor,
+            :func:`~mapets_rl.modules.make_discrete_actor`: a ReLU MLP on the CAV's own
+            observation, whatever the coalition). With ``own`` and
+            ``normalize_obs`` the actors of the two recipes are built alike, so the arms differ
+            in the critic and the credit only, and the greedy policy reads what it read while
+            collecting (no grand-coalition view it never trained on).
+        normalize_obs: standardise the actor's observations with running statistics
+            (:func:`~mapets_rl.modules.make_obs_norm`, MADDPG's default), updated from every
+            collected batch; the critic reads raw observations.
         exact_max_agents: Shapley exact up to this many CAVs, permutation sampling beyond.
         num_permutations: orderings per update on the sampled path (even, >= 4: antithetic
             pairs, shared by the whole minibatch; the standard error is logged as
@@ -103,6 +123,10 @@ class ShapleyACConfig(DiscreteExplorationConfig):
         shapley_chunk_states: states per pass of the Shapley computation (None: all at once).
             Timings:
             docs/results/performance.md#shapley-values-batched-against-loops-benchmarksshapleypy.
+        shapley_value_states: states of each minibatch whose Shapley values are computed in
+            full for the reported actor loss, ``shapley_value`` and ``shapley_stderr`` (None:
+            all); the actor's gradient uses every state either way (the loss's
+            ``value_states``: it skips the coalitions without the agent elsewhere).
         shapley_bf16: evaluate the Shapley critic passes under bf16 autocast (pays on CPUs with
             AVX512-BF16/AMX and on GPUs; about 9x slower on AVX2-only CPUs).
     """
@@ -141,6 +165,9 @@ class ShapleyACConfig(DiscreteExplorationConfig):
     ego_first: bool = True
     shapley_chunk_states: int | None = 8
     shapley_bf16: bool = False
+    shapley_value_states: int | None = None
+    actor_view: str = "coalition"
+    normalize_obs: bool = False
 
     @classmethod
     def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
@@ -184,8 +211,20 @@ class ShapleyACConfig(DiscreteExplorationConfig):
             "an even int >= 4",
             self.num_permutations,
         )
+        check(
+            self.actor_view in ("coalition", "own"),
+            "actor_view",
+            "one of coalition, own",
+            self.actor_view,
+        )
         check(self.logits_reg >= 0, "logits_reg", ">= 0", self.logits_reg)
         check(self.reward_scale > 0, "reward_scale", "> 0", self.reward_scale)
+        check(
+            self.shapley_value_states is None or self.shapley_value_states >= 1,
+            "shapley_value_states",
+            "None or an int >= 1",
+            self.shapley_value_states,
+        )
         check(
             self.shapley_chunk_states is None or self.shapley_chunk_states >= 1,
             "shapley_chunk_states",
@@ -215,17 +254,33 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
             eval_mode=config.eval_coalition,
             sizes=config.coalition_sizes,
         )
-        self.actor = make_coalition_actor(
-            n,
-            group.obs_dim,
-            group.action_dim,
-            discrete=True,
-            num_cells=config.num_cells,
-            share_params=config.share_params,
-            ego_first=config.ego_first,
-            action_head=GumbelSoftmaxHead(config.gumbel_tau, sample=self.exploration is None),
-            device=device,
-        )
+        self.obs_norm, norm_module = make_obs_norm(group) if config.normalize_obs else (None, None)
+        sample = self.exploration is None
+        if config.actor_view == "own":
+            head = GumbelSoftmaxHead(config.gumbel_tau, return_logits=True, sample=sample)
+            self.actor = make_discrete_actor(
+                group,
+                config.num_cells,
+                config.share_params,
+                head,
+                logits_key=LOGITS,
+                obs_norm=norm_module,
+            ).to(device)
+        else:
+            coalition_actor = make_coalition_actor(
+                n,
+                group.obs_dim,
+                group.action_dim,
+                discrete=True,
+                num_cells=config.num_cells,
+                share_params=config.share_params,
+                ego_first=config.ego_first,
+                action_head=GumbelSoftmaxHead(config.gumbel_tau, sample=sample),
+                observation_key=OBS if norm_module is None else OBS_NORM,
+                device=device,
+            )
+            front = [] if norm_module is None else [norm_module.to(device)]
+            self.actor = TensorDictSequential(*front, coalition_actor) if front else coalition_actor
         self.critic = CoalitionCritic(
             n,
             group.obs_dim,
@@ -262,6 +317,7 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
             logits_reg=config.logits_reg,
             chunk_states=config.shapley_chunk_states,
             autocast_bf16=config.shapley_bf16,
+            value_states=config.shapley_value_states,
             reward_scale=config.reward_scale,
         ).to(device)  # its coalition tables are buffers built on the CPU
         self.updater = SoftUpdate(self.loss, tau=config.tau)
@@ -279,6 +335,9 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
         actor step on the Shapley values and a soft target update."""
         cfg = self.config
         self.buffer.extend(batch.reshape(-1).select(*REPLAY_KEYS).to(self.device))
+        if self.obs_norm is not None:
+            self.obs_norm.update(batch.get(OBS), batch.get(MASK, None))
+            sync_target_statistics(self.loss, self.obs_norm)
         if self.exploration is not None:
             self.exploration.step(batch.numel())
         steps = cfg.gradient_steps(self.frames - batch.numel(), self.frames)

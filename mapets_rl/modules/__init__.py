@@ -26,7 +26,12 @@ from mapets_rl.modules.keys import (
     VALUE,
 )
 from mapets_rl.modules.normalization import RunningObsNorm, make_obs_norm, sync_target_statistics
-from mapets_rl.modules.policies import concat_last, make_q_critic, make_stochastic_policy
+from mapets_rl.modules.policies import (
+    concat_last,
+    make_discrete_actor,
+    make_q_critic,
+    make_stochastic_policy,
+)
 from mapets_rl.modules.tile_coding import (
     TileCodedObservation,
     TileCoder,
@@ -60,6 +65,7 @@ __all__ = [
     "concat_last",
     "gumbel_one_hot",
     "make_obs_norm",
+    "make_discrete_actor",
     "make_q_critic",
     "make_stochastic_policy",
     "restricted_epsilon_greedy",

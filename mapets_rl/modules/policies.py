@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
+from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import MultiAgentMLP, OneHotCategorical, ProbabilisticActor, TanhNormal
 
@@ -95,5 +96,39 @@ def make_q_critic(
             ),
             in_keys=[OBS_ACTION],
             out_keys=[Q_VALUE],
+        ),
+    )
+
+
+def make_discrete_actor(
+    spec: AgentGroupSpec,
+    num_cells: list[int],
+    share_params: bool,
+    head: nn.Module,
+    *,
+    logits_key: NestedKey,
+    obs_norm: TensorDictModule | None = None,
+) -> TensorDictSequential:
+    """Decentralised deterministic actor of one-hot actions (MADDPG's): (``obs_norm`` ->) each
+    agent's own observation ``[*, I, obs]`` -> a ReLU ``MultiAgentMLP`` -> logits
+    ``logits_key [*, I, n]`` -> ``head`` (logits -> ``(logits, action)``, e.g.
+    :class:`~mapets_rl.modules.heads.GumbelSoftmaxHead` with ``return_logits=True``) ->
+    ``("agents","action")`` ``[*, I, n]``."""
+    obs_key = OBS if obs_norm is None else OBS_NORM
+    front = [] if obs_norm is None else [obs_norm]
+    mlp = MultiAgentMLP(
+        n_agent_inputs=spec.obs_dim,
+        n_agent_outputs=spec.action_dim,
+        n_agents=spec.n_agents,
+        centralized=False,
+        share_params=share_params,
+        depth=len(num_cells),
+        num_cells=num_cells,
+        activation_class=nn.ReLU,
+    )
+    return TensorDictSequential(
+        *front,
+        TensorDictModule(
+            nn.Sequential(mlp, head), in_keys=[obs_key], out_keys=[logits_key, ACTION]
         ),
     )

@@ -81,6 +81,12 @@ class ShapleyActorCriticLoss(LossModule):
             result does not depend on it, the memory traffic does.
         reward_scale: multiplies ``R(C)`` in the critic target (``> 0``): the characteristic
             function, and so ``phi``, is learnt in units of ``reward_scale`` rewards.
+        value_states: on the sampled path, the states of a minibatch (the first ones) whose
+            Shapley values the actor loss computes in full, for its reported value and the
+            logged ``shapley_value`` / ``shapley_stderr`` (``None``: all). The actor's gradient
+            uses every state either way: it does not depend on the coalitions without the
+            agent (their values are the baseline ``E[v(P)]`` of ``phi_i``), so their critic
+            passes are skipped beyond these states. ``shapley_values`` always computes all.
         autocast_bf16: evaluate the critic's hidden layers for the Shapley value under bf16
             autocast (fast where the CPU has AVX512-BF16/AMX or on a GPU; slower on AVX2-only
             CPUs). Error: see ``benchmarks/shapley.py``.
@@ -152,6 +158,7 @@ class ShapleyActorCriticLoss(LossModule):
         chunk_states: int | None = None,
         autocast_bf16: bool = False,
         reward_scale: float = 1.0,
+        value_states: int | None = None,
     ) -> None:
         if not isinstance(critic_network, CoalitionCritic):
             raise ValueError(
@@ -171,6 +178,10 @@ class ShapleyActorCriticLoss(LossModule):
             isinstance(chunk_states, bool) or not isinstance(chunk_states, int) or chunk_states < 1
         ):
             raise ValueError(f"chunk_states must be None or an int >= 1, got {chunk_states!r}")
+        if value_states is not None and (
+            isinstance(value_states, bool) or not isinstance(value_states, int) or value_states < 1
+        ):
+            raise ValueError(f"value_states must be None or an int >= 1, got {value_states!r}")
         gumbel_temperature = finite_number(
             "gumbel_temperature", gumbel_temperature, minimum=0, strict=True
         )
@@ -192,6 +203,7 @@ class ShapleyActorCriticLoss(LossModule):
         self.delay_actor = delay_actor
         self.delay_value = delay_value
         self.chunk_states = chunk_states
+        self.value_states = value_states
         self.autocast_bf16 = bool(autocast_bf16)
         self.reward_scale = reward_scale
         self.convert_to_functional(actor_network, "actor_network", create_target_params=delay_actor)
@@ -357,13 +369,15 @@ class ShapleyActorCriticLoss(LossModule):
         the exact path, over the antithetic pair means on the sampled path). Gradients reach
         the actor parameters, not the critic's.
         """
-        phi, stderr, _ = self._shapley_and_logits(tensordict)
+        phi, stderr, _, _ = self._shapley_and_logits(tensordict, None)
         return (phi, stderr) if return_stderr else phi
 
     def _shapley_and_logits(
-        self, tensordict: TensorDictBase
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """``(phi [*, n], stderr [*, n], logits)``; ``stderr`` is zero on the exact path."""
+        self, tensordict: TensorDictBase, value_states: int | None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, int]:
+        """``(phi [*, n], stderr [*, n], logits, valued)``: ``phi`` and ``stderr`` hold the
+        Shapley values of the first ``valued`` (flattened) states, at least ``value_states``
+        (:meth:`_shapley_from_embeddings`); ``stderr`` is zero on the exact path."""
         inputs = self._inputs(tensordict, target=False)
         obs, coalition = inputs["observation"], inputs["coalition"]
         a_batch = inputs["action"].to(obs.dtype)
@@ -377,17 +391,28 @@ class ShapleyActorCriticLoss(LossModule):
                 h_batch = critic.embed(obs, a_batch)  # [*, n, H]
             delta = critic.embed(obs, a_pol) - h_batch  # [*, n, H]
             lead = h_batch.shape[:-2]
-            phi, stderr = self._shapley_from_embeddings(
+            phi, stderr, valued = self._shapley_from_embeddings(
                 critic,
                 h_batch.reshape(-1, *h_batch.shape[-2:]),
                 delta.reshape(-1, *delta.shape[-2:]),
+                value_states,
             )
-        return phi.reshape(*lead, -1), stderr.reshape(*lead, -1), logits
+        return phi.reshape(*lead, -1), stderr.reshape(*lead, -1), logits, valued
 
     def _shapley_from_embeddings(
-        self, critic: CoalitionCritic, h_batch: torch.Tensor, delta: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``h_batch, delta [S, n, H] -> (phi, stderr) [S, n]``, chunked over the ``S`` states.
+        self,
+        critic: CoalitionCritic,
+        h_batch: torch.Tensor,
+        delta: torch.Tensor,
+        value_states: int | None,
+    ) -> tuple[torch.Tensor, torch.Tensor, int]:
+        """``h_batch, delta [S, n, H] -> (phi, stderr [S, n], valued)``, chunked over the
+        ``S`` states.
+
+        On the sampled path with ``value_states``, only the chunks that hold the first
+        ``value_states`` states (``valued`` states, whole chunks) evaluate the coalitions
+        without ``i``; the rest return ``mean_P v(P + i)`` in place of ``phi_i`` (the same
+        gradient: the dropped ``mean_P v(P)`` does not depend on the actor) and NaN errors.
 
         The heavy part runs without building a graph over the actor: per chunk, the gradient
         ``g_i = d phi_i / d delta_i`` (``phi_i`` depends on ``delta_i`` only) is taken at once
@@ -411,6 +436,9 @@ class ShapleyActorCriticLoss(LossModule):
             masks_with = before | own_bit  # [n, P, n]: the prefix before i, plus i
         need_grad = torch.is_grad_enabled() and delta.requires_grad
         size = h_batch.shape[0] if self.chunk_states is None else self.chunk_states
+        states = h_batch.shape[0]
+        wanted = states if exact or value_states is None else min(value_states, states)
+        valued = min(-(-wanted // size) * size, states)
         autocast = dict(
             device_type=h_batch.device.type,
             dtype=torch.bfloat16,
@@ -425,8 +453,9 @@ class ShapleyActorCriticLoss(LossModule):
         for start in range(0, h_batch.shape[0], size):
             hb = h_batch[start : start + size]
             d = delta[start : start + size].detach().requires_grad_(need_grad)
-            with torch.no_grad():
-                base = masks @ hb.unsqueeze(-3) + critic.bias  # [S_c, n, K, H]
+            with torch.no_grad():  # one [n K, n] @ [n, H] product per state: hb is not copied
+                flat = masks.flatten(0, 1) @ hb  # [S_c, n K, H]
+                base = flat.unflatten(-2, masks.shape[:2]) + critic.bias  # [S_c, n, K, H]
             with torch.enable_grad() if need_grad else torch.no_grad():
                 # exact: the coalitions already hold h_i(a_batch), add delta_i; sampled: the
                 # prefixes before i do not hold i, add h_i(a_pol) = h_i(a_batch) + delta_i
@@ -443,24 +472,27 @@ class ShapleyActorCriticLoss(LossModule):
                     v_all = critic.values_from_embedding(hb, self._masks_all)  # [S_c, 2**n]
                     phis.append(phi_with.detach() + v_all @ self._m_without.to(v_all.dtype))
                     stderrs.append(torch.zeros_like(phi_with))
-                else:
+                elif start < valued:
                     marginal = v_with.detach() - head(base, before)  # [S_c, n, P]
                     pairs = marginal.unflatten(-1, (-1, 2)).mean(-1)  # [S_c, n, P/2]
                     phis.append(pairs.mean(-1))
                     stderrs.append(pairs.std(-1, correction=1) / math.sqrt(pairs.shape[-1]))
+                else:
+                    phis.append(phi_with.detach())
+                    stderrs.append(torch.full_like(phi_with, math.nan))
         phi, stderr = torch.cat(phis), torch.cat(stderrs)
         if need_grad:
             grad = torch.cat(grads)
             phi = phi + ((delta - delta.detach()) * grad).sum(-1)
-        return phi, stderr
+        return phi, stderr, valued
 
     def loss_actor(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """Shapley deterministic policy gradient (Algorithm 1 lines 12-13), plus
         ``logits_reg * mean(logits**2)`` for discrete actions."""
-        phi, stderr, logits = self._shapley_and_logits(tensordict)
+        phi, stderr, logits, valued = self._shapley_and_logits(tensordict, self.value_states)
         mask = tensordict.get(self.tensor_keys.mask, None)
         if mask is None:
-            loss = -phi.mean()
+            weight = torch.ones_like(phi)
         else:
             if mask.numel() != phi.numel():
                 raise ValueError(
@@ -469,12 +501,20 @@ class ShapleyActorCriticLoss(LossModule):
                 )
             mask = as_mask(repr(self.tensor_keys.mask), mask, f"{list(phi.shape)}")
             weight = mask.reshape(phi.shape).to(phi.dtype)
-            loss = -(phi * weight).sum() / weight.sum().clamp_min(1.0)
+        n = self.n_agents
+        phi_flat, weight_flat = phi.reshape(-1, n), weight.reshape(-1, n)
+
+        def weighted_mean(values: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+            return (values * weights).sum() / weights.sum().clamp_min(1.0)
+
+        surrogate = -weighted_mean(phi_flat, weight_flat)  # the gradient of every state
+        value = -weighted_mean(phi_flat[:valued], weight_flat[:valued]).detach()
+        loss = surrogate - surrogate.detach() + value  # value: the valued states' -mean phi
         if logits is not None and self.logits_reg > 0:
             loss = loss + self.logits_reg * logits.pow(2).mean()
-        meta = {"shapley_value": phi.detach().mean()}
-        if self.n_agents > self.exact_max_agents:
-            meta["shapley_stderr"] = stderr.mean()
+        meta = {"shapley_value": phi_flat[:valued].detach().mean()}
+        if n > self.exact_max_agents:
+            meta["shapley_stderr"] = stderr.reshape(-1, n)[:valued].mean()
         return loss, meta
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

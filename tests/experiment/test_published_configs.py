@@ -30,7 +30,7 @@ TINY_RECIPE: dict[str, list[str]] = {
         "batch_size=8",
         "init_random_frames=0",
         "update_interval=20",
-        "num_permutations=2",
+        "num_permutations=4",
     ],  # fmt: skip
     "mappo": ["minibatch_size=10"],
     "coma": ["minibatch_size=10"],
