@@ -186,16 +186,23 @@ class RunConfig(ConfigFields):
         layouts upgraded by :meth:`upgrade_dict`) with ``key=value`` ``overrides`` applied to
         it; the result is validated once, as a whole (a file may leave to an override what
         only the combination makes valid). Every error is a one-line ConfigError."""
-        data = cls.upgrade_dict(
-            cls.rename_old_keys(read_yaml_mapping(path), f"config file {str(path)!r}")
-        )
+        return cls.from_fields(read_yaml_mapping(path), overrides, f"config file {str(path)!r}")
+
+    @classmethod
+    def from_fields(
+        cls, fields: Mapping[str, Any], overrides: Iterable[str] = (), source: str = "config"
+    ) -> RunConfig:
+        """Build from a mapping of fields (a config file's, named ``source`` in errors) as
+        :meth:`from_yaml` does: old keys renamed, older layouts upgraded, ``key=value``
+        ``overrides`` applied, validated once; every error is a one-line ConfigError."""
+        data = cls.upgrade_dict(cls.rename_old_keys(dict(fields), source))
         overrides = list(overrides)
         data = cls._apply_overrides(data, overrides)
         try:
             return cls.from_dict(data)
         except ConfigError as err:
             with_overrides = " with the key=value overrides" if overrides else ""
-            raise ConfigError(f"config file {str(path)!r}{with_overrides}: {err}") from None
+            raise ConfigError(f"{source}{with_overrides}: {err}") from None
 
     def to_dict(self) -> dict[str, Any]:
         return {f.name: to_plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
