@@ -32,6 +32,7 @@ import json
 import logging
 import os
 import sys
+import warnings
 from collections.abc import Sequence
 from typing import Any, NoReturn
 
@@ -62,12 +63,31 @@ class _StderrLineHandler(logging.Handler):
         sys.stderr.write(f"{PROG}: {record.levelname.lower()}: {message}\n")
 
 
+DEPRECATED_KEY = "config key "
+"""How the library's warning about a deprecated config key begins (``mapets_rl.config``)."""
+
+
 def _show_library_warnings() -> None:
-    """Route the ``mapets_rl`` loggers' warnings to stderr as single lines (once)."""
+    """Route the ``mapets_rl`` loggers' warnings to stderr as single lines (once), and the
+    library's DeprecationWarning about a renamed config key too (Python hides
+    DeprecationWarnings by default)."""
     log = logging.getLogger("mapets_rl")
     if not any(isinstance(h, _StderrLineHandler) for h in log.handlers):
         handler = _StderrLineHandler(logging.WARNING)
         log.addHandler(handler)
+    if getattr(warnings.showwarning, "one_line", False):
+        return
+    shown = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
+        if issubclass(category, DeprecationWarning) and str(message).startswith(DEPRECATED_KEY):
+            sys.stderr.write(f"{PROG}: warning: {message}\n")
+        else:
+            shown(message, category, filename, lineno, file, line)
+
+    show.one_line = True  # type: ignore[attr-defined]
+    warnings.showwarning = show
+    warnings.filterwarnings("default", message=DEPRECATED_KEY, category=DeprecationWarning)
 
 
 def _overrides(items: Sequence[str]) -> list[str]:
@@ -525,16 +545,23 @@ def _metric_units(names: Sequence[str]) -> dict[str, str]:
 
 def _train(exp: Any) -> None:
     """``exp.train()``; a file that cannot be written (disk full, file size limit) is one line
-    naming it (exit 2); the checkpoints written before it stay valid."""
+    naming it (exit 2), and so is a collected batch with NaN or infinite observations or
+    rewards (the checkpoints written before either stay valid). A run stopped by SIGTERM (after
+    its checkpoint) says so in one line and exits with 128 + the signal's number, as a process
+    killed by it would."""
     from mapets_rl.experiment.files import WriteFailed
+    from mapets_rl.experiment.runner import NonFiniteData, RunStopped
     from mapets_rl.ray_runtime import RayUnreachable
 
     try:
         exp.train()
     except WriteFailed as err:
         _fail(f"{err}; the run stopped, its earlier checkpoints are kept (resume it later)")
-    except RayUnreachable as err:
+    except (RayUnreachable, NonFiniteData) as err:
         _fail(str(err))
+    except RunStopped as err:
+        sys.stderr.write(f"{PROG}: {err}\n")
+        raise SystemExit(128 + err.signum) from None
 
 
 def _load_run(run_dir: str, overrides: Sequence[str] = ()):

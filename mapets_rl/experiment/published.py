@@ -78,8 +78,8 @@ def _merge(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
 def _resolve(name_or_path: str | os.PathLike) -> tuple[str, Path]:
     """The name and file of a published configuration: an existing file, else a shipped name."""
     given = Path(name_or_path)
-    if given.is_file():
-        return str(given), given
+    if given.exists() or given.suffix in (".yaml", ".yml") or given.is_absolute():
+        return str(given), given  # a file: read_yaml_mapping says what is wrong with it
     name = str(name_or_path).removesuffix(CONFIG_SUFFIX)
     path = config_root() / f"{name}{CONFIG_SUFFIX}"
     if ".." in Path(name).parts or not path.is_file():
