@@ -11,7 +11,7 @@ bounds and a per-member bootstrap resample of each minibatch.
 * with ``--reference mbrl-lib``: mbrl-lib's ``ModelTrainer`` on a ``GaussianMLP`` ensemble of
   the same sizes, one trainer per agent (mbrl-lib has no multi-agent batching), same data,
   epochs, batch size, bootstrap, NLL with learned log-variance bounds and Adam lr (see
-  ``benchmarks/mbrl_reference.train_ensembles``). Headline: mbrl-lib's time per agent over
+  ``train_ensembles`` of ``benchmarks/_common.py``). Headline: mbrl-lib's time per agent over
   ours (medians of the interleaved repeats, with min..max). Optional: it needs mbrl-lib,
   which this script never installs (without it the flag prints how to install it beside the
   pinned torch and exits with status 2).
@@ -31,7 +31,7 @@ import statistics
 import time
 
 import torch
-from mbrl_reference import REFERENCES, require_mbrl, train_ensembles
+from _common import REFERENCES, require_mbrl, train_ensembles
 from tensordict import TensorDict
 from torch import nn
 from torch.nn import functional as F

@@ -12,10 +12,10 @@ episodes of highway-env's. Trajectories: the largest position difference over th
 each episode (median and maximum over episodes) and the share of episodes whose vehicles stay
 within 0.5 m of highway-env's.
 
-Rules (``benchmarks/freeway_headroom.py``): ``keep-lane``, ``greedy`` (overtaking) and, on
-``freeway-merge``, ``cooperative`` (yield to ramp vehicles).
+Rules (reference policies, ``mapets_rl.envs.references``): ``keep-lane``, ``greedy``
+(overtaking) and, on ``freeway-merge``, ``cooperative`` (yield to ramp vehicles).
 
-    PYTHONPATH=. python benchmarks/freeway_calibration.py [--episodes 100]
+    python benchmarks/freeway_calibration.py [--episodes 100]
         [--ratios 0.17 0.33 0.5 0.67 0.83 1] [--envs freeway-merge freeway]
         [--dtype float32] [--kernel native] [--out calibration.json]
 """
@@ -24,18 +24,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import statistics
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from freeway_headroom import CooperativeMerge, GreedyOvertaking
 from tensordict import TensorDict
 
 from mapets_rl.envs import FreewayEnv, FreewayMergeEnv
 from mapets_rl.envs.freeway import KL
+from mapets_rl.envs.references import CooperativeMerge, GreedyOvertaking
 from mapets_rl.envs.torch_freeway.highway_state import load_scene
 from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway
 from mapets_rl.machine import machine_line
@@ -45,11 +44,11 @@ METRICS = ("system_return", "average_velocity", "average_comfort", "ramp_stuck")
 
 
 def rule(name: str, lanes: int) -> torch.nn.Module | None:
-    """The scripted rule ``name`` (None: keep lane), with freeway_headroom.py's defaults."""
+    """The reference rule ``name`` (None: keep lane), with its published settings."""
     if name == "greedy":
-        return GreedyOvertaking(lanes, 40.0, 15.0, 15.0, torch.int64)
+        return GreedyOvertaking(lanes)
     if name == "cooperative":
-        return CooperativeMerge(lanes, math.inf, 60.0, 30.0, 15.0, 15.0, 1.5, torch.int64)
+        return CooperativeMerge(lanes)
     return None
 
 

@@ -10,7 +10,8 @@ keeps its lane. Speeds stay under IDM in both policies. If the rule beats keep-l
 has headroom the learners did not find; if not, keep-lane is hard to beat on this reward.
 
 On ``--env freeway-merge`` (the freeway with an on-ramp, issue 21) a third, cooperative rule
-joins them (``CooperativeMerge``): a CAV in the rightmost lane before the merge point moves
+joins them (``mapets_rl.envs.references.CooperativeMerge``; the overtaking rule is
+``GreedyOvertaking``): a CAV in the rightmost lane before the merge point moves
 left when a ramp vehicle is beside it (60 m ahead to 30 m behind) and the left lane has room;
 otherwise it keeps its lane.
 
@@ -26,111 +27,22 @@ from __future__ import annotations
 
 import argparse
 
-import torch
-from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torchrl.data import OneHot
 from torchrl.envs import EnvBase
 
 from mapets_rl.envs import scenario_config
-from mapets_rl.envs.freeway import CL, CR, KL, OBS_DIM
-from mapets_rl.envs.freeway_merge import OBS_DIM as MERGE_OBS_DIM
+from mapets_rl.envs.references import CooperativeMerge, GreedyOvertaking
 from mapets_rl.experiment import ExperimentConfig, evaluate_scripted
 from mapets_rl.machine import machine_line
 from mapets_rl.metrics import MPH_PER_MPS
-from mapets_rl.modules import ACTION, OBS
 from mapets_rl.statistics import mean_ci95
 
 
-class GreedyOvertaking(TensorDictModuleBase):
-    """The overtaking rule above, vectorised over CAVs: observation ``[*, n, >= 22]`` (own speed,
-    lane, lateral offset, acceleration; then ``(present, dx, dv)`` for front/rear in the
-    left/own/right lane) -> one-hot action ``[*, n, 4]``."""
-
-    in_keys = [OBS]
-    out_keys = [ACTION]
-
-    def __init__(
-        self, lanes: int, follow_gap: float, gain_gap: float, rear_gap: float, dtype: torch.dtype
-    ) -> None:
-        super().__init__()
-        self.lanes, self.follow_gap = lanes, follow_gap
-        self.gain_gap, self.rear_gap, self.dtype = gain_gap, rear_gap, dtype
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        obs = tensordict.get(OBS)
-        lane = obs[..., 1]
-        nb = obs[..., 4:OBS_DIM].unflatten(-1, (3, 2, 3))  # [*, n, lane (L, own, R), front/rear, 3]
-        front_dx, front_dv = nb[..., 1, 0, 1], nb[..., 1, 0, 2]
-        blocked = (nb[..., 1, 0, 0] > 0) & (front_dx < self.follow_gap) & (front_dv < -0.5)
-
-        def free(k: int, exists: torch.Tensor) -> torch.Tensor:
-            longer = nb[..., k, 0, 1] > front_dx + self.gain_gap
-            clear_behind = -nb[..., k, 1, 1] > self.rear_gap
-            return exists & longer & clear_behind
-
-        left = blocked & free(0, lane >= 1)
-        right = blocked & ~left & free(2, lane <= self.lanes - 2)
-        index = torch.full_like(lane, KL, dtype=torch.long)
-        index = torch.where(left, CL, torch.where(right, CR, index))
-        tensordict.set(ACTION, torch.nn.functional.one_hot(index, 4).to(self.dtype))
-        return tensordict
-
-
-class CooperativeMerge(TensorDictModuleBase):
-    """The cooperative rule of ``freeway-merge``, vectorised over CAVs: observation
-    ``[*, n, 24]`` (the freeway's 22 entries, whose right block is the ramp for a CAV in the
-    rightmost lane; then the distances to the acceleration lane's start and to the merge
-    point) -> one-hot action ``[*, n, 4]``.
-
-    A CAV in the rightmost lane (``lanes - 1``) less than ``approach`` metres before the
-    acceleration lane (the distance is clipped at the perception range, so ``approach`` should
-    not exceed it) and before the merge point changes left when a ramp vehicle is beside it (the
-    nearest ramp vehicle ahead within ``ramp_ahead`` metres or behind within ``ramp_behind``
-    metres) and the left lane has room (front gap > ``front_gap``, rear gap > ``rear_gap`` +
-    ``closing_time`` x the speed at which the left rear vehicle comes up);
-    every other CAV keeps its lane (a CAV on the ramp merges by MOBIL under KL)."""
-
-    in_keys = [OBS]
-    out_keys = [ACTION]
-
-    def __init__(
-        self,
-        lanes: int,
-        approach: float,
-        ramp_ahead: float,
-        ramp_behind: float,
-        front_gap: float,
-        rear_gap: float,
-        closing_time: float,
-        dtype: torch.dtype,
-    ) -> None:
-        super().__init__()
-        self.lanes, self.approach, self.dtype = lanes, approach, dtype
-        self.closing_time = closing_time
-        self.ramp_ahead, self.ramp_behind = ramp_ahead, ramp_behind
-        self.front_gap, self.rear_gap = front_gap, rear_gap
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        obs = tensordict.get(OBS)
-        if obs.shape[-1] != MERGE_OBS_DIM:
-            raise ValueError(
-                f"CooperativeMerge needs freeway-merge observations ({MERGE_OBS_DIM} entries), "
-                f"got {obs.shape[-1]}"
-            )
-        lane = obs[..., 1]
-        nb = obs[..., 4:OBS_DIM].unflatten(-1, (3, 2, 3))  # [*, n, lane (L, own, R), front/rear, 3]
-        to_start, to_end = obs[..., OBS_DIM], obs[..., OBS_DIM + 1]
-        near = (lane == self.lanes - 1) & (to_start < self.approach) & (to_end > 0)
-        ramp_front = (nb[..., 2, 0, 0] > 0) & (nb[..., 2, 0, 1] <= self.ramp_ahead)
-        ramp_rear = (nb[..., 2, 1, 0] > 0) & (-nb[..., 2, 1, 1] <= self.ramp_behind)
-        closing = nb[..., 0, 1, 2].clamp(min=0.0)  # how fast the left rear vehicle comes up
-        room = (nb[..., 0, 0, 1] > self.front_gap) & (
-            -nb[..., 0, 1, 1] > self.rear_gap + self.closing_time * closing
-        )
-        yield_left = near & (ramp_front | ramp_rear) & room
-        index = torch.where(yield_left, CL, KL).long()
-        tensordict.set(ACTION, torch.nn.functional.one_hot(index, 4).to(self.dtype))
-        return tensordict
+def action_format(env: EnvBase) -> dict:
+    """The rules' keyword arguments for ``env``'s CAV action (one-hot or index, its dtype)."""
+    spec = env.full_action_spec[("agents", "action")]
+    return {"one_hot": isinstance(spec, OneHot), "dtype": spec.dtype}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -168,22 +80,15 @@ def main(argv: list[str] | None = None) -> None:
     print(f"# {machine_line()}")
 
     def overtaking(env: EnvBase) -> TensorDictModuleBase:
-        spec = env.full_action_spec[ACTION]
         lanes = int(scenario_config(env)["lanes"])
-        return GreedyOvertaking(lanes, args.follow_gap, args.gain_gap, args.rear_gap, spec.dtype)
+        gaps = (args.follow_gap, args.gain_gap, args.rear_gap)
+        return GreedyOvertaking(lanes, *gaps, **action_format(env))
 
     def cooperative(env: EnvBase) -> TensorDictModuleBase:
-        spec = env.full_action_spec[ACTION]
         lanes = int(scenario_config(env)["lanes"])
+        gaps = (args.ramp_ahead, args.ramp_behind, args.yield_front_gap, args.yield_rear_gap)
         return CooperativeMerge(
-            lanes,
-            args.approach,
-            args.ramp_ahead,
-            args.ramp_behind,
-            args.yield_front_gap,
-            args.yield_rear_gap,
-            args.closing_time,
-            spec.dtype,
+            lanes, args.approach, *gaps, args.closing_time, **action_format(env)
         )
 
     policies = {"keep lane": None, "greedy overtaking": overtaking}

@@ -48,9 +48,9 @@ step learners 300 bash -c "set -e; \
     $py benchmarks/learner_throughput.py --device cuda --recipes maddpg --num-envs 1024 \
         --frames 40960 --rounds 3 --threads 1 --schedule openai"
 # Issue 32's training stack (epsilon exploration without emergency stops, the model-predictive
-# shield, w = 1, individual rewards; MADDPG with one critic per CAV, Shapley AC with the Shapley
-# arm's schedule of benchmarks/cooperation_control.py and the three changes with which it finds
-# the merge: uniform coalition sizes, a per-agent layer, member heads) on GPU roads, and on one
+# shield, w = 1, individual rewards; MADDPG with one critic per CAV, Shapley AC with the fields
+# of the published config freeway-merge/shapley-arm, the three changes with which it finds the
+# merge included: uniform coalition sizes, a per-agent layer, member heads) on GPU roads, and on one
 # core of this host at the 256 roads of the CPU runs: what a 1M-frame seed of each arm costs.
 stack="exploration=epsilon 'exploration_actions=[0, 1, 2]' env_config.shield=true \
     env_config.velocity_weight=1.0 env_config.team_reward=false"

@@ -15,7 +15,7 @@ reports, all measured in the same run:
 * one call for ``I`` agents vs ``I`` separate single-agent calls;
 * peak resident memory of the whole process during the decisions (VmHWM, reset before each one);
 * with ``--reference mbrl-lib``: mbrl-lib's PETS agent (``TrajectoryOptimizerAgent`` + CEM +
-  ``GaussianMLP`` ensemble, TS-inf; see ``benchmarks/mbrl_reference.py``) at the same sizes,
+  ``GaussianMLP`` ensemble, TS-inf; see ``benchmarks/_common.py``) at the same sizes,
   models (our weights copied), observations and reward: ``I`` separate ``agent.act(obs)``
   calls (mbrl-lib has no multi-agent batching), interleaved with our one call for the ``I``
   agents; the headline is our time per agent over mbrl-lib's (medians, with min..max).
@@ -44,7 +44,7 @@ from collections.abc import Callable
 from dataclasses import replace
 
 import torch
-from mbrl_reference import REFERENCES, pets_agents, require_mbrl
+from _common import REFERENCES, pets_agents, require_mbrl
 from torch.nn import functional as F
 
 from mapets_rl.config import parse_override

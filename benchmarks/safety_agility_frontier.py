@@ -1,24 +1,18 @@
 """The safety-agility frontier of MA-PETS' planner on the figure-eight (issue 33).
 
 Each point is one setting of the planner reward's margins (``headway`` x ``lane_change_gap``;
-``FigureEightPlannerReward``) and one planner, driven over the same seeds by
-``benchmarks/multilane_diagnosis.py``'s episode loop (400 steps, the recipe's scenario
+``FigureEightPlannerReward``) and one planner, driven over the same seeds by the episode loop
+of ``multilane_diagnosis.py`` (``benchmarks/_common.py``; 400 steps, the recipe's scenario
 defaults, cpu-preset CEM with iCEM's anchors and keep-best as in the recipe): its mean safety
 and agility (paper eqs. 27-28) with 95% percentile-bootstrap intervals over the seeds. Planners:
 
 - ``oracle``: the exact own-motion model, every other vehicle at constant speed;
 - ``oracle-shared``: the same with plan sharing within ``--comm-range`` (``comm.share_plans``):
   the neighbouring CAVs' broadcast plans replace their constant-speed guess;
-- ``oracle-exact``: the same told its observed CAVs' actual future speeds, replayed from the
-  previous rollout of the same seed, ``--replay-iterations`` times after an ``oracle-shared``
-  rollout (``benchmarks/exact_futures.py``): the upper bound of plan sharing. Its point is the
-  last rollout's; a second table gives every rollout's safety and agility and how exact the
-  speeds it was told were. Its rollout 0 is also recorded as the ``oracle-shared`` row of the
-  seed when there is none (the same episode: listing both runs oracle-exact first);
-- ``oracle-exact-windowed``: the same iteration window by window (``--replay-window`` steps,
-  ``benchmarks/multilane_diagnosis.py``): the replays have to agree over a window, not an
-  episode; its rollouts are the oracle-shared one and the committed episode;
 - ``learned`` / ``learned-shared``: a trained MA-PETS run's planner (``--run RUN_DIR``).
+
+(The oracle told its neighbours' actual futures, ``oracle-exact``, was a planner of this script
+at commit 00fe880, retired with ``benchmarks/exact_futures.py``: ``docs/results/history.md``.)
 
 Each row also gives the human drivers' mean distance per step over the same episodes: an upper
 bound the CAVs cannot beat for long on one lane.
@@ -26,10 +20,9 @@ bound the CAVs cannot beat for long on one lane.
 Episodes are appended to ``OUT/rows.jsonl`` as they finish and the ones found there are not run
 again (a stopped sweep resumes). The table and ``OUT/frontier.png`` are written at the end.
 
-    PYTHONPATH=. python benchmarks/safety_agility_frontier.py --out OUT \\
+    python benchmarks/safety_agility_frontier.py --out OUT \\
         [--scenario figure-eight-multilane] [--policies oracle oracle-shared] \\
-        [--headway 0 0.25 0.5] [--lane-change-gap 4 8] [--seeds 0 1 2 3 4 5] \\
-        [--env n_hvs=0] [--replay-iterations 3] [--replay-window 50]
+        [--headway 0 0.25 0.5] [--lane-change-gap 4 8] [--seeds 0 1 2 3 4 5] [--env n_hvs=0]
 
 ``--env key=value`` changes the scenario for every point (e.g. ``n_hvs=0``: no human drivers,
 to see what they cost); rows remember it, and a sweep resumes only rows of the same scenario.
@@ -45,8 +38,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from exact_futures import EXACT_TOLERANCE
-from multilane_diagnosis import POLICIES, SCENARIO, run_episode
+from _common import POLICIES, SCENARIO, run_episode
 
 from mapets_rl.config import ConfigError, parse_override
 from mapets_rl.envs import make_env
@@ -96,13 +88,6 @@ def summarise(rows: list[dict]) -> list[dict]:
         point["crashes"] = float(np.mean([r["crashes"] for r in group]))
         point["human_agility"] = float(np.mean([r["human_agility"] for r in group]))
         point["plan_messages"] = float(np.mean([r["plan_messages"] for r in group]))
-        if "rollouts" in group[0]:  # oracle-exact: per rollout, means over the seeds
-            point["rollouts"] = [
-                {metric: float(np.mean([r["rollouts"][k][metric] for r in group]))
-                 for metric in ("safety", "agility", "crashes", "exact", "mae", "compared")}
-                for k in range(min(len(r["rollouts"]) for r in group))
-            ]  # fmt: skip
-            point["fixed_points"] = sum(r.get("fixed_point") is not None for r in group)
         out.append(point)
     return out
 
@@ -205,11 +190,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--lane-change-gap", nargs="+", type=float, default=[8.0])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3, 4, 5])
     parser.add_argument("--comm-range", type=float, default=100.0, help="*-shared: d [m]")
-    parser.add_argument("--replay-iterations", type=int, default=3,
-                        help="oracle-exact: replayed rollouts after its oracle-shared one "
-                        "(rows record it; resumes only rows with the same)")  # fmt: skip
-    parser.add_argument("--replay-window", type=int, default=50,
-                        help="oracle-exact-windowed: steps per window")  # fmt: skip
     parser.add_argument("--steps", type=int, default=400, help="steps per episode (>= 1)")
     parser.add_argument("--run", default=None, help="learned*: a MA-PETS run directory")
     parser.add_argument("--baselines", nargs="*", type=Path, default=[], metavar="RUN_DIR",
@@ -262,10 +242,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error(f"--comm-range must be >= 0 metres, got {args.comm_range}")
     if args.steps < 1:
         parser.error(f"--steps must be >= 1, got {args.steps}")
-    if args.replay_iterations < 1:
-        parser.error(f"--replay-iterations must be >= 1, got {args.replay_iterations}")
-    if args.replay_window < 1:
-        parser.error(f"--replay-window must be >= 1, got {args.replay_window}")
     try:
         baselines = baseline_points(args.baselines, args.scenario)
     except ValueError as err:
@@ -274,33 +250,22 @@ def main(argv: list[str] | None = None) -> list[dict]:
     print(f"# {machine_line()}")
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "rows.jsonl"
-    rows = [
-        r for r in load_rows(path) if r.get("scenario") == tag
-        and r.get("replay_iterations", args.replay_iterations) == args.replay_iterations
-        and r.get("replay_window", args.replay_window) == args.replay_window
-    ]  # fmt: skip
+    rows = [r for r in load_rows(path) if r.get("scenario") == tag]
     done = {key(r) for r in rows}
-    policies = sorted(args.policies, key=lambda p: not p.startswith("oracle-exact"))
-    grid = itertools.product(policies, args.headway, args.lane_change_gap, args.seeds)
+    grid = itertools.product(args.policies, args.headway, args.lane_change_gap, args.seeds)
     for policy, headway, gap, seed in grid:
         if (policy, headway, gap, seed) in done:
             continue
         reward = FigureEightPlannerReward(headway=headway, lane_change_gap=gap, **reward_fields)
         row = run_episode(
             policy, seed, args.steps, reward, args.scenario, args.run, (), args.comm_range,
-            env_config, args.replay_iterations, args.replay_window, **planner,
+            env_config, **planner,
         )  # fmt: skip
-        new = [row]  # an oracle-exact's rollout 0 is the seed's oracle-shared episode
-        if policy.startswith("oracle-exact") and ("oracle-shared", headway, gap, seed) not in done:
-            shared = {**row["rollouts"][0], "seed": seed, "from": "oracle-exact rollout 0"}
-            new.append(shared)
-        for r in new:
-            r.update(headway=headway, lane_change_gap=gap, scenario=tag)
-            with path.open("a") as out:
-                out.write(json.dumps(r) + "\n")
-            rows.append(r)
-            done.add(key(r))
-            print(json.dumps(r), flush=True)
+        row.update(headway=headway, lane_change_gap=gap, scenario=tag)
+        with path.open("a") as out:
+            out.write(json.dumps(row) + "\n")
+        rows.append(row)
+        print(json.dumps(row), flush=True)
     wanted = {(p, h, g) for p, h, g, _ in itertools.product(
         args.policies, args.headway, args.lane_change_gap, args.seeds)}  # fmt: skip
     points = [p for p in summarise(rows) if (p["policy"], p["headway"], p["lane_change_gap"])
@@ -316,28 +281,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
             f"{interval(p['safety'])} | {interval(p['agility'])} | "
             f"{p['crashes']:.1f} | {p['human_agility']:.3f} | {p['plan_messages']:.1f} |"
         )
-    for b in baselines:  # in the same table, before the oracle-exact rollouts' own one
+    for b in baselines:  # in the same table
         print(
             f"| {b['policy']} (trained {max(b['frames'])} steps) | - | - | {b['seeds']} | "
             f"{interval(b['safety'])} | {interval(b['agility'])} | - | - | - |"
         )
-    exact = [p for p in points if "rollouts" in p]
-    if exact:
-        print(
-            f"\noracle-exact by rollout (0: oracle-shared; windowed: 1 = the committed episode; "
-            f"known speeds within "
-            f"{EXACT_TOLERANCE:g} m/s of what then happened, over the entries with a speed to "
-            "compare to):\n\n| planner | headway [s] | lane-change gap [m] | rollout | safety | "
-            "agility [m/step] | crashes | exact share | mean abs error [m/s] | compared |"
-        )
-        print("|---|---|---|---|---|---|---|---|---|---|")
-        for p in exact:
-            for k, r in enumerate(p["rollouts"]):
-                print(
-                    f"| {p['policy']} | {p['headway']:g} | {p['lane_change_gap']:g} | {k} | "
-                    f"{r['safety']:.3f} | {r['agility']:.3f} | {r['crashes']:.1f} | "
-                    f"{r['exact']:.3f} | {r['mae']:.3f} | {r['compared']:.2f} |"
-                )
     plot(points, args.scenario, tag, args.out / "frontier.png", baselines)
     print(f"figure: {args.out / 'frontier.png'}")
     return points

@@ -20,15 +20,15 @@ crash in step ``t`` falls in exactly one of:
 
 Also per crash: with what (the obstacle at the ramp's end when no other vehicle on the road
 crashed in the same step, a vehicle otherwise) and where (the ramp, i.e. the acceleration lane
-and the lane before it; a mainline lane within ``cooperation_control.NEAR_MERGE`` metres before
-the acceleration lane or along it; elsewhere on the mainline).
+and the lane before it; a mainline lane from 100 m before the acceleration lane to its end;
+elsewhere on the mainline).
 
-Each run is scored on the evaluation roads of its own seed (``EVAL_SEED_OFFSET + seed``, those of
-``benchmarks/cooperation_control.py``); the scripted rows (keep lane, the cooperative merge rule)
-on those of ``--seeds``, with the first run's scenario settings (shield, ``velocity_weight``).
+Each run is scored on the evaluation roads of its own seed (those of ``mapets-rl evaluate RUN
+--roads``), with its own scenario settings; the reference rows (keep lane, the cooperative merge
+rule) on the roads and settings of the first arm's runs.
 
-    PYTHONPATH=.:benchmarks OMP_NUM_THREADS=1 python benchmarks/shield_crashes.py \\
-        --runs RUN_DIR ... [--seeds 0 1] [--eval-roads 256] [--shield-passes 1] [--out DIR]
+    OMP_NUM_THREADS=1 python benchmarks/shield_crashes.py \\
+        --runs RUN_DIR ... [--eval-roads 256] [--shield-passes 1] [--out DIR]
 
 ``--shield-passes N`` evaluates the same policies under a shield that checks its corrected
 decisions again (``env_config.shield_passes``), up to ``N`` passes, so that no move runs that
@@ -45,30 +45,20 @@ from __future__ import annotations
 import argparse
 import json
 import re
-from collections.abc import Callable
-from functools import partial
 from pathlib import Path
 from typing import Any
 
 import torch
-import yaml
-from cooperation_control import (
-    EVAL_SEED_OFFSET,
-    cached_json,
-    cav_lanes,
-    cooperative_rule,
-    evaluation_env,
-    near_merge,
-    on_mainline,
-)
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mapets_rl.app.plugins import load_recipe
-from mapets_rl.envs import ScriptedCAVPolicy
 from mapets_rl.envs.freeway import KL
-from mapets_rl.experiment import latest_checkpoint
+from mapets_rl.envs.references import make_reference
+from mapets_rl.envs.torch_freeway.counterfactuals import cav_lanes, near_merge, on_mainline
+from mapets_rl.experiment import atomic_write_text, latest_checkpoint, run_recipe_name
+from mapets_rl.experiment.protocol import ROAD_EVAL_SEED_OFFSET, evaluation_env
 from mapets_rl.machine import machine_line
 
 CLASSES = ("replaced", "kept, predicted", "others replaced", "unexplained")
@@ -94,7 +84,7 @@ def classify(policy: TensorDictModuleBase, env: EnvBase, seed: int) -> dict[str,
     classes' sum)."""
     sim = env.sim
     counts = dict.fromkeys(CLASSES + DETAILS + ("shielded", "system_reward"), 0)
-    env.set_seed(EVAL_SEED_OFFSET + seed)
+    env.set_seed(seed + ROAD_EVAL_SEED_OFFSET)
     td = env.reset()
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(int(env.config["horizon"])):
@@ -137,72 +127,33 @@ def classify(policy: TensorDictModuleBase, env: EnvBase, seed: int) -> dict[str,
     return counts
 
 
-def checked_runs(paths: list[str]) -> list[tuple[Path, dict[str, Any], Path]]:
-    """Each ``--runs`` directory with its ``run.json`` and newest checkpoint; ValueError naming
-    ``--runs`` for one that is not a finished shielded run on the torch freeway (before any
-    work starts)."""
-    runs = []
-    for path in map(Path, paths):
-        checkpoint = latest_checkpoint(path) if (path / "run.json").is_file() else None
-        if checkpoint is None:
-            raise ValueError(f"--runs: {path} is not a run directory with a checkpoint")
-        info = json.loads((path / "run.json").read_text())
-        env_config = yaml.safe_load((path / "config.yaml").read_text()).get("env_config", {})
-        if info.get("env") != "freeway-merge" or env_config.get("backend") != "torch":
-            raise ValueError(f"--runs: {path} is not a run on the torch backend's freeway-merge")
-        if not env_config.get("shield", False):
-            raise ValueError(f"--runs: {path} was trained without the shield (env_config.shield)")
-        runs.append((path, info, checkpoint))
-    return runs
-
-
-def row_name(run_dir: Path, checkpoint: Path) -> str:
-    """A trained row's name: the run directory's, its seed dropped, with the checkpoint's frames
-    in thousands (``shapley_..._member@300k``)."""
-    frames = int(re.sub(r"\D", "", checkpoint.stem))
-    variant = re.sub(r"_seed\d+.*$", "", run_dir.name)
-    return f"{variant}@{round(frames / 1000)}k"
-
-
-def has_system_reward(counts: dict[str, Any]) -> bool:
-    """Whether cached ``counts`` are current (those kept before the system reward was added are
-    computed again)."""
-    return "system_reward" in counts
-
-
-def trained_counts(run_dir: Path, info: dict[str, Any], roads: int, passes: int) -> dict[str, Any]:
-    """:func:`classify` of the run's greedy policy on ``roads`` evaluation roads of its seed,
-    with its own scenario settings and a shield of ``passes`` passes; the settings are returned
-    under ``"settings"``."""
-    exp = load_recipe(info["recipe"]).from_run_dir(run_dir)
+def counts(run: Path, policy: str, passes: int, args: argparse.Namespace) -> dict[str, Any]:
+    """:func:`classify` of ``run``'s greedy policy (``policy="trained"``) or of a reference
+    policy on ``--eval-roads`` evaluation roads of its seed, with its scenario settings and a
+    shield of ``passes`` passes; cached in ``<out>/``. ValueError naming ``--runs`` for a run
+    that is not a shielded run on the torch backend's freeway-merge."""
+    checkpoint = latest_checkpoint(run)
+    frames = round(int(re.sub(r"\D", "", checkpoint.stem)) / 1000) if checkpoint else 0
+    path = Path(args.out) / f"{run.name}@{frames}k_{policy}_{args.eval_roads}roads_{passes}.json"
+    if path.is_file():
+        return json.loads(path.read_text())
+    exp = load_recipe(run_recipe_name(run)).from_run_dir(run)
     try:
-        env_config = exp.config.env_config
-        settings = {
-            "shield": True,
-            "shield_passes": passes,
-            "velocity_weight": float(env_config.get("velocity_weight", 0.1)),
-        }
-        env = evaluation_env(roads, int(env_config["n_vehicles"]), settings)
-        counts = classify(exp.eval_policy, env, int(info["seed"]))
+        config = exp.config.with_overrides([f"env_config.shield_passes={passes}"])
+        env_config = config.env_config
+        if config.env != "freeway-merge" or env_config.get("backend") != "torch":
+            raise ValueError(f"--runs: {run} is not a run on the torch backend's freeway-merge")
+        if not env_config.get("shield", False):
+            raise ValueError(f"--runs: {run} was trained without the shield (env_config.shield)")
+        env = evaluation_env(config, args.eval_roads)
+        actor = exp.eval_policy if policy == "trained" else make_reference(config.env, policy, env)
+        result = classify(actor, env, config.seed)
         env.close()
     finally:
         exp.close()
-    return {**counts, "settings": settings, "n_vehicles": int(env_config["n_vehicles"])}
-
-
-def scripted_counts(
-    policy: Callable[[EnvBase], TensorDictModuleBase],
-    seed: int,
-    vehicles: int,
-    settings: dict[str, Any],
-    roads: int,
-) -> dict[str, Any]:
-    """:func:`classify` of the scripted ``policy(env)`` on ``roads`` evaluation roads of
-    ``seed`` with ``vehicles`` vehicles and the scenario ``settings``."""
-    env = evaluation_env(roads, vehicles, settings)
-    counts = classify(policy(env), env, seed)
-    env.close()
-    return counts
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(result))
+    return result
 
 
 def table(rows: dict[str, list[dict[str, Any]]]) -> str:
@@ -227,10 +178,8 @@ def table(rows: dict[str, list[dict[str, Any]]]) -> str:
 
 def main(argv: list[str] | None = None) -> dict[str, list[dict[str, Any]]]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--runs", nargs="*", default=[], help="trained run directories")
-    parser.add_argument("--seeds", type=int, nargs="*", default=[0], help="scripted rows' seeds")
+    parser.add_argument("--runs", nargs="+", type=Path, required=True, help="run directories")
     parser.add_argument("--eval-roads", type=int, default=256)
-    parser.add_argument("--n-vehicles", type=int, default=30, help="scripted rows without --runs")
     parser.add_argument(
         "--shield-passes",
         type=int,
@@ -244,43 +193,20 @@ def main(argv: list[str] | None = None) -> dict[str, list[dict[str, Any]]]:
         parser.error(f"--eval-roads must be >= 1, got {args.eval_roads}")
     if not 1 <= args.shield_passes <= 40:
         parser.error(f"--shield-passes must be in [1, 40], got {args.shield_passes}")
-    if any(s < 0 for s in args.seeds):
-        parser.error(f"--seeds must be >= 0, got {args.seeds}")
-    runs = checked_runs(args.runs)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    for run in args.runs:  # before any work
+        if latest_checkpoint(run) is None:
+            parser.error(f"--runs: {run} is not a run directory with a checkpoint")
     print(machine_line())
     passes = args.shield_passes
     suffix = f", {passes} shield passes" if passes > 1 else ""
     rows: dict[str, list[dict[str, Any]]] = {}
-    for run_dir, info, checkpoint in runs:
-        name = row_name(run_dir, checkpoint) + suffix
-        key = f"{name}_seed{info['seed']}_{args.eval_roads}roads".replace(", ", "_")
-        counts = cached_json(
-            out / f"{key}.json",
-            partial(trained_counts, run_dir, info, args.eval_roads, passes),
-            has_system_reward,
-        )
-        rows.setdefault(name, []).append(counts)
-    first = rows and next(iter(rows.values()))[0]
-    default = {"shield": True, "shield_passes": passes, "velocity_weight": 1.0}
-    settings = first["settings"] if first else default
-    vehicles = first["n_vehicles"] if first else args.n_vehicles
-    label = f"w{settings['velocity_weight']}_{vehicles}vehicles_{args.eval_roads}roads"
-    label += f"_{passes}passes" if passes > 1 else ""
-    scripted = {
-        "keep lane": ScriptedCAVPolicy,
-        "cooperative merge": lambda env: cooperative_rule(vehicles),
-    }
-    for name, policy in scripted.items():
-        for seed in args.seeds:
-            key = f"{name.replace(' ', '_')}_seed{seed}_{label}"
-            counts = cached_json(
-                out / f"{key}.json",
-                partial(scripted_counts, policy, seed, vehicles, settings, args.eval_roads),
-                has_system_reward,
-            )
-            rows.setdefault(name + suffix, []).append(counts)
+    for run in args.runs:
+        name = re.sub(r"_seed\d+$", "", run.name) + suffix
+        rows.setdefault(name, []).append(counts(run, "trained", passes, args))
+    first = re.sub(r"_seed\d+$", "", args.runs[0].name)
+    for reference in ("keep-lane", "cooperative-merge"):
+        for run in (r for r in args.runs if re.sub(r"_seed\d+$", "", r.name) == first):
+            rows.setdefault(reference + suffix, []).append(counts(run, reference, passes, args))
     print(table(rows))
     return rows
 

@@ -3,11 +3,15 @@
 own floor or a lower one; ``mapets_rl/config.py`` imports nothing of the project; recipes never
 import each other and are imported as ``mapets_rl.recipes``; code is loaded by name at run time
 (recipes by name, ``importlib.import_module``, the ``mapets_rl.recipes`` entry points) only by
-the application, ``mapets_rl.app``."""
+the application, ``mapets_rl.app``. The scripts of ``benchmarks/`` and ``examples/`` stand on top:
+they import the library, the recipes and the application, never each other (a benchmark only
+its folder's ``_common.py``; the modules of ``examples/extending/``, one researcher's package,
+each other), and reach no ``_``-prefixed member of the library."""
 
 from __future__ import annotations
 
 import ast
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -214,3 +218,110 @@ def test_the_check_reads_the_real_imports(name: str) -> None:
 def test_the_check_sees_the_real_runtime_loads(name: str) -> None:
     """The application's own loads by name are found (and allowed there only)."""
     assert list(runtime_loads(ROOT / name))
+
+
+SCRIPT_FOLDERS = ("benchmarks", "examples")
+"""The scripts on top of the building: users of the library, held to its public names."""
+SHARED = {"benchmarks": {"_common"}, "benchmarks/ablations": {"_common"}}
+"""What a script of a folder may import of its own folder: the folder's ``_common.py``."""
+PACKAGES = ("examples/extending",)
+"""Folders whose modules form one package (a researcher's, on ``sys.path``): they may import
+each other."""
+THIRD_PARTY_HOOKS = {"_step", "_reset"}
+"""``_``-named members the library defines because a dependency's protocol names them so
+(torchrl's ``EnvBase._step`` / ``_reset``, what every torchrl env implements): timing one is
+timing the env, not reaching into the library."""
+
+
+def private_members(root: Path = ROOT) -> set[str]:
+    """The ``_``-prefixed (not dunder) names the library defines: functions, methods, classes,
+    module and class attributes, instance attributes (``self._x = ...``)."""
+    names = set()
+    for path in sources(root):
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                found = [node.name]
+            elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+                found = [getattr(t, "id", None) or getattr(t, "attr", "") for t in targets]
+            else:
+                continue
+            names |= {n for n in found if n.startswith("_") and not n.startswith("__")}
+    return names - THIRD_PARTY_HOOKS
+
+
+def script_violations(root: Path = ROOT) -> list[str]:
+    """Every import of another script and every reach into a ``_``-prefixed library member in
+    the scripts of :data:`SCRIPT_FOLDERS`, as ``file:line: what (why)``."""
+    private = private_members(root)
+    scripts = [p for top in SCRIPT_FOLDERS for p in sorted((root / top).rglob("*.py"))]
+    by_folder: dict[str, set[str]] = {}
+    for path in scripts:
+        by_folder.setdefault(path.parent.relative_to(root).as_posix(), set()).add(path.stem)
+    every_script = {stem for stems in by_folder.values() for stem in stems}
+    found = []
+    for path in scripts:
+        folder = path.parent.relative_to(root).as_posix()
+        allowed = SHARED.get(folder, set()) | (by_folder[folder] if folder in PACKAGES else set())
+        where = path.relative_to(root)
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Import):
+                modules = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                modules = [base, *(f"{base}.{alias.name}" for alias in node.names)]
+            elif isinstance(node, ast.Attribute) and node.attr in private:
+                owner = getattr(node.value, "id", None)
+                if owner not in ("self", "cls"):
+                    found.append(f"{where}:{node.lineno}: .{node.attr} (a private member)")
+                continue
+            elif isinstance(node, ast.Constant) and node.value in private:
+                found.append(f"{where}:{node.lineno}: {node.value!r} (a private member by name)")
+                continue
+            else:
+                continue
+            for module in modules:
+                top, *rest = module.split(".")
+                if top in every_script and top not in allowed:
+                    found.append(f"{where}:{node.lineno}: imports {top} (another script)")
+                elif top == "recipes":
+                    found.append(f"{where}:{node.lineno}: imports {module} (the old name)")
+                elif top == "mapets_rl" and any(
+                    part.startswith("_") and not part.startswith("__") for part in rest
+                ):
+                    found.append(f"{where}:{node.lineno}: imports {module} (a private member)")
+    return sorted(set(found))
+
+
+def test_scripts_import_only_the_librarys_public_names() -> None:
+    assert script_violations() == []
+
+
+def test_the_script_check_fails_on_planted_imports(tmp_path: Path) -> None:
+    """A copy of the project in which a benchmark imports another benchmark, an example
+    imports a benchmark's helper, and scripts reach into the library's private members (by
+    attribute, by name, by import) is reported line by line; the original is clean."""
+    for top in (*PROJECT, *SCRIPT_FOLDERS):
+        shutil.copytree(ROOT / top, tmp_path / top, ignore=shutil.ignore_patterns("__pycache__"))
+    planted = {
+        "benchmarks/planner.py": "import cooperation_control\n",
+        "benchmarks/ablations/horizon.py": "from shield_crashes import classify\n",
+        "examples/demo.py": "from _common import run_episode\n",
+        "benchmarks/startup.py": "def f(exp):\n    return exp._restore\n",
+        "benchmarks/shapley.py": "NAMES = ('_save_boundary_checkpoint',)\n",
+        "examples/mixed_traffic.py": "from mapets_rl.experiment.runner import _flatten\n",
+    }
+    for name, code in planted.items():
+        path = tmp_path / name
+        path.write_text(path.read_text() + code)
+    found = script_violations(tmp_path)
+    for name, why in [
+        ("benchmarks/ablations/horizon.py", "imports shield_crashes (another script)"),
+        ("benchmarks/planner.py", "imports cooperation_control (another script)"),
+        ("benchmarks/shapley.py", "'_save_boundary_checkpoint' (a private member by name)"),
+        ("benchmarks/startup.py", "._restore (a private member)"),
+        ("examples/demo.py", "imports _common (another script)"),
+        ("examples/mixed_traffic.py", "imports mapets_rl.experiment.runner._flatten"),
+    ]:
+        assert any(line.startswith(name + ":") and why in line for line in found), (name, found)
+    assert len(found) == len(planted)

@@ -653,7 +653,7 @@ class FigureEightPlannerReward(PlannerReward):
             action), so all plans score alike and the planner's choice is arbitrary; on two
             lanes such choices (accelerating into the leader, changing lanes into 0-2 m gaps)
             were most of the lane-change crashes below the 0.5 s headway
-            (``benchmarks/planner_rules.py``, ``docs/results/mapets.md``).
+            (``docs/results/history.md``, "What the lane-change crashes are").
     """
 
     collision_gap: float = dataclasses.field(default=2.0, metadata={"unit": "m"})
