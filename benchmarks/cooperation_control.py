@@ -1,26 +1,23 @@
 """Fig. 2's comparison on ``freeway-merge``: published configurations trained per seed, each
 run's greedy policy scored beside the reference policies on the same evaluation roads.
 
-Each arm is a published configuration (``mapets-rl configs`` lists them; the table of
+Each arm is a published configuration (``mapets-rl configs``; the table of
 ``docs/results/shapley.md``: ``freeway-merge/maddpg-individual``, ``maddpg-team``,
-``shapley-arm``, ``mappo``, ``coma``), trained for every seed as ``mapets-rl train --config NAME
---seed S`` would (``key=value`` arguments override every arm, e.g. ``total_frames=4096``), then
-scored by the library's protocol (``mapets_rl.experiment.protocol``, what ``mapets-rl evaluate
-RUN --roads 256 --references keep-lane cooperative-merge`` prints): one greedy episode on each
-of ``--roads`` roads of the seed's evaluation stream, keep lane and the cooperative merge rule
-on the same roads, the gain over keep lane. ``--explored`` also scores the final collection
-policy of an epsilon-greedy arm (greedy plus its last epsilon of random moves).
+``shapley-arm``, ``mappo``, ``coma``), trained per seed as ``mapets-rl train --config NAME
+--seed S`` would (``key=value`` arguments override every arm), then scored by the library's
+protocol, what ``mapets-rl evaluate RUN --roads 256 --references keep-lane cooperative-merge``
+prints. ``--explored`` also scores an epsilon-greedy arm's final collection policy.
 
-Run (resumable: finished runs and their scores are kept under ``--out``; one seed per
-process, then one call with every seed prints the tables):
+Resumable (runs and scores are kept under ``--out``; one seed per process, then one call with
+every seed prints the tables):
 
     OMP_NUM_THREADS=1 MAPETS_RL_THREADS=1 python benchmarks/cooperation_control.py \\
         --configs freeway-merge/maddpg-individual freeway-merge/shapley-arm \\
         --seeds 0 1 2 3 4 --out outputs/cooperation_control
 
-Prints, and writes to ``<out>/control.md`` and ``<out>/control.json``: per arm the system
-reward, the gain over keep lane per seed and its mean [bootstrap 95% over seeds], the behaviour
-metrics per episode; then per arm the training episodes in windows of ``--window-frames``.
+Prints, and writes to ``<out>/control.md`` and ``.json``: per arm the system reward, the gain
+over keep lane per seed and its mean [bootstrap 95% over seeds], the behaviour metrics per
+episode; then each run's training episodes in windows of ``--window-frames``.
 """
 
 from __future__ import annotations
@@ -47,30 +44,24 @@ from mapets_rl.machine import machine_line
 from mapets_rl.statistics import bootstrap_interval
 
 REFERENCES = ("keep-lane", "cooperative-merge")
-METRICS = (
-    "ramp_stuck",
-    "mainline_changes_near_merge",
-    "mainline_changes_elsewhere",
-    "ramp_forced_merges",
-    "collisions",
-    "shielded",
-    "average_comfort",
-)
+METRICS = ("ramp_stuck", "mainline_changes_near_merge", "mainline_changes_elsewhere",
+           "ramp_forced_merges", "collisions", "shielded", "average_comfort")  # fmt: skip
 """The behaviour columns: the scenario's episode metrics, per episode."""
 
 
 def run_dir(out: Path, name: str, seed: int) -> Path:
+    """Where the run of the published config ``name`` at ``seed`` is kept."""
     return out / "runs" / f"{name.replace('/', '__')}_seed{seed}"
 
 
 def trained(name: str, seed: int, args: argparse.Namespace) -> Path:
     """The run of the published config ``name`` at ``seed``, trained (or its training
     finished, ``total_frames=`` overrides applied) under ``--out``."""
-    cls = load_recipe(load_published(name).recipe)
-    path = run_dir(Path(args.out), name, seed)
+    published = load_published(name)
+    cls, path = load_recipe(published.recipe), run_dir(Path(args.out), name, seed)
     if latest_checkpoint(path) is None:
-        fields = load_published(name).fields
-        config = cls.Config.from_fields(fields, [f"seed={seed}", *args.overrides], name)
+        overrides = [f"seed={seed}", *args.overrides]
+        config = cls.Config.from_fields(published.fields, overrides, name)
         cls(config, path).train()
         return path
     budget = [o for o in args.overrides if o.startswith("total_frames=")]
