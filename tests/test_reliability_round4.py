@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -22,9 +23,12 @@ from mapets_rl.app import sweep
 from mapets_rl.app.sweep import SweepResult, SweepSpec, run_sweep, run_trial
 from mapets_rl.envs import registry
 from mapets_rl.experiment import register_env
+from mapets_rl.experiment.checkpoint import list_checkpoints, load_checkpoint
 from mapets_rl.experiment.episodes import TRAIN_EPISODES_FILE
 from mapets_rl.experiment.files import open_append
+from mapets_rl.experiment.runner import RunStopped
 from tests.cli_run import run_cli
+from tests.experiment.test_checkpoint_determinism import _assert_equal
 
 
 # ------------------------------------------------------------- no append through a link
@@ -330,3 +334,88 @@ def test_an_update_interval_beyond_the_budget_is_refused_naming_it():
         MADDPGConfig(**{**fields, "batch_size": 350}, update_interval=150)
     assert MADDPGConfig(**fields, update_interval=400).update_interval == 400
     assert MADDPGConfig(**{**fields, "batch_size": 350}, update_interval=200).batch_size == 350
+
+
+# ----------------------------------------------------- SIGTERM: checkpoint, stop, resume
+def _toy_config(checkpoint_interval: int) -> ToyConfig:
+    return ToyConfig(
+        total_frames=40, eval_interval=20, checkpoint_interval=checkpoint_interval, logger="csv"
+    )
+
+
+class UnhandledSigterm(Exception):
+    """A SIGTERM that no training loop handled (the test's own handler caught it)."""
+
+
+@pytest.fixture
+def sigterm_handler() -> Any:
+    """A SIGTERM handler raising :class:`UnhandledSigterm` for the test (instead of the
+    default, which would end the test process), put back after it."""
+
+    def handle(signum: int, frame: Any) -> None:
+        raise UnhandledSigterm(signum)
+
+    previous = signal.signal(signal.SIGTERM, handle)
+    yield handle
+    signal.signal(signal.SIGTERM, previous)
+
+
+def _sigterm_after(frames: int, exp: ToyLearner) -> Callable[[dict[str, float]], None]:
+    """An ``on_iteration_end`` that sends this process SIGTERM once ``exp`` has ``frames``."""
+
+    def callback(_: dict[str, float]) -> None:
+        if exp.frames == frames:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    return callback
+
+
+def test_a_sigterm_stops_a_run_with_a_checkpoint_and_it_resumes_identically(
+    tmp_path, toy_scenario, sigterm_handler
+):
+    full = ToyLearner(_toy_config(10), tmp_path / "full")
+    full.train()
+    run = tmp_path / "run"
+    exp = ToyLearner(_toy_config(10), run)
+    with pytest.raises(RunStopped, match=r"stopped by SIGTERM at frame 20: .* resume "):
+        exp.train(_sigterm_after(20, exp))
+    assert signal.getsignal(signal.SIGTERM) is sigterm_handler  # put back
+    assert list_checkpoints(run)[-1].name == "ckpt_000000000020.pt" and exp.frames == 20
+    resumed = ToyLearner.from_run_dir(run)
+    assert resumed.train() == full.results.evaluations
+    for part in ("actor", "optim"):  # (the buffer's storage past its 40 entries is not set)
+        _assert_equal(
+            load_checkpoint(list_checkpoints(run)[-1])["components"][part],
+            load_checkpoint(list_checkpoints(tmp_path / "full")[-1])["components"][part],
+        )
+
+
+def test_a_sigterm_between_checkpoints_writes_one_more(tmp_path, toy_scenario, sigterm_handler):
+    run = tmp_path / "run"
+    exp = ToyLearner(_toy_config(20), run)
+    with pytest.raises(RunStopped, match="at frame 10"):
+        exp.train(_sigterm_after(10, exp))
+    assert [p.name for p in list_checkpoints(run)] == ["ckpt_000000000010.pt"]
+    resumed = ToyLearner.from_run_dir(run)
+    assert [e["frames"] for e in resumed.train()] == [20, 40]
+
+
+def test_the_cli_says_a_sigterm_stop_in_one_line(
+    tmp_path, toy_recipe, capsys, monkeypatch, sigterm_handler
+):
+    train_step = ToyLearner.train_step
+
+    def train_step_then_sigterm(self: ToyLearner, batch: Any) -> dict[str, float]:
+        if self.frames == 20:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return train_step(self, batch)
+
+    monkeypatch.setattr(ToyLearner, "train_step", train_step_then_sigterm)
+    run = tmp_path / "run"
+    argv = ["train", "toy", "--env", "toy", "--run-dir", str(run), "total_frames=40"]
+    code, _, err = run_cli([*argv, "checkpoint_interval=10"], capsys)
+    assert code == 128 + signal.SIGTERM and err.count("\n") == 1, err
+    assert "stopped by SIGTERM at frame 20" in err and f"mapets-rl resume {run}" in err
+    monkeypatch.setattr(ToyLearner, "train_step", train_step)
+    code, out, err = run_cli(["resume", str(run)], capsys)
+    assert code == 0 and '"frames": 40' in out, err

@@ -12,7 +12,9 @@ import functools
 import json
 import os
 import re
+import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from datetime import datetime, timezone
@@ -88,10 +90,39 @@ def default_run_dir(recipe: str, env: str, seed: int, root: str | os.PathLike = 
     return Path(root) / f"{recipe}_{env}_seed{seed}_{stamp}"
 
 
+STOP_SIGNALS = (signal.SIGTERM,)
+"""The signals a training loop stops at (see :meth:`Experiment.training_loop`): SIGTERM, which
+Slurm's preemption and ``timeout`` send."""
+
+
+class RunStopped(Exception):
+    """A training loop stopped at a signal (SIGTERM) after writing a checkpoint of the
+    iteration it was in: ``mapets-rl resume`` (or ``from_run_dir``) continues the run.
+
+    Attributes:
+        signum: the signal.
+        run_dir: the run directory.
+        frames: the run's frames at the checkpoint.
+    """
+
+    def __init__(self, signum: int, run_dir: Path, frames: int) -> None:
+        self.signum, self.run_dir, self.frames = signum, run_dir, frames
+        super().__init__(
+            f"stopped by {signal.Signals(signum).name} at frame {frames}: the run's checkpoint "
+            f"is written, continue it with `mapets-rl resume {run_dir}`"
+        )
+
+
+class NonFiniteData(ValueError):
+    """A collected batch holds NaN or infinite observations or rewards, which a run does not
+    train on (see :meth:`Experiment.refuse_non_finite`): one line naming the entry."""
+
+
 class TrainingLoop:
     """The bookkeeping of a training loop (see :meth:`Experiment.training_loop`), done by
     :meth:`end_iteration` after each iteration; ``finished`` is whether
-    :meth:`Experiment.progress` (``(done, total)``) has reached its total.
+    :meth:`Experiment.progress` (``(done, total)``) has reached its total, or a stop signal
+    arrived (``stop_signal``, set by :meth:`Experiment.training_loop`'s handler).
 
     Args:
         experiment: the experiment being trained.
@@ -127,9 +158,13 @@ class TrainingLoop:
         self.done, self.total = experiment.progress()
         self.start, self.start_frames = time.perf_counter(), experiment.frames
 
+    stop_signal: int | None = None
+    """The stop signal (:data:`STOP_SIGNALS`) received during the loop, if any: the iteration
+    under way ends with a checkpoint and the loop then finishes."""
+
     @property
     def finished(self) -> bool:
-        return self.done >= self.total
+        return self.done >= self.total or self.stop_signal is not None
 
     def end_iteration(self, metrics: dict[str, float]) -> None:
         """After an iteration that advanced :meth:`Experiment.progress`, in this order: write
@@ -140,7 +175,8 @@ class TrainingLoop:
 
         An evaluation that fails (e.g. its video cannot be written) first writes the
         checkpoint due at this iteration, without that evaluation, so the training done is
-        kept; then its error propagates."""
+        kept; then its error propagates. After a stop signal (``stop_signal``) the iteration
+        ends with a checkpoint, the scheduled one or one more."""
         exp = self.experiment
         exp._start_writing()
         elapsed = max(time.perf_counter() - self.start, 1e-9)
@@ -172,6 +208,9 @@ class TrainingLoop:
             self.on_iteration_end(metrics)
         self.bar.update(self.done - previous)
         self.bar.set_postfix(self.postfix(metrics, fps))
+        if self.stop_signal is not None and not (last or checkpoint_due):
+            # stopped between two scheduled checkpoints: keep this iteration's training
+            exp._save_boundary_checkpoint(True)
 
 
 class Experiment:
@@ -509,7 +548,8 @@ class Experiment:
         evaluations (``results.json``'s ``evaluations`` entries).
 
         The run directory's lock is held for the whole loop and released when it ends,
-        normally or not (see :meth:`training_loop`)."""
+        normally or not (see :meth:`training_loop`). A SIGTERM ends the batch under way with a
+        checkpoint, ends the collector and raises :class:`RunStopped`."""
         cfg = self.config
         with self.training_loop(
             on_iteration_end,
@@ -523,7 +563,7 @@ class Experiment:
             self.reset_collector()
             while not loop.finished:
                 loop.end_iteration(self.train_on_batch())
-        self.collector.shutdown()
+            self.collector.shutdown()  # before the RunStopped of a stop signal, if any
         return self.results.evaluations
 
     @contextlib.contextmanager
@@ -555,7 +595,16 @@ class Experiment:
         deferred is written after its first iteration (and at the end, when nothing was left
         to do). The run directory's lock is taken on entry (another writer is refused before
         anything runs) and released on exit, normally or not (see :meth:`close`); ValueError
-        for a negative interval."""
+        for a negative interval.
+
+        A stop signal (:data:`STOP_SIGNALS`: SIGTERM, as Slurm's preemption and ``timeout``
+        send it) received while the loop runs in the main thread ends the iteration under way
+        with a checkpoint, finishes the loop and raises :class:`RunStopped` on exit: resuming
+        the run continues it (exactly as an uninterrupted run when the iteration ended at a
+        scheduled checkpoint, as every one of MA-PETS's episodes does; else the extra
+        checkpoint restarts the collector's episodes there, as every checkpoint does). A
+        second signal before that ends the process at once. The previous handlers are put
+        back on exit."""
         if eval_interval is not None and eval_interval < 0:
             raise ValueError(f"eval_interval must be >= 0 or None, got {eval_interval}")
         if checkpoint_interval < 0:
@@ -570,19 +619,23 @@ class Experiment:
                 desc=label or f"{self.name} {self.config.env} seed {self.config.seed}",
                 unit=self.progress_unit,
             )
+            loop = TrainingLoop(
+                self,
+                bar,
+                on_iteration_end,
+                postfix or self._evaluation_postfix,
+                eval_interval=eval_interval,
+                checkpoint_interval=checkpoint_interval,
+                train_entries=train_entries,
+            )
             try:
-                yield TrainingLoop(
-                    self,
-                    bar,
-                    on_iteration_end,
-                    postfix or self._evaluation_postfix,
-                    eval_interval=eval_interval,
-                    checkpoint_interval=checkpoint_interval,
-                    train_entries=train_entries,
-                )
+                with _stop_signals_to(loop):
+                    yield loop
             finally:
                 bar.close()
             self._start_writing()
+            if loop.stop_signal is not None and loop.done < loop.total:
+                raise RunStopped(loop.stop_signal, self.run_dir, self.frames)
         finally:
             self.close()
 
@@ -609,11 +662,11 @@ class Experiment:
         return {**self.batch_metrics(batch), **summarize_episodes(episodes), **losses}
 
     def refuse_non_finite(self, batch: TensorDictBase) -> None:
-        """ValueError (one line naming the entry and the frames) when an observation or a
-        reward of the collected ``batch`` (every float entry named ``observation`` or
-        ``reward``, at the step and in ``next``) is NaN or infinite, before anything trains
-        on it: an update on it would spread NaN into every weight. The checkpoints written
-        before are kept. One host sync per batch when all is finite."""
+        """:class:`NonFiniteData` (one line naming the entry and the frames) when an
+        observation or a reward of the collected ``batch`` (every float entry named
+        ``observation`` or ``reward``, at the step and in ``next``) is NaN or infinite, before
+        anything trains on it: an update on it would spread NaN into every weight. The
+        checkpoints written before are kept. One host sync per batch when all is finite."""
         where = f"of the batch {self.name} collected after frame {self.frames}"
         entries = {
             f"{'/'.join(key)} {where}": batch.get(key)
@@ -623,7 +676,7 @@ class Experiment:
         try:
             check_finite_many({k: v for k, v in entries.items() if v.is_floating_point()})
         except ValueError as err:
-            raise ValueError(
+            raise NonFiniteData(
                 f"{err}: the environment produced them, and a run does not train on non-finite data"
             ) from None
 
@@ -1210,6 +1263,33 @@ def _shape_mismatches(saved: Any, fresh: Any) -> list[tuple[str, list[int], list
     ]
 
 
+@contextlib.contextmanager
+def _stop_signals_to(loop: TrainingLoop) -> Iterator[None]:
+    """While the block runs, a stop signal (:data:`STOP_SIGNALS`) sets ``loop.stop_signal``
+    (a second one restores the previous handler and signals again: the default ends the
+    process); the previous handlers are put back after it. Outside the main thread, where
+    Python cannot handle signals, nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handle(signum: int, frame: Any) -> None:
+        if loop.stop_signal is not None:
+            signal.signal(signum, previous[signum] or signal.SIG_DFL)
+            signal.raise_signal(signum)
+            return
+        loop.stop_signal = signum
+
+    previous = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, handle)
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler or signal.SIG_DFL)
+
+
 def _crossed(prev: int, now: int, interval: int) -> bool:
     """True when a multiple of ``interval`` lies in (prev, now]; never for interval 0."""
     return interval > 0 and now // interval > prev // interval
@@ -1218,6 +1298,8 @@ def _crossed(prev: int, now: int, interval: int) -> bool:
 __all__ = [
     "ConfigError",
     "Experiment",
+    "NonFiniteData",
+    "RunStopped",
     "default_run_dir",
     "run_recipe_name",
 ]
