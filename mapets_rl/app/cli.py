@@ -368,8 +368,16 @@ def _add_sweep_parser(sub: argparse._SubParsersAction) -> None:
         "--grid comm.comm_range=0,50,100 --grid comm.p_fail=0,0.25 preset=cpu episodes=5 "
         "--out runs/d_sweep",
     )
-    parser.add_argument("recipe", metavar="RECIPE", help="an installed recipe, e.g. mapets")
-    parser.add_argument("--env", required=True, metavar="SCENARIO", help="scenario name")
+    parser.add_argument(
+        "recipe",
+        nargs="?",
+        default=None,
+        metavar="RECIPE",
+        help="an installed recipe, e.g. mapets (default: the one --config names)",
+    )
+    parser.add_argument(
+        "--env", default=None, metavar="SCENARIO", help="scenario name (default: --config's env)"
+    )
     parser.add_argument(
         "--seeds",
         nargs="+",
@@ -387,7 +395,12 @@ def _add_sweep_parser(sub: argparse._SubParsersAction) -> None:
         "'model.hidden=[[32,32],[64,64]]'); repeat for a cartesian product",
     )
     parser.add_argument("--out", required=True, metavar="DIR", help="the sweep directory")
-    parser.add_argument("--config", default=None, metavar="FILE", help="YAML file of config fields")
+    parser.add_argument(
+        "--config",
+        default=None,
+        metavar="NAME|FILE",
+        help="a published configuration (`mapets-rl configs`) or a YAML file of config fields",
+    )
     parser.add_argument(
         "--backend",
         default="local",

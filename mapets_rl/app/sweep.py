@@ -85,7 +85,7 @@ from typing import Any
 
 import yaml
 
-from mapets_rl.config import ConfigError, check, load_yaml, parse_override, read_yaml_mapping
+from mapets_rl.config import ConfigError, check, load_yaml, parse_override
 from mapets_rl.experiment.files import (
     ERROR_FILE,
     TRIAL_RECORD,
@@ -305,11 +305,38 @@ def trial_id(values: Mapping[str, Any], seed: int) -> str:
     return "__".join([*(f"{k}={_slug(v)}" for k, v in values.items()), f"seed={seed}"])
 
 
-def _config_file_items(path: str | None) -> list[str]:
-    """A config file's fields as ``key=value`` overrides (so a resumed trial gets them too)."""
-    if path is None:
-        return []
-    return [f"{k}={json.dumps(v)}" for k, v in read_yaml_mapping(path).items()]
+def config_file_fields(path: str | None) -> dict[str, Any]:
+    """The fields of ``--config``: a published configuration by name or a YAML file
+    (:func:`~mapets_rl.experiment.published.load_published`, includes resolved)."""
+    from mapets_rl.experiment.published import load_published
+
+    return {} if path is None else load_published(path).fields
+
+
+def fold_into_fields(
+    fields: Mapping[str, Any], overrides: Sequence[str]
+) -> tuple[list[str], list[str]]:
+    """A config file's ``fields`` as ``key=value`` items with ``overrides`` folded in, so that
+    all of them apply in one call (a trial's overrides, resumed or not): an override reaching
+    into a mapping the file gives (``env_config.num_envs=4`` beside the file's ``env_config``)
+    is set inside it, one naming a field the file gives replaces it. Returns the file's items
+    and the overrides left to apply after them."""
+    data = json.loads(json.dumps(dict(fields)))  # a deep copy of plain data
+    rest = []
+    for item in overrides:
+        key, value = parse_override(item)
+        head, *path = key.split(".")
+        if path and isinstance(data.get(head), dict):
+            node = data[head]
+            for part in path[:-1]:
+                if not isinstance(node.get(part), dict):
+                    node[part] = {}
+                node = node[part]
+            node[path[-1]] = value
+            continue
+        data.pop(key, None)
+        rest.append(item)
+    return [f"{k}={json.dumps(v)}" for k, v in data.items()], rest
 
 
 def _sets_progress(item: str) -> bool:
@@ -368,10 +395,8 @@ def plan_trials(spec: SweepSpec) -> tuple[type, list[Trial]]:
     check(spec.env in known, "env", f"one of the registered scenarios {known}", spec.env)
     # the sweep's trials draw no progress bars: its own progress=false replaces the config
     # file's progress and the user's progress=false (SweepSpec refuses progress=true)
-    head = [i for i in _config_file_items(spec.config_file) if not _sets_progress(i)]
-    head.append("progress=false")
+    fields = {k: v for k, v in config_file_fields(spec.config_file).items() if k != "progress"}
     fixed = [i for i in spec.overrides if not _sets_progress(i)]
-    base = cls.Config().with_overrides(head)
     trials: list[Trial] = []
     envs: dict[str, Any] = {}
     combos = list(itertools.product(*spec.grid.values())) if spec.grid else [()]
@@ -379,15 +404,17 @@ def plan_trials(spec: SweepSpec) -> tuple[type, list[Trial]]:
         values = dict(zip(spec.grid, combo, strict=True))
         grid_items = [f"{k}={_value_text(v)}" for k, v in values.items()]
         for seed in spec.seeds:
-            overrides = [*head, f"env={spec.env}", f"seed={seed}", *fixed, *grid_items]
+            given = [f"env={spec.env}", f"seed={seed}", *fixed, *grid_items]
+            head, rest = fold_into_fields(fields, given)
+            overrides = [*head, "progress=false", *rest]
             # a trial's GPU is on the node Ray places it on, not necessarily on this machine:
             # its device is checked there
             devices = [v for k, v in map(parse_override, overrides) if k == "device"]
-            checked = overrides[len(head) :]
+            checked = overrides
             if spec.gpus_per_trial > 0:
                 checked = [o for o in checked if parse_override(o)[0] != "device"]
             try:
-                config = base.with_overrides(checked)
+                config = cls.Config().with_overrides(checked)
             except ConfigError as err:
                 where = f" (grid values {values})" if values else ""
                 raise ConfigError(f"{err}{where}") from None
@@ -915,6 +942,25 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
     """A :class:`SweepSpec` from the parsed ``sweep`` arguments (``key=value`` items that
     followed ``--seeds`` are overrides)."""
     seeds, overrides = [], list(args.overrides)
+    recipe, env = args.recipe, args.env
+    if recipe is not None and "=" in recipe:  # `sweep --config NAME key=value ...`
+        overrides.insert(0, recipe)
+        recipe = None
+    if args.config is not None:
+        from mapets_rl.experiment.published import load_published
+
+        published = load_published(args.config)
+        if recipe is not None and published.recipe not in (None, recipe):
+            raise ConfigError(
+                f"RECIPE {recipe!r} differs from --config {args.config!r}'s recipe, "
+                f"{published.recipe}"
+            )
+        recipe = recipe or published.recipe
+        env = env or published.fields.get("env")
+    if recipe is None:
+        raise ConfigError("sweep needs RECIPE, or a --config that names one (mapets-rl configs)")
+    if not isinstance(env, str):
+        raise ConfigError("sweep needs --env SCENARIO, or a --config that sets env")
     for item in args.seeds:
         if "=" in item:
             overrides.append(item)
@@ -930,8 +976,8 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
     for item in overrides:
         parse_override(item)
     return SweepSpec(
-        recipe=args.recipe,
-        env=args.env,
+        recipe=recipe,
+        env=env,
         seeds=seeds,
         out=Path(args.out),
         grid=parse_grid(args.grid),

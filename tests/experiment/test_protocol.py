@@ -9,7 +9,9 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
+from mapets_rl.app.sweep import fold_into_fields
 from mapets_rl.envs import make_env
 from mapets_rl.experiment.protocol import (
     PROTOCOL_FILE,
@@ -158,3 +160,28 @@ def test_compare_aggregates_the_protocol_over_seeds(tmp_path: Path, capsys) -> N
     assert group["gain_percent"]["cooperative-merge"]["mean"] == pytest.approx(sum(per_seed) / 2)
     assert set(summary["references"]) == {"keep-lane", "greedy-overtaking", "cooperative-merge"}
     assert "vs cooperative-merge" in out and "ramp_stuck" in out
+
+
+def test_a_published_configs_seeds_are_swept(tmp_path: Path, capsys) -> None:
+    """``sweep --config NAME --seeds ...`` takes recipe and scenario from the configuration; an
+    override inside one of its mappings (``env_config.num_envs``) is folded into it, so every
+    trial (resumed or not) applies its overrides in one go."""
+    out = tmp_path / "sweep"
+    argv = ["sweep", "--config", "freeway-merge/maddpg-individual", "--seeds", "0", *TINY,
+            "--out", str(out)]  # fmt: skip
+    code, _, err = run_cli(argv, capsys)
+    assert code == 0, err
+    (trial,) = (out / "trials").iterdir()
+    config = yaml.safe_load((trial / "config.yaml").read_text())
+    assert config["env"] == "freeway-merge" and config["env_config"]["num_envs"] == 2
+    assert config["env_config"]["shield"] is True and config["exploration"] == "epsilon"
+
+
+def test_overrides_fold_into_a_config_files_mappings() -> None:
+    fields = {"env": "freeway-merge", "env_config": {"num_envs": 256, "shield": True}, "gamma": 0.9}
+    head, rest = fold_into_fields(
+        fields, ["env=freeway-merge", "env_config.num_envs=2", "gamma=0.5", "planner.horizon=3"]
+    )
+    assert head == ['env_config={"num_envs": 2, "shield": true}']
+    assert rest == ["env=freeway-merge", "gamma=0.5", "planner.horizon=3"]
+    assert fields["env_config"]["num_envs"] == 256  # the file's fields are not changed
