@@ -419,3 +419,38 @@ def test_the_cli_says_a_sigterm_stop_in_one_line(
     monkeypatch.setattr(ToyLearner, "train_step", train_step)
     code, out, err = run_cli(["resume", str(run)], capsys)
     assert code == 0 and '"frames": 40' in out, err
+
+
+# ------------------------------------------------------- memory: the process's own cgroup
+GIB = 2**30
+
+
+@pytest.mark.parametrize("version", ["v2", "v1"])
+def test_the_memory_bound_reads_the_process_own_cgroup(tmp_path, version):
+    from mapets_rl.modules.memory import _cgroup_left
+
+    proc = tmp_path / "proc_cgroup"
+    root = tmp_path / "sys"
+    if version == "v2":
+        proc.write_text("0::/slurm/job7\n")
+        own, parent = root / "slurm" / "job7", root / "slurm"
+        limit, usage = "memory.max", "memory.current"
+    else:
+        proc.write_text("7:cpuset:/\n4:cpuacct,memory:/docker/abc\n0::/\n")
+        own, parent = root / "memory" / "docker" / "abc", root / "memory" / "docker"
+        limit, usage = "memory.limit_in_bytes", "memory.usage_in_bytes"
+    own.mkdir(parents=True)
+    (own / limit).write_text(f"{3 * GIB // 2}\n")  # a 1.5 GiB job; the root has no limit
+    (own / usage).write_text(f"{GIB // 2}\n")
+    assert _cgroup_left(root, proc) == GIB
+    (parent / limit).write_text(f"{GIB // 4}\n")  # a tighter limit above it counts too
+    assert _cgroup_left(root, proc) == GIB // 4
+    (own / usage).write_text(f"{3 * GIB // 2}\n")  # at its limit: nothing left
+    assert _cgroup_left(root, proc) == 0
+
+
+def test_a_cgroup_at_its_limit_leaves_no_memory(monkeypatch):
+    from mapets_rl.modules import memory
+
+    monkeypatch.setattr(memory, "_cgroup_left", lambda: 0)
+    assert memory.available_memory("cpu") == 0

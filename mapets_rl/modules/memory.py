@@ -2,10 +2,12 @@
 
 On a CPU the bound is the smallest of what the machine and the limits on this process leave:
 the host's ``MemAvailable`` (``/proc/meminfo``), the address-space limit ``RLIMIT_AS``
-(``ulimit -v``) less what the process already maps (``VmSize``), and the cgroup's memory limit
-(v2 ``memory.max``, v1 ``memory.limit_in_bytes``) less its usage: a container's limit or a
-``ulimit -v`` is then a one-line refusal, not an allocator traceback or the OOM killer. On a
-CUDA device it is CUDA's free memory.
+(``ulimit -v``) less what the process already maps (``VmSize``), and the memory limit less the
+usage of the process's own cgroup and of every cgroup above it (v2 ``memory.max``, v1
+``memory.limit_in_bytes``; the cgroup named in ``/proc/self/cgroup``, e.g. a Slurm job's or a
+container's without a cgroup namespace): a container's limit or a ``ulimit -v`` is then a
+one-line refusal, not an allocator traceback or the OOM killer; a cgroup at its limit leaves
+nothing. On a CUDA device it is CUDA's free memory.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import torch
 __all__ = ["available_memory", "check_memory"]
 
 _CGROUP = Path("/sys/fs/cgroup")
+_PROC_CGROUP = Path("/proc/self/cgroup")
 
 
 def _read_int(path: Path) -> int | None:
@@ -50,15 +53,40 @@ def _address_space_left() -> int | None:
     return max(soft - mapped, 0)
 
 
-def _cgroup_left(root: Path = _CGROUP) -> int | None:
-    """The cgroup memory limit less its usage (v2, else v1), ``None`` without a limit."""
-    for limit_file, usage_file in (
-        ("memory.max", "memory.current"),
-        ("memory/memory.limit_in_bytes", "memory/memory.usage_in_bytes"),
+def _own_cgroups(proc: Path, v1: bool) -> list[Path]:
+    """The path of this process's cgroup (v2: the ``0::`` line of ``proc``; ``v1``: the line of
+    the ``memory`` controller) and of every cgroup above it, the root last; ``[/]`` when
+    ``proc`` names none."""
+    try:
+        lines = proc.read_text().splitlines()
+    except OSError:
+        lines = []
+    for line in lines:
+        _, controllers, path = (line.split(":", 2) + ["", ""])[:3]
+        if (v1 and "memory" in controllers.split(",")) or (not v1 and line.startswith("0::")):
+            own = Path("/", path.strip() or "/")
+            return [own, *own.parents]
+    return [Path("/")]
+
+
+def _cgroup_left(root: Path = _CGROUP, proc: Path = _PROC_CGROUP) -> int | None:
+    """The smallest memory limit less usage among this process's cgroup and the cgroups above
+    it (read from ``proc``; v2 under ``root``, else v1 under ``root/memory``), ``None`` without
+    a limit. A cgroup of ``proc`` that ``root`` does not hold (another cgroup namespace) is
+    skipped: the root's limit still counts."""
+    for v1, limit_file, usage_file in (
+        (False, "memory.max", "memory.current"),
+        (True, "memory.limit_in_bytes", "memory.usage_in_bytes"),
     ):
-        limit = _read_int(root / limit_file)
-        if limit is not None and limit < 1 << 60:  # v1 writes a huge number for "no limit"
-            return max(limit - (_read_int(root / usage_file) or 0), 0)
+        base = root / "memory" if v1 else root
+        left = []
+        for cgroup in _own_cgroups(proc, v1):
+            directory = base / cgroup.relative_to("/")
+            limit = _read_int(directory / limit_file)
+            if limit is not None and limit < 1 << 60:  # v1 writes a huge number for "no limit"
+                left.append(max(limit - (_read_int(directory / usage_file) or 0), 0))
+        if left:
+            return min(left)
     return None
 
 
@@ -70,8 +98,9 @@ def available_memory(device: torch.device | str = "cpu") -> int | None:
         return int(torch.cuda.mem_get_info(device)[0])
     if device.type != "cpu":
         return None
-    bounds = [b for b in (_meminfo("MemAvailable"), _address_space_left(), _cgroup_left()) if b]
-    return min(bounds) if bounds else None
+    bounds = (_meminfo("MemAvailable"), _address_space_left(), _cgroup_left())
+    known = [b for b in bounds if b is not None]  # 0 (a cgroup at its limit) counts
+    return min(known) if known else None
 
 
 def check_memory(need: int, device: torch.device | str, what: str, fix: str) -> None:
