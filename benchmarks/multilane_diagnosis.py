@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         "--scenario",
         default=SCENARIO,
         choices=("figure-eight", SCENARIO),
-        help="figure-eight: the one-lane reference (no keep-lane variants: one action)",
+        help="figure-eight: the one-lane reference (no keep-lane variants)",
     )
     parser.add_argument("--horizon", type=int, default=400, help="steps per episode")
     parser.add_argument(
@@ -73,8 +73,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
         nargs="*",
         default=[],
         metavar="key=value",
-        help="oracle: FigureEightPlannerReward fields over its defaults (the margins MA-PETS "
-        "plans with), e.g. headway=0 lane_change_time=0 lane_change_gap=8",
+        help="oracle: FigureEightPlannerReward fields over its defaults (the "
+        "margins MA-PETS plans with), e.g. headway=0 lane_change_gap=8",
     )
     parser.add_argument(
         "--anchor-candidates", action="store_true", help="oracle: iCEM's fallback candidates"
@@ -93,13 +93,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
         nargs="*",
         default=[],
         metavar="key=value",
-        help="oracle: PlannerConfig fields over the cpu preset's, e.g. population=16 "
-        "noise_beta=2 keep_elites=0.3 (model rows per decision scale with population)",
+        help="oracle: PlannerConfig fields over the cpu preset's, e.g. population=16 noise_beta=2",
     )
     parser.add_argument(
-        "--comm-range", type=float, default=100.0,
-        help="*-shared: the range d [m] within which CAVs hear each other's plans",
-    )  # fmt: skip
+        "--comm-range",
+        type=float,
+        default=100.0,
+        help="*-shared: the range d [m] within which CAVs hear the plans",
+    )
     parser.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
     args = parser.parse_args(argv)
     if not args.comm_range >= 0:
@@ -123,18 +124,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for name in args.policies:
         for seed in args.seeds:
             row = run_episode(
-                name,
-                seed,
-                args.horizon,
-                reward,
-                args.scenario,
-                args.run,
-                tuple(args.set),
-                args.comm_range,
-                anchor_candidates=args.anchor_candidates,
-                keep_best=args.keep_best,
-                **planner_settings,
-            )
+                name, seed, args.horizon, reward, args.scenario, args.run, tuple(args.set),
+                args.comm_range, anchor_candidates=args.anchor_candidates,
+                keep_best=args.keep_best, **planner_settings,
+            )  # fmt: skip
             rows.append(row)
             print(json.dumps(row), flush=True)
     header = " | ".join(CLASSES)

@@ -1,43 +1,26 @@
-"""Which crashes get past the shield (issue 32): every CAV crash in the greedy evaluation of a
-trained run (or of a scripted policy) on the shielded ``freeway-merge``, classified by what the
-shield saw at the decision of the step in which it happened.
+"""Which crashes get past the shield (issue 32): every CAV crash in the greedy evaluation of
+trained ``freeway-merge`` runs (and of the reference policies), classified by what the shield
+(``BatchedFreeway.shield``: a copy of the road stepped with the proposed decisions, then Keep
+Lane; a lane change or stop that crashes there becomes Keep Lane) saw in the crash's step:
 
-The shield (``BatchedFreeway.shield``) steps a copy of every road with the CAVs' proposed
-decisions, then ``shield_horizon - 1`` steps of Keep Lane, and replaces every lane change or
-emergency stop of a CAV that crashes in the copy by Keep Lane. Stepping is deterministic, so a
-crash in step ``t`` falls in exactly one of:
+- ``replaced``: the CAV's decision was replaced and it crashed anyway;
+- ``kept, predicted``: it proposed Keep Lane (column ``mid change``: in a lane change begun
+  earlier) and the check predicted its crash (rear-ended, cut in on);
+- ``others replaced``: not predicted, but other CAVs' decisions on its road were replaced, and
+  the joint decision that ran is not the one checked;
+- ``unexplained``: neither; zero by construction (the check's first step is the real step).
 
-- ``replaced``: the CAV's own decision was replaced and it crashed anyway (Keep Lane, the
-  shield's backup, does not avoid it);
-- ``kept, predicted``: the CAV proposed Keep Lane (perhaps in the middle of a lane change it
-  began earlier: column ``mid change``) and the check predicted its crash: nothing it could
-  have been given would have avoided it in the shield's model (rear-ended, cut in on);
-- ``others replaced``: the check did not predict it, but other CAVs' decisions on its road were
-  replaced, and the joint decision that ran is not the one checked (the replacements are not
-  checked again together);
-- ``unexplained``: not predicted and nothing replaced on its road; zero by construction (the
-  check's first step is the real step: ``tests/envs/test_shield_and_exploration.py``).
-
-Also per crash: with what (the obstacle at the ramp's end when no other vehicle on the road
-crashed in the same step, a vehicle otherwise) and where (the ramp, i.e. the acceleration lane
-and the lane before it; a mainline lane from 100 m before the acceleration lane to its end;
-elsewhere on the mainline).
-
-Each run is scored on the evaluation roads of its own seed (those of ``mapets-rl evaluate RUN
---roads``), with its own scenario settings; the reference rows (keep lane, the cooperative merge
-rule) on the roads and settings of the first arm's runs.
+Also per crash: with what (the obstacle at the ramp's end, or a vehicle) and where (the ramp;
+the mainline from 100 m before the acceleration lane to its end; elsewhere). Each run plays the
+evaluation roads of its seed (``mapets-rl evaluate RUN --roads``) with its own settings; the
+references play those of the first arm's runs. ``--shield-passes N``: a shield that checks its
+corrected decisions again, up to ``N`` passes (``env_config.shield_passes``).
 
     OMP_NUM_THREADS=1 python benchmarks/shield_crashes.py \\
         --runs RUN_DIR ... [--eval-roads 256] [--shield-passes 1] [--out DIR]
 
-``--shield-passes N`` evaluates the same policies under a shield that checks its corrected
-decisions again (``env_config.shield_passes``), up to ``N`` passes, so that no move runs that
-the check predicts to crash beside the decisions that run: what gets through then are crashes
-of CAVs that keep their lane (the classes stay those of the proposed decisions' check).
-
-Prints a markdown table, the system reward and the crashes per episode in each class, over
-the rows' seeds;
-each row's counts are cached in ``DIR/<row>.json`` (a second call reads them).
+Prints a markdown table: the system reward and the crashes per episode in each class, over the
+rows' seeds; each row's counts are cached in ``DIR/<row>.json``.
 """
 
 from __future__ import annotations
