@@ -447,6 +447,9 @@ def test_the_memory_bound_reads_the_process_own_cgroup(tmp_path, version):
     assert _cgroup_left(root, proc) == GIB // 4
     (own / usage).write_text(f"{3 * GIB // 2}\n")  # at its limit: nothing left
     assert _cgroup_left(root, proc) == 0
+    cache = "inactive_file" if version == "v2" else "total_inactive_file"
+    (own / "memory.stat").write_text(f"anon 5\n{cache} {GIB // 8}\n")  # but reclaimable cache
+    assert _cgroup_left(root, proc) == GIB // 8
 
 
 def test_a_cgroup_at_its_limit_leaves_no_memory(monkeypatch):

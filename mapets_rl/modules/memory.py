@@ -53,6 +53,20 @@ def _address_space_left() -> int | None:
     return max(soft - mapped, 0)
 
 
+def _stat_field(path: Path, key: str) -> int | None:
+    """The value of ``key`` in a cgroup's ``memory.stat`` (``key value`` lines), ``None`` when
+    the file or the key is absent."""
+    try:
+        lines = path.read_text().splitlines()
+    except OSError:
+        return None
+    for line in lines:
+        name, _, value = line.partition(" ")
+        if name == key and value.strip().isdigit():
+            return int(value)
+    return None
+
+
 def _own_cgroups(proc: Path, v1: bool) -> list[Path]:
     """The path of this process's cgroup (v2: the ``0::`` line of ``proc``; ``v1``: the line of
     the ``memory`` controller) and of every cgroup above it, the root last; ``[/]`` when
@@ -72,11 +86,12 @@ def _own_cgroups(proc: Path, v1: bool) -> list[Path]:
 def _cgroup_left(root: Path = _CGROUP, proc: Path = _PROC_CGROUP) -> int | None:
     """The smallest memory limit less usage among this process's cgroup and the cgroups above
     it (read from ``proc``; v2 under ``root``, else v1 under ``root/memory``), ``None`` without
-    a limit. A cgroup of ``proc`` that ``root`` does not hold (another cgroup namespace) is
-    skipped: the root's limit still counts."""
-    for v1, limit_file, usage_file in (
-        (False, "memory.max", "memory.current"),
-        (True, "memory.limit_in_bytes", "memory.usage_in_bytes"),
+    a limit. The usage leaves out the inactive page cache (``memory.stat``), which the kernel
+    reclaims before it runs out. A cgroup of ``proc`` that ``root`` does not hold (another
+    cgroup namespace) is skipped: the root's limit still counts."""
+    for v1, limit_file, usage_file, cache_key in (
+        (False, "memory.max", "memory.current", "inactive_file"),
+        (True, "memory.limit_in_bytes", "memory.usage_in_bytes", "total_inactive_file"),
     ):
         base = root / "memory" if v1 else root
         left = []
@@ -84,7 +99,10 @@ def _cgroup_left(root: Path = _CGROUP, proc: Path = _PROC_CGROUP) -> int | None:
             directory = base / cgroup.relative_to("/")
             limit = _read_int(directory / limit_file)
             if limit is not None and limit < 1 << 60:  # v1 writes a huge number for "no limit"
-                left.append(max(limit - (_read_int(directory / usage_file) or 0), 0))
+                usage = _read_int(directory / usage_file) or 0
+                # the inactive page cache counts as usage but is given back on demand
+                cache = _stat_field(directory / "memory.stat", cache_key) or 0
+                left.append(max(limit - max(usage - cache, 0), 0))
         if left:
             return min(left)
     return None
