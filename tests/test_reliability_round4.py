@@ -457,3 +457,19 @@ def test_a_cgroup_at_its_limit_leaves_no_memory(monkeypatch):
 
     monkeypatch.setattr(memory, "_cgroup_left", lambda: 0)
     assert memory.available_memory("cpu") == 0
+
+
+# ------------------------------------------------- compare names a run's bad metric value
+@pytest.mark.parametrize("value", [float("nan"), "x", None])
+def test_compare_names_the_run_and_metric_of_a_value_that_is_no_number(
+    tmp_path, csv_toy_run, toy_scenario, value
+):
+    from mapets_rl.app.comparison import compare
+
+    other = tmp_path / "other"
+    ToyLearner(ToyConfig(total_frames=20, seed=1), other).train()
+    data = json.loads((csv_toy_run / "results.json").read_text())
+    data["evaluations"][0]["metrics"]["return"] = value
+    (csv_toy_run / "results.json").write_text(json.dumps(data))
+    with pytest.raises(ValueError, match=r"run_dir '.*run': metric 'return' at frames 20 is "):
+        compare([csv_toy_run, other], tmp_path / "out")

@@ -445,6 +445,7 @@ def compare(
     unknown = [m for m in metrics if m not in common]
     if unknown:
         raise ValueError(f"metrics {unknown} are not in every run (available: {sorted(common)})")
+    _check_numbers(groups, [*metrics, *([x] if x != "frames" else [])])
 
     # per group, each run's entries by x, and the entries the table compares
     for label, group in groups.items():
@@ -704,6 +705,23 @@ def _check_distinct(run_dirs: Sequence[str | os.PathLike], out_dir: str | os.Pat
                 f"out_dir {str(out_dir)!r} is inside run_dir {run!r}: the comparison would be "
                 "written into a run; choose an --out outside every compared run"
             )
+
+
+def _check_numbers(groups: Mapping[str, Mapping[str, Any]], names: Sequence[str]) -> None:
+    """ValueError naming the run, the metric and the entry's frames when a compared metric
+    (``names``) of an entry is not a finite number (NaN, a string: an edited or damaged
+    ``results.json``, or a run that trained on NaN)."""
+    for group in groups.values():
+        for run, entries in zip(group["runs"], group["entries"], strict=True):
+            for entry in entries:
+                for name in names:
+                    value = entry["metrics"][name]
+                    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+                    if not (number and math.isfinite(value)):
+                        raise ValueError(
+                            f"run_dir {run!r}: metric {name!r} at frames {entry['frames']} is "
+                            f"{value!r}, not a finite number; it cannot be compared"
+                        )
 
 
 def _aligned_last(
