@@ -68,6 +68,8 @@ LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb"}
 """Logger kind -> the package it needs (checked when a config is built)."""
 DEVICE_TYPES = ("cpu", "cuda", "mps")
 COLLECTORS = ("auto", "single", "multi_sync", "ray")
+MAX_EVAL_ROADS = 65_536
+"""The most roads of an in-training protocol evaluation (``eval_roads``)."""
 
 
 @dataclasses.dataclass
@@ -87,6 +89,13 @@ class RunConfig(ConfigFields):
             wandb need their package installed.
         video: record a GIF of the first episode of each evaluation.
         progress: show a tqdm progress bar.
+        eval_roads: > 0: every evaluation is the evaluation protocol
+            (:mod:`mapets_rl.experiment.protocol`) on this many roads of the scenario's batched
+            backend, with the gain over each of ``eval_references`` (metrics
+            ``gain_vs_<reference>``, in percent) beside the system return and the behaviour
+            metrics; 0 (default): ``eval_episodes`` episodes on one road.
+        eval_references: the reference policies of the protocol (names registered for the
+            scenario, :mod:`mapets_rl.envs.references`; empty: every one registered).
     """
 
     env: str = "figure-eight"
@@ -98,6 +107,8 @@ class RunConfig(ConfigFields):
     logger: str = "csv"
     video: bool = False
     progress: bool = True
+    eval_roads: int = 0
+    eval_references: list[str] = dataclasses.field(default_factory=list)
 
     # keys that config.yaml files written by an older version hold and this class no longer
     # has; resuming such a run ignores them
@@ -122,6 +133,7 @@ class RunConfig(ConfigFields):
         check(self.keep_last >= 1, "keep_last", ">= 1", self.keep_last)
         check(self.logger in LOGGERS, "logger", f"one of {list(LOGGERS)}", self.logger)
         check_logger_package(self.logger)
+        self._check_protocol()
         self._derived_fields: set[str] = set()
         if not self.collects_env_batches:
             check(
@@ -131,6 +143,38 @@ class RunConfig(ConfigFields):
                 "the collectors of the frame-budget recipes)",
                 self.env_batch_size,
             )
+
+    def _check_protocol(self) -> None:
+        """``eval_roads`` and ``eval_references`` against the scenario (the envs are imported
+        only when the protocol is asked for)."""
+        check(
+            0 <= self.eval_roads <= MAX_EVAL_ROADS,
+            "eval_roads",
+            f"in [0, {MAX_EVAL_ROADS}]",
+            self.eval_roads,
+        )
+        if not self.eval_roads:
+            check(
+                not self.eval_references,
+                "eval_references",
+                "empty unless eval_roads > 0 (the references are scored by the protocol)",
+                self.eval_references,
+            )
+            return
+        from mapets_rl.envs.factory import has_batched_backend
+        from mapets_rl.envs.references import check_reference_names
+
+        check(
+            has_batched_backend(self.env),
+            "eval_roads",
+            f"0 for {self.env!r}, which has no batched backend (mapets-rl evaluate --roads "
+            "scores its episodes one road at a time)",
+            self.eval_roads,
+        )
+        try:
+            check_reference_names(self.env, self.eval_references)
+        except ValueError as err:
+            raise ConfigError(f"eval_{err}") from None
 
     def derive(self, name: str, value: Any) -> None:
         """Set field ``name``, which was left to its default ``None``, to ``value`` derived from

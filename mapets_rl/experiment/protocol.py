@@ -34,14 +34,14 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from mapets_rl.envs import build_env
 from mapets_rl.envs.factory import has_batched_backend
 from mapets_rl.envs.references import check_reference_names, make_reference
-from mapets_rl.experiment.config import RunConfig
+from mapets_rl.experiment.config import MAX_EVAL_ROADS, RunConfig
 from mapets_rl.experiment.files import atomic_write_text
 from mapets_rl.experiment.reference import evaluate_scripted
 
 ROAD_EVAL_SEED_OFFSET = 10_000
 """The evaluation roads of a run of seed ``s`` are drawn with seed ``s + 10,000`` (no multiple
 of the training seeds' stride, 7,919, so never one of the run's training seeds)."""
-MAX_ROADS = 65_536
+MAX_ROADS = MAX_EVAL_ROADS
 """The most evaluation roads (or episodes) one protocol call plays."""
 PROTOCOL_FILE = "evaluation_protocol.json"
 """The protocol's result in a run directory."""
@@ -142,21 +142,31 @@ def gain_percent(scores: RoadScores, reference: RoadScores) -> float:
 
 
 def evaluate_protocol(
-    exp: Any, roads: int, references: Sequence[str], *, write: bool = True
+    exp: Any,
+    roads: int,
+    references: Sequence[str],
+    *,
+    write: bool = True,
+    reference_cache: dict[str, RoadScores] | None = None,
 ) -> dict[str, Any]:
     """Score the greedy policy of the experiment ``exp`` (its ``eval_policy``) and the
     reference policies named in ``references`` on the same ``roads`` evaluation roads (or
     episodes); returns, and with ``write`` writes atomically to ``run_dir/`` +
     :data:`PROTOCOL_FILE`: ``frames``, ``roads``, ``eval_seed``, ``batched``, ``policy`` and
-    ``references`` (each :meth:`RoadScores.to_json`) and ``gain_percent`` (per reference)."""
+    ``references`` (each :meth:`RoadScores.to_json`) and ``gain_percent`` (per reference).
+    ``reference_cache`` (name -> scores, on the batched path) keeps the references' scores
+    between calls of one run: they drive the same roads every time."""
     config = exp.config
     check_roads(roads)
     check_reference_names(config.env, list(references))
     batched = has_batched_backend(config.env)
     if batched:
         policy = score_roads(config, lambda env: exp.eval_policy, roads)
-        scored = {name: score_roads(config, _reference(config.env, name), roads) for name in
-                  references}  # fmt: skip
+        cache = {} if reference_cache is None else reference_cache
+        for name in references:
+            if name not in cache:
+                cache[name] = score_roads(config, _reference(config.env, name), roads)
+        scored = {name: cache[name] for name in references}
         eval_seed = config.seed + ROAD_EVAL_SEED_OFFSET
     else:
         policy = _unbatched_scores(exp.evaluate(episodes=roads))
@@ -180,6 +190,19 @@ def evaluate_protocol(
     if write:
         atomic_write_text(Path(exp.run_dir) / PROTOCOL_FILE, json.dumps(result, indent=1))
     return result
+
+
+def protocol_metrics(result: Mapping[str, Any]) -> dict[str, float]:
+    """The flat metrics of a protocol result, as an evaluation logs them: ``system_return``
+    (mean per episode), the policy's episode metrics and ``gain_vs_<reference>`` [%]."""
+    return {
+        "system_return": result["policy"]["system_reward_mean"],
+        **result["policy"]["metrics"],
+        **{
+            f"gain_vs_{name.replace('-', '_')}": gain
+            for name, gain in result["gain_percent"].items()
+        },
+    }
 
 
 def _reference(scenario: str, name: str) -> Callable[[EnvBase], TensorDictModuleBase]:

@@ -252,6 +252,8 @@ class Experiment:
         {
             "total_frames",
             "eval_interval",
+            "eval_roads",
+            "eval_references",
             "checkpoint_interval",
             "keep_last",
             "device",
@@ -347,6 +349,7 @@ class Experiment:
         self.eval_policy: TensorDictModuleBase | None = None
         self.latest_metrics: dict[str, float] = {}
         self._video_env: EnvBase | None = None
+        self._reference_scores: dict[str, Any] = {}  # the protocol's references, by name
 
     @classmethod
     def refuse_action_kind(cls, env: EnvBase, env_name: str) -> None:
@@ -724,6 +727,8 @@ class Experiment:
         if episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {episodes}")
         video = self.config.video if video is None else video
+        if self.config.eval_roads and not video:
+            return self._protocol_evaluation()
         # with video, evaluate on a rendering copy of the env (same seed, same episodes);
         # episode_metrics hooks read self.env, so it points at the env being evaluated
         previous = self.env
@@ -747,6 +752,23 @@ class Experiment:
         finally:
             self.env = previous
         return mean_metrics(per_episode)
+
+    def _protocol_evaluation(self) -> dict[str, float]:
+        """The evaluation protocol on ``config.eval_roads`` roads (``config.eval_references``,
+        default every reference of the scenario), as flat metrics; the references are scored
+        once per run (the same roads every time)."""
+        from mapets_rl.envs.references import reference_names
+        from mapets_rl.experiment.protocol import evaluate_protocol, protocol_metrics
+
+        names = self.config.eval_references or reference_names(self.config.env)
+        result = evaluate_protocol(
+            self,
+            self.config.eval_roads,
+            names,
+            write=False,
+            reference_cache=self._reference_scores,
+        )
+        return protocol_metrics(result)
 
     def _render_env(self) -> EnvBase:
         """The env with ``render_mode="rgb_array"`` (built once). Frames are drawn off screen,

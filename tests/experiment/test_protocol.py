@@ -185,3 +185,35 @@ def test_overrides_fold_into_a_config_files_mappings() -> None:
     assert head == ['env_config={"num_envs": 2, "shield": true}']
     assert rest == ["env=freeway-merge", "gamma=0.5", "planner.horizon=3"]
     assert fields["env_config"]["num_envs"] == 256  # the file's fields are not changed
+
+
+def test_in_training_evaluations_follow_the_protocol(tmp_path: Path) -> None:
+    """``eval_roads`` makes every evaluation the protocol: the gains and behaviour metrics are
+    in the results, the references scored once per run."""
+    tiny = [o for o in TINY if not o.startswith("eval_interval=")]
+    config = _config(team_reward=False).with_overrides(
+        [*tiny, "eval_interval=20", "eval_roads=2", "eval_references=[keep-lane]"]
+    )
+    exp = MADDPG(config, tmp_path / "run")
+    exp.train()
+    evaluations = json.loads((tmp_path / "run" / "results.json").read_text())["evaluations"]
+    assert len(evaluations) == 2
+    for entry in evaluations:
+        assert {"system_return", "gain_vs_keep_lane", "ramp_stuck"} <= set(entry["metrics"])
+    assert list(exp._reference_scores) == ["keep-lane"]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "needle"),
+    [
+        (["eval_roads=-1"], r"eval_roads must be in \[0, 65536\]"),
+        (["eval_references=[keep-lane]"], "eval_references must be empty unless eval_roads"),
+        (["eval_roads=2", "eval_references=[nosuch]"], "'nosuch' is not a reference policy"),
+        (["env=figure-eight", "env_config={}", "eval_roads=2"], "no batched backend"),
+    ],
+)
+def test_protocol_settings_are_checked(overrides: list[str], needle: str) -> None:
+    from mapets_rl.config import ConfigError
+
+    with pytest.raises(ConfigError, match=needle):
+        _config(team_reward=False).with_overrides(overrides)
