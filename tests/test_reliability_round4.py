@@ -7,6 +7,7 @@ directory.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import signal
@@ -473,3 +474,23 @@ def test_compare_names_the_run_and_metric_of_a_value_that_is_no_number(
     (csv_toy_run / "results.json").write_text(json.dumps(data))
     with pytest.raises(ValueError, match=r"run_dir '.*run': metric 'return' at frames 20 is "):
         compare([csv_toy_run, other], tmp_path / "out")
+
+
+# ------------------------------------------- a full disk before the first checkpoint, told
+def test_a_full_disk_at_the_first_checkpoint_says_none_is_kept(
+    tmp_path, toy_recipe, capsys, monkeypatch
+):
+    real_fsync = os.fsync
+
+    def disk_full(fd: int) -> None:
+        if os.readlink(f"/proc/self/fd/{fd}").endswith(".pt"):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", disk_full)
+    run = tmp_path / "run"
+    argv = ["train", "toy", "--env", "toy", "--run-dir", str(run), "total_frames=20"]
+    code, _, err = run_cli(argv, capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert "No space left on device" in err and "before its first checkpoint" in err
+    assert "earlier checkpoints are kept" not in err

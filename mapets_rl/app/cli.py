@@ -569,7 +569,11 @@ def _train(exp: Any) -> None:
     try:
         exp.train()
     except WriteFailed as err:
-        _fail(f"{err}; the run stopped, its earlier checkpoints are kept (resume it later)")
+        from mapets_rl.experiment.checkpoint import list_checkpoints
+
+        if list_checkpoints(exp.run_dir):
+            _fail(f"{err}; the run stopped, its earlier checkpoints are kept (resume it later)")
+        _fail(f"{err}; the run stopped before its first checkpoint (start it again)")
     except (RayUnreachable, NonFiniteData) as err:
         _fail(str(err))
     except RunStopped as err:
