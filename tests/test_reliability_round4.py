@@ -23,7 +23,7 @@ from toy_scenario import ToyAgentsEnv
 from mapets_rl.app import sweep
 from mapets_rl.app.sweep import SweepResult, SweepSpec, run_sweep, run_trial
 from mapets_rl.envs import registry
-from mapets_rl.experiment import register_env
+from mapets_rl.experiment import register_env, runner
 from mapets_rl.experiment.checkpoint import list_checkpoints, load_checkpoint
 from mapets_rl.experiment.episodes import TRAIN_EPISODES_FILE
 from mapets_rl.experiment.files import open_append
@@ -494,3 +494,42 @@ def test_a_full_disk_at_the_first_checkpoint_says_none_is_kept(
     assert code == 2 and err.count("\n") == 1, err
     assert "No space left on device" in err and "before its first checkpoint" in err
     assert "earlier checkpoints are kept" not in err
+
+
+# ------------------------------------------------ which program simulated the run, recorded
+def test_the_simulator_program_of_the_batched_freeway_is_told():
+    from torchrl.envs import StepCounter
+
+    from mapets_rl.envs import make_env
+
+    batched = make_env("freeway", backend="torch", kernel="torch", num_envs=2)
+    assert runner.simulator_program(batched) == "torch"
+    assert runner.simulator_program(batched.append_transform(StepCounter())) == "torch"
+    assert runner.simulator_program(ToyAgentsEnv()) is None
+
+
+def test_a_resume_on_another_simulator_is_refused(tmp_path, toy_scenario, monkeypatch):
+    monkeypatch.setattr(runner, "simulator_program", lambda env: "native")
+    run = tmp_path / "run"
+    ToyLearner(ToyConfig(total_frames=20), run).train()
+    assert json.loads((run / "run.json").read_text())["simulator"] == "native"
+    assert json.loads((run / "results.json").read_text())["simulator"] == "native"
+    ToyLearner.from_run_dir(run, ["total_frames=30"]).close()  # the same simulator: fine
+    monkeypatch.setattr(runner, "simulator_program", lambda env: "torch")
+    before = _run_files(run)
+    with pytest.raises(ValueError, match="simulated by the fused C\\+\\+ kernel .* torch program"):
+        ToyLearner.from_run_dir(run, ["total_frames=40"])
+    assert _run_files(run) == before
+
+
+def test_compare_groups_runs_of_different_simulators_apart(tmp_path, toy_scenario, monkeypatch):
+    from mapets_rl.app.comparison import compare
+
+    runs = []
+    for seed, simulator in enumerate(["native", "torch"]):
+        monkeypatch.setattr(runner, "simulator_program", lambda env, s=simulator: s)
+        runs.append(tmp_path / simulator)
+        ToyLearner(ToyConfig(total_frames=20, seed=seed), runs[-1]).train()
+    out = compare(runs, tmp_path / "out")
+    summary = json.loads(out["summary"].read_text())
+    assert sorted(summary) == ["toy (native simulator)", "toy (torch simulator)"]

@@ -18,10 +18,11 @@ A comparison says what it compares and refuses what would mislead:
   refused unless ``allow_mixed_env`` (then each group is labelled with its scenario and a
   warning is logged), except the keys that ``group_by`` names;
 - *grouped how*: by recipe, plus the values of the config fields in ``group_by`` (e.g. a sweep
-  over ``comm.comm_range``), each group a mean and an interquartile mean (IQM) over its runs
-  (seeds) with bootstrap 95% intervals (:mod:`mapets_rl.statistics`: the rliable protocol),
-  clipped to each metric's range; a group of one run shows its values, ``n = 1``, and no
-  interval;
+  over ``comm.comm_range``), plus the simulator of the batched freeway when the runs' differ
+  (``results.json``'s ``simulator``: its C++ kernel or its torch program), each group a mean
+  and an interquartile mean (IQM) over its runs (seeds) with bootstrap 95% intervals
+  (:mod:`mapets_rl.statistics`: the rliable protocol), clipped to each metric's range; a group
+  of one run shows its values, ``n = 1``, and no interval;
 - *at what point*: the table compares the runs of a group at the last ``x`` all of them
   reached, and its header says so when they end at different ``x``;
 - *which metrics*: by default the task metrics (:data:`mapets_rl.metrics.TASK_METRICS`), every
@@ -384,8 +385,9 @@ def compare(
             f"the keys that differ ({', '.join(_keys_to_group_by(results, diffs))})"
         )
 
-    # groups: recipe + group_by values (+ scenario when mixed, + source when mixed)
+    # groups: recipe + group_by values (+ scenario, source, simulator when mixed)
     mixed_sources = len(set(sources)) > 1
+    mixed_simulators = len({res.get("simulator") for res in results}) > 1
     groups: dict[str, dict[str, Any]] = {}
     for run, res, src, values, scenario, evaluation in zip(
         runs,
@@ -401,6 +403,10 @@ def compare(
         if mixed_sources:
             algorithm += f" ({src})"
             label += f" ({src})"
+        if mixed_simulators:  # the batched freeway's kernel and torch program part ways
+            simulator = f" ({res.get('simulator') or 'unrecorded'} simulator)"
+            algorithm += simulator
+            label += simulator
         group = groups.setdefault(
             label,
             {

@@ -282,9 +282,14 @@ class ResultsWriter:
     Layout::
 
         {"recipe": str, "env": str, "seed": int, "config": {...},
+         ["simulator": "native" | "torch",]
          "units": {name: unit},
          "train": [{"frames": int, "metrics": {name: float}}, ...],
          "evaluations": [{"frames": int, "metrics": {name: float}}, ...]}
+
+    ``simulator`` names the program that simulated the batched freeway (``backend="torch"``;
+    see :func:`~mapets_rl.experiment.runner.simulator_program`): its fused C++ kernel or its
+    torch program, different experiments whatever ``env_config.kernel`` says.
 
     ``units`` names the unit of every recorded metric that has one (``agility: m/step``,
     ``average_velocity: m/s``, ``frames: env steps``; :data:`mapets_rl.metrics.METRIC_UNITS`).
@@ -314,10 +319,13 @@ class ResultsWriter:
         env: str,
         seed: int,
         config: Mapping[str, Any],
+        simulator: str | None = None,
     ) -> None:
         self.path = Path(run_dir) / RESULTS_FILE
         self.timings_path = Path(run_dir) / TIMINGS_FILE
         self.header = {"recipe": recipe, "env": env, "seed": seed, "config": dict(config)}
+        if simulator is not None:
+            self.header["simulator"] = simulator
         self.evaluations: list[dict[str, Any]] = []
         self.train: list[dict[str, Any]] = []
         self._unsorted: list[dict[str, Any]] | None = None

@@ -25,7 +25,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import BaseCollector, Collector, MultiSyncCollector
-from torchrl.envs import EnvBase
+from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from tqdm import tqdm
 
@@ -376,11 +376,12 @@ class Experiment:
         if not restoring:  # again under the lock: a writer that held it may have finished
             self._refuse_occupied_dir()
         remove_stale_files(self.run_dir)
+        self.simulator = simulator_program(self.env)
         if not restoring:  # run.json first: it marks the directory as a run directory of ours
-            atomic_write_text(
-                self.run_dir / RUN_FILE,
-                json.dumps({"recipe": self.name, "env": config.env, "seed": config.seed}),
-            )
+            record = {"recipe": self.name, "env": config.env, "seed": config.seed}
+            if self.simulator is not None:
+                record["simulator"] = self.simulator
+            atomic_write_text(self.run_dir / RUN_FILE, json.dumps(record))
             config.to_yaml(self.run_dir / CONFIG_FILE)
         self.logger: RunLogger | None = None
         if config.logger != "none":
@@ -390,7 +391,7 @@ class Experiment:
         if restoring:
             self._deferred = {"config": False, "results": False, "frames": 0, "log_steps": {}}
         self.results = ResultsWriter(
-            self.run_dir, self.name, config.env, config.seed, config.to_dict()
+            self.run_dir, self.name, config.env, config.seed, config.to_dict(), self.simulator
         )
         self.episode_log = EpisodeLog(self.run_dir, deferred=restoring)
         self.episode_tracker = EpisodeTracker()
@@ -994,6 +995,7 @@ class Experiment:
         exp._resuming = True
         exp._lock = lock
         exp.__init__(config, run_dir)
+        _refuse_another_simulator(run_dir, exp.simulator)
         if state is not None:
             exp._restore(state, ckpt, _changed_keys(saved.to_dict(), config.to_dict()))
             done, total = exp.progress()
@@ -1211,6 +1213,42 @@ def purge_step(frames: int, log_steps: Mapping[str, int] | None) -> int | None:
     ``None`` for a run that had logged nothing."""
     last = max([frames, *(log_steps or {}).values()])
     return last + 1 if last else None
+
+
+SIMULATORS = {"native": "the fused C++ kernel", "torch": "the torch program"}
+"""The programs that simulate the batched freeway (:func:`simulator_program`)."""
+
+
+def simulator_program(env: EnvBase) -> str | None:
+    """Which program simulates ``env`` (transformed or not): ``"native"`` (the fused C++ kernel)
+    or ``"torch"`` (the torch program) for the batched freeway (``backend="torch"``), whose
+    ``kernel="auto"`` runs the kernel where a C++ toolchain exists and the torch program
+    elsewhere; ``None`` for another env. The two programs are different experiments (their
+    trajectories part after some steps), so a run records which one ran (``run.json``,
+    ``results.json``)."""
+    while isinstance(env, TransformedEnv):
+        env = env.base_env
+    sim = getattr(env, "sim", None)
+    if sim is None or not hasattr(sim, "kernel"):
+        return None
+    return "native" if sim.kernel is not None else "torch"
+
+
+def _refuse_another_simulator(run_dir: Path, simulator: str | None) -> None:
+    """ConfigError when ``run_dir``'s ``run.json`` records another simulator
+    (:func:`simulator_program`) than ``simulator``, the one the resumed run would use: the rest
+    of the run would be another experiment than its first part."""
+    path = run_dir / RUN_FILE
+    recorded = read_json_object(path).get("simulator") if path.is_file() else None
+    if recorded is None or recorded == simulator:
+        return
+    here = SIMULATORS.get(str(simulator), "no batched freeway")
+    raise ConfigError(
+        f"run_dir {str(run_dir)!r} was simulated by {SIMULATORS.get(recorded, recorded)} "
+        f"({recorded!r}) and would go on with {here} here (env_config.kernel 'auto' picks "
+        "the kernel only where a C++ toolchain builds it): the two are different experiments; "
+        "resume the run where its simulator runs"
+    )
 
 
 def run_recipe_name(run_dir: str | os.PathLike) -> str:
