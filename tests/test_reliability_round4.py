@@ -340,7 +340,7 @@ def test_an_update_interval_beyond_the_budget_is_refused_naming_it():
 # ----------------------------------------------------- SIGTERM: checkpoint, stop, resume
 def _toy_config(checkpoint_interval: int) -> ToyConfig:
     return ToyConfig(
-        total_frames=40, eval_interval=20, checkpoint_interval=checkpoint_interval, logger="csv"
+        total_frames=40, eval_interval=30, checkpoint_interval=checkpoint_interval, logger="csv"
     )
 
 
@@ -361,14 +361,16 @@ def sigterm_handler() -> Any:
     signal.signal(signal.SIGTERM, previous)
 
 
-def _sigterm_after(frames: int, exp: ToyLearner) -> Callable[[dict[str, float]], None]:
-    """An ``on_iteration_end`` that sends this process SIGTERM once ``exp`` has ``frames``."""
+class SigtermToy(ToyLearner):
+    """The toy learner, sending this process SIGTERM in its training step once it has
+    ``sigterm_at`` frames (as ``timeout`` or Slurm would, while a batch trains)."""
 
-    def callback(_: dict[str, float]) -> None:
-        if exp.frames == frames:
+    sigterm_at: int | None = None
+
+    def train_step(self, batch: TensorDict) -> dict[str, float]:
+        if self.frames == self.sigterm_at:
             os.kill(os.getpid(), signal.SIGTERM)
-
-    return callback
+        return super().train_step(batch)
 
 
 def test_a_sigterm_stops_a_run_with_a_checkpoint_and_it_resumes_identically(
@@ -377,13 +379,16 @@ def test_a_sigterm_stops_a_run_with_a_checkpoint_and_it_resumes_identically(
     full = ToyLearner(_toy_config(10), tmp_path / "full")
     full.train()
     run = tmp_path / "run"
-    exp = ToyLearner(_toy_config(10), run)
+    exp = SigtermToy(_toy_config(10), run)
+    exp.sigterm_at = 20
     with pytest.raises(RunStopped, match=r"stopped by SIGTERM at frame 20: .* resume "):
-        exp.train(_sigterm_after(20, exp))
+        exp.train()
     assert signal.getsignal(signal.SIGTERM) is sigterm_handler  # put back
     assert list_checkpoints(run)[-1].name == "ckpt_000000000020.pt" and exp.frames == 20
+    assert exp.results.evaluations == []  # no evaluation the uninterrupted run does not make
     resumed = ToyLearner.from_run_dir(run)
     assert resumed.train() == full.results.evaluations
+    assert [e["frames"] for e in full.results.evaluations] == [30, 40]
     for part in ("actor", "optim"):  # (the buffer's storage past its 40 entries is not set)
         _assert_equal(
             load_checkpoint(list_checkpoints(run)[-1])["components"][part],
@@ -393,12 +398,13 @@ def test_a_sigterm_stops_a_run_with_a_checkpoint_and_it_resumes_identically(
 
 def test_a_sigterm_between_checkpoints_writes_one_more(tmp_path, toy_scenario, sigterm_handler):
     run = tmp_path / "run"
-    exp = ToyLearner(_toy_config(20), run)
+    exp = SigtermToy(_toy_config(20), run)
+    exp.sigterm_at = 10
     with pytest.raises(RunStopped, match="at frame 10"):
-        exp.train(_sigterm_after(10, exp))
+        exp.train()
     assert [p.name for p in list_checkpoints(run)] == ["ckpt_000000000010.pt"]
     resumed = ToyLearner.from_run_dir(run)
-    assert [e["frames"] for e in resumed.train()] == [20, 40]
+    assert [e["frames"] for e in resumed.train()] == [30, 40]
 
 
 def test_the_cli_says_a_sigterm_stop_in_one_line(

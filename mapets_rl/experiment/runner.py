@@ -185,7 +185,7 @@ class TrainingLoop:
         log_scalars(exp.logger, "timers", {"fps": fps}, exp.frames)
         previous = self.done
         self.done, self.total = exp.progress()
-        last = self.finished
+        last = self.done >= self.total  # (a stop signal ends the loop, not the run)
         if self.train_entries:
             exp.results.add_train(exp.frames, metrics)
             exp.latest_metrics = dict(metrics)
