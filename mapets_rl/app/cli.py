@@ -220,14 +220,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="continue a run from its latest checkpoint",
         description="Continue RUN_DIR from its latest checkpoint with the same config and seed; "
         "the result is identical to an uninterrupted run.",
-        epilog="Overrides such as total_frames=60000 extend the budget of a finished run.",
+        epilog="Overrides such as total_frames=60000 extend the budget of a finished run. A "
+        "resume changes only the budget (total_frames; MA-PETS: episodes), the intervals "
+        "(eval_interval, checkpoint_interval) and keep_last, device, logger, progress, video; "
+        "any other change is refused (start a new run). A run sent SIGTERM stops with a "
+        "checkpoint (exit 143) and resumes from it.",
     )
     resume.add_argument("run_dir", metavar="RUN_DIR", help="a directory written by `train`")
     resume.add_argument(
         "overrides",
         nargs="*",
         metavar="key=value",
-        help="config overrides applied to the saved config",
+        help="config overrides applied to the saved config (the budget and the intervals)",
     )
 
     evaluate = sub.add_parser(
