@@ -174,11 +174,16 @@ class ShapleyACConfig(DiscreteExplorationConfig):
         """A ``config.yaml`` written before ego-first views existed trained actors that see the
         agents in index order: it resumes with ``ego_first=False``, not today's default; one
         written before ``critic_embed_cells`` or ``critic_member_heads`` existed trained the
-        paper's critic (no per-agent layer, one output), today's default."""
+        paper's critic (no per-agent layer, one output), today's default; one written before
+        ``actor_view``, ``normalize_obs`` or ``shapley_value_states`` existed trained the
+        coalition-view actor, unnormalised, on full Shapley values."""
         data = super().upgrade_dict(data)
         data.setdefault("ego_first", False)
         data.setdefault("critic_embed_cells", [])
         data.setdefault("critic_member_heads", False)
+        data.setdefault("actor_view", "coalition")  # before MADDPG's actor was an option
+        data.setdefault("normalize_obs", False)
+        data.setdefault("shapley_value_states", None)
         return data
 
     def __post_init__(self) -> None:

@@ -221,8 +221,12 @@ class RunConfig(ConfigFields):
     def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
         """The mapping of a ``config.yaml`` written by an older version, in today's layout:
         :attr:`retired_fields` dropped; a subclass may also map an older layout (MA-PETS: flat
-        planner/model/comm keys to its nested sections)."""
-        return {k: v for k, v in data.items() if k not in cls.retired_fields}
+        planner/model/comm keys to its nested sections). A config written before the
+        evaluation protocol's fields existed evaluated on one road: ``eval_roads`` 0."""
+        upgraded = {k: v for k, v in data.items() if k not in cls.retired_fields}
+        upgraded.setdefault("eval_roads", 0)
+        upgraded.setdefault("eval_references", [])
+        return upgraded
 
     @classmethod
     def from_yaml(cls, path: str | os.PathLike, overrides: Iterable[str] = ()) -> RunConfig:

@@ -217,3 +217,15 @@ def test_protocol_settings_are_checked(overrides: list[str], needle: str) -> Non
 
     with pytest.raises(ConfigError, match=needle):
         _config(team_reward=False).with_overrides(overrides)
+
+
+def test_a_run_made_before_the_protocol_fields_still_loads(tmp_path: Path) -> None:
+    exp = MADDPG(_config(team_reward=False).with_overrides(TINY), tmp_path / "run")
+    exp.train()
+    path = tmp_path / "run" / "config.yaml"
+    data = yaml.safe_load(path.read_text())
+    del data["eval_roads"], data["eval_references"]
+    path.write_text(yaml.safe_dump(data))
+    again = MADDPG.from_run_dir(tmp_path / "run")
+    assert again.config.eval_roads == 0 and again.config.eval_references == []
+    again.close()

@@ -101,3 +101,15 @@ def test_shapley_acs_own_view_actor_is_maddpgs(tmp_path: Path) -> None:
     assert [type(m) for m in maddpg.actor.modules()] == [type(m) for m in shapley.actor.modules()]
     shapley.train()
     assert shapley.obs_norm.count > 0  # the statistics follow the collected observations
+
+
+def test_a_shapley_run_made_before_the_actor_options_loads_as_it_trained() -> None:
+    data = ShapleyACConfig(env="freeway").to_dict()
+    for key in ("actor_view", "normalize_obs", "shapley_value_states"):
+        del data[key]
+    config = ShapleyACConfig.from_dict(ShapleyACConfig.upgrade_dict(data))
+    assert (config.actor_view, config.normalize_obs, config.shapley_value_states) == (
+        "coalition",
+        False,
+        None,
+    )
