@@ -61,6 +61,7 @@ def test_the_headline_arms_are_published() -> None:
     assert set(NAMES) >= {
         "freeway-merge/maddpg-individual",
         "freeway-merge/maddpg-team",
+        "freeway-merge/maddpg-team-shared-critic",
         "freeway-merge/shapley-arm",
         "freeway-merge/shapley-ac-paper",
         "freeway-merge/mappo",
