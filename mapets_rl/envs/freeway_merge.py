@@ -18,8 +18,10 @@ obstacle is a standing leader, so a ramp vehicle merges when MOBIL finds the gap
 new follower (imposed braking <= 2 m/s^2) and otherwise stops before the obstacle; like
 highway-env's IDM vehicles it never starts a lane change below 1 m/s, so a ramp vehicle that
 has come to a stop stays there. A CAV on the ramp merges the same way (MOBIL) whatever it
-plays, and on the acceleration lane ``CL`` merges at once; ``CL``/``CR`` on the slanted ramp
-lane have no lane to go to and count as ``KL``. On the mainline a CAV's actions are the
+plays, and on the acceleration lane ``CL`` merges at once (with ``ramp_forcing``, the
+default; without it ``CL``/``CR`` on the acceleration lane count as ``KL``, motion and comfort,
+so a ramp CAV merges only as a ramp human does); ``CL``/``CR`` on the slanted ramp lane have
+no lane to go to and count as ``KL``. On the mainline a CAV's actions are the
 freeway's (``CR`` from the rightmost lane stays refused: the acceleration lane is not a lane
 to drive in).
 
@@ -27,6 +29,26 @@ The dilemma: a mainline CAV in the rightmost lane near the merge point gives up 
 it moves left to leave a ramp vehicle a gap (one step of comfort 1 instead of 3), but the
 ramp vehicle that finds no gap stops at the end of the acceleration lane and earns
 ``w * 0 + comfort`` for the rest of the episode; a selfish CAV keeps its lane (or overtakes).
+
+The dilemma variant (issue 50; the settings of ``configs/fragments/freeway-merge-dilemma-stack``:
+``ramp_forcing=False``, ``target_speed=(28, 28)``, ``velocity_weight=0.07``, with the shield).
+With the defaults at ``w = 1`` the scenario is no dilemma: the left lanes are faster and the
+merging ramp traffic slows the rightmost lane, so leaving it near the merge is worth more speed
+to the mover than the comfort it costs (3 -> 1 for the step or two of the change: 2-4), and a
+ramp CAV's ``CL`` on the acceleration lane forces its way in without MOBIL's safety test, a
+selfish lever worth +8.7% over keep lane. The variant closes both. Without ``ramp_forcing``
+a ramp CAV merges only when MOBIL finds the gap, whatever it plays, so forcing is worth
+nothing. With one target speed for every vehicle no lane is faster by its drivers' wishes
+(a lane is slower only where traffic slows it), and with a small ``w`` the speed a move buys
+its mover (``w * dv`` per step) rarely repays the comfort it costs, while a ramp vehicle let
+in goes from standing to driving (``w * 15-25`` per step for the rest of the episode, to the
+system). ``w`` cannot go much lower: every vehicle earns comfort 3 per step whatever it does,
+so the share of the return that cooperation can change shrinks with ``w`` (at ``w = 0.06`` the
+cooperative rule's gain over keep lane falls to 5.4%). Measured with the exact counterfactuals
+of :mod:`mapets_rl.envs.torch_freeway.counterfactuals` (``benchmarks/dilemma_counterfactuals.py``,
+``docs/results/scenarios.md``, "The dilemma variant of freeway-merge"): against keep-lane
+co-players, 76% of the rule's yields cost the yielder, 85% of all mainline moves near the merge
+cost the mover, the rule beats keep lane by +6.1%, and forcing changes nothing.
 
 Observation (``OBS_DIM = 24``): the freeway's 22 entries, where for a CAV in the rightmost
 lane the *right* neighbour block reads the ramp (the nearest ramp vehicle ahead and behind,
@@ -120,7 +142,8 @@ class MergeCAV(LaneDecisionVehicle):
 
 
 class MergeDecisionAction(LaneDecisionAction):
-    """``LaneDecisionAction`` where ``CL``/``CR`` on the slanted ramp lane count as ``KL``."""
+    """``LaneDecisionAction`` where ``CL``/``CR`` on the slanted ramp lane count as ``KL``, and
+    on the acceleration lane too when ``ramp_forcing`` is off."""
 
     @property
     def vehicle_class(self) -> type:
@@ -129,12 +152,17 @@ class MergeDecisionAction(LaneDecisionAction):
     def act(self, action: np.ndarray) -> None:
         """Apply ``action [I]``; a CAV on the acceleration lane whose ``CL`` sets its target
         lane (it is not already changing lanes) is marked as forcing its merge
-        (``FreewayMergeEnv.forcing``)."""
+        (``FreewayMergeEnv.forcing``). Without ``ramp_forcing`` every ramp CAV's ``CL``/``CR``
+        is ``KL`` (motion and comfort), so it merges by MOBIL only."""
         env = self.env
         action = np.array(action, dtype=np.int64)
         acceleration_lane = ("0", "1", env.config["lanes"])
+        forcing = env.config["ramp_forcing"]
         for i, cav in enumerate(env.cavs):
-            if cav.lane_index[:2] == RAMP_ROAD and action[i] in (CL, CR):
+            refused = cav.lane_index[:2] == RAMP_ROAD or (
+                not forcing and cav.lane_index == acceleration_lane
+            )
+            if refused and action[i] in (CL, CR):
                 action[i] = KL
             settled = cav.lane_index == acceleration_lane == cav.target_lane_index
             env.forcing[i] |= bool(env.alive[i] and settled and action[i] == CL)
@@ -149,7 +177,9 @@ class FreewayMergeEnv(FreewayEnv):
     ``merge_start`` (x of the acceleration lane's start [m]), ``merge_length`` [m],
     ``ramp_length`` [m], ``ramp_offset`` (lateral distance of the ramp's far end from the
     acceleration lane [m]), ``ramp_fraction`` (share of the vehicles that start on the ramp)
-    and ``ramp_speed`` (their start speeds [m/s]); defaults in :meth:`default_config`.
+    and ``ramp_speed`` (their start speeds [m/s]), ``ramp_forcing`` (True: a ramp CAV's ``CL``
+    on the acceleration lane merges it at once; False: it counts as ``KL``, the dilemma
+    variant's setting); defaults in :meth:`default_config`.
     """
 
     obs_dim = OBS_DIM
@@ -172,6 +202,7 @@ class FreewayMergeEnv(FreewayEnv):
                 "ramp_offset": 15.0,
                 "ramp_fraction": 0.5,
                 "ramp_speed": (15.0, 20.0),
+                "ramp_forcing": True,
             }
         )
         return config
@@ -202,6 +233,10 @@ class FreewayMergeEnv(FreewayEnv):
         require_number(config, "ramp_length", low=config["min_spacing"], unit="m")
         require_number(config, "ramp_offset", low=0.0, unit="m")
         require_range(config, "ramp_speed", low=0.0, high=config["speed_limit"], unit="m/s")
+        require(
+            isinstance(config["ramp_forcing"], bool),
+            f"ramp_forcing must be True or False, got {config['ramp_forcing']!r}",
+        )
         n_ramp = ramp_vehicle_count(config)
         ramp_slots = int(config["ramp_length"] // config["min_spacing"])
         require(

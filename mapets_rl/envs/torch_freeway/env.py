@@ -30,9 +30,10 @@ torchrl ``Collector`` whose policy and env share a device (the experiment runner
 executed action; a ``TransformedEnv``, or a collector that moves its data to the env's device,
 steps a copy and stores the proposed action under ``("agents", "action")`` (then
 ``("next", "agents", "info", "shielded")`` says which moves ran as Keep Lane). The slanted
-ramp lane's ``CL`` / ``CR`` are stored as played: there they are ``KL`` by the scenario's rules
-(the same motion and the same comfort reward), so the critic learns their true value, and
-rewriting them would leave those actions untrained although the policy can still choose them.
+ramp lane's ``CL`` / ``CR`` (and the acceleration lane's, without ``ramp_forcing``) are stored
+as played: there they are ``KL`` by the scenario's rules (the same motion and the same comfort
+reward), so the critic learns their true value, and rewriting them would leave those actions
+untrained although the policy can still choose them.
 """
 
 from __future__ import annotations

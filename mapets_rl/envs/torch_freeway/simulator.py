@@ -445,9 +445,12 @@ class BatchedFreeway:
         slot, acting = agents.get("slot"), agents.get("alive")
         lane, target = bodies.get("lane"), bodies.get("target")
         cav_lane = lane.gather(1, slot)
-        if self.merge:  # CL / CR on the slanted ramp lane count as KL
-            on_ramp = geo.segment[cav_lane] != MAINLINE
-            action = torch.where(on_ramp & ((action == CL) | (action == CR)), KL, action)
+        if self.merge:  # CL / CR on the slanted ramp lane (without ramp_forcing: the ramp) = KL
+            if self.config["ramp_forcing"]:
+                refused = geo.segment[cav_lane] != MAINLINE
+            else:
+                refused = geo.table[cav_lane] == geo.ramp_table
+            action = torch.where(refused & ((action == CL) | (action == CR)), KL, action)
         decision = bodies.get("decision").scatter(
             1, slot, torch.where(acting, action, bodies.get("decision").gather(1, slot))
         )
