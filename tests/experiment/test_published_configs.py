@@ -8,10 +8,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from torch import nn
 
 from mapets_rl.app.plugins import load_recipe
 from mapets_rl.config import ConfigError
 from mapets_rl.experiment.published import available_configs, load_published
+from mapets_rl.modules import RunningObsNorm
 
 TINY_FREEWAY = [
     "env_config.num_envs=2",
@@ -66,6 +68,10 @@ def test_the_headline_arms_are_published() -> None:
         "freeway-merge/shapley-ac-paper",
         "freeway-merge/mappo",
         "freeway-merge/coma",
+        "freeway-merge-dilemma/maddpg-individual",
+        "freeway-merge-dilemma/maddpg-team",
+        "freeway-merge-dilemma/shapley-arm",
+        "freeway-merge-dilemma/shapley-ac-paper",
         "figure-eight/mapets",
         "figure-eight-multilane/mapets",
     }
@@ -130,3 +136,46 @@ def test_a_bad_name_is_refused_naming_the_published_ones(tmp_path: Path) -> None
     bad.write_text("include: 3\n")
     with pytest.raises(ConfigError, match="include must be a list"):
         load_published(bad)
+
+
+def test_the_dilemma_arms_build_the_same_actor(tmp_path: Path) -> None:
+    """The dilemma study's MADDPG and Shapley arms differ in the critic and the credit only:
+    their actors read the same input (each CAV's own 24-entry observation) through the same
+    running normaliser and the same layers; the paper's Shapley AC reads the coalition view,
+    unnormalised."""
+    actors = {}
+    for arm in ("maddpg-individual", "shapley-arm", "shapley-ac-paper"):
+        published = load_published(f"freeway-merge-dilemma/{arm}")
+        cls = load_recipe(published.recipe)
+        config = cls.Config.from_fields(published.fields, TINY_FREEWAY)
+        actors[arm] = cls(config, tmp_path / arm).actor
+    widths = {
+        arm: next(m for m in actor.modules() if isinstance(m, nn.Linear)).in_features
+        for arm, actor in actors.items()
+    }
+    assert widths == {"maddpg-individual": 24, "shapley-arm": 24, "shapley-ac-paper": 6 * 25}
+    maddpg, shapley = actors["maddpg-individual"], actors["shapley-arm"]
+    assert [type(m) for m in maddpg.modules()] == [type(m) for m in shapley.modules()]
+    assert any(isinstance(m, RunningObsNorm) for m in shapley.modules())
+    assert not any(isinstance(m, RunningObsNorm) for m in actors["shapley-ac-paper"].modules())
+    shapes = [[tuple(p.shape) for p in actor.parameters()] for actor in (maddpg, shapley)]
+    assert shapes[0] == shapes[1]
+
+
+def test_the_dilemma_twins_differ_in_what_their_comments_say() -> None:
+    """maddpg-team differs from maddpg-individual in the team reward only; the Shapley arm
+    shares MADDPG's task, schedule and exploration and adds only its own fields; all four
+    run the dilemma variant's scenario settings."""
+    arms = {arm: load_published(f"freeway-merge-dilemma/{arm}").fields for arm in
+            ("maddpg-individual", "maddpg-team", "shapley-arm", "shapley-ac-paper")}  # fmt: skip
+    stack = load_published("fragments/freeway-merge-dilemma-stack").fields["env_config"]
+    assert stack["ramp_forcing"] is False and stack["shield"] is True
+    for fields in arms.values():
+        assert {k: fields["env_config"][k] for k in stack} == stack
+    individual, team, shapley = arms["maddpg-individual"], arms["maddpg-team"], arms["shapley-arm"]
+    assert {k for k in individual if individual[k] != team[k]} == {"env_config"}
+    assert {k for k, v in individual["env_config"].items() if team["env_config"][k] != v} == {
+        "team_reward"
+    }
+    assert all(shapley[k] == v for k, v in individual.items())
+    assert shapley["actor_view"] == "own" and shapley["normalize_obs"] is True
