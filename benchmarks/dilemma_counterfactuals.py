@@ -1,0 +1,219 @@
+"""Is the dilemma variant of freeway-merge a dilemma? Exact counterfactuals (issue 50).
+
+The scenario settings are those of a published config (``--config``, default the dilemma
+study's ``freeway-merge-dilemma/maddpg-individual``: the shield, 30 vehicles all CAVs,
+``ramp_forcing`` off, its ``velocity_weight``), changed by ``--set KEY=VALUE`` (scenario keys).
+Every CAV keeps its lane on ``--roads`` evaluation roads (the co-players of every question
+below). At every step, each CAV's alternatives are replayed on a copy of its road where it
+alone plays them for that step, then keeps its lane again, everything else the same
+(:func:`mapets_rl.envs.torch_freeway.counterfactuals.branches`); per decision, discounted by
+``--gamma`` (the learners' 0.95), ``own`` is the mover's return with the move minus without it,
+``system`` the CAVs' summed returns with minus without. The decisions:
+
+- ``rule's yields``: the Change Left that the cooperative merge rule (``cooperative-merge``)
+  would play at that moment (a CAV in the rightmost lane before the merge point, a ramp vehicle
+  beside it, room on the left);
+- ``other Change Left`` / ``Change Right``: every other move of a CAV on a mainline lane near
+  the merge (from 100 m before the acceleration lane to its end), where the lane exists;
+- ``forcing``: a Change Left of a ramp CAV on the acceleration lane.
+
+A move that the shield refuses runs as Keep Lane and changes nothing; the effects are averaged
+over the moves that ran (``moved``: some vehicle's lateral position differs after the step). A
+decision is a dilemma when ``own < 0 < system``. Then the scores of keep lane, the cooperative
+rule and every ramp CAV forcing its merge (Change Left on the acceleration lane, Keep Lane
+elsewhere) by the evaluation protocol (``score_roads``) on ``--score-roads`` roads per seed.
+
+    OMP_NUM_THREADS=1 python benchmarks/dilemma_counterfactuals.py --roads 64 \\
+        --score-roads 256 --seeds 0 1 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from mapets_rl.app.plugins import load_recipe
+from mapets_rl.envs.freeway import CL, CR, KL
+from mapets_rl.envs.references import ACTION, OBSERVATION, CooperativeMerge, make_reference
+from mapets_rl.envs.torch_freeway.counterfactuals import (
+    branches,
+    cav_lanes,
+    deciding,
+    near_merge,
+    on_mainline,
+)
+from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway
+from mapets_rl.experiment import RunConfig
+from mapets_rl.experiment.protocol import (
+    ROAD_EVAL_SEED_OFFSET,
+    evaluation_env,
+    gain_percent,
+    score_roads,
+)
+from mapets_rl.experiment.published import load_published
+from mapets_rl.machine import machine_line
+from mapets_rl.statistics import bootstrap_interval
+
+KINDS = ("rule's yields", "other Change Left", "Change Right", "forcing")
+
+
+class ForceMerge(TensorDictModuleBase):
+    """Every ramp CAV on the acceleration lane plays Change Left, every other CAV Keep Lane:
+    observation ``[*, n, 24]`` (entry 1: the lane number, ``lanes`` on the acceleration lane)
+    -> one-hot action ``[*, n, 4]``."""
+
+    in_keys = [OBSERVATION]
+    out_keys = [ACTION]
+
+    def __init__(self, lanes: int) -> None:
+        super().__init__()
+        self.lanes = lanes
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        lane = tensordict.get(OBSERVATION)[..., 1]
+        index = torch.where(lane == self.lanes, CL, KL)
+        tensordict.set(ACTION, torch.nn.functional.one_hot(index, 4).to(torch.int64))
+        return tensordict
+
+
+def keep_lane(observation: torch.Tensor) -> torch.Tensor:
+    """Keep Lane for every CAV: ``[K, I, obs_dim] -> [K, I]``."""
+    return torch.full(observation.shape[:2], KL, dtype=torch.long)
+
+
+def alternatives(sim: BatchedFreeway, gamma: float) -> dict[str, np.ndarray]:
+    """Every alternative decision (module docstring) of every CAV on every road of ``sim``
+    (just reset) as every CAV keeps its lane; one entry per decision: ``kind`` (index into
+    :data:`KINDS`), ``road``, ``moved``, ``own`` and ``system``."""
+    lanes = int(sim.config["lanes"])
+    rule = deciding(CooperativeMerge(lanes))
+    out: dict[str, list] = {key: [] for key in ("kind", "road", "moved", "own", "system")}
+    observation = sim.observe()
+    for _ in range(int(sim.config["horizon"])):
+        action = keep_lane(observation)
+        lane, x = cav_lanes(sim)
+        number = sim.geometry.number[lane]
+        driving = sim.state["agents"].get("alive") & on_mainline(sim, lane) & near_merge(sim, x)
+        yields = driving & (rule(observation) == CL)
+        moves = (
+            (yields, CL),
+            (driving & ~yields & (number >= 1), CL),
+            (driving & (number <= lanes - 2), CR),
+            (sim.state["agents"].get("alive") & (lane == lanes), CL),
+        )
+        roads, cavs, replacement, kinds = [], [], [], []
+        for kind, (chosen, move) in enumerate(moves):
+            road, cav = chosen.nonzero(as_tuple=True)
+            roads.append(road), cavs.append(cav)
+            replacement.append(torch.full_like(cav, move))
+            kinds.append(torch.full_like(cav, kind))
+        road, cav = torch.cat(roads), torch.cat(cavs)
+        if road.numel():
+            returns, _, y, base, branch = branches(
+                sim, action, road, cav, torch.cat(replacement), keep_lane, gamma
+            )
+            out["kind"] += torch.cat(kinds).tolist()
+            out["road"] += road.tolist()
+            out["moved"] += (y[base] != y[branch]).any(-1).tolist()
+            out["own"] += (returns[branch, cav] - returns[base, cav]).tolist()
+            out["system"] += (returns[branch].sum(-1) - returns[base].sum(-1)).tolist()
+        observation = sim.step(action).observation
+    return {key: np.asarray(value) for key, value in out.items()}
+
+
+def effect_row(label: str, found: dict[str, np.ndarray], roads: int) -> str:
+    """One markdown row: decisions per episode, the share that ran, then over those that ran
+    the share costing the mover, the mean effect on the mover and on the system (bootstrap 95%
+    over the decisions) and the share of dilemmas (``own < 0 < system``)."""
+    ran = found["moved"].astype(bool)
+    head = f"| {label} | {len(ran) / roads:.2f} | {ran.mean() if len(ran) else 0:.2f} "
+    if not ran.any():
+        return head + "| | | | | |"
+    own, system = found["own"][ran], found["system"][ran]
+
+    def interval(values: np.ndarray) -> str:
+        mean, low, high = bootstrap_interval(values)
+        return f"{mean:+.2f} [{low:+.2f}, {high:+.2f}]"
+
+    return head + (
+        f"| {(own < 0).mean():.2f} | {interval(own)} | {(system > 0).mean():.2f} "
+        f"| {interval(system)} | {((own < 0) & (system > 0)).mean():.2f} |"
+    )
+
+
+HEADER = (
+    "| decision (every co-player keeps its lane) | per episode | share that ran "
+    "| share costing the mover | mover's effect, mean [95%] | share paying the system "
+    "| system effect, mean [95%] | dilemma (own < 0 < system) |\n"
+    "|---|---|---|---|---|---|---|---|"
+)
+
+
+def main(argv: list[str] | None = None) -> str:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--config", default="freeway-merge-dilemma/maddpg-individual")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="scenario settings over the config's (env_config keys)")  # fmt: skip
+    parser.add_argument("--roads", type=int, default=64, help="roads of the counterfactuals")
+    parser.add_argument("--score-roads", type=int, default=256, help="roads per seed, scores")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--gamma", type=float, default=0.95, help="discount of the effects")
+    args = parser.parse_args(argv)
+    if args.roads < 1 or args.score_roads < 1 or not 0.0 <= args.gamma <= 1.0:
+        parser.error("need --roads >= 1, --score-roads >= 1 and --gamma in [0, 1]")
+    published = load_published(args.config)
+    overrides = [f"env_config.{item}" for item in args.set]
+    config: RunConfig = load_recipe(published.recipe).Config.from_fields(
+        published.fields, overrides
+    )
+    print(f"# {machine_line()}")
+    print(f"# {args.config} {' '.join(args.set)}: {config.unbatched_env_config()}")
+    started = time.perf_counter()
+    env = evaluation_env(config, args.roads)
+    try:
+        env.set_seed(config.seed + ROAD_EVAL_SEED_OFFSET)
+        env.reset()
+        found = alternatives(env.sim, args.gamma)
+    finally:
+        env.close()
+    rows = [HEADER]
+    for kind, label in enumerate(KINDS):
+        part = {key: value[found["kind"] == kind] for key, value in found.items()}
+        rows.append(effect_row(label, part, args.roads))
+    near = {key: value[found["kind"] < KINDS.index("forcing")] for key, value in found.items()}
+    rows.append(effect_row("every mainline move near the merge", near, args.roads))
+    lanes = int(config.env_config.get("lanes", 3))
+    policies = {
+        "cooperative rule": lambda env: make_reference(config.env, "cooperative-merge", env),
+        "every ramp CAV forcing": lambda env: ForceMerge(lanes),
+    }
+    gains: dict[str, list[float]] = {name: [] for name in policies}
+    for seed in args.seeds:
+        seeded = config.with_overrides([f"seed={seed}"])
+        reference = score_roads(
+            seeded, lambda env: make_reference(config.env, "keep-lane", env), args.score_roads
+        )
+        for name, policy in policies.items():
+            gains[name].append(gain_percent(score_roads(seeded, policy, args.score_roads),
+                                            reference))  # fmt: skip
+    rows += [
+        "",
+        f"| policy | over keep lane, per seed ({args.score_roads} roads each) | mean |",
+        "|---|---|---|",
+    ]
+    for name, per_seed in gains.items():
+        each = ", ".join(f"{g:+.1f}%" for g in per_seed)
+        rows.append(f"| {name} | {each} | {np.mean(per_seed):+.1f}% |")
+    table = "\n".join(rows)
+    print(table)
+    print(f"# {time.perf_counter() - started:.0f} s")
+    return table
+
+
+if __name__ == "__main__":
+    main()
