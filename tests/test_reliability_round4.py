@@ -539,3 +539,22 @@ def test_compare_groups_runs_of_different_simulators_apart(tmp_path, toy_scenari
     out = compare(runs, tmp_path / "out")
     summary = json.loads(out["summary"].read_text())
     assert sorted(summary) == ["toy (native simulator)", "toy (torch simulator)"]
+
+
+class IdleToy(ToyLearner):
+    """The toy learner whose training step stores the batch and never updates (as a replay
+    recipe whose budget ends before its warm-up)."""
+
+    def train_step(self, batch: TensorDict) -> dict[str, float]:
+        self.buffer.extend(batch.reshape(-1).select(("agents", "observation")))
+        return {}
+
+
+def test_a_run_that_made_no_update_says_so(tmp_path, toy_scenario, caplog):
+    with caplog.at_level("WARNING", logger="mapets_rl.experiment.runner"):
+        ToyLearner(ToyConfig(total_frames=20), tmp_path / "trained").train()
+        assert not caplog.records
+        IdleToy(ToyConfig(total_frames=20), tmp_path / "idle").train()
+    [record] = caplog.records
+    assert "toy: the run made no training update" in record.getMessage()
+    assert "2 batches (20 frames)" in record.getMessage()

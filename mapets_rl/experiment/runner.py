@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
+import logging
 import os
 import re
 import signal
@@ -70,6 +71,8 @@ from mapets_rl.experiment.results import (
 from mapets_rl.modules import AgentGroupSpec, masked_mean
 from mapets_rl.modules.tensor_checks import check_finite_many
 from mapets_rl.threads import config_threads, configure_threads
+
+log = logging.getLogger(__name__)
 
 CONFIG_FILE = "config.yaml"
 RUN_FILE = "run.json"
@@ -277,6 +280,8 @@ class Experiment:
     _deferred: dict[str, Any] | None = None
     # the run directory's lock while this experiment may write there (see close)
     _lock: RunDirLock | None = None
+    # the batches of this process whose train_step returned losses (made an update)
+    _batches_updated: int = 0
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         """Wrap a recipe's own ``__init__`` so that an instance whose construction fails
@@ -553,7 +558,9 @@ class Experiment:
 
         The run directory's lock is held for the whole loop and released when it ends,
         normally or not (see :meth:`training_loop`). A SIGTERM ends the batch under way with a
-        checkpoint, ends the collector and raises :class:`RunStopped`."""
+        checkpoint, ends the collector and raises :class:`RunStopped`. A run trained from frame
+        0 whose :meth:`train_step` never returned a loss (no update: a budget shorter than the
+        recipe's warm-up) ends with a one-line warning saying so."""
         cfg = self.config
         with self.training_loop(
             on_iteration_end,
@@ -564,10 +571,21 @@ class Experiment:
                 raise RuntimeError(
                     f"{type(self).__name__}.__init__ must set self.collector and self.eval_policy"
                 )
+            start = self.frames
             self.reset_collector()
             while not loop.finished:
                 loop.end_iteration(self.train_on_batch())
             self.collector.shutdown()  # before the RunStopped of a stop signal, if any
+        if start == 0 and self.batches and not self._batches_updated:
+            log.warning(
+                "%s: the run made no training update: train_step returned no loss in any of its "
+                "%d batches (%d frames), so its policy is the initial one (a replay-buffer recipe "
+                "first waits for batch_size transitions and init_random_frames: raise "
+                "total_frames or lower those)",
+                self.name,
+                self.batches,
+                self.frames,
+            )
         return self.results.evaluations
 
     @contextlib.contextmanager
@@ -662,6 +680,7 @@ class Experiment:
         self.batches += 1
         episodes = self.training_episodes(batch)
         losses = self.train_step(batch)
+        self._batches_updated += bool(losses)
         self.collector.update_policy_weights_()
         return {**self.batch_metrics(batch), **summarize_episodes(episodes), **losses}
 
