@@ -26,7 +26,7 @@ from mapets_rl.envs import registry
 from mapets_rl.experiment import register_env, runner
 from mapets_rl.experiment.checkpoint import list_checkpoints, load_checkpoint
 from mapets_rl.experiment.episodes import TRAIN_EPISODES_FILE
-from mapets_rl.experiment.files import open_append
+from mapets_rl.experiment.files import RunDirLock, open_append
 from mapets_rl.experiment.runner import RunStopped
 from tests.cli_run import run_cli
 from tests.experiment.test_checkpoint_determinism import _assert_equal
@@ -558,3 +558,13 @@ def test_a_run_that_made_no_update_says_so(tmp_path, toy_scenario, caplog):
     [record] = caplog.records
     assert "toy: the run made no training update" in record.getMessage()
     assert "2 batches (20 frames)" in record.getMessage()
+
+
+def test_a_second_sweep_into_a_busy_out_is_refused_naming_the_holder(tmp_path, sweep_here):
+    out = tmp_path / "sweep"
+    out.mkdir()
+    with RunDirLock.acquire(out, "out"):  # a first sweep still running
+        with pytest.raises(ValueError, match=r"out '.*sweep' is in use by another writer \(pid"):
+            sweep_here(out)
+    assert not (out / "trials").exists() and not (out / "sweep.json").exists()
+    assert not sweep_here(out).failed  # once it is done, the sweep runs

@@ -34,11 +34,12 @@ trial that raises is recorded as failed (the traceback in its ``error.txt``, the
 the manifest); the other trials still run, and :func:`run_sweep` reports the failed ones (the
 command then exits with 1).
 
+One sweep per ``--out`` at a time: a second one, while the first runs, is refused in one line
+naming its pid (a sweep holds ``OUT/.lock``, a :class:`~mapets_rl.experiment.files.RunDirLock`).
 One writer per trial: the local backend's workers die with the sweep process (kill -9
-included), and a trial whose run directory another writer still holds (its lock, see
-:class:`~mapets_rl.experiment.files.RunDirLock`: an orphaned Ray task, a ``mapets-rl resume``)
-is reported as failed, naming the holder's pid, without a byte written there; a later re-run
-resumes it.
+included), and a trial whose run directory another writer still holds (its lock: an orphaned
+Ray task, a ``mapets-rl resume``) is reported as failed, naming the holder's pid, without a
+byte written there; a later re-run resumes it.
 
 Backends (neither schedules by hand):
 
@@ -89,6 +90,7 @@ from mapets_rl.config import ConfigError, check, load_yaml, parse_override
 from mapets_rl.experiment.files import (
     ERROR_FILE,
     TRIAL_RECORD,
+    RunDirLock,
     atomic_write_text,
     check_writable_dir,
     make_writable_dir,
@@ -861,6 +863,9 @@ def run_sweep(spec: SweepSpec, echo: Callable[[str], None] = print) -> SweepResu
     recipe = _import_path(cls, f"recipe {spec.recipe!r}")
     scenarios = trial_scenarios(spec.env)
     make_writable_dir(spec.out, "out")
+    # one sweep writes OUT at a time (a second one is refused naming the holder's pid); the
+    # lock is released at the return, or with the process
+    lock = RunDirLock.acquire(spec.out, "out")
     records: dict[str, dict[str, Any]] = {}
     todo: list[Trial] = []
     for trial in trials:
@@ -934,6 +939,7 @@ def run_sweep(spec: SweepSpec, echo: Callable[[str], None] = print) -> SweepResu
             summary_error = str(err)
     else:
         summary_error = "no trial finished"
+    lock.release()
     return SweepResult(trials, records, failed, summary, summary_error)
 
 
