@@ -20,13 +20,21 @@ Evaluation, checkpoints and logging are not in the rounds (a run pays them every
 median over rounds and the spread (min..max); ``4M-frame run`` extrapolates the median rate to
 ``--budget`` frames. The machine may be shared: the load average is printed before and after.
 
-    PYTHONPATH=. python benchmarks/learner_throughput.py [--recipes maddpg shapley_ac]
+    python benchmarks/learner_throughput.py [--recipes maddpg shapley_ac] [--configs NAME ...]
         [--num-envs 256] [--vehicles 30] [--steps 4] [--frames 20480] [--rounds 3]
         [--threads 2] [--schedule openai] [--device cuda] [key=value ...]
 
 ``--device cuda`` puts the roads, the networks and the replay buffer on the GPU
 (``device=cuda``, ``env_config.device=cuda``); every phase then drains the GPU's queue before
 its clock stops, so that its wall time is its own.
+
+``--configs NAME ...`` measures published configurations as they are (``mapets-rl configs``;
+``--num-envs`` and ``--steps`` still set the roads and the batch), e.g. the Shapley arm of the
+1M-frame study beside its fast twin and per-agent MADDPG, with each row's frames/s over the
+first row's (one run, so the ratios share the machine's load)::
+
+    python benchmarks/learner_throughput.py --recipes --configs freeway-merge/shapley-arm \
+        freeway-merge/shapley-arm-fast freeway-merge/maddpg-individual --frames 10240 --threads 1
 
 ``--schedule openai`` applies :data:`mapets_rl.recipes.maddpg.OPENAI_MADDPG` (one update per 100
 frames, batch 1024, ...) to every recipe (the Shapley AC and SAC configs share the fields);
@@ -64,11 +72,37 @@ def load() -> str:
         return "n/a"
 
 
+def build_published(name: str, args: argparse.Namespace, run_dir: Path) -> Any:
+    """The published configuration ``name`` as it is (its scenario, schedule and settings) on
+    ``args.num_envs`` roads x ``args.steps`` steps per batch, with the command line's
+    ``key=value`` overrides."""
+    from mapets_rl.app.plugins import load_recipe
+    from mapets_rl.experiment.published import load_published
+
+    published = load_published(name)
+    cls = load_recipe(published.recipe)
+    measured = [
+        f"env_config.num_envs={args.num_envs}",
+        f"env_config.device={args.device}",
+        f"frames_per_batch={args.num_envs * args.steps}",
+        "total_frames=1000000000000",
+        "eval_interval=0",
+        "checkpoint_interval=0",
+        "progress=false",
+        "logger=none",
+        f"device={args.device}",
+    ]
+    return cls(cls.Config.from_fields(published.fields, [*measured, *args.overrides]), run_dir)
+
+
 def build(recipe: str, args: argparse.Namespace, run_dir: Path) -> Any:
-    """The ``recipe`` experiment on ``args.num_envs`` roads of the batched torch freeway."""
+    """The ``recipe`` experiment on ``args.num_envs`` roads of the batched torch freeway; a
+    name with a ``/`` is a published configuration (:func:`build_published`)."""
     from mapets_rl.app.plugins import load_recipe
     from mapets_rl.recipes.maddpg import OPENAI_MADDPG
 
+    if "/" in recipe:
+        return build_published(recipe, args, run_dir)
     cls = load_recipe(recipe)
     env_config = {
         "backend": "torch",
@@ -169,7 +203,15 @@ def spread(values: list[float], fmt: str = "{:.0f}") -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--recipes", nargs="+", default=["maddpg", "shapley_ac"], choices=RECIPES)
+    parser.add_argument("--recipes", nargs="*", default=["maddpg", "shapley_ac"], choices=RECIPES)
+    parser.add_argument(
+        "--configs",
+        nargs="*",
+        default=[],
+        metavar="NAME",
+        help="published configurations measured as they are (mapets-rl configs), after "
+        "--recipes; the last column is each row's frames/s over the first row's",
+    )
     parser.add_argument("--env", default="freeway-merge", choices=["freeway", "freeway-merge"])
     parser.add_argument("--num-envs", type=int, default=256, help="roads B of the batched env")
     parser.add_argument("--vehicles", type=int, default=30, help="n_vehicles")
@@ -201,17 +243,24 @@ def main() -> None:
     if args.device == "cuda":
         print(f"GPU: {torch.cuda.get_device_name()}; roads, networks and replay on the GPU")
     print(f"load average before: {load()}")
-    header = f"{'recipe':<11} {'frames/s':>20} " + " ".join(f"{p + ' %':>14}" for p in PHASES)
-    print(header + f" {'budget run (h)':>15}")
+    rows = [*args.recipes, *args.configs]
+    if not rows:
+        parser.error("give --recipes or --configs")
+    width = max(11, *map(len, rows))
+    header = f"{'recipe':<{width}} {'frames/s':>20} " + " ".join(f"{p + ' %':>14}" for p in PHASES)
+    print(header + f" {'budget run (h)':>15} {'x first row':>12}")
     root = Path(tempfile.mkdtemp(prefix="learner_throughput_"))
+    first = None
     try:
-        for recipe in args.recipes:
-            rounds = measure(recipe, args, root / recipe)
+        for index, row in enumerate(rows):
+            rounds = measure(row, args, root / str(index))
             shares = {p: [100 * r[p] / r["wall"] for r in rounds] for p in PHASES}
             fps = [r["fps"] for r in rounds]
+            first = first or statistics.median(fps)
             hours = args.budget / statistics.median(fps) / 3600
             cells = " ".join(f"{spread(shares[p], '{:.1f}'):>14}" for p in PHASES)
-            print(f"{recipe:<11} {spread(fps):>20} {cells} {hours:>15.2f}")
+            ratio = statistics.median(fps) / first
+            print(f"{row:<{width}} {spread(fps):>20} {cells} {hours:>15.2f} {ratio:>12.2f}")
     finally:
         shutil.rmtree(root, ignore_errors=True)
     print(f"load average after: {load()}")
