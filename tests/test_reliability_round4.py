@@ -285,8 +285,8 @@ def test_bad_summary_options_are_refused_before_a_rerun_runs_a_trial(
 
 # ------------------------------------------------ no silent training on NaN, no empty run
 class NaNToyEnv(ToyAgentsEnv):
-    """The toy scenario whose ``entry`` (``"observation"`` or ``"reward"``) turns NaN for one
-    agent from its ``after``-th step on (counted over every episode)."""
+    """The toy scenario whose ``entry`` (``"observation"``, ``"reward"`` or ``"position"``)
+    turns NaN for one agent from its ``after``-th step on (counted over every episode)."""
 
     def __init__(self, entry: str = "reward", after: int = 15, **kwargs: Any) -> None:
         super().__init__(**kwargs)
@@ -300,7 +300,7 @@ class NaNToyEnv(ToyAgentsEnv):
         return out
 
 
-@pytest.mark.parametrize("entry", ["observation", "reward"])
+@pytest.mark.parametrize("entry", ["observation", "reward", "position"])
 def test_a_model_free_run_refuses_non_finite_data(tmp_path, toy_scenario, monkeypatch, entry):
     monkeypatch.setattr(registry, "_SCENARIOS", dict(registry._SCENARIOS))
     register_env("nantoy", NaNToyEnv)

@@ -686,15 +686,16 @@ class Experiment:
 
     def refuse_non_finite(self, batch: TensorDictBase) -> None:
         """:class:`NonFiniteData` (one line naming the entry and the frames) when an
-        observation or a reward of the collected ``batch`` (every float entry named
-        ``observation`` or ``reward``, at the step and in ``next``) is NaN or infinite, before
-        anything trains on it: an update on it would spread NaN into every weight. The
-        checkpoints written before are kept. One host sync per batch when all is finite."""
+        observation, a reward or a position of the collected ``batch`` (every float entry
+        named ``observation``, ``reward`` or ``position``, at the step and in ``next``) is NaN
+        or infinite, before anything trains on it: an update on it would spread NaN into every
+        weight (MA-PETS refuses such data for its models the same way). The checkpoints
+        written before are kept. One host sync per batch when all is finite."""
         where = f"of the batch {self.name} collected after frame {self.frames}"
         entries = {
             f"{'/'.join(key)} {where}": batch.get(key)
             for key in batch.keys(include_nested=True, leaves_only=True)
-            if isinstance(key, tuple) and key[-1] in ("observation", "reward")
+            if isinstance(key, tuple) and key[-1] in ("observation", "reward", "position")
         }
         try:
             check_finite_many({k: v for k, v in entries.items() if v.is_floating_point()})
