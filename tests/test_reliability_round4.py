@@ -26,7 +26,7 @@ from mapets_rl.envs import registry
 from mapets_rl.experiment import register_env, runner
 from mapets_rl.experiment.checkpoint import list_checkpoints, load_checkpoint
 from mapets_rl.experiment.episodes import TRAIN_EPISODES_FILE
-from mapets_rl.experiment.files import RunDirLock, open_append
+from mapets_rl.experiment.files import RunDirLock, WriteFailed, open_append
 from mapets_rl.experiment.runner import RunStopped
 from tests.cli_run import run_cli
 from tests.experiment.test_checkpoint_determinism import _assert_equal
@@ -96,10 +96,19 @@ def test_open_append_refuses_a_file_that_is_not_a_plain_one_of_ours(tmp_path, ki
     {"symlink": path.symlink_to, "hard link": lambda v: os.link(v, path)}.get(
         kind, lambda _: os.mkfifo(path)
     )(victim)
-    with pytest.raises(ValueError, match="cannot append to .*log.csv.* it ") as err:
+    with pytest.raises(WriteFailed, match="cannot append to .*log.csv.* it ") as err:
         open_append(path)
     assert "\n" not in str(err.value)
     assert victim.read_text() == "precious\n"
+
+
+def test_a_log_that_cannot_be_appended_to_is_one_line_from_the_cli(csv_toy_run, toy_recipe, capsys):
+    log = _reward_csv(csv_toy_run)
+    log.unlink()
+    os.mkfifo(log)  # not a link: left in place, and refused when the run appends to it
+    code, _, err = run_cli(["resume", str(csv_toy_run), "total_frames=40"], capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert "cannot append to" in err and "reward.csv" in err and "not a regular file" in err
 
 
 # ------------------------------------------------- --out of compare and sweep is no run dir

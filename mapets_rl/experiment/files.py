@@ -229,10 +229,10 @@ def open_append(path: str | os.PathLike) -> TextIO:
     name, never to a file outside its run directory.
 
     Raises:
-        ValueError: one line naming ``path`` when it is a symbolic link (dangling or not), not a
-            regular file, another user's or has other names (a hard link); a run that cuts its
-            logs back first replaces such a file (:func:`read_own_file`).
-        WriteFailed: it cannot be opened (permission denied, disk full).
+        WriteFailed: one line naming ``path`` when it is a symbolic link (dangling or not), not
+            a regular file, another user's or has other names (a hard link; a run that cuts its
+            logs back first replaces such a file, :func:`read_own_file`), or when it cannot be
+            opened (permission denied, disk full).
     """
     flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW | os.O_NONBLOCK
     try:
@@ -246,7 +246,7 @@ def open_append(path: str | os.PathLike) -> TextIO:
         if problem is None:
             return os.fdopen(fd, "a", encoding="utf-8")
         os.close(fd)
-    raise ValueError(
+    raise WriteFailed(
         f"cannot append to {str(path)!r}: it {problem}; a run appends only to a regular file "
         "of its own inside its run directory (remove it)"
     )
