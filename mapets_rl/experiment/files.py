@@ -390,9 +390,10 @@ class RunDirLock:
 
 
 def _lock_file_problem(st: os.stat_result) -> str | None:
-    """What makes the opened ``.lock`` with status ``st`` unfit to be written (one phrase), or
-    ``None``: it must be a regular file of this user's own with no other name (a hard link to
-    another file would let the pid record overwrite that file's first bytes)."""
+    """What makes the opened ``.lock`` (or a log a run appends to, :func:`open_append`) with
+    status ``st`` unfit to be written (one phrase), or ``None``: it must be a regular file of
+    this user's own with no other name (a hard link to another file would let the pid record,
+    or the appended rows, overwrite or grow that file)."""
     if not stat.S_ISREG(st.st_mode):
         return "is not a regular file"
     if st.st_uid != os.geteuid():
