@@ -63,7 +63,10 @@ DELTA_RANGE = tuple(IDMVehicle.DELTA_RANGE)
 
 KERNELS = ("auto", "native", "torch")
 """How a CPU simulator steps: the fused C++ kernel where it builds (``"auto"``), always
-(``"native"``), or never (``"torch"``: the torch program, as on other devices)."""
+(``"native"``), or never (``"torch"``: the torch program, as on other devices). The two
+programs are different experiments: they agree step by step only up to rounding, and the
+trajectories part after some steps (a run records which one ran,
+:func:`mapets_rl.experiment.runner.simulator_program`)."""
 
 STATE_FLOAT = (
     "x", "y", "heading", "speed", "target_speed", "delta", "acc", "steer",
@@ -551,8 +554,9 @@ class BatchedFreeway:
         )
 
     def _native_step(self, slot: torch.Tensor, acting: torch.Tensor) -> StepResult:
-        """The policy step through the fused CPU kernel (same results as the torch program up
-        to rounding; see :mod:`.native`)."""
+        """The policy step through the fused CPU kernel (the torch program's step up to
+        rounding, whose differences grow over a trajectory; see :mod:`.native` and
+        :data:`KERNELS`)."""
         bodies = self.state["bodies"]
         for key in bodies.keys():  # the kernel writes in place: contiguous storage
             if not bodies.get(key).is_contiguous():
