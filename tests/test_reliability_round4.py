@@ -577,3 +577,25 @@ def test_a_second_sweep_into_a_busy_out_is_refused_naming_the_holder(tmp_path, s
             sweep_here(out)
     assert not (out / "trials").exists() and not (out / "sweep.json").exists()
     assert not sweep_here(out).failed  # once it is done, the sweep runs
+
+
+# ---------------------------------------------------- a run that fails to start leaves nothing
+class RefusingToy(ToyLearner):
+    """The toy learner refusing its scenario once the base class has made the run directory
+    (as a recipe refuses categorical actions while it builds its modules)."""
+
+    def __init__(self, config: ToyConfig, run_dir: Any = None) -> None:
+        super().__init__(config, run_dir)
+        raise ValueError("env action ('agents', 'action') must be a Bounded continuous ...")
+
+
+def test_a_new_run_that_fails_to_start_leaves_no_half_made_run_dir(tmp_path, toy_scenario):
+    with pytest.raises(ValueError, match="Bounded continuous"):
+        RefusingToy(ToyConfig(total_frames=20), tmp_path / "new")
+    assert not (tmp_path / "new").exists()
+    given = tmp_path / "given"  # a directory the user made is left (with what the run wrote)
+    given.mkdir()
+    with pytest.raises(ValueError, match="Bounded continuous"):
+        RefusingToy(ToyConfig(total_frames=20), given)
+    assert given.is_dir()
+    ToyLearner(ToyConfig(total_frames=20), given).train()  # and it can be used

@@ -13,6 +13,7 @@ import json
 import logging
 import os
 import re
+import shutil
 import signal
 import sys
 import threading
@@ -282,11 +283,14 @@ class Experiment:
     _lock: RunDirLock | None = None
     # the batches of this process whose train_step returned losses (made an update)
     _batches_updated: int = 0
+    # whether this new run created its run directory (removed if the run fails to start)
+    _made_run_dir: bool = False
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         """Wrap a recipe's own ``__init__`` so that an instance whose construction fails
         releases the run directory's lock at once (a traceback kept alive, e.g. by a notebook
-        or ``pytest.raises``, would otherwise hold it until it is collected)."""
+        or ``pytest.raises``, would otherwise hold it until it is collected), and removes the
+        run directory it made (:meth:`_abandon`)."""
         super().__init_subclass__(**kwargs)
         init = cls.__dict__.get("__init__")
         if init is None or getattr(init, "_releases_lock_on_error", False):
@@ -297,7 +301,7 @@ class Experiment:
             try:
                 init(self, *args, **kw)
             except BaseException:
-                self.close()
+                self._abandon()
                 raise
 
         __init__._releases_lock_on_error = True  # type: ignore[attr-defined]
@@ -341,11 +345,13 @@ class Experiment:
         except ValueError:
             self.env.close()
             raise
+        made = not restoring and not os.path.lexists(self.run_dir)
         make_writable_dir(self.run_dir)
+        self._made_run_dir = made
         try:
             self._init_run_dir(restoring)
         except BaseException:
-            self.close()
+            self._abandon()
             raise
         if run_dir is None:  # a directory the caller did not name: say where the run goes
             print(f"{self.name}: writing the run to {self.run_dir}", file=sys.stderr)
@@ -433,6 +439,15 @@ class Experiment:
                 f"valid {RUN_FILE}; it holds {shown}{more}): its files would be overwritten; "
                 "choose a new or empty directory"
             )
+
+    def _abandon(self) -> None:
+        """After a failed construction: remove the run directory when this new run made it and
+        still holds its lock (so a run that fails to start, e.g. on a recipe's refusal of the
+        scenario's actions, leaves no half-made run directory, and nothing there is anyone
+        else's), then release the lock (see :meth:`close`)."""
+        if self._made_run_dir and self._lock is not None and self._lock.held:
+            shutil.rmtree(self.run_dir, ignore_errors=True)
+        self.close()
 
     def _hold_lock(self) -> None:
         """Take the run directory's lock unless this experiment holds it already;
