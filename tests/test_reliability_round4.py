@@ -1,8 +1,12 @@
 """Issue 51 (reliability, round four): each case a test that failed before its fix.
 
-No write through a link: the logs a run appends to (the CSV scalars, ``train_episodes.jsonl``)
-are never opened through a symbolic or hard link, so a resume never writes outside its run
-directory.
+No write through a link (the logs a run appends to are never opened through a symbolic or hard
+link); no ``--out`` in a run directory; a resume that cannot relabel a run (only the budget and
+the intervals change); sweeps that take ``progress=false``, keep every trial they ran and check
+their summary options first; no training on NaN and no run without an update; SIGTERM stops a
+run with a checkpoint; the memory bound of the process's own cgroup; which simulator ran; and
+the smaller cases (a bad metric in ``compare``, a full disk before the first checkpoint, two
+sweeps into one ``--out``, a run that fails to start).
 """
 
 from __future__ import annotations
