@@ -7,8 +7,8 @@ from the evaluation seed ``seed + ROAD_EVAL_SEED_OFFSET``: disjoint from the run
 seeds (``seed + 7,919 k``, see :data:`~mapets_rl.experiment.runner.BOUNDARY_SEED_STRIDE`) and
 the same for every policy of the run's seed, so a policy and its references drive the same
 roads. Elsewhere (the figure-eights) it plays ``roads`` episodes of the run's evaluation env
-(:meth:`Experiment.evaluate`, the same episodes for the references through
-:func:`~mapets_rl.experiment.reference.evaluate_scripted`).
+(:meth:`Experiment.evaluate`, the same episodes for the references, played in place of the
+run's ``eval_policy``).
 
 The system reward of an episode is the CAVs' rewards summed over CAVs and steps (the same under
 the team and the individual reward); the gain over a reference is
@@ -36,7 +36,6 @@ from mapets_rl.envs.factory import has_batched_backend
 from mapets_rl.envs.references import check_reference_names, make_reference
 from mapets_rl.experiment.config import MAX_EVAL_ROADS, RunConfig
 from mapets_rl.experiment.files import atomic_write_text
-from mapets_rl.experiment.reference import evaluate_scripted
 
 ROAD_EVAL_SEED_OFFSET = 10_000
 """The evaluation roads of a run of seed ``s`` are drawn with seed ``s + 10,000`` (no multiple
@@ -125,14 +124,16 @@ def score_roads(
 
 
 def _unbatched_scores(metrics: Mapping[str, float]) -> RoadScores:
-    """The means of :meth:`Experiment.evaluate` as scores (the system return's mean only)."""
+    """The means of :meth:`Experiment.evaluate` as scores: the system return, or for a recipe
+    that reports none (MA-PETS) the mean CAV return, which gives the same gains for a fixed
+    number of CAVs."""
     metrics = dict(metrics)
-    if "system_return" not in metrics:
+    key = "system_return" if "system_return" in metrics else "return"
+    if key not in metrics:
         raise ValueError(
-            f"the evaluation reports no system_return (metrics: {', '.join(metrics)}): the "
-            "protocol compares system returns"
+            f"the evaluation reports no system_return or return (metrics: {', '.join(metrics)})"
         )
-    system = np.array([metrics.pop("system_return")])
+    system = np.array([metrics.pop(key)])
     return RoadScores(system, metrics)
 
 
@@ -170,11 +171,7 @@ def evaluate_protocol(
         eval_seed = config.seed + ROAD_EVAL_SEED_OFFSET
     else:
         policy = _unbatched_scores(exp.evaluate(episodes=roads))
-        episodes = config.with_overrides([f"eval_episodes={roads}"])
-        scored = {
-            name: _unbatched_scores(evaluate_scripted(episodes, _reference(config.env, name)))
-            for name in references
-        }
+        scored = {name: _played_by(exp, _reference(config.env, name), roads) for name in references}
         eval_seed = None
     result = {
         "frames": int(exp.frames),
@@ -203,6 +200,19 @@ def protocol_metrics(result: Mapping[str, Any]) -> dict[str, float]:
             for name, gain in result["gain_percent"].items()
         },
     }
+
+
+def _played_by(
+    exp: Any, policy: Callable[[EnvBase], TensorDictModuleBase], episodes: int
+) -> RoadScores:
+    """The scores of ``policy(exp.env)`` on the episodes the run's own evaluation plays (the
+    same env, re-seeded alike), its ``eval_policy`` put back afterwards."""
+    trained = exp.eval_policy
+    exp.eval_policy = policy(exp.env)
+    try:
+        return _unbatched_scores(exp.evaluate(episodes=episodes))
+    finally:
+        exp.eval_policy = trained
 
 
 def _reference(scenario: str, name: str) -> Callable[[EnvBase], TensorDictModuleBase]:

@@ -229,3 +229,35 @@ def test_a_run_made_before_the_protocol_fields_still_loads(tmp_path: Path) -> No
     again = MADDPG.from_run_dir(tmp_path / "run")
     assert again.config.eval_roads == 0 and again.config.eval_references == []
     again.close()
+
+
+def test_on_one_road_the_references_play_the_runs_own_evaluation_episodes(tmp_path: Path) -> None:
+    """A scenario without a batched backend (the figure-eight): the protocol plays the run's
+    evaluation episodes, the reference in place of the trained policy, which is put back."""
+    from mapets_rl.envs.references import make_reference
+    from mapets_rl.experiment.reference import evaluate_scripted
+    from mapets_rl.recipes.sac import SAC, SACConfig
+
+    config = SACConfig(
+        env="figure-eight",
+        env_config={"n_cavs": 3, "n_hvs": 2, "horizon": 10},
+        total_frames=20,
+        frames_per_batch=10,
+        batch_size=8,
+        init_random_frames=0,
+        eval_interval=0,
+        checkpoint_interval=0,
+        progress=False,
+        logger="none",
+    )
+    exp = SAC(config, tmp_path / "run")
+    trained = exp.eval_policy
+    result = evaluate_protocol(exp, 2, ["idm"])
+    assert exp.eval_policy is trained and result["batched"] is False
+    idm = evaluate_scripted(
+        config.with_overrides(["eval_episodes=2"]),
+        lambda env: make_reference("figure-eight", "idm", env),
+    )
+    # SAC reports no system return: the mean CAV return, on the same episodes
+    assert result["references"]["idm"]["system_reward_mean"] == pytest.approx(idm["return"])
+    exp.close()
