@@ -16,7 +16,8 @@ for the six neighbours *front/rear* in the *left/own/right* lane: ``(present, dx
 speed difference (neighbour minus own); absent neighbours read ``(0, +-perception, 0)``.
 
 Reward per CAV (paper eq. 10): ``R_i = w * velocity + comfort`` with comfort (eq. 9) 3 if
-``|acc| < Theta`` and KL, 2 if ``|acc| >= Theta`` and KL, 1 for CL/CR, 0 for ES; ``|acc|`` is
+``|acc| < Theta`` and KL, 2 if ``|acc| >= Theta`` and KL, 1 for CL/CR (``lane_change_comfort``,
+1 by default), 0 for ES; ``|acc|`` is
 the mean absolute acceleration over the step. A CAV that collides gets ``collision_reward``
 and is terminated. Human drivers' comfort uses KL unless MOBIL changed lane during the step.
 """
@@ -132,14 +133,17 @@ class FreewayEnv(MultiAgentTrafficEnv):
     ``spawn_length=600`` m, ``min_spacing=20`` m, ``initial_speed=(22, 28)`` m/s,
     ``hv_target_speed=(25, 30)`` m/s, ``cav_target_speed=31.0`` m/s, ``speed_limit=31.3`` m/s
     (70 mph), ``velocity_weight=0.1`` (w), ``comfort_threshold=1.5`` m/s^2 (Theta),
-    ``collision_reward=-10``, ``perception=100`` m, ``team_reward=False`` (True: every CAV is
-    paid the mean reward of the CAVs driving that step instead of its own, the fully cooperative
-    reward; the system reward, the sum over CAVs, is the same), ``shield=False`` (True: a
-    model-predictive shield replaces every decision predicted to crash in the next step; the
-    torch backend only, see ``BatchedFreeway.shield``), ``shield_horizon=3`` (policy steps the
-    shield looks ahead), ``shield_passes=1`` (1: the proposed decisions are checked once;
-    ``n > 1``: the corrected decisions are checked again, up to ``n`` passes in all, until a
-    pass replaces nothing, so that no move runs beside a replacement it was not checked with).
+    ``lane_change_comfort=1`` (the comfort of a step with a lane change, eq. 9's 1, in [0, 3]
+    (the comfort scores' range): below 1 a lane change costs more than the paper's, as in the
+    dilemma variant of ``freeway-merge``), ``collision_reward=-10``, ``perception=100`` m,
+    ``team_reward=False`` (True: every CAV is paid the mean reward of the CAVs driving that step
+    instead of its own, the fully cooperative reward; the system reward, the sum over CAVs, is
+    the same), ``shield=False`` (True: a model-predictive shield replaces every decision
+    predicted to crash in the next step; the torch backend only, see ``BatchedFreeway.shield``),
+    ``shield_horizon=3`` (policy steps the shield looks ahead), ``shield_passes=1`` (1: the
+    proposed decisions are checked once; ``n > 1``: the corrected decisions are checked again,
+    up to ``n`` passes in all, until a pass replaces nothing, so that no move runs beside a
+    replacement it was not checked with).
     """
 
     obs_dim = OBS_DIM
@@ -191,6 +195,7 @@ class FreewayEnv(MultiAgentTrafficEnv):
                 "shield_horizon": 3,
                 "shield_passes": 1,
                 "comfort_threshold": 1.5,
+                "lane_change_comfort": 1.0,
                 "perception": 100.0,
                 "screen_width": 900,
                 "screen_height": 200,
@@ -221,6 +226,7 @@ class FreewayEnv(MultiAgentTrafficEnv):
         require_number(config, "speed_limit", high=PHYSICAL_MAX_SPEED, unit="m/s")
         require_number(config, "min_spacing", low=7.0, unit="m")
         require_number(config, "velocity_weight")
+        require_number(config, "lane_change_comfort", low=0.0, high=3.0)
         require(
             is_integer(config["shield_horizon"]) and 1 <= config["shield_horizon"] <= 40,
             f"shield_horizon must be an integer in [1, 40], got {config['shield_horizon']!r}",
@@ -394,12 +400,13 @@ class FreewayEnv(MultiAgentTrafficEnv):
         """Comfort (paper eq. 9) of every vehicle for the step just simulated ``[N]``."""
         smooth = self._abs_acc < self.config["comfort_threshold"]
         comfort = np.where(smooth, 3.0, 2.0)
-        comfort[self._lane_change] = 1.0
+        changing = self.config["lane_change_comfort"]
+        comfort[self._lane_change] = changing
         index = {id(v): k for k, v in enumerate(self.vehicles_all)}
         for cav in self.cavs:
             decision = cav.decision
             if decision in (CL, CR):
-                comfort[index[id(cav)]] = 1.0
+                comfort[index[id(cav)]] = changing
             elif decision == ES:
                 comfort[index[id(cav)]] = 0.0
         return comfort

@@ -31,24 +31,32 @@ ramp vehicle that finds no gap stops at the end of the acceleration lane and ear
 ``w * 0 + comfort`` for the rest of the episode; a selfish CAV keeps its lane (or overtakes).
 
 The dilemma variant (issue 50; the settings of ``configs/fragments/freeway-merge-dilemma-stack``:
-``ramp_forcing=False``, ``target_speed=(28, 28)``, ``velocity_weight=0.07``, with the shield).
-With the defaults at ``w = 1`` the scenario is no dilemma: the left lanes are faster and the
-merging ramp traffic slows the rightmost lane, so leaving it near the merge is worth more speed
-to the mover than the comfort it costs (3 -> 1 for the step or two of the change: 2-4), and a
-ramp CAV's ``CL`` on the acceleration lane forces its way in without MOBIL's safety test, a
-selfish lever worth +8.7% over keep lane. The variant closes both. Without ``ramp_forcing``
-a ramp CAV merges only when MOBIL finds the gap, whatever it plays, so forcing is worth
-nothing. With one target speed for every vehicle no lane is faster by its drivers' wishes
-(a lane is slower only where traffic slows it), and with a small ``w`` the speed a move buys
-its mover (``w * dv`` per step) rarely repays the comfort it costs, while a ramp vehicle let
-in goes from standing to driving (``w * 15-25`` per step for the rest of the episode, to the
-system). ``w`` cannot go much lower: every vehicle earns comfort 3 per step whatever it does,
-so the share of the return that cooperation can change shrinks with ``w`` (at ``w = 0.06`` the
-cooperative rule's gain over keep lane falls to 5.4%). Measured with the exact counterfactuals
-of :mod:`mapets_rl.envs.torch_freeway.counterfactuals` (``benchmarks/dilemma_counterfactuals.py``,
-``docs/results/scenarios.md``, "The dilemma variant of freeway-merge"): against keep-lane
-co-players, 76% of the rule's yields cost the yielder, 85% of all mainline moves near the merge
-cost the mover, the rule beats keep lane by +6.1%, and forcing changes nothing.
+``ramp_forcing=False``, ``target_speed=(28, 28)``, ``velocity_weight=0.08``,
+``lane_change_comfort=0``, with the shield). With the defaults at ``w = 1`` the scenario is no
+dilemma: the left lanes are faster and the merging ramp traffic slows the rightmost lane, so
+leaving it near the merge is worth more speed to the mover than the comfort it costs (3 -> 1
+for the step of the change), and a ramp CAV's ``CL`` on the acceleration lane forces its way
+in without MOBIL's safety test, a selfish lever worth +8.7% over keep lane. The variant closes
+both, each setting for one reason:
+
+- without ``ramp_forcing`` a ramp CAV merges only when MOBIL finds the gap, whatever it plays,
+  so forcing is worth nothing;
+- with one target speed for every vehicle no lane is faster by its drivers' wishes (a lane is
+  slower only where traffic slows it), so a move buys its mover little speed;
+- a small ``w`` weighs that speed (``w * dv`` per step) below the comfort a move costs, while a
+  ramp vehicle let in goes from standing to driving, ``w * 15-25`` per step for the rest of the
+  episode, to the system. ``w`` alone cannot do it: every vehicle earns comfort 3 per step
+  whatever it does, so what cooperation can change shrinks with ``w`` (at ``w = 0.05`` the
+  cooperative rule gains less than 5% over keep lane);
+- so a lane change also earns no comfort (``lane_change_comfort = 0``, 1 in the paper's eq. 9:
+  a move costs its mover 3 instead of 2), which raises the mover's cost without shrinking the
+  system's gain.
+
+Measured with the exact counterfactuals of :mod:`mapets_rl.envs.torch_freeway.counterfactuals`
+(``benchmarks/dilemma_counterfactuals.py``; ``docs/results/scenarios.md``, "The dilemma variant
+of freeway-merge", which also lists what was tried): against keep-lane co-players most of the
+cooperative rule's yields cost the yielder and so do most mainline moves near the merge, the
+rule still beats keep lane, and forcing changes nothing.
 
 Observation (``OBS_DIM = 24``): the freeway's 22 entries, where for a CAV in the rightmost
 lane the *right* neighbour block reads the ramp (the nearest ramp vehicle ahead and behind,

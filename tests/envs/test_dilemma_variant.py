@@ -1,7 +1,8 @@
 """The dilemma variant of ``freeway-merge`` (issue 50): with ``ramp_forcing`` off a ramp CAV's
 Change Left / Right on the acceleration lane is Keep Lane (it merges only by MOBIL, as a ramp
-human does), the same on both backends; the variant's settings follow highway-env as the
-defaults do; the defaults keep forcing."""
+human does), and ``lane_change_comfort`` is what a lane change earns, the same on both
+backends; the variant's settings follow highway-env as the defaults do; the defaults keep
+forcing and eq. 9's comfort."""
 
 from __future__ import annotations
 
@@ -108,12 +109,37 @@ def test_without_forcing_change_left_or_right_on_the_ramp_is_keep_lane(kernel: s
         assert counts["ramp_mobil_merges"] == 1 and counts["ramp_forced_merges"] == 0
 
 
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_lane_change_comfort_is_what_a_lane_change_earns_on_both_backends(kernel: str) -> None:
+    """A mainline CAV's Change Left earns ``lane_change_comfort`` (eq. 9's 1 by default) in
+    place of comfort: under 0 the step of the move (the change ends within it) is paid exactly
+    1 less and the next step the same, on both backends."""
+    placements = [(RIGHT, 300.0, 25.0), (("0", "1", 0), 1500.0, 25.0),
+                  (ACCELERATION, 820.0, 20.0)]  # fmt: skip
+    paid = {}
+    for comfort in (1.0, 0.0):
+        env = _scene(placements, lane_change_comfort=comfort)
+        sim = BatchedFreeway(dict(env.config), True, 1, dtype=torch.float64,
+                             kernel=_kernel(kernel))  # fmt: skip
+        load_scene(sim, 0, env)
+        rewards = []
+        for action in ([CL, KL, KL], [KL, KL, KL]):
+            *_, info = env.step(np.array(action))
+            result = sim.step(torch.tensor([action]))
+            np.testing.assert_allclose(result.reward[0].numpy(), info["agent_rewards"], atol=1e-3)
+            rewards.append(info["agent_rewards"][0])
+        paid[comfort] = np.array(rewards)
+    np.testing.assert_allclose(paid[1.0] - paid[0.0], [1.0, 0.0], atol=1e-5)
+
+
 def test_ramp_forcing_is_checked_and_defaults_to_forcing() -> None:
     assert FreewayMergeEnv.default_config()["ramp_forcing"] is True
     with pytest.raises(ValueError, match="ramp_forcing must be True or False, got 'no'"):
         FreewayMergeEnv({"ramp_forcing": "no"})
     with pytest.raises(ValueError, match="ramp_forcing must be True or False, got 1"):
         make_env("freeway-merge", backend="torch", num_envs=1, ramp_forcing=1)
+    with pytest.raises(ValueError, match="lane_change_comfort"):
+        FreewayMergeEnv({"lane_change_comfort": -1.0})
 
 
 @pytest.mark.parametrize("kernel", KERNELS)

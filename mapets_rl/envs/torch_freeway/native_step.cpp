@@ -28,6 +28,7 @@ struct Constants {
 
 struct Finish {  // the scenario's observation and reward settings
   double comfort_threshold, velocity_weight, collision_reward, perception, merge_start, merge_end;
+  double lane_change_comfort;
   bool team_reward, merge;
 };
 
@@ -373,8 +374,8 @@ class Stepper {
     double speeds = 0, comforts = 0;
     for (int64_t i = 0; i < n_; ++i) {
       double comfort = static_cast<double>(abs_acc[i]) / frames < e.comfort_threshold ? 3 : 2;
-      if (lane_change[i]) comfort = 1;
-      if (r.cav[i] && (r.decision[i] == 1 || r.decision[i] == 2)) comfort = 1;
+      if (lane_change[i]) comfort = e.lane_change_comfort;
+      if (r.cav[i] && (r.decision[i] == 1 || r.decision[i] == 2)) comfort = e.lane_change_comfort;
       if (r.cav[i] && r.decision[i] == 3) comfort = 0;
       comfort_[i] = comfort;
       if (r.present[i] && !obstacle_[i]) {
@@ -464,8 +465,8 @@ void run(std::vector<torch::Tensor> f, torch::Tensor timer, std::vector<torch::T
          std::vector<double> finish, torch::Tensor alive, torch::Tensor obs, torch::Tensor reward,
          torch::Tensor velocity, torch::Tensor comfort, torch::Tensor speed_sum,
          torch::Tensor comfort_sum, torch::Tensor samples) {
-  const Finish e{finish[0], finish[1], finish[2], finish[3], finish[4], finish[5],
-                 finish[6] != 0, finish[7] != 0};
+  const Finish e{finish[0], finish[1], finish[2],      finish[3], finish[4],
+                 finish[5], finish[8], finish[6] != 0, finish[7] != 0};
   const Constants c{k[0],  k[1],  k[2],  k[3],  k[4],  k[5],  k[6],  k[7],  k[8],  k[9],
                     k[10], k[11], k[12], k[13], k[14], k[15], k[16], k[17], k[18], ki[0],
                     ki[1], ki[2] != 0};

@@ -574,7 +574,7 @@ class BatchedFreeway:
             float(cfg["comfort_threshold"]), float(cfg["velocity_weight"]),
             float(cfg["collision_reward"]), float(cfg["perception"]),
             self.geometry.merge_start, self.geometry.merge_end,
-            float(bool(cfg["team_reward"])), float(self.merge),
+            float(bool(cfg["team_reward"])), float(self.merge), float(cfg["lane_change_comfort"]),
         ]  # fmt: skip
         alive = acting.clone()
         observation = torch.empty(b, self.n_cavs, self.obs_dim, dtype=torch.float32)
@@ -661,10 +661,11 @@ class BatchedFreeway:
         slot, acting = agents.get("slot"), agents.get("alive")
         present = bodies.get("present") & ~self.is_obstacle
         comfort = torch.where(abs_acc < float(cfg["comfort_threshold"]), 3.0, 2.0)
-        comfort = torch.where(lane_change, 1.0, comfort)
+        changing = float(cfg["lane_change_comfort"])
+        comfort = torch.where(lane_change, changing, comfort)
         decision = bodies.get("decision")
         cav = bodies.get("cav")
-        comfort = torch.where(cav & ((decision == CL) | (decision == CR)), 1.0, comfort)
+        comfort = torch.where(cav & ((decision == CL) | (decision == CR)), changing, comfort)
         comfort = torch.where(cav & (decision == ES), 0.0, comfort).to(self.dtype)
         speed = bodies.get("speed")
         count = present.sum(1).clamp(min=1).to(self.dtype)
