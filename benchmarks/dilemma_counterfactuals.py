@@ -1,8 +1,9 @@
 """Is the dilemma variant of freeway-merge a dilemma? Exact counterfactuals (issue 50).
 
 The scenario settings are those of a published config (``--config``, default the dilemma
-study's ``freeway-merge-dilemma/maddpg-individual``: the shield, 30 vehicles all CAVs,
-``ramp_forcing`` off, its ``velocity_weight``), changed by ``--set KEY=VALUE`` (scenario keys).
+study's ``freeway-merge-dilemma/maddpg-individual``: the shield, 30 vehicles all CAVs and the
+variant's ``ramp_forcing``, ``target_speed``, ``velocity_weight`` and ``lane_change_comfort``),
+changed by ``--set KEY=VALUE`` (scenario keys).
 Every CAV keeps its lane on ``--roads`` evaluation roads (the co-players of every question
 below). At every step, each CAV's alternatives are replayed on a copy of its road where it
 alone plays them for that step, then keeps its lane again, everything else the same
