@@ -57,16 +57,32 @@ def _neighbours(obs: torch.Tensor) -> torch.Tensor:
     return obs[..., 4:OBS_DIM].unflatten(-1, (3, 2, 3))
 
 
-class GreedyOvertaking(TensorDictModuleBase):
+class LaneRule(TensorDictModuleBase):
+    """A scripted freeway rule: reads ``("agents", "observation")`` and writes each CAV's
+    decision as the env's action (one-hot ``[*, n, 4]`` when ``one_hot``, else the indices
+    ``[*, n]``, in ``dtype``), on a road of ``lanes`` mainline lanes."""
+
+    in_keys = [OBSERVATION]
+    out_keys = [ACTION]
+
+    def __init__(self, lanes: int, one_hot: bool, dtype: torch.dtype) -> None:
+        super().__init__()
+        if lanes < 1:
+            raise ValueError(f"lanes must be >= 1, got {lanes}")
+        self.lanes, self.one_hot, self.dtype = lanes, one_hot, dtype
+
+    def decide(self, tensordict: TensorDictBase, index: torch.Tensor) -> TensorDictBase:
+        """Write the decisions ``index`` ``[*, n]`` (0..3) into ``tensordict``."""
+        return _write_decisions(tensordict, index, self.one_hot, self.dtype)
+
+
+class GreedyOvertaking(LaneRule):
     """Overtake a slow leader, vectorised over CAVs: observation ``[*, n, >= 22]`` -> action.
 
     A CAV whose leader in its lane is closer than ``follow_gap`` metres and slower (by more than
     0.5 m/s) changes to an adjacent lane, left first, when that lane's front gap is longer by
     ``gain_gap`` metres and its rear gap exceeds ``rear_gap`` metres; otherwise it keeps its
     lane."""
-
-    in_keys = [OBSERVATION]
-    out_keys = [ACTION]
 
     def __init__(
         self,
@@ -78,12 +94,8 @@ class GreedyOvertaking(TensorDictModuleBase):
         one_hot: bool = True,
         dtype: torch.dtype = torch.int64,
     ) -> None:
-        super().__init__()
-        if lanes < 1:
-            raise ValueError(f"lanes must be >= 1, got {lanes}")
-        self.lanes, self.follow_gap = lanes, follow_gap
-        self.gain_gap, self.rear_gap = gain_gap, rear_gap
-        self.one_hot, self.dtype = one_hot, dtype
+        super().__init__(lanes, one_hot, dtype)
+        self.follow_gap, self.gain_gap, self.rear_gap = follow_gap, gain_gap, rear_gap
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs = tensordict.get(OBSERVATION)
@@ -100,10 +112,10 @@ class GreedyOvertaking(TensorDictModuleBase):
         left = blocked & free(0, lane >= 1)
         right = blocked & ~left & free(2, lane <= self.lanes - 2)
         index = torch.where(left, CL, torch.where(right, CR, KL))
-        return _write_decisions(tensordict, index, self.one_hot, self.dtype)
+        return self.decide(tensordict, index)
 
 
-class CooperativeMerge(TensorDictModuleBase):
+class CooperativeMerge(LaneRule):
     """The cooperative rule of ``freeway-merge``, vectorised over CAVs: observation
     ``[*, n, 24]`` (the freeway's 22 entries, whose right block is the ramp for a CAV in the
     rightmost lane; then the distances [m] to the acceleration lane's start and to the merge
@@ -115,9 +127,6 @@ class CooperativeMerge(TensorDictModuleBase):
     ``ramp_behind`` metres) and the left lane has room (front gap > ``front_gap``, rear gap >
     ``rear_gap`` + ``closing_time`` x the speed at which the left rear vehicle comes up);
     every other CAV keeps its lane (a CAV on the ramp merges by MOBIL under Keep Lane)."""
-
-    in_keys = [OBSERVATION]
-    out_keys = [ACTION]
 
     def __init__(
         self,
@@ -132,13 +141,9 @@ class CooperativeMerge(TensorDictModuleBase):
         one_hot: bool = True,
         dtype: torch.dtype = torch.int64,
     ) -> None:
-        super().__init__()
-        if lanes < 1:
-            raise ValueError(f"lanes must be >= 1, got {lanes}")
-        self.lanes, self.approach = lanes, approach
-        self.ramp_ahead, self.ramp_behind = ramp_ahead, ramp_behind
+        super().__init__(lanes, one_hot, dtype)
+        self.approach, self.ramp_ahead, self.ramp_behind = approach, ramp_ahead, ramp_behind
         self.front_gap, self.rear_gap, self.closing_time = front_gap, rear_gap, closing_time
-        self.one_hot, self.dtype = one_hot, dtype
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs = tensordict.get(OBSERVATION)
@@ -158,7 +163,7 @@ class CooperativeMerge(TensorDictModuleBase):
             -nb[..., 0, 1, 1] > self.rear_gap + self.closing_time * closing
         )
         index = torch.where(near & (ramp_front | ramp_rear) & room, CL, KL)
-        return _write_decisions(tensordict, index, self.one_hot, self.dtype)
+        return self.decide(tensordict, index)
 
 
 def _action_format(env: EnvBase) -> tuple[bool, torch.dtype]:
