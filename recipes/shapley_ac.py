@@ -87,7 +87,7 @@ class ShapleyACConfig(DiscreteExplorationConfig):
             critic before its members are summed (``CoalitionCritic(embed_cells=...)``; empty,
             the default: the paper's MLP on the zero-masked joint input, whose first layer pools
             the members' linear terms). Results:
-            docs/results/shapley.md#which-of-the-three-changes-are-needed-and-five-seeds-at-300k-frames.
+            docs/results/history.md#which-of-the-three-changes-are-needed-and-five-seeds-at-300k-frames.
         critic_member_heads: the coalition critic ends in one output per CAV and ``v(C)`` is
             the sum of its members' outputs, each fitted to its own member's reward
             (``CoalitionCritic(member_heads=True)``; the TD targets summed over ``C`` are the
