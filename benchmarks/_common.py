@@ -6,49 +6,14 @@
 - mbrl-lib as an in-process reference (``planner.py`` and ``ensemble_training.py``
   ``--reference mbrl-lib``), below.
 
-mbrl-lib (facebookresearch/mbrl-lib 0.2.0) as an in-process reference for the benchmarks.
-
-``benchmarks/planner.py --reference mbrl-lib`` times mbrl-lib's PETS agent
-(``TrajectoryOptimizerAgent`` + ``CEMOptimizer`` over a ``ModelEnv`` wrapping a
-``OneDTransitionRewardModel(GaussianMLP)`` ensemble, TS-inf propagation) next to our
-``TrajectorySamplingCEM``; ``benchmarks/ensemble_training.py --reference mbrl-lib`` times
-mbrl-lib's ``ModelTrainer`` on the same ``GaussianMLP`` ensemble, same data and epochs, one
-trainer per agent. mbrl-lib has no multi-agent batching, so ``I`` agents are ``I`` separate
-agents/trainers run one after the other; the headline ratio is per agent.
-
-Nothing here installs anything. mbrl 0.2.0 pins ``hydra-core==1.0.3``, ``omegaconf<2.1`` and
-``gymnasium==0.26.3``; hydra-core 1.0.3 does not import on Python 3.11 (a dataclass with a
-mutable default), and the project's torch and gymnasium must not change. :data:`INSTALL` is
-the recipe: a separate virtual environment layered on the project's one (its own
+mbrl-lib is facebookresearch/mbrl-lib 0.2.0; nothing here installs it. It pins
+``hydra-core==1.0.3`` (which does not import on Python 3.11), ``omegaconf<2.1`` and
+``gymnasium==0.26.3``, and the project's torch and gymnasium must not change: :data:`INSTALL`
+is the recipe, a separate virtual environment layered on the project's one (its own
 site-packages first, then the project's), with mbrl installed without its pins.
 
-How mbrl-lib's PETS is configured here (its ``conf/algorithm/pets.yaml``,
-``conf/action_optimizer/cem.yaml`` and ``conf/dynamics_model/gaussian_mlp_ensemble.yaml``
-defaults, with our sizes):
-
-* ``GaussianMLP(num_layers=len(hidden), hid_size, ensemble_size=B, SiLU,
-  propagation_method="fixed_model")``: ``fixed_model`` with propagation indices drawn at
-  ``ModelEnv.reset`` is mbrl-lib's TS-inf;
-* ``OneDTransitionRewardModel(target_is_delta=True, normalize=True,
-  normalize_double_precision=True, learned_rewards=False)``: inputs are normalised in float64
-  on every model step (mbrl-lib's PETS default);
-* ``CEMOptimizer(num_iterations=Y, elite_ratio=X/Q, population_size=Q, alpha,
-  return_mean_elites=True, clipped_normal=False)`` (truncated-normal sampling), always ``Y``
-  iterations (no early stop), warm start shifted by one step (``keep_last_solution``);
-* ``ModelEnv.evaluate_action_sequences(num_particles=P)`` with the known reward and no
-  termination (a function returning ``False``).
-
-What differs from our planner at the same sizes (same GEMM shapes and FLOPs on both sides):
-mbrl-lib adds the bias and applies SiLU as separate, allocating ops (we fuse the bias into
-``baddbmm`` and apply SiLU in place; a profile at the paper config on an AVX2 CPU: ``bmm`` 59%,
-``silu`` 19%, bias ``add`` 19% of mbrl-lib's time), permutes the particles before each forward
-and scatters them back (TS-inf by ``fixed_model`` indices; we map particle ``p`` to member
-``p mod B``), draws truncated-normal candidates (we clip a normal), draws particle noise per
-candidate (ours is common to the candidates of an iteration), runs all ``Y`` iterations (ours
-stops once every sigma < epsilon; the benchmark prints how many ran) and normalises inputs in
-float64. For training it builds minibatches in numpy, computes a gradient norm with one
-``.item()`` per parameter and the loss ``.item()`` every step, and uses torch's default Adam
-(ours: fused Adam over the stacked ``I x B`` ensemble).
+How mbrl-lib is configured here and what differs from our planner at the same sizes:
+[docs/results/performance.md](../docs/results/performance.md#mbrl-lib-as-the-reference-how-it-is-configured).
 """
 
 from __future__ import annotations
