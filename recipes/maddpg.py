@@ -34,7 +34,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import TensorDictReplayBuffer
-from torchrl.modules import AdditiveGaussianModule, MultiAgentMLP, TanhModule
+from torchrl.modules import AdditiveGaussianModule, TanhModule
 from torchrl.objectives import SoftUpdate, ValueEstimators
 
 from mapets_rl.experiment import Experiment, check
@@ -50,6 +50,7 @@ from mapets_rl.modules import (
     TRANSITION_KEYS,
     AgentGroupSpec,
     GumbelSoftmaxHead,
+    make_decentralised_mlp,
     make_discrete_actor,
     make_obs_norm,
     make_q_critic,
@@ -183,7 +184,7 @@ class MADDPG(Experiment):
     def __init__(self, config: MADDPGConfig, run_dir=None) -> None:
         super().__init__(config, run_dir)  # seeds, run dir, self.env
         spec = AgentGroupSpec.from_env(self.env)
-        depth, cells = len(config.num_cells), config.num_cells
+        cells = config.num_cells
 
         # modules: (observation normaliser ->) actor o_i -> a_i (bounded by tanh, or one-hot
         # by Gumbel-softmax)
@@ -211,16 +212,7 @@ class MADDPG(Experiment):
                     f"exploration={config.exploration!r} is for discrete actions; "
                     f"{config.env!r} has continuous ones (their exploration is Gaussian noise)"
                 )
-            actor_mlp = MultiAgentMLP(
-                n_agent_inputs=spec.obs_dim,
-                n_agent_outputs=spec.action_dim,
-                n_agents=spec.n_agents,
-                centralized=False,
-                share_params=config.share_params,
-                depth=depth,
-                num_cells=cells,
-                activation_class=nn.ReLU,
-            )
+            actor_mlp = make_decentralised_mlp(spec, cells, config.share_params)
             self.actor = TensorDictSequential(
                 *front,
                 TensorDictModule(actor_mlp, in_keys=[obs_key], out_keys=[PREACTIVATION]),

@@ -20,7 +20,6 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import TensorDictReplayBuffer
-from torchrl.modules import MultiAgentMLP
 from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate, ValueEstimators
 
 from mapets_rl.experiment import Experiment, check
@@ -35,6 +34,7 @@ from mapets_rl.modules import (
     Q_VALUE,
     TRANSITION_KEYS,
     AgentGroupSpec,
+    make_decentralised_mlp,
     make_obs_norm,
     make_q_critic,
     make_stochastic_policy,
@@ -86,7 +86,7 @@ class SAC(Experiment):
     def __init__(self, config: SACConfig, run_dir=None) -> None:
         super().__init__(config, run_dir)  # seeds, run dir, self.env
         spec = AgentGroupSpec.from_env(self.env)
-        depth, cells = len(config.num_cells), config.num_cells
+        cells = config.num_cells
 
         # modules: (observation normaliser ->) stochastic actor pi(a_i | o_i); per-agent
         # critics Q(o_i, a_i) (continuous) or Q(o_i, .) over the discrete actions
@@ -100,16 +100,7 @@ class SAC(Experiment):
             self.qvalue = TensorDictSequential(
                 *front,
                 TensorDictModule(
-                    MultiAgentMLP(
-                        n_agent_inputs=spec.obs_dim,
-                        n_agent_outputs=spec.action_dim,
-                        n_agents=spec.n_agents,
-                        centralized=False,
-                        share_params=config.share_params,
-                        depth=depth,
-                        num_cells=cells,
-                        activation_class=nn.ReLU,
-                    ),
+                    make_decentralised_mlp(spec, cells, config.share_params),
                     in_keys=[obs_key],
                     out_keys=[ACTION_VALUE],
                 ),

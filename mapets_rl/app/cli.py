@@ -478,34 +478,24 @@ def _published(name_or_path: str) -> Any:
         _fail(str(err))
 
 
-def _recipe_and_env(args: argparse.Namespace, published: Any) -> tuple[str, str]:
-    """RECIPE and --env, each given or read from the ``--config`` (a given one must agree
-    with the config's recipe)."""
-    named = published.recipe if published is not None else None
-    if args.recipe is not None and named is not None and args.recipe != named:
-        _fail(f"RECIPE {args.recipe!r} differs from --config {args.config!r}'s recipe, {named}")
-    recipe = args.recipe or named
-    if recipe is None:
-        _fail("train needs RECIPE, or a --config that names one (`mapets-rl configs` lists them)")
-    env = args.env or (published.fields.get("env") if published is not None else None)
-    if not isinstance(env, str):
-        _fail("train needs --env SCENARIO, or a --config that sets env")
-    return recipe, env
-
-
 def _cmd_train(args: argparse.Namespace) -> int:
     if args.recipe is not None and "=" in args.recipe:  # `train --config NAME key=value`
         args.overrides = [args.recipe, *args.overrides]
         args.recipe = None
     published = _published(args.config) if args.config else None
-    recipe, env = _recipe_and_env(args, published)
+    from mapets_rl.config import ConfigError
+    from mapets_rl.experiment.published import recipe_and_env
+
+    try:
+        recipe, env = recipe_and_env("train", args.recipe, args.env, published)
+    except ConfigError as err:
+        _fail(str(err))
     cls = _recipe_class(recipe)  # an unknown name fails before torch is imported
     _check_env(env)
     user_overrides = _overrides(args.overrides)
     args.env = env
     _check_flag_conflicts(args, user_overrides)
     _check_action_kind(cls, env)
-    from mapets_rl.config import ConfigError
     from mapets_rl.experiment.files import check_writable_dir
     from mapets_rl.experiment.runner import default_run_dir
 
@@ -640,13 +630,10 @@ def _cmd_evaluate_protocol(args: argparse.Namespace) -> int:
     if args.episodes is not None or args.video:
         _fail("--roads scores the protocol's roads: give it without --episodes and --video")
     exp = _load_run(args.run_dir)
-    from mapets_rl.envs.references import check_reference_names, reference_names
     from mapets_rl.experiment.protocol import evaluate_protocol
 
-    names = args.references if args.references is not None else reference_names(exp.config.env)
     try:
-        check_reference_names(exp.config.env, names)
-        result = evaluate_protocol(exp, args.roads, names)
+        result = evaluate_protocol(exp, args.roads, args.references or ())
     except ValueError as err:
         _fail(f"--{err}" if str(err).startswith("references") else str(err))
     policy = result["policy"]

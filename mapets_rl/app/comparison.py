@@ -577,9 +577,8 @@ def compare(
         written["marl_eval"] = out_dir / MARL_EVAL_FILE
         atomic_write_text(written["marl_eval"], json.dumps(_marl_eval(groups, metrics), indent=1))
     if protocols is not None:
-        by_run = dict(zip(runs, protocols, strict=True))
         members = {label: group["runs"] for label, group in groups.items()}
-        report = protocol_summary(members, {k: [by_run[r] for r in v] for k, v in members.items()})
+        report = protocol_summary(members, dict(zip(runs, protocols, strict=True)))
         written["protocol"] = out_dir / "protocol.md"
         atomic_write_text(written["protocol"], protocol_table(report, protocols[0]["roads"]))
         written["protocol_summary"] = out_dir / "protocol.json"

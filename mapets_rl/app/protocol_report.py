@@ -69,12 +69,12 @@ def _interval(values: np.ndarray) -> dict[str, Any]:
 
 
 def protocol_summary(
-    groups: Mapping[str, Sequence[str]], results: Mapping[str, Sequence[Mapping[str, Any]]]
+    groups: Mapping[str, Sequence[str]], results: Mapping[str, Mapping[str, Any]]
 ) -> dict[str, Any]:
     """``{"references": {name: {system_reward, metrics}}, "groups": {label: {...}}}`` over the
-    runs of each group (``groups``: label -> run dirs; ``results``: label -> their protocol
-    results, in the same order)."""
-    every = [r for rows in results.values() for r in rows]
+    runs of each group (``groups``: label -> run dirs; ``results``: run dir -> its protocol
+    result, :func:`read_protocols`)."""
+    every = [results[run] for runs in groups.values() for run in runs]
     names = sorted(every[0]["references"])
     references = {}
     for name in names:
@@ -85,7 +85,8 @@ def protocol_summary(
         }
     out: dict[str, Any] = {"references": references, "groups": {}}
     for label, runs in groups.items():
-        rows = results[label]
+        rows = [results[run] for run in runs]
+        gains = {name: _gains(rows, name) for name in names}
         out["groups"][label] = {
             "runs": list(runs),
             "seeds": [r["seed"] for r in rows],
@@ -93,8 +94,8 @@ def protocol_summary(
             "system_reward": float(np.mean([r["policy"]["system_reward_mean"] for r in rows])),
             "training_return": float(np.mean([training_return(run) for run in runs])),
             "gain_percent": {
-                name: {"per_seed": _gains(rows, name).tolist(), **_interval(_gains(rows, name))}
-                for name in names
+                name: {"per_seed": values.tolist(), **_interval(values)}
+                for name, values in gains.items()
             },
             "metrics": _mean_metrics([r["policy"]["metrics"] for r in rows]),
         }

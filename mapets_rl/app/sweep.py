@@ -67,6 +67,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
+import copy
 import dataclasses
 import importlib
 import itertools
@@ -323,7 +324,7 @@ def fold_into_fields(
     into a mapping the file gives (``env_config.num_envs=4`` beside the file's ``env_config``)
     is set inside it, one naming a field the file gives replaces it. Returns the file's items
     and the overrides left to apply after them."""
-    data = json.loads(json.dumps(dict(fields)))  # a deep copy of plain data
+    data = copy.deepcopy(dict(fields))
     rest = []
     for item in overrides:
         key, value = parse_override(item)
@@ -952,21 +953,10 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
     if recipe is not None and "=" in recipe:  # `sweep --config NAME key=value ...`
         overrides.insert(0, recipe)
         recipe = None
-    if args.config is not None:
-        from mapets_rl.experiment.published import load_published
+    from mapets_rl.experiment.published import load_published, recipe_and_env
 
-        published = load_published(args.config)
-        if recipe is not None and published.recipe not in (None, recipe):
-            raise ConfigError(
-                f"RECIPE {recipe!r} differs from --config {args.config!r}'s recipe, "
-                f"{published.recipe}"
-            )
-        recipe = recipe or published.recipe
-        env = env or published.fields.get("env")
-    if recipe is None:
-        raise ConfigError("sweep needs RECIPE, or a --config that names one (mapets-rl configs)")
-    if not isinstance(env, str):
-        raise ConfigError("sweep needs --env SCENARIO, or a --config that sets env")
+    published = None if args.config is None else load_published(args.config)
+    recipe, env = recipe_and_env("sweep", recipe, env, published)
     for item in args.seeds:
         if "=" in item:
             overrides.append(item)

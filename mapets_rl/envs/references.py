@@ -71,6 +71,14 @@ class LaneRule(TensorDictModuleBase):
             raise ValueError(f"lanes must be >= 1, got {lanes}")
         self.lanes, self.one_hot, self.dtype = lanes, one_hot, dtype
 
+    @classmethod
+    def for_env(cls, env: EnvBase) -> LaneRule:
+        """The rule with its default settings for ``env`` (made by ``make_env``, either
+        backend): its scenario's lanes, its action's format."""
+        spec = env.full_action_spec[ACTION]
+        lanes = int(scenario_config(env)["lanes"])
+        return cls(lanes, one_hot=isinstance(spec, OneHot), dtype=spec.dtype)
+
     def decide(self, tensordict: TensorDictBase, index: torch.Tensor) -> TensorDictBase:
         """Write the decisions ``index`` ``[*, n]`` (0..3) into ``tensordict``."""
         return _write_decisions(tensordict, index, self.one_hot, self.dtype)
@@ -166,24 +174,6 @@ class CooperativeMerge(LaneRule):
         return self.decide(tensordict, index)
 
 
-def _action_format(env: EnvBase) -> tuple[bool, torch.dtype]:
-    """Whether ``env``'s CAV action is one-hot, and its dtype."""
-    spec = env.full_action_spec[ACTION]
-    return isinstance(spec, OneHot), spec.dtype
-
-
-def _greedy_overtaking(env: EnvBase) -> GreedyOvertaking:
-    one_hot, dtype = _action_format(env)
-    lanes = int(scenario_config(env)["lanes"])
-    return GreedyOvertaking(lanes, one_hot=one_hot, dtype=dtype)
-
-
-def _cooperative_merge(env: EnvBase) -> CooperativeMerge:
-    one_hot, dtype = _action_format(env)
-    lanes = int(scenario_config(env)["lanes"])
-    return CooperativeMerge(lanes, one_hot=one_hot, dtype=dtype)
-
-
 def register_reference(scenario: str, name: str, factory: ReferenceFactory) -> None:
     """Register ``factory`` as the reference policy ``name`` of ``scenario`` (replacing one of
     the same name)."""
@@ -220,7 +210,7 @@ def check_reference_names(scenario: str, names: list[str] | tuple[str, ...]) -> 
 
 for _scenario in ("freeway", "freeway-merge"):
     register_reference(_scenario, "keep-lane", ScriptedCAVPolicy)
-    register_reference(_scenario, "greedy-overtaking", _greedy_overtaking)
-register_reference("freeway-merge", "cooperative-merge", _cooperative_merge)
+    register_reference(_scenario, "greedy-overtaking", GreedyOvertaking.for_env)
+register_reference("freeway-merge", "cooperative-merge", CooperativeMerge.for_env)
 for _scenario in ("figure-eight", "figure-eight-multilane"):
     register_reference(_scenario, "idm", ScriptedCAVPolicy)

@@ -33,18 +33,15 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mapets_rl.envs import build_env
 from mapets_rl.envs.factory import has_batched_backend
-from mapets_rl.envs.references import check_reference_names, make_reference
+from mapets_rl.envs.references import check_reference_names, make_reference, reference_names
 from mapets_rl.experiment.config import MAX_EVAL_ROADS, RunConfig
 from mapets_rl.experiment.files import atomic_write_text
 
 ROAD_EVAL_SEED_OFFSET = 10_000
 """The evaluation roads of a run of seed ``s`` are drawn with seed ``s + 10,000`` (no multiple
 of the training seeds' stride, 7,919, so never one of the run's training seeds)."""
-MAX_ROADS = MAX_EVAL_ROADS
-"""The most evaluation roads (or episodes) one protocol call plays."""
 PROTOCOL_FILE = "evaluation_protocol.json"
 """The protocol's result in a run directory."""
-SYSTEM_REWARD = "system_reward"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,9 +70,9 @@ class RoadScores:
 
 
 def check_roads(roads: int) -> None:
-    """ValueError naming ``roads`` unless it is an int in ``[1, MAX_ROADS]``."""
-    if isinstance(roads, bool) or not isinstance(roads, int) or not 1 <= roads <= MAX_ROADS:
-        raise ValueError(f"roads must be an integer in [1, {MAX_ROADS}], got {roads!r}")
+    """ValueError naming ``roads`` unless it is an int in ``[1, MAX_EVAL_ROADS]``."""
+    if isinstance(roads, bool) or not isinstance(roads, int) or not 1 <= roads <= MAX_EVAL_ROADS:
+        raise ValueError(f"roads must be an integer in [1, {MAX_EVAL_ROADS}], got {roads!r}")
 
 
 def evaluation_env(config: RunConfig, roads: int) -> EnvBase:
@@ -145,21 +142,23 @@ def gain_percent(scores: RoadScores, reference: RoadScores) -> float:
 def evaluate_protocol(
     exp: Any,
     roads: int,
-    references: Sequence[str],
+    references: Sequence[str] = (),
     *,
     write: bool = True,
     reference_cache: dict[str, RoadScores] | None = None,
 ) -> dict[str, Any]:
     """Score the greedy policy of the experiment ``exp`` (its ``eval_policy``) and the
-    reference policies named in ``references`` on the same ``roads`` evaluation roads (or
-    episodes); returns, and with ``write`` writes atomically to ``run_dir/`` +
+    reference policies named in ``references`` (empty: every one registered for the scenario)
+    on the same ``roads`` evaluation roads (or episodes), both checked before any is played;
+    returns, and with ``write`` writes atomically to ``run_dir/`` +
     :data:`PROTOCOL_FILE`: ``frames``, ``roads``, ``eval_seed``, ``batched``, ``policy`` and
     ``references`` (each :meth:`RoadScores.to_json`) and ``gain_percent`` (per reference).
     ``reference_cache`` (name -> scores, on the batched path) keeps the references' scores
     between calls of one run: they drive the same roads every time."""
     config = exp.config
     check_roads(roads)
-    check_reference_names(config.env, list(references))
+    references = list(references) or reference_names(config.env)
+    check_reference_names(config.env, references)
     batched = has_batched_backend(config.env)
     if batched:
         policy = score_roads(config, lambda env: exp.eval_policy, roads)

@@ -21,8 +21,6 @@ from typing import Any
 from mapets_rl.config import ConfigError, read_yaml_mapping
 
 CONFIG_SUFFIX = ".yaml"
-META_KEYS = ("recipe", "include")
-"""The keys of a published file that are not config fields."""
 MAX_INCLUDE_DEPTH = 8
 
 
@@ -52,16 +50,15 @@ def config_root() -> Path:
     return Path(str(resources.files("mapets_rl") / "configs"))
 
 
-def _comment(path: Path, first_line: bool = False) -> str:
-    """The leading ``#`` comment lines of ``path`` as one paragraph (``first_line``: the first
-    only)."""
+def _comment(path: Path) -> list[str]:
+    """The leading ``#`` comment lines of ``path``, stripped."""
     lines = []
     with open(path, encoding="utf-8") as handle:
         for line in handle:
             if not line.startswith("#"):
                 break
             lines.append(line[1:].strip())
-    return lines[0] if first_line and lines else " ".join(lines)
+    return lines
 
 
 def _merge(base: Mapping[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
@@ -110,9 +107,9 @@ def _load(name_or_path: str | os.PathLike, depth: int) -> PublishedConfig:
     for included in include:
         fields = _merge(fields, _load(included, depth + 1).fields)
     fields = _merge(fields, data)
-    description = _comment(path)
-    summary = _comment(path, first_line=True)
-    return PublishedConfig(name, path, recipe, summary, description, fields)
+    comment = _comment(path)
+    summary = comment[0] if comment else ""
+    return PublishedConfig(name, path, recipe, summary, " ".join(comment), fields)
 
 
 def load_published(name_or_path: str | os.PathLike) -> PublishedConfig:
@@ -133,3 +130,25 @@ def available_configs(fragments: bool = False) -> list[PublishedConfig]:
         if config.recipe is not None or fragments:
             found.append(config)
     return found
+
+
+def recipe_and_env(
+    command: str, recipe: str | None, env: str | None, published: PublishedConfig | None
+) -> tuple[str, str]:
+    """The recipe and scenario of a ``train`` or ``sweep`` (``command``): each as given (RECIPE,
+    ``--env``) or read from its ``--config`` (``published``); ConfigError when a given recipe
+    is not the configuration's, or when either is missing."""
+    named = published.recipe if published is not None else None
+    if recipe is not None and named is not None and recipe != named:
+        raise ConfigError(
+            f"RECIPE {recipe!r} differs from --config {published.name!r}'s recipe, {named}"
+        )
+    recipe = recipe or named
+    if recipe is None:
+        raise ConfigError(
+            f"{command} needs RECIPE, or a --config that names one (`mapets-rl configs` lists them)"
+        )
+    env = env or (published.fields.get("env") if published is not None else None)
+    if not isinstance(env, str):
+        raise ConfigError(f"{command} needs --env SCENARIO, or a --config that sets env")
+    return recipe, env

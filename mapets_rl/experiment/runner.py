@@ -793,14 +793,12 @@ class Experiment:
         """The evaluation protocol on ``config.eval_roads`` roads (``config.eval_references``,
         default every reference of the scenario), as flat metrics; the references are scored
         once per run (the same roads every time)."""
-        from mapets_rl.envs.references import reference_names
         from mapets_rl.experiment.protocol import evaluate_protocol, protocol_metrics
 
-        names = self.config.eval_references or reference_names(self.config.env)
         result = evaluate_protocol(
             self,
             self.config.eval_roads,
-            names,
+            self.config.eval_references,
             write=False,
             reference_cache=self._reference_scores,
         )

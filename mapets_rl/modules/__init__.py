@@ -28,6 +28,7 @@ from mapets_rl.modules.keys import (
 from mapets_rl.modules.normalization import RunningObsNorm, make_obs_norm, sync_target_statistics
 from mapets_rl.modules.policies import (
     concat_last,
+    make_decentralised_mlp,
     make_discrete_actor,
     make_q_critic,
     make_stochastic_policy,
@@ -65,6 +66,7 @@ __all__ = [
     "concat_last",
     "gumbel_one_hot",
     "make_obs_norm",
+    "make_decentralised_mlp",
     "make_discrete_actor",
     "make_q_critic",
     "make_stochastic_policy",

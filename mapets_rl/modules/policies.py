@@ -100,6 +100,23 @@ def make_q_critic(
     )
 
 
+def make_decentralised_mlp(
+    spec: AgentGroupSpec, num_cells: list[int], share_params: bool
+) -> MultiAgentMLP:
+    """Each agent's own observation ``[*, I, obs]`` -> one output per action ``[*, I, act]``,
+    a ReLU ``MultiAgentMLP`` (MADDPG's actors, SAC's discrete Q(o, .))."""
+    return MultiAgentMLP(
+        n_agent_inputs=spec.obs_dim,
+        n_agent_outputs=spec.action_dim,
+        n_agents=spec.n_agents,
+        centralized=False,
+        share_params=share_params,
+        depth=len(num_cells),
+        num_cells=num_cells,
+        activation_class=nn.ReLU,
+    )
+
+
 def make_discrete_actor(
     spec: AgentGroupSpec,
     num_cells: list[int],
@@ -116,16 +133,7 @@ def make_discrete_actor(
     ``("agents","action")`` ``[*, I, n]``."""
     obs_key = OBS if obs_norm is None else OBS_NORM
     front = [] if obs_norm is None else [obs_norm]
-    mlp = MultiAgentMLP(
-        n_agent_inputs=spec.obs_dim,
-        n_agent_outputs=spec.action_dim,
-        n_agents=spec.n_agents,
-        centralized=False,
-        share_params=share_params,
-        depth=len(num_cells),
-        num_cells=num_cells,
-        activation_class=nn.ReLU,
-    )
+    mlp = make_decentralised_mlp(spec, num_cells, share_params)
     return TensorDictSequential(
         *front,
         TensorDictModule(
