@@ -1,9 +1,12 @@
 """Interval estimates over independent runs (seeds): the mean with a percentile-bootstrap 95%
-interval, and the interquartile mean (IQM) with a stratified-bootstrap 95% interval.
+interval, the interquartile mean (IQM) with a stratified-bootstrap 95% interval, performance
+profiles and the probability of improvement, on :mod:`scipy.stats`.
 
 The protocol is that of Agarwal et al. (2021), "Deep Reinforcement Learning at the Edge of the
-Statistical Precipice" (NeurIPS), written here on numpy (their ``rliable`` package is
-archived):
+Statistical Precipice" (NeurIPS). Their ``rliable`` package pins ``arch == 5.3.0`` and
+pulls in seaborn (with pandas) and absl-py for a few statistics, which stand here on
+:func:`scipy.stats.bootstrap` (resampling, percentile intervals),
+:func:`scipy.stats.mannwhitneyu` and :data:`scipy.stats.t`:
 
 - *scores* are ``[runs]`` (one task) or ``[runs, tasks]`` (the same runs' score on each task);
 - the *IQM* is the mean of the middle 50% of all scores: the ``floor(n / 4)`` lowest and highest
@@ -11,17 +14,26 @@ archived):
   definition), so it is robust to an outlying run and, unlike the median, uses half the runs;
   with fewer than 4 scores nothing is dropped and it is the mean;
 - the *stratified bootstrap* resamples the runs with replacement independently within each
-  task, recomputes the statistic over every resampled score, and takes the 2.5th and 97.5th
-  percentiles of the ``resamples`` replicates as the 95% interval (the percentile bootstrap;
-  with one task it is the ordinary bootstrap over runs).
+  task (each task one sample of :func:`scipy.stats.bootstrap`), recomputes the statistic over
+  every resampled score, and takes the 2.5th and 97.5th percentiles of the ``resamples``
+  replicates as the 95% interval (the percentile bootstrap; with one task it is the ordinary
+  bootstrap over runs);
+- the *performance profile* (:func:`performance_profile`) is the fraction of all scores above
+  each threshold ``tau``, with the stratified bootstrap's band;
+- the *probability of improvement* (:func:`probability_of_improvement`) P(X > Y) is, per task,
+  the Mann-Whitney U statistic of X's runs over Y's divided by the number of pairs (ties count
+  one half), averaged over tasks; its interval resamples X's and Y's runs independently.
 
 The generator is seeded (:data:`BOOTSTRAP_SEED`): the same scores give the same interval every
-time. Intervals are clipped to ``bounds``, the values the metric can take
-(:func:`mapets_rl.metrics.metric_range`: safety in ``[0, 1]``, speeds and counts ``>= 0``).
+time (and, with one task, the same interval as this module's numpy bootstrap before it moved
+onto scipy: the same runs are resampled). Intervals are clipped to ``bounds``, the values the
+metric can take (:func:`mapets_rl.metrics.metric_range`: safety in ``[0, 1]``, speeds and
+counts ``>= 0``).
 
 With few runs read the intervals with care: a bootstrap interval never reaches beyond the
 sample's smallest and largest value, so with 3 seeds it is narrower than the uncertainty (it
-holds the mean of 3 normal draws about 75% of the time, not 95%).
+holds the mean of 3 normal draws about 75% of the time, not 95%); with 2 it is their range
+(``compare`` draws none below :data:`MIN_RUNS_FOR_INTERVAL` runs).
 
 The Student-t interval of the mean (:func:`mean_ci95`) stays for the examples and benchmarks
 that report it.
@@ -35,6 +47,7 @@ from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy import stats
 
 BOOTSTRAP_RESAMPLES = 5000
 """Bootstrap replicates per interval: the interval's ends move by about 1% of its width between
@@ -43,6 +56,9 @@ BOOTSTRAP_SEED = 0
 """Seed of the bootstrap's generator (reproducible intervals)."""
 CONFIDENCE = 0.95
 """Coverage of the intervals."""
+MIN_RUNS_FOR_INTERVAL = 3
+"""Fewest runs whose bootstrap interval is shown as one: with 2 runs the percentile interval is
+their range, so ``compare`` and :mod:`mapets_rl.plotting` show the runs' values instead."""
 _MAX_RESAMPLED = 4_000_000
 """Resampled scores held at once (32 MB): a long curve is bootstrapped a block of points at a
 time."""
@@ -113,30 +129,44 @@ def _scores(scores: ArrayLike, shapes: dict[int, str]) -> np.ndarray:
     return x
 
 
-def _percentile_interval(
+def _stratified_bootstrap(
     scores: np.ndarray,
-    statistic: str,
+    reduce: Callable[[np.ndarray, int], np.ndarray],
     bounds: tuple[float, float],
     confidence: float,
     resamples: int,
     seed: int,
 ) -> IntervalEstimate:
-    """The stratified bootstrap of ``scores [runs, tasks, points]``: runs resampled within each
-    task (the same resampled runs at every point), the statistic over runs and tasks, the
-    percentile interval clipped to ``bounds``; each field ``[points]``."""
+    """The stratified bootstrap of ``scores [runs, tasks, points]`` on
+    :func:`scipy.stats.bootstrap`: each task's runs are one sample, resampled independently of
+    the other tasks' (the same resampled runs at every point), ``reduce(scores, axis)`` over the
+    runs of every task together, the percentile interval clipped to ``bounds``; each field
+    ``[points]``. One run has no interval (``low == high ==`` the estimate, clipped)."""
     runs, tasks, points = scores.shape
-    reduce = STATISTICS[statistic]
     estimate = reduce(scores.reshape(runs * tasks, points), 0)
-    rng = np.random.default_rng(seed)
-    picks = rng.integers(0, runs, size=(resamples, runs, tasks))  # [R, runs, tasks]
-    tail = (1.0 - confidence) / 2.0
+    if runs == 1:
+        clipped = np.clip(estimate, *bounds)
+        return IntervalEstimate(estimate, clipped, clipped.copy())
+
+    def statistic(*samples: np.ndarray, axis: int) -> np.ndarray:
+        return reduce(np.concatenate(samples, axis=axis), axis)
+
     ends = np.empty((2, points))
     block = max(1, _MAX_RESAMPLED // (resamples * runs * tasks))
     for start in range(0, points, block):  # a block of points at a time bounds the memory
         part = scores[:, :, start : start + block]
-        resampled = part[picks, np.arange(tasks)]  # [R, runs, tasks, block]
-        replicates = reduce(resampled.reshape(resamples, runs * tasks, -1), 1)  # [R, block]
-        ends[:, start : start + block] = np.quantile(replicates, [tail, 1.0 - tail], axis=0)
+        result = stats.bootstrap(
+            tuple(part[:, task, :].T for task in range(tasks)),  # per task [block, runs]
+            statistic,
+            n_resamples=resamples,
+            vectorized=True,
+            axis=-1,
+            confidence_level=confidence,
+            method="percentile",
+            rng=np.random.default_rng(seed),  # every block resamples the same runs
+        )
+        ends[0, start : start + block] = result.confidence_interval.low
+        ends[1, start : start + block] = result.confidence_interval.high
     return IntervalEstimate(estimate, np.clip(ends[0], *bounds), np.clip(ends[1], *bounds))
 
 
@@ -165,7 +195,9 @@ def bootstrap_interval(
     _check_options(statistic, bounds, confidence, resamples)
     x = _scores(scores, {1: "[runs]", 2: "[runs, tasks]"})
     x = x.reshape(x.shape[0], -1, 1)  # [runs, tasks, 1 point]
-    estimate, low, high = _percentile_interval(x, statistic, bounds, confidence, resamples, seed)
+    estimate, low, high = _stratified_bootstrap(
+        x, STATISTICS[statistic], bounds, confidence, resamples, seed
+    )
     return IntervalEstimate(float(estimate[0]), float(low[0]), float(high[0]))
 
 
@@ -190,42 +222,112 @@ def bootstrap_curve(
     """
     _check_options(statistic, bounds, confidence, resamples)
     x = _scores(scores, {2: "[runs, points]"})
-    return _percentile_interval(x[:, None, :], statistic, bounds, confidence, resamples, seed)
+    return _stratified_bootstrap(
+        x[:, None, :], STATISTICS[statistic], bounds, confidence, resamples, seed
+    )
 
 
-def student_t_quantile(p: float, df: int) -> float:
-    """Quantile of Student's t with ``df`` degrees of freedom (numerical, ~1e-6 accurate).
+def performance_profile(
+    scores: ArrayLike,
+    taus: ArrayLike,
+    *,
+    confidence: float = CONFIDENCE,
+    resamples: int = BOOTSTRAP_RESAMPLES,
+    seed: int = BOOTSTRAP_SEED,
+) -> IntervalEstimate:
+    """The performance profile (score distribution) of Agarwal et al. (2021): at every
+    threshold ``tau``, the fraction of all runs' scores above ``tau`` (over runs and tasks),
+    with its stratified-bootstrap interval (the same resampled runs at every ``tau``).
 
-    The CDF is the integral of the density, 0.5 + int_0^x f (Simpson's rule on 4001 points);
-    the quantile is found by bisection.
+    Args:
+        scores: ``[runs]`` (one task) or ``[runs, tasks]``, finite.
+        taus: ``[points]``, the thresholds, finite.
+        confidence, resamples, seed: as :func:`bootstrap_interval`.
+
+    Returns:
+        ``(estimate, low, high)``, each ``[points]`` in ``[0, 1]``; one run gives no width.
     """
-    if not 0.5 <= p < 1:
-        raise ValueError(f"p must be in [0.5, 1), got {p}")
-    if df < 1:
-        raise ValueError(f"df must be >= 1, got {df}")
-    log_c = math.lgamma((df + 1) / 2) - math.lgamma(df / 2) - 0.5 * math.log(df * math.pi)
+    _check_options("mean", (0.0, 1.0), confidence, resamples)
+    x = _scores(scores, {1: "[runs]", 2: "[runs, tasks]"})
+    t = np.asarray(taus, dtype=np.float64)
+    if t.ndim != 1 or t.size == 0 or not np.isfinite(t).all():
+        raise ValueError(f"taus must be a non-empty finite [points] array, got {taus!r}")
+    above = (x.reshape(x.shape[0], -1, 1) > t).astype(np.float64)  # [runs, tasks, points]
+    return _stratified_bootstrap(above, STATISTICS["mean"], (0.0, 1.0), confidence, resamples, seed)
 
-    def cdf(x: float) -> float:
-        grid = np.linspace(0.0, x, 4001)
-        f = np.exp(log_c - (df + 1) / 2 * np.log1p(grid**2 / df))
-        h = x / 4000
-        return 0.5 + h / 3 * (f[0] + f[-1] + 4 * f[1:-1:2].sum() + 2 * f[2:-1:2].sum())
 
-    lo, hi = 0.0, 1.0
-    while cdf(hi) < p:
-        hi *= 2
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if cdf(mid) < p else (lo, mid)
-    return 0.5 * (lo + hi)
+def _improvement(x: Sequence[np.ndarray], y: Sequence[np.ndarray], axis: int) -> np.ndarray:
+    """P(X > Y) of the tasks' samples ``x[task]`` and ``y[task]`` along ``axis``: per task the
+    Mann-Whitney U statistic of X over Y divided by the number of pairs, the mean over tasks."""
+    per_task = [
+        stats.mannwhitneyu(a, b, axis=axis, method="asymptotic").statistic
+        / (a.shape[axis] * b.shape[axis])
+        for a, b in zip(x, y, strict=True)
+    ]
+    return np.mean(per_task, axis=0)
+
+
+def probability_of_improvement(
+    scores_x: ArrayLike,
+    scores_y: ArrayLike,
+    *,
+    confidence: float = CONFIDENCE,
+    resamples: int = BOOTSTRAP_RESAMPLES,
+    seed: int = BOOTSTRAP_SEED,
+) -> IntervalEstimate:
+    """The probability of improvement P(X > Y) of Agarwal et al. (2021) and its bootstrap
+    interval.
+
+    On each task, the probability that a run of X scores above a run of Y, ties counting one
+    half: the Mann-Whitney U statistic of X over Y (:func:`scipy.stats.mannwhitneyu`) divided
+    by ``runs_x * runs_y``; then the mean over tasks. The interval resamples the runs of X and
+    of Y independently within each task (rliable's stratified independent bootstrap).
+
+    Args:
+        scores_x: ``[runs_x]`` or ``[runs_x, tasks]``, finite.
+        scores_y: ``[runs_y]`` or ``[runs_y, tasks]``, the same tasks, finite.
+        confidence, resamples, seed: as :func:`bootstrap_interval`.
+
+    Returns:
+        Floats ``(estimate, low, high)`` in ``[0, 1]``; without an interval
+        (``low == high == estimate``) when either side has one run.
+    """
+    _check_options("mean", (0.0, 1.0), confidence, resamples)
+    x = _scores(scores_x, {1: "[runs]", 2: "[runs, tasks]"})
+    y = _scores(scores_y, {1: "[runs]", 2: "[runs, tasks]"})
+    x, y = x.reshape(x.shape[0], -1), y.reshape(y.shape[0], -1)
+    if x.shape[1] != y.shape[1]:
+        raise ValueError(
+            f"scores_x and scores_y must have the same tasks, got {x.shape[1]} and {y.shape[1]}"
+        )
+    tasks = x.shape[1]
+    estimate = float(_improvement(list(x.T), list(y.T), axis=-1))
+    if min(len(x), len(y)) == 1:
+        return IntervalEstimate(estimate, estimate, estimate)
+
+    def statistic(*samples: np.ndarray, axis: int) -> np.ndarray:
+        return _improvement(samples[:tasks], samples[tasks:], axis)
+
+    result = stats.bootstrap(
+        (*x.T, *y.T),
+        statistic,
+        n_resamples=resamples,
+        vectorized=True,
+        confidence_level=confidence,
+        method="percentile",
+        rng=np.random.default_rng(seed),
+    )
+    low, high = result.confidence_interval
+    return IntervalEstimate(estimate, float(low), float(high))
 
 
 def mean_ci95(values: Sequence[float]) -> tuple[float, float]:
-    """Mean and half-width of the 95% Student-t confidence interval (0 for one value)."""
+    """Mean and half-width of the 95% Student-t confidence interval (0 for one value): the
+    t quantile from :data:`scipy.stats.t`."""
     x = np.asarray(values, dtype=float)
     if x.size == 0:
         raise ValueError("values must be non-empty")
     if x.size == 1:
         return float(x[0]), 0.0
-    half = student_t_quantile(0.975, x.size - 1) * x.std(ddof=1) / math.sqrt(x.size)
+    half = stats.t.ppf(0.975, x.size - 1) * x.std(ddof=1) / math.sqrt(x.size)
     return float(x.mean()), float(half)

@@ -1,5 +1,7 @@
 """Known answers of the interval estimates: the IQM of constructed samples, the coverage of the
-bootstrap interval on simulated normal samples, stratification, clipping, reproducibility."""
+bootstrap interval on simulated normal samples, stratification, clipping, reproducibility, the
+Student-t interval's quantiles, and the rliable protocol's performance profiles and
+probability of improvement on scores whose answers are counted by hand."""
 
 from __future__ import annotations
 
@@ -12,6 +14,9 @@ from mapets_rl.statistics import (
     bootstrap_curve,
     bootstrap_interval,
     interquartile_mean,
+    mean_ci95,
+    performance_profile,
+    probability_of_improvement,
 )
 
 
@@ -100,3 +105,70 @@ def test_bad_input_names_the_parameter(kwargs: dict, message: str) -> None:
         bootstrap_interval(**kwargs)
     with pytest.raises(ValueError, match=r"\[runs, points\]"):
         bootstrap_curve([0.1, 0.2])
+
+
+@pytest.mark.parametrize(("n", "quantile"), [(2, 12.7062), (3, 4.3027), (5, 2.7764), (31, 2.0423)])
+def test_mean_ci95_is_the_student_t_interval(n: int, quantile: float) -> None:
+    """Half-width t(0.975, n - 1) s / sqrt(n), the quantiles of a t table; one value: none."""
+    values = np.arange(float(n))
+    mean, half = mean_ci95(values)
+    assert mean == pytest.approx(values.mean())
+    assert half == pytest.approx(quantile * values.std(ddof=1) / math.sqrt(n), rel=1e-4)
+    assert mean_ci95([5.0]) == (5.0, 0.0)
+    with pytest.raises(ValueError, match="non-empty"):
+        mean_ci95([])
+
+
+def test_the_bootstrap_keeps_its_published_numbers() -> None:
+    """The intervals the hand-written numpy bootstrap gave (commit 22b249f: numpy's generator
+    seeded 0, 5000 replicates, linear percentiles), to the last digits: the bootstrap on scipy
+    resamples the same runs, so the results pages' intervals stand."""
+    values = [0.1, 0.5, 0.6, 0.9, 4.0]
+    assert tuple(bootstrap_interval(values)) == pytest.approx((1.22, 0.34, 2.62), abs=1e-12)
+    assert tuple(bootstrap_interval(values, "iqm")) == pytest.approx(
+        (2 / 3, 0.2333333333333333, 2.966666666666667), abs=1e-12
+    )
+    curve = bootstrap_curve([[0.0, 0.9, 1.0], [1.0, 1.0, 1.0], [1.0, 0.2, 1.0]], bounds=(0, 1))
+    assert np.array(curve).ravel() == pytest.approx(
+        [2 / 3, 0.7, 1.0, 0.0, 0.2, 1.0, 1.0, 1.0, 1.0], abs=1e-12
+    )
+
+
+def test_the_performance_profile_counts_the_runs_above_each_threshold() -> None:
+    """Task 0 has runs 0.1, 0.5, 0.9, task 1 runs 0.2, 0.2, 0.2: above 0.3 are 2 of 6 scores,
+    above 0.15 are 5 of 6 (rliable's fraction over runs and tasks); the band holds it, within
+    [0, 1]; the strict '>' leaves a score equal to tau out."""
+    scores = np.array([[0.1, 0.2], [0.5, 0.2], [0.9, 0.2]])  # [runs, tasks]
+    profile = performance_profile(scores, [0.0, 0.15, 0.2, 0.3, 0.95])
+    assert profile.estimate == pytest.approx([1.0, 5 / 6, 2 / 6, 2 / 6, 0.0])
+    assert np.all(profile.low <= profile.estimate) and np.all(profile.estimate <= profile.high)
+    assert np.all(profile.low >= 0.0) and np.all(profile.high <= 1.0)
+    # task 1 is the same in every replicate: the fraction above 0.15 is at least 3/6
+    assert profile.low[1] >= 0.5 and profile.low[0] == profile.high[0] == 1.0
+    one = performance_profile([0.4], [0.3, 0.5])
+    assert [list(part) for part in one] == [[1.0, 0.0], [1.0, 0.0], [1.0, 0.0]]
+    with pytest.raises(ValueError, match="taus must be"):
+        performance_profile([0.4, 0.5], [])
+    with pytest.raises(ValueError, match="scores must be finite"):
+        performance_profile([0.4, math.nan], [0.3])
+
+
+def test_the_probability_of_improvement_counts_pairs_and_half_ties() -> None:
+    """X = (1, 2, 3), Y = (2, 2, 0): of the 9 pairs X wins 1 > 0, 2 > 0, 3 > 2, 3 > 2, 3 > 0
+    and ties 2 = 2 twice: (5 + 2 / 2) / 9 = 2/3; P(Y > X) = 1 - 2/3. Over two tasks, the mean of
+    the tasks' probabilities."""
+    x, y = [1.0, 2.0, 3.0], [2.0, 2.0, 0.0]
+    poi = probability_of_improvement(x, y)
+    assert poi.estimate == pytest.approx(6 / 9)
+    assert probability_of_improvement(y, x).estimate == pytest.approx(3 / 9)
+    assert 0.0 <= poi.low <= poi.estimate <= poi.high <= 1.0 and poi.low < poi.high
+    assert tuple(probability_of_improvement([1.0] * 3, [1.0] * 3)) == (0.5, 0.5, 0.5)
+    # task 1: X = (5, 6, 7) always beats Y = (1, 2, 3): P = 1; the mean with task 0's 2/3
+    two = probability_of_improvement(np.array([x, [5.0, 6.0, 7.0]]).T, np.array([y, [1, 2, 3]]).T)
+    assert two.estimate == pytest.approx((6 / 9 + 1.0) / 2)
+    assert two.low >= 0.5  # task 1 is 1 in every replicate, task 0 at least 0
+    # unequal run counts: X = (1, 3) against Y = (2, 2, 2): 3 wins of 6 pairs
+    assert probability_of_improvement([1.0, 3.0], [2.0, 2.0, 2.0]).estimate == pytest.approx(0.5)
+    assert tuple(probability_of_improvement([4.0], [1.0, 5.0])) == (0.5, 0.5, 0.5)
+    with pytest.raises(ValueError, match="same tasks"):
+        probability_of_improvement(np.zeros((3, 2)), np.zeros((3, 1)))

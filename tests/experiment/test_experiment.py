@@ -24,7 +24,7 @@ from mapets_rl.experiment import (
     read_results,
     save_checkpoint,
 )
-from mapets_rl.statistics import mean_ci95, student_t_quantile
+from mapets_rl.statistics import mean_ci95
 
 pytestmark = pytest.mark.usefixtures("toy_scenario")
 
@@ -207,11 +207,6 @@ def test_training_loop_refuses_a_negative_interval(intervals, name, tmp_path: Pa
 
 
 # -------------------------------------------------------------------------------- compare
-@pytest.mark.parametrize("df, expected", [(1, 12.7062), (2, 4.3027), (4, 2.7764), (30, 2.0423)])
-def test_student_t_quantile_known_values(df: int, expected: float) -> None:
-    assert student_t_quantile(0.975, df) == pytest.approx(expected, abs=2e-3)
-
-
 def test_mean_ci95() -> None:
     mean, half = mean_ci95([1.0, 2.0, 3.0])
     assert mean == pytest.approx(2.0)
