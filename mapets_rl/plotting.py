@@ -1,5 +1,7 @@
 """The one way the project draws a learning curve: the mean (or IQM) over runs with its
-bootstrap 95% band clipped to the values the metric can take.
+bootstrap 95% band clipped to the values the metric can take; below
+:data:`~mapets_rl.statistics.MIN_RUNS_FOR_INTERVAL` runs (two) no band, the runs' values as
+points instead (the percentile interval of two runs is only their range).
 
 ``mapets-rl compare``, the example scripts and the ablations all draw through
 :func:`draw_curve` (from each run's values) or :func:`draw_band` (from an interval computed
@@ -18,10 +20,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from mapets_rl.metrics import metric_range
-from mapets_rl.statistics import bootstrap_curve
+from mapets_rl.statistics import MIN_RUNS_FOR_INTERVAL, bootstrap_curve
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
+    from matplotlib.collections import PathCollection
     from matplotlib.lines import Line2D
 
 BAND_ALPHA = 0.2
@@ -77,6 +80,37 @@ def draw_band(
     return line
 
 
+def draw_points(
+    ax: Axes, x: Sequence[float], runs: ArrayLike, **scatter_kwargs: Any
+) -> PathCollection:
+    """Draw each run's value at every ``x`` as a point (the runs of a curve too few for a band).
+
+    Args:
+        ax: the matplotlib axes.
+        x: ``[points]``.
+        runs: ``[runs, points]``, each run's value at every ``x``.
+        scatter_kwargs: passed to ``ax.scatter`` (``color``, ``marker``, ...).
+
+    Returns:
+        The points.
+    """
+    values = np.asarray(runs, dtype=float)
+    if values.ndim != 2 or values.shape[1] != len(x):
+        raise ValueError(f"runs must be [runs, {len(x)} points], got shape {values.shape}")
+    xs = np.broadcast_to(np.asarray(x, dtype=float), values.shape)
+    return ax.scatter(xs.ravel(), values.ravel(), **{"s": 10, "alpha": 0.6, **scatter_kwargs})
+
+
+def clip_y_axis(
+    ax: Axes, metric: str | None = None, bounds: tuple[float, float] | None = None
+) -> None:
+    """Keep ``ax``'s y axis inside the metric's range (or ``bounds``): call it once every curve
+    is drawn (it fixes the limits), so that a count or a speed has no axis below zero."""
+    lo, hi = _bounds(metric, bounds)
+    bottom, top = ax.get_ylim()
+    ax.set_ylim(max(bottom, lo), min(top, hi))
+
+
 def draw_curve(
     ax: Axes,
     x: Sequence[float],
@@ -94,7 +128,8 @@ def draw_curve(
         ax: the matplotlib axes.
         x: ``[points]``.
         runs: ``[runs, points]``, each run's (seed's) value at every ``x``; one run draws its
-            values and no band.
+            values and no band, two runs their ``statistic`` and each run's values as points
+            (:func:`draw_points`), no band.
         metric, bounds, line_kwargs: as :func:`draw_band`.
         statistic: ``"mean"`` or ``"iqm"`` (interquartile mean, stratified bootstrap).
 
@@ -104,7 +139,10 @@ def draw_curve(
     values = np.asarray(runs, dtype=float)
     if values.ndim != 2 or values.shape[1] != len(x):
         raise ValueError(f"runs must be [runs, {len(x)} points], got shape {values.shape}")
-    if values.shape[0] == 1:
-        return draw_band(ax, x, values[0], metric=metric, bounds=bounds, **line_kwargs)
     estimate, low, high = bootstrap_curve(values, statistic, bounds=_bounds(metric, bounds))
-    return draw_band(ax, x, estimate, low, high, metric=metric, bounds=bounds, **line_kwargs)
+    if values.shape[0] >= MIN_RUNS_FOR_INTERVAL:
+        return draw_band(ax, x, estimate, low, high, metric=metric, bounds=bounds, **line_kwargs)
+    line = draw_band(ax, x, estimate, metric=metric, bounds=bounds, **line_kwargs)
+    if values.shape[0] > 1:
+        draw_points(ax, x, values, color=line.get_color())
+    return line
