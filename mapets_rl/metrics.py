@@ -17,9 +17,10 @@ Comfort (eq. 9) is a score per vehicle and step, no physical unit: 3 keeping the
 ``|acc| < Theta``, 2 keeping it with ``|acc| >= Theta``, 1 changing lanes, 0 emergency stop.
 
 Units: :data:`METRIC_UNITS` names the unit of every metric the recipes record;
-:func:`metric_label` writes ``name [unit]`` for tables, plot labels and logs, and speeds in m/s
-also in mph (:data:`MPH_PER_MPS`). :data:`TASK_METRICS` are the metrics of what a policy does
-(what ``compare`` shows by default); :data:`METRIC_RANGES` the values a metric can take.
+:func:`metric_label` writes ``name [unit]`` for tables, plot labels and logs, and
+:func:`format_metric` speeds in m/s also in mph (:data:`MPH_PER_MPS`). :data:`TASK_METRICS`
+are the metrics of what a policy does (what ``compare`` shows by default);
+:data:`METRIC_RANGES` the values a metric can take.
 """
 
 from __future__ import annotations
@@ -150,14 +151,10 @@ def metric_unit(name: str) -> str:
 
 
 def metric_label(name: str) -> str:
-    """``name [unit]`` (``name`` alone without a unit); speeds in m/s name mph too:
-    ``"average_velocity [m/s; x 2.237 = mph]"``."""
+    """``name [unit]`` (``name`` alone without a unit): ``"average_velocity [m/s]"`` (the
+    tables give speeds in mph beside, the plots on a second axis)."""
     unit = metric_unit(name)
-    if not unit:
-        return name
-    if unit == "m/s":
-        return f"{name} [m/s; x {MPH_PER_MPS:.3f} = mph]"
-    return f"{name} [{unit}]"
+    return f"{name} [{unit}]" if unit else name
 
 
 def format_metric(name: str, value: float, precision: int = 4) -> str:

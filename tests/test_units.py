@@ -19,7 +19,7 @@ def test_metric_units_and_labels() -> None:
     assert MPH_PER_MPS == pytest.approx(2.23694, abs=1e-5)  # 1 m/s in mph
     assert metric_unit("agility") == "m/step" and metric_unit("eval/agility") == "m/step"
     assert metric_label("agility") == "agility [m/step]"
-    assert metric_label("average_velocity") == "average_velocity [m/s; x 2.237 = mph]"
+    assert metric_label("average_velocity") == "average_velocity [m/s]"
     assert metric_label("loss_actor") == "loss_actor"  # no unit, name alone
     assert format_metric("average_velocity", 31.3) == "31.3 m/s (70.02 mph)"  # freeway limit
     assert format_metric("agility", 0.9712) == "0.9712 m/step"
@@ -56,10 +56,10 @@ def test_compare_table_and_plot_labels_carry_units(tmp_path: Path, monkeypatch) 
     monkeypatch.setattr(matplotlib.axes.Axes, "set_title", set_title)
     out = compare(runs, tmp_path / "cmp", ["agility", "average_velocity"])
     table = out["table"].read_text()
-    assert "| agility [m/step] | average_velocity [m/s; x 2.237 = mph] |" in table
+    assert "| agility [m/step] | average_velocity [m/s] |" in table
     # mean 21 m/s = 46.98 mph; the bootstrap interval of two runs spans them: 20 to 22 m/s
     assert "| 21 [20, 22] (46.98 [44.74, 49.21] mph) (n=2) |" in table
-    assert titles == ["agility [m/step]", "average_velocity [m/s; x 2.237 = mph]"]
+    assert titles == ["agility [m/step]", "average_velocity [m/s]"]
 
 
 def test_config_fields_declare_their_units() -> None:

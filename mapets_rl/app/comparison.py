@@ -1,6 +1,8 @@
 """Compare runs: learning curves (mean and bootstrap 95% band over seeds), final-metrics
-markdown tables (mean and interquartile mean, each with its bootstrap 95% interval) and,
-on request, the marl-eval JSON file, from the ``results.json`` of each run directory.
+markdown tables (mean and interquartile mean, each with its bootstrap 95% interval), the
+rliable protocol's performance profiles and probabilities of improvement between groups
+(:mod:`mapets_rl.app.rliable_report`) and, on request, the marl-eval JSON file, from the
+``results.json`` of each run directory.
 
 A comparison says what it compares and refuses what would mislead:
 
@@ -22,7 +24,9 @@ A comparison says what it compares and refuses what would mislead:
   (``results.json``'s ``simulator``: its C++ kernel or its torch program), each group a mean
   and an interquartile mean (IQM) over its runs (seeds) with bootstrap 95% intervals
   (:mod:`mapets_rl.statistics`: the rliable protocol), clipped to each metric's range; a group
-  of one run shows its values, ``n = 1``, and no interval;
+  of one run shows its values, ``n = 1``, and no interval; the plot draws a band only for a
+  group of at least three runs (the interval of two is their range: their values are drawn
+  as points instead);
 - *at what point*: the table compares the runs of a group at the last ``x`` all of them
   reached, and its header says so when they end at different ``x``;
 - *which metrics*: by default the task metrics (:data:`mapets_rl.metrics.TASK_METRICS`), every
@@ -44,6 +48,7 @@ from typing import Any
 import numpy as np
 
 from mapets_rl.app.protocol_report import protocol_summary, protocol_table, read_protocols
+from mapets_rl.app.rliable_report import plot_profiles, rliable_summary, rliable_table
 from mapets_rl.experiment.files import (
     atomic_savefig,
     atomic_write_text,
@@ -59,8 +64,8 @@ from mapets_rl.metrics import (
     metric_range,
     metric_unit,
 )
-from mapets_rl.plotting import draw_band
-from mapets_rl.statistics import bootstrap_curve
+from mapets_rl.plotting import clip_y_axis, draw_band, draw_points
+from mapets_rl.statistics import MIN_RUNS_FOR_INTERVAL, bootstrap_curve
 
 log = logging.getLogger(__name__)
 
@@ -242,8 +247,10 @@ def compare(
 
     - ``learning_curves.png``: one panel per metric against ``x``, the mean over the group's
       runs with a shaded bootstrap 95% band clipped to the metric's range
-      (:func:`mapets_rl.plotting.draw_band`), at the ``x`` values every run of the group
-      reached; the title names the source;
+      (:func:`mapets_rl.plotting.draw_band`; for a group of at least three runs: a group of
+      two shows each run's values as points, one run its line), at the ``x`` values every run
+      of the group reached; the y axis inside the metric's range, speeds also in mph on a
+      second axis; the title names the source;
     - ``final_metrics.md``: two markdown tables of each run's final numbers, ``mean [low,
       high] (n=runs)`` and the interquartile mean ``iqm [low, high] (n=runs)`` (``value
       (n=1)`` for a group of one run: one run has no interval), with the source of every group
@@ -256,6 +263,12 @@ def compare(
       value any of its runs reached (``x``, ``n`` runs), ``mean`` / ``std`` / ``mean_ci95``
       / ``iqm`` / ``iqm_ci95`` of every metric (``std`` and the intervals null where
       ``n = 1``);
+    - ``rliable.md``, ``rliable.json`` and ``performance_profiles.png``: the rliable
+      protocol over the same final numbers (:mod:`mapets_rl.app.rliable_report`): per metric
+      each group's performance profile (fraction of its runs above ``tau``, with a
+      stratified-bootstrap 95% band) and the probability of improvement P(X > Y) of every
+      ordered pair of groups (with a bootstrap 95% interval), intervals only where the groups
+      have at least three runs;
     - with ``marl_eval``, ``marl_eval.json``: every run's entries in InstaDeep's marl-eval
       raw-data format, ``{env: {task: {algorithm: {"run_<i>": {"step_<k>": {"step_count":
       frames, metric: [value]}, ..., "absolute_metrics": {metric: [value]}}}}}}``: the
@@ -318,8 +331,9 @@ def compare(
         title: prefix of the plot title (e.g. the experiment's name).
         marl_eval: also write ``marl_eval.json`` (the input of InstaDeep's marl-eval tools).
     Returns:
-        ``{"plot": Path, "table": Path, "summary": Path, "curves": Path}``, and
-        ``"marl_eval": Path`` with ``marl_eval``; when every run was scored by the evaluation
+        ``{"plot": Path, "table": Path, "summary": Path, "curves": Path, "rliable": Path,
+        "rliable_table": Path, "profiles_plot": Path}``, and ``"marl_eval": Path`` with
+        ``marl_eval``; when every run was scored by the evaluation
         protocol (``mapets-rl evaluate RUN --roads B``), ``"protocol"`` (``protocol.md``: the
         gains over each reference per seed, their mean and IQM with bootstrap intervals, the
         training return, the behaviour metrics; :mod:`mapets_rl.app.protocol_report`) and
@@ -493,6 +507,8 @@ def compare(
         )
     summary: dict[str, dict[str, dict[str, Any]]] = {}
     curves: dict[str, Any] = {"source": source, "x": x, "groups": {}}
+    finals: dict[str, dict[str, list[float]]] = {}
+    run_values: dict[str, list[dict[float, Any]]] = {}
     cut: list[str] = []
     for label, group in groups.items():
         by_entry, last, ends = group["by_entry"], group["last"], group["ends"]
@@ -502,8 +518,9 @@ def compare(
                 f"{_fmt_x(min(ends))} to {_fmt_x(max(ends))})"
             )
         summary[label] = {}
+        finals[label] = {m: [e["metrics"][m] for e in last] for m in metrics}
         for m in metrics:
-            final = _interval_stats(m, [[e["metrics"][m] for e in last]])
+            final = _interval_stats(m, [finals[label][m]])
             summary[label][m] = {
                 **{key: values[0] for key, values in final.items()},
                 "n": len(last),
@@ -511,6 +528,7 @@ def compare(
                 "source": "evaluate" if group["final"] is not None else group["source"],
             }
         by_x = [{v: e["metrics"] for v, e in be.items()} for be in by_entry]
+        run_values[label] = by_x
         xs = sorted(set().union(*by_x))
         counts = [sum(v in bx for bx in by_x) for v in xs]
         stats: dict[str, dict[str, list[Any]]] = {}
@@ -533,7 +551,14 @@ def compare(
         else f"{SOURCE_NAMES['eval']}, training entries for the groups marked (train)"
     )
     plot = out_dir / "learning_curves.png"
-    _plot(curves["groups"], metrics, x, plot, f"{title}: {described}" if title else described)
+    _plot(
+        curves["groups"],
+        run_values,
+        metrics,
+        x,
+        plot,
+        f"{title}: {described}" if title else described,
+    )
     table = out_dir / "final_metrics.md"
     aligned = (
         f" Runs of a group that end at different {x} are compared at the last {x} all of "
@@ -573,6 +598,13 @@ def compare(
     curves_path = out_dir / "curves.json"
     atomic_write_text(curves_path, json.dumps(curves, indent=1))
     written = {"plot": plot, "table": table, "summary": summary_path, "curves": curves_path}
+    rliable = rliable_summary(finals, metrics)
+    written["rliable"] = out_dir / "rliable.json"
+    atomic_write_text(written["rliable"], json.dumps(rliable, indent=1))
+    written["rliable_table"] = out_dir / "rliable.md"
+    atomic_write_text(written["rliable_table"], rliable_table(rliable))
+    written["profiles_plot"] = out_dir / "performance_profiles.png"
+    plot_profiles(rliable, written["profiles_plot"], title)
     if marl_eval:
         written["marl_eval"] = out_dir / MARL_EVAL_FILE
         atomic_write_text(written["marl_eval"], json.dumps(_marl_eval(groups, metrics), indent=1))
@@ -772,12 +804,21 @@ def _x_value(entry: Mapping[str, Any], x: str) -> float:
 
 
 def _plot(
-    groups: Mapping[str, Mapping[str, Any]], metrics: Sequence[str], x: str, path: Path, title: str
+    groups: Mapping[str, Mapping[str, Any]],
+    run_values: Mapping[str, Sequence[Mapping[float, Mapping[str, float]]]],
+    metrics: Sequence[str],
+    x: str,
+    path: Path,
+    title: str,
 ) -> None:
-    """One panel per metric: every group's mean and bootstrap 95% band
-    (:func:`mapets_rl.plotting.draw_band`: none for one run; clipped to the metric's range) at
-    the x values all its runs reached (a group whose runs share none is left
-    out, with a logged note); integer ticks when every x is an integer (frames, episodes)."""
+    """One panel per metric: every group's mean at the x values all its runs reached (a group
+    whose runs share none is left out, with a logged note) and, for a group of at least
+    :data:`~mapets_rl.statistics.MIN_RUNS_FOR_INTERVAL` runs, its bootstrap 95% band
+    (:func:`mapets_rl.plotting.draw_band`, clipped to the metric's range); a group of two runs
+    shows each run's values as points instead (``run_values``: per group, each run's metrics
+    by x), one run its line alone. The y axis stays inside the metric's range (no count below
+    zero); speeds get a second axis in mph; integer ticks when every x is an integer (frames,
+    episodes)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -808,18 +849,28 @@ def _plot(
                 continue
             xs = [group["x"][i] for i in full]
             stats = group["metrics"][m]
-            several = len(group["runs"]) > 1  # one run has no interval
-            draw_band(
+            count = len(group["runs"])
+            banded = count >= MIN_RUNS_FOR_INTERVAL  # two runs' interval is their range
+            line = draw_band(
                 ax,
                 xs,
                 [stats["mean"][i] for i in full],
-                [stats["mean_ci95"][i][0] for i in full] if several else None,
-                [stats["mean_ci95"][i][1] for i in full] if several else None,
+                [stats["mean_ci95"][i][0] for i in full] if banded else None,
+                [stats["mean_ci95"][i][1] for i in full] if banded else None,
                 metric=m,
                 marker="o",
                 ms=3,
-                label=f"{label} (n={len(group['runs'])})",
+                label=f"{label} (n={count})",
             )
+            if 1 < count < MIN_RUNS_FOR_INTERVAL:
+                runs = [[by_x[v][m] for v in xs] for by_x in run_values[label]]
+                draw_points(ax, xs, runs, color=line.get_color())
+        clip_y_axis(ax, m)
+        if metric_unit(m) == "m/s":
+            mph = ax.secondary_yaxis(
+                "right", functions=(lambda v: v * MPH_PER_MPS, lambda v: v / MPH_PER_MPS)
+            )
+            mph.set_ylabel("mph", fontsize=8)
         ax.set_title(metric_label(m), fontsize=9)
         ax.set_xlabel("environment frames [env steps]" if x == "frames" else metric_label(x))
         if integer_x:
@@ -829,7 +880,12 @@ def _plot(
         ax.set_visible(False)
     axes.flat[0].legend(fontsize=8)
     fig.suptitle(
-        textwrap.fill(f"{title}: mean and bootstrap 95% CI over runs", 55 * cols), fontsize=10
+        textwrap.fill(
+            f"{title}: mean over runs, bootstrap 95% CI for groups of >= "
+            f"{MIN_RUNS_FOR_INTERVAL} runs, each run's values (points) for groups of 2",
+            55 * cols,
+        ),
+        fontsize=10,
     )
     atomic_savefig(fig, path, dpi=110)
     plt.close(fig)
