@@ -24,6 +24,11 @@ decision is a dilemma when ``own < 0 < system``. Then the scores of keep lane, t
 rule and every ramp CAV forcing its merge (Change Left on the acceleration lane, Keep Lane
 elsewhere) by the evaluation protocol (``score_roads``) on ``--score-roads`` roads per seed.
 
+``--runs RUN_DIR ...`` (MADDPG-style runs with a Q critic): beside each decision's exact effect
+on what the run's critic is fitted to (the mover's own return, or the CAVs' mean under
+``team_reward``), the advantage its critic gives the move against Keep Lane
+(:func:`mapets_rl.modules.critic_probe.critic_advantages`); ``--gamma`` should be the run's.
+
     OMP_NUM_THREADS=1 python benchmarks/dilemma_counterfactuals.py --roads 64 \\
         --score-roads 256 --seeds 0 1 2
 """
@@ -57,7 +62,9 @@ from mapets_rl.experiment.protocol import (
     score_roads,
 )
 from mapets_rl.experiment.published import load_published
+from mapets_rl.experiment.runner import run_recipe_name
 from mapets_rl.machine import machine_line
+from mapets_rl.modules.critic_probe import critic_advantages
 from mapets_rl.statistics import bootstrap_interval
 
 KINDS = ("rule's yields", "other Change Left", "Change Right", "forcing")
@@ -87,13 +94,17 @@ def keep_lane(observation: torch.Tensor) -> torch.Tensor:
     return torch.full(observation.shape[:2], KL, dtype=torch.long)
 
 
-def alternatives(sim: BatchedFreeway, gamma: float) -> dict[str, np.ndarray]:
+def alternatives(
+    sim: BatchedFreeway, gamma: float, critics: list[TensorDictModuleBase] = ()
+) -> dict[str, np.ndarray]:
     """Every alternative decision (module docstring) of every CAV on every road of ``sim``
     (just reset) as every CAV keeps its lane; one entry per decision: ``kind`` (index into
-    :data:`KINDS`), ``road``, ``moved``, ``own`` and ``system``."""
+    :data:`KINDS`), ``road``, ``moved``, ``own``, ``system`` and ``critic{j}``, the advantage
+    ``critics[j]`` gives the move over Keep Lane."""
     lanes = int(sim.config["lanes"])
     rule = deciding(CooperativeMerge(lanes))
-    out: dict[str, list] = {key: [] for key in ("kind", "road", "moved", "own", "system")}
+    keys = ("kind", "road", "moved", "own", "system", *(f"critic{j}" for j in range(len(critics))))
+    out: dict[str, list] = {key: [] for key in keys}
     observation = sim.observe()
     for _ in range(int(sim.config["horizon"])):
         action = keep_lane(observation)
@@ -123,6 +134,10 @@ def alternatives(sim: BatchedFreeway, gamma: float) -> dict[str, np.ndarray]:
             out["moved"] += (y[base] != y[branch]).any(-1).tolist()
             out["own"] += (returns[branch, cav] - returns[base, cav]).tolist()
             out["system"] += (returns[branch].sum(-1) - returns[base].sum(-1)).tolist()
+            for j, critic in enumerate(critics):
+                out[f"critic{j}"] += critic_advantages(
+                    critic, observation, action, road, cav, torch.cat(replacement), 4
+                ).tolist()
         observation = sim.step(action).observation
     return {key: np.asarray(value) for key, value in out.items()}
 
@@ -147,6 +162,32 @@ def effect_row(label: str, found: dict[str, np.ndarray], roads: int) -> str:
     )
 
 
+def critic_rows(label: str, found: dict[str, np.ndarray], j: int, team: bool) -> str:
+    """One markdown row for run ``j``: over the decisions that ran, the exact effect on the
+    critic's target (``system / I`` under the team reward, else ``own``) and the critic's
+    advantage, each a mean with a bootstrap 95% interval, the share of each above zero and
+    their correlation."""
+    ran = found["moved"].astype(bool)
+    if not ran.any():
+        return f"| {label} | | | | | |"
+    cavs = found["cavs"][ran]
+    exact = found["system"][ran] / cavs if team else found["own"][ran]
+    critic = found[f"critic{j}"][ran]
+    cells = []
+    for values in (exact, critic):
+        mean, low, high = bootstrap_interval(values)
+        cells.append(f"{mean:+.3f} [{low:+.3f}, {high:+.3f}] | {(values > 0).mean():.2f}")
+    correlation = np.corrcoef(exact, critic)[0, 1] if len(exact) > 1 else float("nan")
+    return f"| {label} | {cells[0]} | {cells[1]} | {correlation:+.2f} |"
+
+
+CRITIC_HEADER = (
+    "| decision | exact effect on the critic's target, mean [95%] | share > 0 "
+    "| critic's advantage over Keep Lane, mean [95%] | share > 0 | correlation |\n"
+    "|---|---|---|---|---|---|"
+)
+
+
 HEADER = (
     "| decision (every co-player keeps its lane) | per episode | share that ran "
     "| share costing the mover | mover's effect, mean [95%] | share paying the system "
@@ -164,6 +205,8 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--score-roads", type=int, default=256, help="roads per seed, scores")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--gamma", type=float, default=0.95, help="discount of the effects")
+    parser.add_argument("--runs", nargs="*", default=[], metavar="RUN_DIR",
+                        help="runs whose critics are set beside the exact effects")  # fmt: skip
     args = parser.parse_args(argv)
     if args.roads < 1 or args.score_roads < 1 or not 0.0 <= args.gamma <= 1.0:
         parser.error("need --roads >= 1, --score-roads >= 1 and --gamma in [0, 1]")
@@ -175,19 +218,30 @@ def main(argv: list[str] | None = None) -> str:
     print(f"# {machine_line()}")
     print(f"# {args.config} {' '.join(args.set)}: {config.unbatched_env_config()}")
     started = time.perf_counter()
+    runs = [load_recipe(run_recipe_name(run)).from_run_dir(run) for run in args.runs]
     env = evaluation_env(config, args.roads)
     try:
         env.set_seed(config.seed + ROAD_EVAL_SEED_OFFSET)
         env.reset()
-        found = alternatives(env.sim, args.gamma)
+        found = alternatives(env.sim, args.gamma, [run.critic for run in runs])
+        found["cavs"] = np.full(len(found["kind"]), env.sim.n_cavs)
     finally:
         env.close()
+        for run in runs:
+            run.close()
     rows = [HEADER]
     for kind, label in enumerate(KINDS):
         part = {key: value[found["kind"] == kind] for key, value in found.items()}
         rows.append(effect_row(label, part, args.roads))
     near = {key: value[found["kind"] < KINDS.index("forcing")] for key, value in found.items()}
     rows.append(effect_row("every mainline move near the merge", near, args.roads))
+    for j, run in enumerate(runs):
+        team = bool(run.config.env_config.get("team_reward", False))
+        rows += ["", f"{args.runs[j]} (team reward: {team}, gamma {run.config.gamma}):",
+                 CRITIC_HEADER]  # fmt: skip
+        for kind, label in enumerate(KINDS):
+            part = {key: value[found["kind"] == kind] for key, value in found.items()}
+            rows.append(critic_rows(label, part, j, team))
     lanes = int(config.env_config.get("lanes", 3))
     policies = {
         "cooperative rule": lambda env: make_reference(config.env, "cooperative-merge", env),
