@@ -5,7 +5,8 @@ Precipice"; :mod:`mapets_rl.statistics`):
 
 - *performance profiles*: per metric and group, the fraction of the group's runs whose final
   value is above ``tau``, on :data:`PROFILE_POINTS` thresholds from the smallest to the largest
-  final value of any group, with its stratified-bootstrap 95% band;
+  final value of any group (one when every run ends on the same value), with its
+  stratified-bootstrap 95% band;
 - *probability of improvement*: per metric and ordered pair of groups ``(X, Y)``, P(X > Y),
   the probability that a run of X ends above a run of Y (ties count one half; the
   Mann-Whitney U statistic over the number of pairs), with its bootstrap 95% interval.
@@ -65,7 +66,7 @@ def rliable_summary(
     for metric in metrics:
         values = {label: np.asarray(finals[label][metric], dtype=float) for label in labels}
         pooled = np.concatenate(list(values.values()))
-        taus = np.linspace(pooled.min(), pooled.max(), PROFILE_POINTS)
+        taus = np.unique(np.linspace(pooled.min(), pooled.max(), PROFILE_POINTS))
         profiles = {}
         for label, runs in values.items():
             fraction, low, high = performance_profile(runs, taus)

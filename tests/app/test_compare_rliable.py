@@ -87,7 +87,7 @@ def test_two_runs_show_their_points_and_no_interval(tmp_path: Path, figures) -> 
     band; the rliable numbers stand without intervals (P(X > Y) with X = (1, 4), Y = (2, 3):
     2 of 4 pairs). One run: its line alone."""
     runs = _methods(tmp_path, {"x": [1.0, 4.0], "y": [2.0, 3.0]})
-    out = compare(runs, tmp_path / "cmp", ["return"])
+    out = compare(runs, tmp_path / "cmp", ["return", "collisions"])
     curves_fig = figures[0]
     (ax,) = [a for a in curves_fig.axes if a.get_title().startswith("return")]
     assert not [c for c in ax.collections if isinstance(c, matplotlib.collections.PolyCollection)]
@@ -108,6 +108,9 @@ def test_two_runs_show_their_points_and_no_interval(tmp_path: Path, figures) -> 
     (ax,) = [a for a in figures[-2].axes if a.get_title().startswith("return")]
     assert not ax.collections and len(ax.get_lines()) == 1
     assert "Probability of improvement" not in (tmp_path / "cmp1" / "rliable.md").read_text()
+    flat = json.loads(out["rliable"].read_text())  # collisions 0 in every run: one threshold
+    assert flat["collisions"]["taus"] == [0.0]
+    assert flat["collisions"]["profiles"]["x"]["fraction"] == [0.0]
 
 
 def test_count_axes_stay_above_zero_and_speeds_read_m_per_s(tmp_path: Path, figures) -> None:
