@@ -10,7 +10,7 @@
     mapets-rl evaluate RUN_DIR [--episodes N] [--video]
     mapets-rl evaluate RUN_DIR --roads B [--references NAME ...]   (the evaluation protocol)
     mapets-rl sweep RECIPE --env SCENARIO --out DIR [--seeds N ...] [--grid KEY=v1,v2 ...]
-                    [--backend local|ray] [key=value ...]     (see mapets_rl.app.sweep)
+                    [--backend local|ray|submitit] [key=value ...]  (see mapets_rl.app.sweep)
     mapets-rl compare RUN_DIR... --out DIR [--metrics a,b,...] [--source eval|train]
                       [--group-by FIELD[,FIELD...]] [--x frames|METRIC] [--allow-mixed-env]
                       [--legacy-as eval|train]
@@ -408,9 +408,18 @@ def _add_sweep_parser(sub: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--backend",
         default="local",
-        metavar="local|ray",
+        metavar="local|ray|submitit",
         help="local (default): a process pool on this machine; ray: Ray tasks on a local Ray "
-        "instance, or on the cluster of --address / RAY_ADDRESS",
+        "instance, or on the cluster of --address / RAY_ADDRESS; submitit: Slurm jobs "
+        "(see --executor-param)",
+    )
+    parser.add_argument(
+        "--executor-param",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a parameter of the submitit backend's executor, e.g. timeout_min=120, "
+        "slurm_partition=gpu, cluster=local (jobs on this machine); repeat for more",
     )
     parser.add_argument(
         "--address", default=None, metavar="HOST:PORT", help="Ray cluster to join (ray backend)"

@@ -1,11 +1,12 @@
 """Sweeps: the cartesian product of config grids x seeds, one normal run directory per trial,
-executed by a process pool on this machine or by Ray, summarised with :func:`compare`.
+executed by a process pool on this machine, by Ray or as Slurm jobs (submitit), summarised
+with :func:`compare`.
 
     mapets-rl sweep RECIPE --env SCENARIO --seeds 0 1 2 --grid comm.comm_range=0,50,100
                     [--grid comm.p_fail=0,0.25 ...] [key=value ...] --out DIR
-                    [--backend local|ray] [--address HOST:PORT] [--cpus-per-trial N]
-                    [--gpus-per-trial N] [--config FILE] [--metrics a,b] [--source eval|train]
-                    [--x auto|frames|METRIC]
+                    [--backend local|ray|submitit] [--address HOST:PORT] [--cpus-per-trial N]
+                    [--gpus-per-trial N] [--executor-param KEY=VALUE ...] [--config FILE]
+                    [--metrics a,b] [--source eval|train] [--x auto|frames|METRIC]
 
 Layout of ``--out``::
 
@@ -15,6 +16,7 @@ Layout of ``--out``::
                                    trial's record) and, when it failed, error.txt (the traceback)
     summary/                       compare's learning_curves.png, final_metrics.md,
                                    summary.json, curves.json, grouped by the swept fields
+    submitit/                      (submitit backend) submitit's files of each job
 
 Everything the user typed is checked before any trial starts: the recipe, the scenario, every
 grid key and value and every override (each trial's config is built, and the scenario is built
@@ -29,10 +31,18 @@ change a resume refuses (anything but the budget and the intervals, see
 starts. A re-run with another grid or seeds keeps the trials of the earlier ones in
 ``sweep.json`` and the summary (grouped by every grid key, and by the settings their configs
 differ in). ``--x`` and ``--metrics`` are checked before any trial starts, against the trials
-already finished (``--x`` of a sweep with none against the metrics that have a unit). A
-trial that raises is recorded as failed (the traceback in its ``error.txt``, the last line in
-the manifest); the other trials still run, and :func:`run_sweep` reports the failed ones (the
-command then exits with 1).
+already finished; in a sweep with none, ``--x`` against the metrics that have a unit and
+``--metrics`` (of evaluations, the default ``--source``) against those of one evaluation
+episode of the first trial's untrained policy (:func:`probe_metrics`). A trial that raises
+is recorded as failed (the traceback in its ``error.txt``, the last line in the manifest); the
+other trials still run, and :func:`run_sweep` reports the failed ones (the command then exits
+with 1).
+
+A stop signal (SIGTERM, as Slurm's preemption and ``timeout`` send it) to a sweep of the local
+backend stops it as it stops a training run: every running trial ends its iteration with a
+checkpoint (state ``"stopped"`` in its ``trial.json`` and the manifest), the trials not
+started stay pending, the workers exit and the command exits with 143 (128 + 15); re-running
+the same command resumes the sweep.
 
 One sweep per ``--out`` at a time: a second one, while the first runs, is refused in one line
 naming its pid (a sweep holds ``OUT/.lock``, a :class:`~mapets_rl.experiment.files.RunDirLock`).
@@ -41,7 +51,7 @@ included), and a trial whose run directory another writer still holds (its lock:
 Ray task, a ``mapets-rl resume``) is reported as failed, naming the holder's pid, without a
 byte written there; a later re-run resumes it.
 
-Backends (neither schedules by hand):
+Backends (none schedules by hand):
 
 - ``local``: a ``concurrent.futures.ProcessPoolExecutor`` of ``cpu_count // cpus_per_trial``
   spawned processes, each running one trial at a time. Ray is not imported.
@@ -57,6 +67,19 @@ Backends (neither schedules by hand):
   own results file, checkpoints and evaluation, and there is nothing to search or stop early;
   Tune would add a second trial layout, checkpoint protocol and resume logic over ours (and
   the ``ray[tune]`` dependencies) for nothing.
+- ``submitit``: every trial is a job of a ``submitit.AutoExecutor`` (one Slurm job array;
+  ``--cpus-per-trial`` and ``--gpus-per-trial`` are its ``cpus_per_task`` and
+  ``gpus_per_node``, ``--executor-param`` its other parameters: ``timeout_min``,
+  ``slurm_partition``, ..., and ``cluster=local`` for jobs on this machine). The jobs belong to
+  the cluster and outlive the sweep process; its nodes must have the project, the recipe and
+  the scenario installed and see ``--out``. The trials are the same resumable run
+  directories, so skipping and resuming are the other backends' (a job that ends without a
+  result is a failed trial; a re-run resumes it from its checkpoint). Submitit rather than
+  Hydra's submitit launcher: the configuration is this project's YAML files and typed fields
+  (``key=value`` overrides, ``--grid``, published configs), not Hydra; the launcher would
+  need the whole config system moved to Hydra's composition and its multirun directory
+  layout in place of ``sweep.json`` and ``trials/``, while submitit alone submits the very
+  :func:`run_trial` the other backends run.
 
 Recipes and scenarios reach the trial processes by import path: a recipe installed under an
 entry point, or a scenario registered in this process with :func:`register_env`, must be an
@@ -67,6 +90,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
+import contextlib
 import copy
 import dataclasses
 import importlib
@@ -78,6 +102,7 @@ import os
 import re
 import signal
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -96,6 +121,7 @@ from mapets_rl.experiment.files import (
     check_writable_dir,
     make_writable_dir,
 )
+from mapets_rl.experiment.runner import STOP_SIGNALS
 from mapets_rl.ray_runtime import (
     check_ray_address,
     import_ray,
@@ -106,11 +132,18 @@ from mapets_rl.ray_runtime import (
 MANIFEST = "sweep.json"
 TRIALS_DIR = "trials"
 SUMMARY_DIR = "summary"
-BACKENDS = ("local", "ray")
+BACKENDS = ("local", "ray", "submitit")
+SUBMITIT_DIR = "submitit"
+"""Under ``--out``: submitit's job files (pickled trial, stdout / stderr), one folder per job."""
+SUBMITIT_POLL_S = 1.0
+"""Seconds between two looks at the submitit jobs not finished yet (submitit rate-limits
+its queries of the Slurm accounting itself)."""
 RESERVED_KEYS = {"env": "--env", "seed": "--seeds"}
 """Config keys a sweep sets itself, with the option that sets them."""
 ERROR_TAIL_LINES = 60
 """Lines of a failed trial's traceback kept in its ``error.txt``."""
+STOPPED = "stopped"
+"""The state of a trial that a stop signal (SIGTERM) stopped with a checkpoint."""
 
 
 @dataclasses.dataclass
@@ -126,11 +159,17 @@ class SweepSpec:
         overrides: ``key=value`` strings applied to every trial (as ``mapets-rl train``).
         out: the sweep directory.
         config_file: a YAML file of config fields applied before ``overrides``.
-        backend: ``"local"`` or ``"ray"``.
+        backend: ``"local"``, ``"ray"`` or ``"submitit"``.
         address: Ray cluster address to join (``ray`` backend; default ``RAY_ADDRESS``, else a
             local Ray instance is started).
         cpus_per_trial: CPUs each trial reserves and its torch threads (> 0; ``local``: >= 1).
-        gpus_per_trial: GPUs each trial reserves (>= 0; ``ray`` backend only).
+        gpus_per_trial: GPUs each trial reserves (>= 0; ``ray`` and ``submitit`` backends;
+            ``submitit``: a whole number).
+        executor_params: ``submitit`` backend only: the parameters of its
+            ``submitit.AutoExecutor`` (``timeout_min``, ``mem_gb``, ``slurm_partition``,
+            ``slurm_account``, ...; see submitit's ``update_parameters``), plus ``cluster``:
+            ``"slurm"``, ``"local"`` (jobs as processes of this machine) or ``"debug"``
+            (default: submitit's choice, Slurm where ``sbatch`` is found).
         metrics, source, x: what the summary compares (see :func:`compare`); ``x="auto"`` is
             ``"episode"`` when every entry numbers its episode (MA-PETS), else ``"frames"``.
     """
@@ -146,6 +185,7 @@ class SweepSpec:
     address: str | None = None
     cpus_per_trial: float = 1.0
     gpus_per_trial: float = 0.0
+    executor_params: dict[str, Any] = dataclasses.field(default_factory=dict)
     metrics: list[str] | None = None
     source: str = "eval"
     x: str = "auto"
@@ -187,11 +227,28 @@ class SweepSpec:
                 "0 with the local backend (--backend ray assigns GPUs to trials)",
                 self.gpus_per_trial,
             )
+        if self.backend != "ray":
             check(
                 self.address is None,
                 "address",
-                "unset with the local backend (it joins a Ray cluster: --backend ray)",
+                "unset without the ray backend (it joins a Ray cluster: --backend ray)",
                 self.address,
+            )
+        if self.backend == "submitit":
+            for name, value in (("cpus", self.cpus_per_trial), ("gpus", self.gpus_per_trial)):
+                check(
+                    float(value).is_integer() and value >= (name == "cpus"),
+                    f"{name}_per_trial",
+                    f"a whole number >= {int(name == 'cpus')} with the submitit backend (Slurm "
+                    f"reserves whole {name.upper()}s)",
+                    value,
+                )
+        else:
+            check(
+                not self.executor_params,
+                "executor_params",
+                "empty without the submitit backend",
+                self.executor_params,
             )
         if self.address is not None:
             check(bool(self.address.strip()), "address", "HOST:PORT", self.address)
@@ -462,9 +519,12 @@ def run_trial(payload: Mapping[str, Any]) -> dict[str, Any]:
     ``module:qualname`` of factories to register first), ``run_dir``, ``overrides``,
     ``config`` (the resolved config, recorded) and ``threads`` (torch threads).
 
-    Returns ``{"state": "done" | "failed", "resumed", "seconds", "frames", "error"}``; an
-    exception is not raised but recorded: the traceback's last :data:`ERROR_TAIL_LINES` lines
-    in ``run_dir/error.txt``, its last line in the result and ``trial.json``.
+    Returns ``{"state": "done" | "failed" | "stopped", "resumed", "seconds", "frames",
+    "error"}``; an exception is not raised but recorded: the traceback's last
+    :data:`ERROR_TAIL_LINES` lines in ``run_dir/error.txt``, its last line in the result and
+    ``trial.json``. ``"stopped"``: a SIGTERM stopped the run with a checkpoint
+    (:class:`~mapets_rl.experiment.runner.RunStopped`), or reached a local-backend worker
+    before the run's training loop started (see :func:`_init_worker`); a re-run resumes it.
     """
     from mapets_rl import quiet_dependencies
 
@@ -472,6 +532,7 @@ def run_trial(payload: Mapping[str, Any]) -> dict[str, Any]:
     run_dir = Path(payload["run_dir"])
     start = time.perf_counter()
     from mapets_rl.experiment.files import RunDirLock, RunDirLocked
+    from mapets_rl.experiment.runner import RunStopped
 
     # another writer (a worker of a sweep killed with kill -9 that is still running this trial,
     # a `mapets-rl resume`) has the run directory: leave it alone, write nothing there
@@ -506,11 +567,17 @@ def run_trial(payload: Mapping[str, Any]) -> dict[str, Any]:
         else:
             config = cls.Config().with_overrides(payload["overrides"])
             exp = cls(config, run_dir)
-        exp.train()
-        (run_dir / ERROR_FILE).unlink(missing_ok=True)
-        result = {"state": "done", "frames": int(exp.frames), "error": None}
+        if _stop_requested:  # the worker was told to stop before its training loop started
+            exp.close()
+            result = {"state": STOPPED, "frames": int(exp.frames), "error": None}
+        else:
+            exp.train()
+            (run_dir / ERROR_FILE).unlink(missing_ok=True)
+            result = {"state": "done", "frames": int(exp.frames), "error": None}
     except RunDirLocked as err:  # taken by another writer since the check above
         return _locked(err, time.perf_counter() - start)
+    except RunStopped as err:  # SIGTERM: the training loop wrote a checkpoint and stopped
+        result = {"state": STOPPED, "frames": int(err.frames), "error": None}
     except Exception:
         lines = traceback.format_exc().rstrip().splitlines()
         atomic_write_text(run_dir / ERROR_FILE, "\n".join(lines[-ERROR_TAIL_LINES:]) + "\n")
@@ -570,6 +637,48 @@ def _die_with_parent(parent: int) -> None:
         threading.Thread(target=watch, name="sweep-parent-watch", daemon=True).start()
 
 
+_stop_requested = False
+"""In a local-backend worker: a stop signal arrived (see :func:`_init_worker`)."""
+
+
+def _note_stop(signum: int, frame: Any) -> None:
+    """A local-backend worker's handler of the stop signals outside a training loop."""
+    global _stop_requested
+    _stop_requested = True
+
+
+def _init_worker(parent: int) -> None:
+    """Initializer of the local backend's workers: die with the sweep process
+    (:func:`_die_with_parent`), and take SIGTERM as a request to stop rather than an end.
+    A training loop under way handles the signal itself (checkpoint, then
+    :class:`~mapets_rl.experiment.runner.RunStopped`) and puts this handler back after it, so
+    a second copy of the signal (``timeout`` and Slurm signal every process of the group, and
+    the sweep forwards the one it got) cannot end the worker before its checkpoint; a trial
+    that had not reached its training loop, or that the worker is handed later, stops
+    before training (:func:`run_trial`)."""
+    _die_with_parent(parent)
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, _note_stop)
+
+
+class SweepStopped(Exception):
+    """A sweep stopped by a signal (SIGTERM) after its running trials wrote a checkpoint and
+    stopped: re-running the same command resumes them.
+
+    Attributes:
+        signum: the signal.
+        stopped: the ids of the trials it stopped.
+    """
+
+    def __init__(self, signum: int, stopped: Sequence[str] = ()) -> None:
+        self.signum, self.stopped = signum, list(stopped)
+        name = signal.Signals(signum).name
+        super().__init__(
+            f"stopped by {name}: {len(self.stopped)} running trial(s) checkpointed and "
+            "stopped; re-run the same command to resume the sweep"
+        )
+
+
 def _died(err: BaseException) -> dict[str, Any]:
     return {
         "state": "failed",
@@ -588,21 +697,71 @@ def local_workers(cpus_per_trial: float) -> int:
 def run_local(payloads: Sequence[Mapping[str, Any]], cpus_per_trial: float) -> Outcome:
     """The trials in a pool of spawned processes (a worker runs one trial at a time and
     imports torch once for all the trials it runs); the workers die with this process (see
-    :func:`_die_with_parent`)."""
+    :func:`_die_with_parent`).
+
+    A stop signal (:data:`~mapets_rl.experiment.runner.STOP_SIGNALS`: SIGTERM, as Slurm's
+    preemption and ``timeout`` send it) received while the trials run in the main thread is
+    forwarded once to every worker: each running trial ends its iteration with a checkpoint
+    and stops (state ``"stopped"``), the trials not started stay pending, and once the
+    workers have returned this raises :class:`SweepStopped`. A second signal ends this
+    process at once (and its workers with it)."""
     workers = min(local_workers(cpus_per_trial), len(payloads))
-    with concurrent.futures.ProcessPoolExecutor(
-        max_workers=workers,
-        mp_context=multiprocessing.get_context("spawn"),
-        initializer=_die_with_parent,
-        initargs=(os.getpid(),),
-    ) as pool:
+    stop: list[int] = []
+    with (
+        concurrent.futures.ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_init_worker,
+            initargs=(os.getpid(),),
+        ) as pool,
+        _forward_stop_signals(stop),
+    ):
         futures = {pool.submit(run_trial, p): i for i, p in enumerate(payloads)}
         for future in concurrent.futures.as_completed(futures):
+            if stop:
+                for pending in futures:
+                    pending.cancel()  # not started yet: it stays pending
+            if future.cancelled():
+                continue
             try:
                 result = future.result()
             except Exception as err:  # the process died (killed, out of memory)
                 result = _died(err)
             yield futures[future], result
+    if stop:
+        raise SweepStopped(stop[0])
+
+
+@contextlib.contextmanager
+def _forward_stop_signals(stop: list[int]) -> Iterator[None]:
+    """While the block runs in the main thread, the first stop signal is appended to
+    ``stop`` and forwarded to this process's children (the pool's workers, which stop their
+    trial, see :func:`_init_worker`); a second one puts the previous handler back and
+    signals again (by default this ends the process). The previous handlers are put back
+    after the block."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handle(signum: int, frame: Any) -> None:
+        if stop:
+            signal.signal(signum, previous[signum] or signal.SIG_DFL)
+            signal.raise_signal(signum)
+            return
+        stop.append(signum)
+        for child in multiprocessing.active_children():
+            if child.pid is not None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(child.pid, signum)
+
+    previous = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, handle)
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler or signal.SIG_DFL)
 
 
 def run_ray(
@@ -643,6 +802,65 @@ def run_ray(
             reaper.wait()
 
 
+def import_submitit() -> Any:
+    """The ``submitit`` module, or a one-line ValueError saying how to install it."""
+    try:
+        import submitit
+    except ImportError:
+        raise ValueError(
+            "backend 'submitit' needs the submitit package: pip install 'mapets-rl[slurm]' "
+            "(or use --backend local)"
+        ) from None
+    return submitit
+
+
+def submitit_executor(
+    folder: Path, params: Mapping[str, Any], cpus_per_trial: float, gpus_per_trial: float
+) -> Any:
+    """submitit's ``AutoExecutor`` writing its job files under ``folder`` (one folder per job),
+    each job reserving ``cpus_per_trial`` CPUs and ``gpus_per_trial`` GPUs; ``params`` are
+    its other parameters (``cluster`` chooses the executor, see
+    :attr:`SweepSpec.executor_params`). ConfigError naming ``executor_params`` for an unknown
+    cluster or parameter."""
+    submitit = import_submitit()
+    params = dict(params)
+    cluster = params.pop("cluster", None)
+    try:
+        executor = submitit.AutoExecutor(folder=folder / "%j", cluster=cluster)
+        executor.update_parameters(
+            cpus_per_task=int(cpus_per_trial), gpus_per_node=int(gpus_per_trial), **params
+        )
+    except (NameError, ValueError, TypeError, RuntimeError, AssertionError) as err:
+        first = next((line for line in str(err).splitlines() if line.strip()), repr(err))
+        raise ConfigError(f"executor_params {dict(params, cluster=cluster)}: {first}") from None
+    return executor
+
+
+def run_submitit(payloads: Sequence[Mapping[str, Any]], executor: Any) -> Outcome:
+    """The trials as submitit jobs of ``executor`` (:func:`submitit_executor`; one job array
+    on Slurm), each running :func:`run_trial` on a node of the cluster, which must have the
+    project, the recipe and the scenario installed and see ``--out`` (a shared file system).
+    The jobs are the cluster's: they outlive this process (a re-run finds a trial still
+    running in its lock and reports it, see :func:`run_trial`, and resumes it once its job has
+    ended); a job that ends without a result (killed, out of time, out of memory) is a failed
+    trial that a re-run resumes from its latest checkpoint."""
+    with executor.batch():
+        jobs = [executor.submit(run_trial, dict(p)) for p in payloads]
+    pending = dict(enumerate(jobs))
+    while pending:
+        for index, job in list(pending.items()):
+            if not job.done():
+                continue
+            del pending[index]
+            try:
+                result = job.result()
+            except Exception as err:  # the job failed outside run_trial (killed, timed out)
+                result = _died(err)
+            yield index, result
+        if pending:
+            time.sleep(SUBMITIT_POLL_S)
+
+
 # ------------------------------------------------------------------------------ the sweep
 def _manifest_data(
     spec: SweepSpec,
@@ -663,6 +881,7 @@ def _manifest_data(
         "address": spec.address,
         "cpus_per_trial": spec.cpus_per_trial,
         "gpus_per_trial": spec.gpus_per_trial,
+        "executor_params": spec.executor_params,
         "updated": _now(),
         "trials": [
             {
@@ -789,19 +1008,59 @@ def _flat_config(config: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def _check_summary_options(spec: SweepSpec, run_dirs: Sequence[Path]) -> None:
+PROBE_OVERRIDES = ("logger=none", "video=false", "eval_episodes=1", "device=cpu")
+"""What :func:`probe_metrics` changes in a trial's config: nothing written beside the
+evaluation, one episode on this machine's CPU (the metrics' names are those of the trial)."""
+PROBE_COLLECTOR = ("collector=single", "collector_workers=1")
+"""And, for the recipes that have a collector, one in this process (no Ray, no workers)."""
+
+
+def probe_metrics(cls: type, trial: Trial) -> set[str]:
+    """The names of the metrics in an evaluation entry of ``trial``'s run: one evaluation
+    episode of its untrained policy (its config with :data:`PROBE_OVERRIDES`), in a
+    temporary run directory that is removed after it. A run's evaluation entries are its
+    :meth:`~mapets_rl.experiment.Experiment.evaluate`'s metrics, whose names do not depend on
+    the training."""
+    import tempfile
+
+    changed = [*PROBE_OVERRIDES]
+    if "collector" in {f.name for f in dataclasses.fields(cls.Config)}:
+        changed += PROBE_COLLECTOR
+    keys = {parse_override(o)[0] for o in changed}
+    overrides = [o for o in trial.overrides if parse_override(o)[0] not in keys] + changed
+    config = cls.Config().with_overrides(overrides)
+    with tempfile.TemporaryDirectory(prefix="mapets-rl-probe-") as tmp:
+        exp = cls(config, Path(tmp) / "run")
+        try:
+            return set(exp.evaluate(episodes=1, video=False))
+        finally:
+            exp.close()
+            collector = getattr(exp, "collector", None)
+            if collector is not None:
+                collector.shutdown()
+
+
+def _check_summary_options(
+    spec: SweepSpec, run_dirs: Sequence[Path], cls: type, trials: Sequence[Trial]
+) -> None:
     """ConfigError naming ``x`` or ``metrics`` when the summary could not compare them,
     before any trial starts: against the metrics every entry of the finished trials
     ``run_dirs`` holds (a re-run), else ``x`` against the metrics of
     :data:`~mapets_rl.metrics.METRIC_UNITS` (an x axis is a counter with a unit: ``episode``,
-    ``train_time``, ...). The metrics of a sweep that has not finished a trial are only known
-    once one has."""
+    ``train_time``, ...) and, when the summary compares evaluations (``source="eval"``),
+    ``metrics`` against those of an evaluation of the first trial's untrained policy
+    (:func:`probe_metrics`). The training metrics of a sweep that has not finished a trial
+    (``source="train"``: losses appear once the updates start) are only known once one has."""
     from mapets_rl.experiment.results import ENTRY_LISTS, read_results
     from mapets_rl.metrics import METRIC_UNITS
 
     if not run_dirs:
         axes = ["auto", "frames", *METRIC_UNITS]
         check(spec.x in axes, "x", f"one of {axes}", spec.x)
+        if spec.metrics and spec.source == "eval":
+            names = probe_metrics(cls, trials[0])
+            unknown = [m for m in spec.metrics if m not in names]
+            check(not unknown, "metrics", f"metrics of an evaluation {sorted(names)}", unknown)
         return
     common: set[str] | None = None
     for run_dir in run_dirs:
@@ -856,14 +1115,25 @@ def run_sweep(spec: SweepSpec, echo: Callable[[str], None] = print) -> SweepResu
     cls, trials = plan_trials(spec)
     if spec.backend == "ray":
         import_ray()
+    elif spec.backend == "submitit":
+        import_submitit()
     _check_manifest(spec)
     _check_resumes(cls, spec, trials)
     earlier = _earlier_trials(spec, trials)
     earlier_done = [spec.out / e["run_dir"] for e in earlier if e.get("state") == "done"]
-    _check_summary_options(spec, [*(t.run_dir for t in trials if _finished(t)), *earlier_done])
+    done = [*(t.run_dir for t in trials if _finished(t)), *earlier_done]
+    _check_summary_options(spec, done, cls, trials)
     recipe = _import_path(cls, f"recipe {spec.recipe!r}")
     scenarios = trial_scenarios(spec.env)
     make_writable_dir(spec.out, "out")
+    executor = None
+    if spec.backend == "submitit":
+        executor = submitit_executor(
+            spec.out / SUBMITIT_DIR,
+            spec.executor_params,
+            spec.cpus_per_trial,
+            spec.gpus_per_trial,
+        )
     # one sweep writes OUT at a time (a second one is refused naming the holder's pid); the
     # lock is released at the return, or with the process
     lock = RunDirLock.acquire(spec.out, "out")
@@ -903,31 +1173,37 @@ def run_sweep(spec: SweepSpec, echo: Callable[[str], None] = print) -> SweepResu
         for t in todo
     ]
     if payloads:
-        outcomes = (
-            run_local(payloads, spec.cpus_per_trial)
-            if spec.backend == "local"
-            else run_ray(payloads, spec.cpus_per_trial, spec.gpus_per_trial, spec.address)
-        )
-        for index, result in outcomes:
-            trial = todo[index]
-            if (
-                result["state"] == "failed"
-                and not result.get("locked")  # another writer's directory: not ours to write
-                and not (trial.run_dir / ERROR_FILE).is_file()
-            ):
-                # the worker died before it could record why
-                atomic_write_text(trial.run_dir / ERROR_FILE, str(result["error"]) + "\n")
-            records[trial.id] = {"ran": True, **result}
-            atomic_write_text(
-                manifest, json.dumps(_manifest_data(spec, trials, records, earlier), indent=1)
-            )
-            how = "resumed, " if result.get("resumed") else ""
-            seconds = result.get("seconds")
-            took = f"{seconds:.1f} s" if seconds is not None else "?"
-            echo(
-                f"trial {trial.id}: {result['state']} ({how}{took})"
-                + (f": {result['error']}" if result["state"] == "failed" else "")
-            )
+        if spec.backend == "local":
+            outcomes = run_local(payloads, spec.cpus_per_trial)
+        elif spec.backend == "ray":
+            outcomes = run_ray(payloads, spec.cpus_per_trial, spec.gpus_per_trial, spec.address)
+        else:
+            outcomes = run_submitit(payloads, executor)
+        try:
+            for index, result in outcomes:
+                trial = todo[index]
+                if (
+                    result["state"] == "failed"
+                    and not result.get("locked")  # another writer's directory: not ours
+                    and not (trial.run_dir / ERROR_FILE).is_file()
+                ):
+                    # the worker died before it could record why
+                    atomic_write_text(trial.run_dir / ERROR_FILE, str(result["error"]) + "\n")
+                records[trial.id] = {"ran": True, **result}
+                atomic_write_text(
+                    manifest, json.dumps(_manifest_data(spec, trials, records, earlier), indent=1)
+                )
+                how = "resumed, " if result.get("resumed") else ""
+                seconds = result.get("seconds")
+                took = f"{seconds:.1f} s" if seconds is not None else "?"
+                echo(
+                    f"trial {trial.id}: {result['state']} ({how}{took})"
+                    + (f": {result['error']}" if result["state"] == "failed" else "")
+                )
+        except SweepStopped as err:
+            lock.release()
+            stopped = [t.id for t in trials if records[t.id]["state"] == STOPPED]
+            raise SweepStopped(err.signum, stopped) from None
     failed = [t.id for t in trials if records[t.id]["state"] == "failed"]
     finished = [t.run_dir for t in trials if records[t.id]["state"] == "done"]
     finished += earlier_done
@@ -971,6 +1247,7 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
         check(bool(metrics), "metrics", "at least one metric name (a,b,...)", args.metrics)
     for item in overrides:
         parse_override(item)
+    executor_params = dict(parse_override(item) for item in args.executor_param)
     return SweepSpec(
         recipe=recipe,
         env=env,
@@ -983,6 +1260,7 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
         address=args.address,
         cpus_per_trial=args.cpus_per_trial,
         gpus_per_trial=args.gpus_per_trial,
+        executor_params=executor_params,
         metrics=metrics,
         source=args.source,
         x=args.x,
@@ -991,7 +1269,8 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     """``mapets-rl sweep``: 0 when every trial finished, 1 when some failed, 2 for bad input
-    (before any trial starts)."""
+    (before any trial starts), 128 + the signal's number when a stop signal stopped it
+    (:class:`SweepStopped`)."""
     try:
         spec = spec_from_args(args)
         result = run_sweep(spec, echo=lambda line: print(line, flush=True))
@@ -999,6 +1278,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         lines = [line.strip() for line in str(err).splitlines() if line.strip()]
         sys.stderr.write(f"mapets-rl: error: {lines[0] if lines else 'failed'}\n")
         return 2
+    except SweepStopped as err:  # as a train run stopped by the signal: 128 + its number
+        sys.stderr.write(f"mapets-rl: {err}\n")
+        return 128 + err.signum
     if result.summary:
         print(result.summary["table"].read_text(), end="")
     if result.summary_error:
@@ -1030,6 +1312,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 __all__ = [
     "SweepResult",
     "SweepSpec",
+    "SweepStopped",
     "Trial",
     "cmd_sweep",
     "parse_grid",
