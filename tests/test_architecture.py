@@ -28,6 +28,7 @@ FLOORS = {
     "mapets_rl._compile_cache": 0,
     "mapets_rl.config": 0,
     "mapets_rl.machine": 0,
+    "mapets_rl.memory": 0,
     "mapets_rl.metrics": 0,
     "mapets_rl.statistics": 0,
     "mapets_rl.plotting": 0,

@@ -642,7 +642,7 @@ def test_available_memory_respects_ulimit_v():
     script = textwrap.dedent(
         """
         import resource
-        from mapets_rl.modules.memory import available_memory
+        from mapets_rl.memory import available_memory
         free = available_memory()
         resource.setrlimit(resource.RLIMIT_AS, (8 * 2**30, resource.RLIM_INFINITY))
         limited = available_memory()
@@ -657,7 +657,7 @@ def test_available_memory_respects_ulimit_v():
 
 @pytest.mark.parametrize("version", ["v2", "v1"])
 def test_a_cgroup_limit_bounds_the_available_memory(tmp_path, version):
-    from mapets_rl.modules.memory import _cgroup_left
+    from mapets_rl.memory import _cgroup_left
 
     if version == "v2":
         (tmp_path / "memory.max").write_text(f"{3 * 2**30}\n")

@@ -447,7 +447,7 @@ GIB = 2**30
 
 @pytest.mark.parametrize("version", ["v2", "v1"])
 def test_the_memory_bound_reads_the_process_own_cgroup(tmp_path, version):
-    from mapets_rl.modules.memory import _cgroup_left
+    from mapets_rl.memory import _cgroup_left
 
     proc = tmp_path / "proc_cgroup"
     root = tmp_path / "sys"
@@ -473,7 +473,7 @@ def test_the_memory_bound_reads_the_process_own_cgroup(tmp_path, version):
 
 
 def test_a_cgroup_at_its_limit_leaves_no_memory(monkeypatch):
-    from mapets_rl.modules import memory
+    from mapets_rl import memory
 
     monkeypatch.setattr(memory, "_cgroup_left", lambda: 0)
     assert memory.available_memory("cpu") == 0

@@ -30,8 +30,8 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torch.nn import functional as F
 
+from mapets_rl.memory import check_memory
 from mapets_rl.modules.arguments import is_positive_int
-from mapets_rl.modules.memory import check_memory
 from mapets_rl.modules.tensor_checks import (
     as_mask,
     check_finite,

@@ -9,7 +9,7 @@ buffers ``[I, R, max(hidden)]``; the ensemble holds ``I * B`` MLPs, trained with
 moment buffers and a gradient per parameter); every CAV's dataset ``D(i)+`` holds
 ``buffer_size`` transitions. It is an order of magnitude, not a measurement: the refusal fires
 only when the estimate exceeds what the device has available
-(:func:`~mapets_rl.modules.memory.available_memory`, which counts ``ulimit -v`` and a cgroup's
+(:func:`~mapets_rl.memory.available_memory`, which counts ``ulimit -v`` and a cgroup's
 limit too).
 """
 
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from mapets_rl.modules.memory import available_memory
+from mapets_rl.memory import available_memory
 
 __all__ = ["available_memory", "dataset_bytes", "ensemble_bytes", "planner_bytes"]
 

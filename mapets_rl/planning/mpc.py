@@ -21,7 +21,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
-from mapets_rl.modules.memory import check_memory
+from mapets_rl.memory import check_memory
 from mapets_rl.modules.tensor_checks import as_mask, check_finite, check_real, get_tensor
 from mapets_rl.planning.cem import CEMOptimizer, kept_elite_count
 from mapets_rl.planning.compiled import CompiledStep
