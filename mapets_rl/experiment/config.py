@@ -63,8 +63,8 @@ from mapets_rl.config import (
 )
 from mapets_rl.experiment.files import atomic_write_text
 
-LOGGERS = ("csv", "tensorboard", "wandb", "none")
-LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb"}
+LOGGERS = ("csv", "tensorboard", "wandb", "mlflow", "none")
+LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
 """Logger kind -> the package it needs (checked when a config is built)."""
 DEVICE_TYPES = ("cpu", "cuda", "mps")
 COLLECTORS = ("auto", "single", "multi_sync", "ray")
@@ -85,9 +85,11 @@ class RunConfig(ConfigFields):
             one this machine has.
         eval_episodes: episodes per evaluation (>= 1).
         keep_last: checkpoints to keep on disk (>= 1).
-        logger: ``csv`` (default), ``tensorboard``, ``wandb`` or ``none``; tensorboard and
-            wandb need their package installed.
-        video: record a GIF of the first episode of each evaluation.
+        logger: ``csv`` (default), ``tensorboard``, ``wandb``, ``mlflow`` or ``none``;
+            tensorboard, wandb and mlflow need their package installed (``mapets-rl[mlflow]``,
+            ``mapets-rl[tensorboard]``).
+        video: record the first episode of each evaluation: a GIF in ``videos/`` and, with a
+            logger, a video of that logger (torchrl's ``log_video``).
         progress: show a tqdm progress bar.
         eval_roads: > 0: every evaluation is the evaluation protocol
             (:mod:`mapets_rl.experiment.protocol`) on this many roads of the scenario's batched

@@ -10,7 +10,14 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLogger
+import torch
+from torchrl.record.loggers import (
+    CSVLogger,
+    Logger,
+    MLFlowLogger,
+    TensorboardLogger,
+    WandbLogger,
+)
 from torchrl.record.loggers.csv import CSVExperiment
 
 from mapets_rl.experiment.config import LOGGERS, check_logger_package
@@ -33,6 +40,15 @@ EVALUATION_FILE = "evaluation.json"
 evaluate`` writes, ``{"frames": int, "episodes": int, "metrics": {name: float}}``."""
 UNITS_FILE = "units.json"
 """Written beside the logger's files (``RUN_DIR/logs/units.json``): metric name -> unit."""
+MLFLOW_STORE = "mlflow.db"
+"""``logger=mlflow`` without ``MLFLOW_TRACKING_URI``: the run's MLflow store, a SQLite file in
+``RUN_DIR/logs`` (MLflow >= 3.10 refuses a plain file store), its artifacts (the evaluation
+videos) in ``RUN_DIR/logs/mlflow-artifacts``."""
+MLFLOW_RUN_TAG = "mapets_rl.run_dir"
+"""The tag of an MLflow run that names its run directory (a resumed run logs to the same one)."""
+VIDEO_LOGGERS = ("tensorboard", "mlflow", "wandb")
+"""The loggers that receive the evaluation videos (``log_video``); the CSV run's video is the
+GIF in ``videos/``."""
 
 
 def make_logger(
@@ -42,9 +58,12 @@ def make_logger(
 
     Args:
         kind: ``"csv"`` (always available), ``"tensorboard"`` (needs the tensorboard package),
-            ``"wandb"`` (needs wandb; runs offline unless WANDB_MODE says otherwise) or
-            ``"none"`` (returns None). ``run_dir/logs/units.json`` names the unit of every
-            metric (:data:`mapets_rl.metrics.METRIC_UNITS`).
+            ``"wandb"`` (needs wandb; runs offline unless WANDB_MODE says otherwise),
+            ``"mlflow"`` (needs mlflow: torchrl's ``MLFlowLogger`` on the server or store of
+            ``MLFLOW_TRACKING_URI``, else on :data:`MLFLOW_STORE` in ``run_dir/logs``; one
+            MLflow run per run directory, tagged :data:`MLFLOW_RUN_TAG`) or ``"none"``
+            (returns None). ``run_dir/logs/units.json`` names the unit of every metric
+            (:data:`mapets_rl.metrics.METRIC_UNITS`).
         run_dir: the run directory.
         exp_name: experiment name (a sub-directory of ``logs``).
         purge_step: TensorBoard only: the new event file starts with a restart marker at this
@@ -62,9 +81,9 @@ def make_logger(
     if kind == "csv":
         return _NoFollowCSVLogger(exp_name=exp_name, log_dir=log_dir)
     if kind == "tensorboard":
-        if purge_step is not None:
-            return _PurgingTensorboardLogger(exp_name, log_dir, purge_step)
-        return TensorboardLogger(exp_name=exp_name, log_dir=log_dir)
+        return _TensorboardLogger(exp_name, log_dir, purge_step)
+    if kind == "mlflow":
+        return _RunMLFlowLogger(exp_name, Path(run_dir))
     return WandbLogger(
         exp_name=exp_name,
         save_dir=log_dir,
@@ -96,10 +115,23 @@ class _NoFollowCSVLogger(CSVLogger):
         )
 
 
-class _PurgingTensorboardLogger(TensorboardLogger):
-    """torchrl's TensorBoard logger whose ``SummaryWriter`` gets ``purge_step``."""
+def gif_bytes(video: torch.Tensor, fps: float) -> bytes:
+    """An animated GIF of ``video`` (``[T, C, H, W]`` or ``[1, T, C, H, W]`` uint8, what
+    torchrl's ``VideoRecorder`` passes to ``log_video``) at ``fps`` frames per second, looping
+    (imageio's GIF writer, which reads ``duration`` in milliseconds per frame)."""
+    import imageio.v2 as imageio
 
-    def __init__(self, exp_name: str, log_dir: str, purge_step: int) -> None:
+    frames = video[-1] if video.ndim == 5 else video
+    frames = frames.permute(0, 2, 3, 1).to("cpu", dtype=torch.uint8).numpy()
+    return imageio.mimwrite("<bytes>", list(frames), format="GIF", duration=1000.0 / fps, loop=0)
+
+
+class _TensorboardLogger(TensorboardLogger):
+    """torchrl's TensorBoard logger whose ``SummaryWriter`` gets ``purge_step`` (``None``:
+    none) and whose videos are GIFs encoded by imageio (torch's ``add_video`` needs moviepy 1):
+    TensorBoard's own video summary, an image summary holding the GIF."""
+
+    def __init__(self, exp_name: str, log_dir: str, purge_step: int | None) -> None:
         self._purge_step = purge_step
         super().__init__(exp_name=exp_name, log_dir=log_dir)
 
@@ -108,6 +140,87 @@ class _PurgingTensorboardLogger(TensorboardLogger):
 
         log_dir = str(Path(self.log_dir) / self.exp_name)
         return SummaryWriter(log_dir=log_dir, purge_step=self._purge_step)
+
+    def log_video(
+        self, name: str, video: torch.Tensor, step: int | None = None, fps: float = 4, **kwargs: Any
+    ) -> None:
+        """Log ``video`` (``[1, T, C, H, W]`` uint8) at ``step`` as a GIF of ``fps`` frames per
+        second under ``name``."""
+        from tensorboard.compat.proto.summary_pb2 import Summary
+
+        _, _, channels, height, width = video.shape
+        image = Summary.Image(
+            height=height,
+            width=width,
+            colorspace=channels,
+            encoded_image_string=gif_bytes(video, fps),
+        )
+        summary = Summary(value=[Summary.Value(tag=name, image=image)])
+        self.experiment.file_writer.add_summary(summary, step)
+
+
+class _RunMLFlowLogger(MLFlowLogger):
+    """torchrl's MLflow logger bound to the MLflow run of one run directory: scalars and videos
+    go to that run by its id (an ``MlflowClient`` of the logger's tracking URI), not to the
+    process's active run, so that a process may train several runs one after the other (a
+    sweep's worker) or two at once; a resumed run logs to the run it logged to before (found
+    by its :data:`MLFLOW_RUN_TAG`). Its videos are GIF artifacts (``videos/``), encoded by
+    imageio (torchrl's MP4 encoding needs torchcodec)."""
+
+    def __init__(self, exp_name: str, run_dir: Path) -> None:
+        self._run_dir = run_dir.resolve()
+        logs = self._run_dir / "logs"
+        tracking_uri = os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{logs / MLFLOW_STORE}"
+        artifacts = None
+        if not os.environ.get("MLFLOW_TRACKING_URI"):
+            artifacts = (logs / "mlflow-artifacts").as_uri()
+        self._tracking_uri = tracking_uri
+        super().__init__(exp_name, tracking_uri, artifact_location=artifacts)
+
+    def _create_experiment(self) -> Any:
+        from mlflow import MlflowClient
+
+        self._client = MlflowClient(tracking_uri=self._tracking_uri)
+        name = self._mlflow_kwargs["name"]
+        experiment = self._client.get_experiment_by_name(name)
+        if experiment is None:
+            self.id = self._client.create_experiment(
+                name, artifact_location=self._mlflow_kwargs["artifact_location"]
+            )
+        else:
+            self.id = experiment.experiment_id
+        run_dir = str(self._run_dir)
+        earlier = []
+        if "'" not in run_dir:  # (a quote cannot be searched for: a new MLflow run)
+            earlier = self._client.search_runs(
+                [self.id], filter_string=f"tags.`{MLFLOW_RUN_TAG}` = '{run_dir}'", max_results=1
+            )
+        if earlier:
+            return earlier[0]
+        return self._client.create_run(
+            self.id, run_name=self._run_dir.name, tags={MLFLOW_RUN_TAG: run_dir}
+        )
+
+    @property
+    def run_id(self) -> str:
+        """The MLflow run's id."""
+        return self.experiment.info.run_id
+
+    def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
+        self._client.log_metric(self.run_id, name, value, step=step)
+
+    def log_video(
+        self, name: str, video: torch.Tensor, step: int | None = None, fps: float = 4, **kwargs: Any
+    ) -> None:
+        """Log ``video`` (``[1, T, C, H, W]`` uint8) as the artifact
+        ``videos/<name>_<step>.gif`` (``/`` in ``name`` becomes ``_``)."""
+        import tempfile
+
+        stem = name.replace("/", "_") + ("" if step is None else f"_{int(step):012d}")
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / f"{stem}.gif"
+            path.write_bytes(gif_bytes(video, fps))
+            self._client.log_artifact(self.run_id, str(path), "videos")
 
 
 def truncate_csv_scalars(log_dir: str | os.PathLike, keep: Mapping[str, int]) -> list[Path]:
@@ -230,6 +343,23 @@ class RunLogger:
         except OSError as err:
             path = self.log_dir / "scalars" / f"{name}.csv" if self.kind == "csv" else self.log_dir
             raise write_failed(path, err) from None
+
+    @property
+    def records_videos(self) -> bool:
+        """Whether :meth:`log_video` sends videos to the logger (:data:`VIDEO_LOGGERS`)."""
+        return self.kind in VIDEO_LOGGERS
+
+    def log_video(self, name: str, video: torch.Tensor, step: int, **kwargs: Any) -> None:
+        """Log ``video`` (``[1, T, C, H, W]`` uint8, from torchrl's ``VideoRecorder``) under
+        ``name`` at ``step`` with the torchrl logger's ``log_video`` (``kwargs``: its
+        ``fps``), when it :attr:`records_videos` and is open (a run resumed for
+        ``mapets-rl evaluate`` logs none)."""
+        if not (self.records_videos and self.is_open):
+            return
+        try:
+            self.logger.log_video(name, video, step=step, **kwargs)
+        except OSError as err:
+            raise write_failed(self.log_dir, err) from None
 
     def state_dict(self) -> dict[str, int]:
         """Scalar name -> last step logged (for checkpoints)."""

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import BaseCollector, Collector, MultiSyncCollector
 from torchrl.envs import EnvBase, TransformedEnv
@@ -756,7 +756,8 @@ class Experiment:
     def evaluate(self, episodes: int | None = None, video: bool | None = None) -> dict[str, float]:
         """Mean metrics over ``episodes`` deterministic episodes (default
         ``config.eval_episodes``) on the evaluation env, re-seeded identically every call.
-        With ``video`` the first episode is saved as ``videos/eval_<frames>.gif``. A progress
+        With ``video`` the first episode is saved as ``videos/eval_<frames>.gif`` (and sent to
+        the logger, see :meth:`_write_video`). A progress
         bar counts the episodes on stderr (with ``config.progress``; it is removed when the
         evaluation ends)."""
         episodes = self.config.eval_episodes if episodes is None else episodes
@@ -864,12 +865,24 @@ class Experiment:
 
     def _write_video(self, frames: list[Any]) -> Path:
         """An animated GIF of ``frames``, one per policy step, played in real time (imageio's
-        GIF writer reads ``duration`` in milliseconds per frame)."""
+        GIF writer reads ``duration`` in milliseconds per frame); with a logger that records
+        videos (:attr:`~mapets_rl.experiment.results.RunLogger.records_videos`), the same
+        frames through torchrl's ``VideoRecorder`` to its ``log_video`` too, as
+        :data:`VIDEO_TAG` at the run's frames."""
         import imageio.v2 as imageio
 
-        delay_ms = 1000.0 / policy_frequency(self._video_env)
+        fps = policy_frequency(self._video_env)
         path = self.run_dir / "videos" / f"eval_{self.frames:012d}.gif"
-        atomic_write(path, lambda tmp: imageio.mimsave(tmp, frames, duration=delay_ms))
+        atomic_write(path, lambda tmp: imageio.mimsave(tmp, frames, duration=1000.0 / fps))
+        if self.logger is not None and self.logger.records_videos:
+            from torchrl.record import VideoRecorder
+
+            recorder = VideoRecorder(
+                self.logger, VIDEO_TAG, in_keys=["pixels"], skip=1, make_grid=False, fps=fps
+            )
+            for frame in frames:
+                recorder(TensorDict({"pixels": torch.as_tensor(frame)}, batch_size=[]))
+            recorder.dump(step=self.frames)
         return path
 
     # ----------------------------------------------------------------------- checkpoints
@@ -1221,6 +1234,8 @@ def _ray_collector(
     )
 
 
+VIDEO_TAG = "eval/video"
+"""The name of the evaluation videos sent to a logger (see :meth:`Experiment._write_video`)."""
 VIDEO_FALLBACK_FREQUENCY = 10.0
 """Frames per second of an evaluation GIF whose scenario has no ``policy_frequency`` (a
 registered scenario that is not a traffic scenario of ours)."""
