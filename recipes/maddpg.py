@@ -137,6 +137,11 @@ class MADDPGConfig(DiscreteExplorationConfig):
             their returns, which is each agent's own return only under a team reward. False
             (default, openai/maddpg's): one critic per agent, ``Q_i`` fitted to agent ``i``'s
             own rewards.
+        critic_view: what each agent's critic reads. ``"all"`` (default, MADDPG's centralised
+            critic): every agent's observation and action, ``Q_i(o_1..o_I, a_1..a_I)``;
+            ``"own"``: its own, ``Q_i(o_i, a_i)`` (independent DDPG critics: a CAV's own move is
+            4 of its critic's 28 inputs instead of 4 of 810 with 30 CAVs, and the other CAVs'
+            actions become noise in its targets).
     """
 
     sigma_init: float = 0.3
@@ -146,6 +151,7 @@ class MADDPGConfig(DiscreteExplorationConfig):
     actor_preactivation_coef: float = 1e-3
     n_steps: int = 1
     critic_share_params: bool = False
+    critic_view: str = "all"
 
     @classmethod
     def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
@@ -164,6 +170,7 @@ class MADDPGConfig(DiscreteExplorationConfig):
             self.actor_preactivation_coef,
         )
         check(self.n_steps >= 1, "n_steps", ">= 1", self.n_steps)
+        check(self.critic_view in ("all", "own"), "critic_view", "'all' or 'own'", self.critic_view)
         check(
             0 <= self.sigma_end <= self.sigma_init,
             "sigma_end",
@@ -227,11 +234,11 @@ class MADDPG(Experiment):
                 action_key=ACTION,
             )
             collection_policy = TensorDictSequential(self.actor, self.exploration)
-        # centralised critic Q_i(o_1..o_I, a_1..a_I), one output per agent
+        # centralised critic Q_i(o_1..o_I, a_1..a_I) (or Q_i(o_i, a_i)), one output per agent
         self.critic = make_q_critic(
             spec,
             cells,
-            centralized=True,
+            centralized=config.critic_view == "all",
             share_params=config.critic_share_params,
             obs_norm=norm_module,
         )

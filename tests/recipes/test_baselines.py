@@ -117,6 +117,27 @@ def test_maddpg_critic_values_each_agent_unless_shared(shared: bool, tmp_path: P
     assert same == shared
 
 
+def test_maddpg_critic_view_own_reads_each_agents_own_observation_and_action(
+    tmp_path: Path,
+) -> None:
+    """``critic_view="own"``: agent i's Q changes with its own action and not with another's;
+    the default centralised critic reads every agent's; anything else is refused."""
+    config = MADDPGConfig(env="toy", logger="none", progress=False, critic_view="own")
+    exp = MADDPG(config, tmp_path)
+    td = exp.env.rollout(2).select(*exp.critic.in_keys)[0]
+    assert [m.centralized for m in exp.critic.modules() if isinstance(m, MultiAgentMLP)] == [False]
+    q = exp.critic(td.clone())["agents", "state_action_value"]
+    moved = td.clone()
+    moved["agents", "action"][1] = moved["agents", "action"][1] + 0.5
+    q_moved = exp.critic(moved)["agents", "state_action_value"]
+    assert torch.equal(q[0], q_moved[0]) and not torch.equal(q[1], q_moved[1])
+    central = MADDPG(MADDPGConfig(env="toy", logger="none", progress=False), tmp_path / "c")
+    q = central.critic(td.clone())["agents", "state_action_value"]
+    assert not torch.equal(q[0], central.critic(moved)["agents", "state_action_value"][0])
+    with pytest.raises(ConfigError, match="critic_view must be 'all' or 'own', got 'mine'"):
+        MADDPGConfig(env="toy", critic_view="mine")
+
+
 def test_a_maddpg_config_written_before_critic_share_params_keeps_its_shared_critic(
     tmp_path: Path,
 ) -> None:
