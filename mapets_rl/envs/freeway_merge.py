@@ -125,6 +125,9 @@ OBS_DIM = FREEWAY_OBS_DIM + 2
 RAMP_ROAD = ("r", "0")
 """Road segment (from, to) of the slanted ramp lane ``("r", "0", 0)``; the acceleration lane
 is ``("0", "1", lanes)``, beside the mainline lanes ``("0", "1", 0 .. lanes - 1)``."""
+MERGE_VIEW_POINT = 0.8
+"""Where the merge point stands in a rendered frame, as a fraction of its width from the left
+(:attr:`FreewayMergeEnv.view_centre`)."""
 NEAR_MERGE = 100.0
 """A mainline lane change counts as near the merge from this many metres before the
 acceleration lane to its end [m] (where a cooperative CAV yields to the ramp)."""
@@ -268,6 +271,21 @@ class FreewayMergeEnv(FreewayEnv):
     def capacity(config: dict) -> int:
         """Vehicles that fit in the spawn region and on the ramp at ``min_spacing``."""
         return FreewayEnv.capacity(config) + int(config["ramp_length"] // config["min_spacing"])
+
+    # --- rendering ---------------------------------------------------------------------------
+    @property
+    def view_centre(self) -> np.ndarray:
+        """The camera's centre [m]: fixed on the merge area (unlike the freeway's camera on the
+        CAVs, which leaves the ramp behind within a few steps), so that every merge of the
+        episode can be watched. The merge point stands at :data:`MERGE_VIEW_POINT` of the
+        frame's width, with the end of the slanted ramp and the acceleration lane before it and
+        the mainline after it; vertically the frame is centred between the leftmost lane and
+        the ramp's far end."""
+        width = StraightLane.DEFAULT_WIDTH
+        visible = self.config["screen_width"] / self.config["scaling"]
+        x = self.merge_end - (MERGE_VIEW_POINT - 0.5) * visible
+        y = (self.config["lanes"] * width + self.config["ramp_offset"] - width / 2) / 2
+        return np.array([x, y])
 
     # --- road --------------------------------------------------------------------------------
     @property

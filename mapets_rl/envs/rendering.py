@@ -15,7 +15,8 @@ The helpers here, used by a scenario's ``render`` when it has a ``render_mode``:
 
 Both scenarios use them: the figure-eight (whole track in view) and the freeway.
 The camera is the scenario's business (the freeway centres on the mean position of the CAVs
-still driving, ``FreewayEnv.view_centre``).
+still driving, ``FreewayEnv.view_centre``; the freeway with an on-ramp stays on the merge
+area, ``FreewayMergeEnv.view_centre``, on both backends).
 """
 
 from __future__ import annotations
