@@ -19,7 +19,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
+import torch
+from gymnasium import spaces
 from tensordict import TensorDict
 from toy_recipe import ToyConfig, ToyLearner
 from toy_scenario import ToyAgentsEnv
@@ -603,3 +606,343 @@ def test_a_new_run_that_fails_to_start_leaves_no_half_made_run_dir(tmp_path, toy
         RefusingToy(ToyConfig(total_frames=20), given)
     assert given.is_dir()
     ToyLearner(ToyConfig(total_frames=20), given).train()  # and it can be used
+
+
+# ------------------------------------- the batched freeway's arguments, checked before building
+def _torch_freeway(**kwargs: Any):
+    from mapets_rl.envs import make_env
+
+    return make_env("freeway", backend="torch", kernel="torch", **{"num_envs": 2, **kwargs})
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"device": "meta"}, "device must be 'cpu', 'cuda', 'cuda:N' or 'mps', got 'meta'"),
+        ({"device": "bogus"}, "device must be 'cpu', 'cuda', 'cuda:N' or 'mps', got 'bogus'"),
+        ({"device": "mps"}, "device='mps': this machine has no MPS device"),
+        ({"seed": -1}, r"seed must be None or an integer in \[0, 2\*\*62 - 1\], got -1"),
+        ({"seed": 2**64}, r"seed must be None or an integer in \[0, 2\*\*62 - 1\], got 1844"),
+        ({"seed": True}, r"seed must be None or an integer in \[0, 2\*\*62 - 1\], got True"),
+        ({"categorical_actions": "no"}, "categorical_actions must be True or False, got 'no'"),
+        (
+            {"simulation_frequency": 10**7},
+            r"simulation_frequency must be a multiple of policy_frequency=1 in \[1, 1000\] \[Hz\]",
+        ),
+        ({"shield_passes": 3}, "shield_passes=3 needs shield=True"),
+        ({"shield_horizon": 5}, "shield_horizon=5 needs shield=True"),
+    ],
+)
+def test_the_batched_freeway_refuses_a_bad_argument_naming_it(kwargs, message):
+    if kwargs.get("device") == "mps" and torch.backends.mps.is_available():
+        pytest.skip("this machine has an MPS device")
+    with pytest.raises(ValueError, match=message) as err:
+        _torch_freeway(**kwargs)
+    assert "\n" not in str(err.value)
+
+
+def test_a_gpu_the_machine_lacks_is_refused_naming_device():
+    from mapets_rl.envs import FreewayEnv, wrap_pettingzoo
+    from mapets_rl.envs.torch_freeway.env import TorchFreewayEnv
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a GPU")
+    message = r"device='cuda:0': no such CUDA device here \(0 GPUs\)"
+    with pytest.raises(ValueError, match=message):
+        TorchFreewayEnv(FreewayEnv, num_envs=2, device="cuda:0", kernel="torch")
+    with pytest.raises(ValueError, match=message):
+        wrap_pettingzoo(_Wrapped.line()(), position="xy", device="cuda:0")
+
+
+def test_the_batched_freeway_takes_a_numpy_road_count_and_seed():
+    env = _torch_freeway(num_envs=np.int64(3), seed=np.int64(5))
+    assert env.batch_size == (3,)
+    reference = _torch_freeway(num_envs=3, seed=5)
+    assert torch.equal(
+        env.reset()["agents", "observation"], reference.reset()["agents", "observation"]
+    )
+
+
+def test_a_bool_one_hot_action_steps_as_its_integer_one():
+    runs = []
+    for dtype in (torch.bool, torch.int64):
+        env = _torch_freeway(seed=3)
+        td = env.reset()
+        action = torch.zeros(2, env.sim.n_cavs, 4, dtype=dtype)
+        action[..., 1] = 1  # change left, every CAV
+        td["agents", "action"] = action
+        runs.append(env.step(td)["next", "agents", "observation"])
+    assert torch.equal(*runs)
+
+
+def test_a_categorical_action_of_floats_is_refused():
+    env = _torch_freeway(categorical_actions=True)
+    td = env.reset()
+    td["agents", "action"] = torch.full((2, env.sim.n_cavs), 1.5)
+    with pytest.raises(ValueError, match=r"must hold integer indices .* got dtype torch.float32"):
+        env.step(td)
+
+
+@pytest.fixture(scope="module")
+def freeway_sim():
+    """The simulator of a 2-road freeway (the torch program)."""
+    return _torch_freeway(seed=0).sim
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (lambda sim: sim.restore({"a": 1}), "snapshot must be a TensorDict taken with snapshot"),
+        (lambda sim: sim.branch(0, 2.5), r"copies must be an integer >= 1, got 2.5"),
+        (lambda sim: sim.branch(0, True), r"copies must be an integer >= 1, got True"),
+        (lambda sim: sim.branch(0.0, 2), r"road must be in \[0, 1\] \(an integer\), got 0.0"),
+        (
+            lambda sim: sim.branch(0, 10**9),
+            r"copies=1000000000 roads need about .* GiB on cpu \(\d+ KiB each while they step\),"
+            r" more than the .* GiB available: copies must be at most \d+",
+        ),
+        (
+            lambda sim: sim.shield(torch.zeros(3, 1, dtype=torch.long)),
+            r"action must be a tensor of the CAVs' decisions \[2, 30\], got \[3, 1\]",
+        ),
+        (
+            lambda sim: sim.step(torch.full((2, 30), 9)),
+            r"action must hold integer decisions in \[0, 3\] .* got values in \[9, 9\]",
+        ),
+        (
+            lambda sim: sim.predicted_crashes(torch.full((2, 30), -3)),
+            r"action must hold integer decisions in \[0, 3\] .* got values in \[-3, -3\]",
+        ),
+        (
+            lambda sim: sim.step(torch.full((2, 30), 1.0)),
+            r"action must hold integer decisions .* got dtype torch.float32",
+        ),
+        (
+            lambda sim: sim.rollout_returns(lambda obs: obs[..., 0].long() * 0, gamma=True),
+            r"gamma must be in \[0, 1\] \(a number\), got True",
+        ),
+    ],
+)
+def test_the_simulator_refuses_bad_arguments_naming_them(freeway_sim, call, message):
+    before = freeway_sim.snapshot()
+    with pytest.raises(ValueError, match=message) as err:
+        call(freeway_sim)
+    assert "\n" not in str(err.value)
+    _assert_equal(freeway_sim.snapshot().to_dict(), before.to_dict())
+
+
+# ------------------------------------------------ the batched freeway's roads must fit in memory
+def test_the_memory_estimate_is_the_state_of_a_road_times_a_step_working_set():
+    from mapets_rl.envs.torch_freeway import simulator
+
+    for name, merge in (("freeway", False), ("freeway-merge", True)):
+        sim = _torch_freeway().sim if not merge else _merge_sim()
+        state = sum(t.numel() * t.element_size() for t in sim.state.values(True, True))
+        assert simulator.road_bytes(sim.config, merge) * sim.n_roads == (
+            simulator.STEP_WORKING_SET * state
+        ), name
+
+
+def _merge_sim():
+    from mapets_rl.envs import make_env
+
+    return make_env("freeway-merge", backend="torch", kernel="torch", num_envs=2).sim
+
+
+@pytest.mark.parametrize("roads", [100_000, 2**63])
+def test_roads_that_do_not_fit_in_memory_are_refused_in_one_line(monkeypatch, roads):
+    from mapets_rl.envs.torch_freeway import simulator
+
+    monkeypatch.setattr(simulator, "available_memory", lambda device: GIB)
+    per_road = simulator.road_bytes(_torch_freeway().sim.config, merge=False)
+    with pytest.raises(ValueError) as err:
+        _torch_freeway(num_envs=roads)
+    assert str(err.value).startswith(f"num_envs={roads} roads need about ")
+    assert str(err.value).endswith(f"GiB available: num_envs must be at most {GIB // per_road}")
+    assert "\n" not in str(err.value)
+    _torch_freeway(num_envs=GIB // per_road // 1000)  # what fits is built
+
+
+def test_a_run_whose_roads_do_not_fit_is_refused_before_its_run_dir(tmp_path, monkeypatch, capsys):
+    from mapets_rl.envs.torch_freeway import simulator
+
+    monkeypatch.setattr(simulator, "available_memory", lambda device: 2**20)  # one road fits
+    run = tmp_path / "run"
+    argv = ["train", "maddpg", "--env", "freeway", "--run-dir", str(run)]
+    argv += ["env_config.backend=torch", "env_config.kernel=torch", "env_config.num_envs=64"]
+    code, _, err = run_cli([*argv, "frames_per_batch=64", "total_frames=64"], capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert "env_config.num_envs=64 roads need about" in err
+    assert "env_config.num_envs must be at most 16" in err
+    assert not run.exists()
+
+
+def test_env_config_seed_is_refused_naming_the_run_seed(toy_scenario):
+    from mapets_rl.config import ConfigError
+
+    with pytest.raises(ConfigError, match=r"env_config.seed must be left out \(the run's seed "):
+        ToyConfig(total_frames=20, env_config={"seed": 3})
+
+
+# ----------------------------------- wrap_pettingzoo checks its device and the env's API, naming
+class _Wrapped:
+    """Variants of the wrapper tests' LineEnv, each breaking one part of PettingZoo's API."""
+
+    @staticmethod
+    def line():
+        from tests.envs.test_pettingzoo_wrapper import LineEnv
+
+        return LineEnv
+
+    @classmethod
+    def stepping(cls, change: Callable[[tuple], tuple]):
+        class Broken(cls.line()):
+            def step(self, actions):
+                return change(super().step(actions))
+
+        return Broken()
+
+    @classmethod
+    def with_method(cls, name: str, method: Callable):
+        return type("Broken", (cls.line(),), {name: method})()
+
+
+def _drop(part: int, agent: str) -> Callable[[tuple], tuple]:
+    def change(out: tuple) -> tuple:
+        out[part].pop(agent)
+        return out
+
+    return change
+
+
+def _add_info_key(out: tuple) -> tuple:
+    out[4]["a"]["extra"] = 1.0
+    return out
+
+
+def _reshape_observation(out: tuple) -> tuple:
+    out[0]["b"] = np.zeros(3, dtype=np.float32)
+    return out
+
+
+def _stranger(out: tuple) -> tuple:
+    values = (np.zeros(2, np.float32), 1.0, False, False, {"xy": np.zeros(2), "speed": 1.0})
+    for part, value in zip(out, values, strict=True):
+        part["zz"] = value
+    return out
+
+
+PETTINGZOO_CASES = {
+    "a reward missing": (
+        lambda: _Wrapped.stepping(_drop(1, "c")),
+        "the env's step gives agent 'c' an observation but no entry in its rewards",
+    ),
+    "a truncation missing": (
+        lambda: _Wrapped.stepping(_drop(3, "a")),
+        "the env's step gives agent 'a' an observation but no entry in its truncations",
+    ),
+    "info keys changing": (
+        lambda: _Wrapped.stepping(_add_info_key),
+        r"the env's step gives agent 'a' the info keys \['extra', 'speed', 'xy'\], its first "
+        r"reset gave \['speed', 'xy'\]",
+    ),
+    "an old-API reset": (
+        lambda: _Wrapped.with_method(
+            "reset", lambda self, seed=None, options=None: _Wrapped.line().reset(self)[0]
+        ),
+        r"the env's reset must return \(observations, infos\), two dicts .* got a dict",
+    ),
+    "a 3-tuple step": (
+        lambda: _Wrapped.stepping(lambda out: out[:3]),
+        r"the env's step must return \(observations, rewards, .* got a tuple of 3",
+    ),
+    "a Discrete observation space": (
+        lambda: _Wrapped.with_method("observation_space", lambda self, a: spaces.Discrete(3)),
+        r"observation_space\('a'\) must be a gymnasium Box .* got Discrete\(3\)",
+    ),
+    "a Dict observation space": (
+        lambda: _Wrapped.with_method(
+            "observation_space", lambda self, a: spaces.Dict({"x": spaces.Box(-1, 1, (2,))})
+        ),
+        r"observation_space\('a'\) must be a gymnasium Box .* got Dict\(",
+    ),
+    "a Tuple action space": (
+        lambda: _Wrapped.with_method(
+            "action_space", lambda self, a: spaces.Tuple((spaces.Discrete(2),) * 2)
+        ),
+        r"action_space\('a'\) must be a gymnasium Box or Discrete, got Tuple\(",
+    ),
+    "an observation unlike its space": (
+        lambda: _Wrapped.stepping(_reshape_observation),
+        r"the env's step gives agent 'b' an observation of shape \[3\], its observation_space "
+        r"has \[2\]",
+    ),
+    "an agent not in possible_agents": (
+        lambda: _Wrapped.stepping(_stranger),
+        r"the env's step observes agent 'zz', which is not in possible_agents \['a', 'b', 'c'\]",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(PETTINGZOO_CASES))
+def test_wrap_pettingzoo_refuses_an_env_off_the_api_naming_agent_and_key(case):
+    from mapets_rl.envs import wrap_pettingzoo
+
+    make, message = PETTINGZOO_CASES[case]
+    with pytest.raises(ValueError, match=message) as err:
+        wrap_pettingzoo(make(), position="xy").rollout(4)
+    assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"device": "bogus"}, "device must be 'cpu', 'cuda', 'cuda:N' or 'mps', got 'bogus'"),
+        ({"device": "meta"}, "device must be 'cpu', 'cuda', 'cuda:N' or 'mps', got 'meta'"),
+        ({"seed": "x"}, r"seed must be None or an integer in \[0, 2\*\*62 - 1\], got 'x'"),
+        ({"categorical_actions": "no"}, "categorical_actions must be True or False, got 'no'"),
+    ],
+)
+def test_wrap_pettingzoo_refuses_a_bad_argument_naming_it(kwargs, message):
+    from mapets_rl.envs import wrap_pettingzoo
+
+    with pytest.raises(ValueError, match=message):
+        wrap_pettingzoo(_Wrapped.line()(), position="xy", **kwargs)
+
+
+# ------------------------------------------ SIGTERM to every process of a multi-process run
+def _ignores_sigterm(pid: int) -> bool:
+    """Whether process ``pid`` ignores SIGTERM (its ``SigIgn`` mask in ``/proc``)."""
+    line = next(x for x in Path(f"/proc/{pid}/status").read_text().splitlines() if "SigIgn" in x)
+    return bool(int(line.split()[1], 16) >> (signal.SIGTERM - 1) & 1)
+
+
+def test_collector_workers_are_started_ignoring_sigterm(tmp_path, toy_scenario, monkeypatch):
+    import subprocess
+
+    started = []
+
+    class Workers:
+        """Stands for torchrl's MultiSyncCollector: starts a process as it would."""
+
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            started.append(subprocess.Popen(["sleep", "30"]))
+
+        def shutdown(self) -> None:
+            started[-1].kill()
+
+    monkeypatch.setattr(runner, "MultiSyncCollector", Workers)
+    handler = signal.getsignal(signal.SIGTERM)
+    learner = ToyLearner(ToyConfig(total_frames=20, collector_workers=2), tmp_path / "run")
+    try:
+        [worker] = started
+        assert _ignores_sigterm(worker.pid)  # timeout / Slurm's SIGTERM is left to the run
+        assert signal.getsignal(signal.SIGTERM) is handler  # the run's own handling unchanged
+        unprotected = subprocess.Popen(["sleep", "30"])
+        assert not _ignores_sigterm(unprotected.pid)
+        unprotected.kill()
+        unprotected.wait()
+    finally:
+        learner.collector.shutdown()
+        learner.close()
+        worker.wait()

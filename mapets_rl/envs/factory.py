@@ -26,6 +26,7 @@ from mapets_rl.envs.pettingzoo_wrapper import wrap_pettingzoo
 from mapets_rl.envs.planner_reward import PlannerReward
 from mapets_rl.envs.registry import builtin_envs, register_builtin, registered_scenario
 from mapets_rl.envs.torch_freeway.env import TorchFreewayEnv
+from mapets_rl.envs.validation import check_device, check_flag, check_seed
 
 TORCH_BACKEND = {
     FreewayParallelEnv: FreewayParallelEnv.env_class,
@@ -49,23 +50,6 @@ BACKENDS = ("highway-env", "torch")
 """Simulators of the built-in scenarios: highway-env (every scenario; the reference) and the
 batched torch freeway (``freeway``, ``freeway-merge``)."""
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
-
-
-def check_device(device: object) -> None:
-    """ValueError unless ``device`` names a torch device this machine has (``"cpu"``,
-    ``"cuda"`` / ``"cuda:N"`` with a GPU N, ...), before anything is built."""
-    if isinstance(device, bool) or not isinstance(device, (str, torch.device)):
-        raise ValueError(f"device must be a device name such as 'cpu' or 'cuda:0', got {device!r}")
-    try:
-        parsed = torch.device(device)
-    except RuntimeError as err:
-        raise ValueError(f"device must be a torch device name, got {device!r} ({err})") from None
-    if parsed.type == "cuda" and (
-        not torch.cuda.is_available() or (parsed.index or 0) >= torch.cuda.device_count()
-    ):
-        raise ValueError(
-            f"device={device!r}: no such CUDA device here ({torch.cuda.device_count()} GPUs)"
-        )
 
 
 def make_env(
@@ -110,6 +94,8 @@ def make_env(
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {list(BACKENDS)}, got {backend!r}")
     check_device(device)
+    seed = check_seed(seed)
+    categorical_actions = check_flag(categorical_actions, "categorical_actions")
     if backend == "highway-env":
         if num_envs is not None or dtype != "float32" or kernel != "auto":
             raise ValueError(

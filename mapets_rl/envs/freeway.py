@@ -239,6 +239,12 @@ class FreewayEnv(MultiAgentTrafficEnv):
             require(
                 isinstance(config[key], bool), f"{key} must be True or False, got {config[key]!r}"
             )
+        defaults = cls.default_config()
+        for key in ("shield_horizon", "shield_passes"):
+            require(
+                config["shield"] or config[key] == defaults[key],
+                f"{key}={config[key]!r} needs shield=True (without the shield it changes nothing)",
+            )
         require_range(config, "initial_speed", low=0.0, high=config["speed_limit"], unit="m/s")
         cls.validate_target_speeds(config)
         capacity = cls.capacity(config)

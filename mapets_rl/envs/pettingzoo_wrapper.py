@@ -63,6 +63,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from gymnasium import spaces
 from pettingzoo import ParallelEnv
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import OneHot, Unbounded
@@ -71,13 +72,55 @@ from torchrl.envs.libs.pettingzoo import PettingZooWrapper
 
 from mapets_rl._console import pettingzoo_version_warning_ignored
 from mapets_rl.envs.parallel import TrafficParallelEnv
-from mapets_rl.envs.validation import check_one_hot
+from mapets_rl.envs.validation import check_device, check_flag, check_one_hot, check_seed
 
 Position = str | Callable[[ParallelEnv], Any] | None
 """Where each agent's position comes from: a per-agent info key, a callable of the
 ``ParallelEnv`` returning ``[I, 2]``, or None (no ``("agents", "position")``)."""
 
 POSITION = ("agents", "position")
+STEP_PARTS = ("observations", "rewards", "terminations", "truncations", "infos")
+"""What a ``ParallelEnv.step`` returns, in order: one dict per part, keyed by agent."""
+
+
+def _described(value: object) -> str:
+    """What ``value`` is, for a message: its type, and its length where it is a tuple."""
+    if isinstance(value, tuple):
+        return f"a tuple of {len(value)}"
+    return f"a {type(value).__name__}"
+
+
+def _info_keys(info: object) -> set[str]:
+    """The keys of an agent's info dict (none for anything else), without ``"action_mask"``,
+    which torchrl takes out of the dict it is given."""
+    return set(info) - {"action_mask"} if isinstance(info, dict) else set()
+
+
+def check_spaces(parallel_env: ParallelEnv) -> dict[str, tuple[int, ...]]:
+    """The observation shape of every agent of ``possible_agents``; ValueError (one line, naming
+    the agent) unless each observation space is a gymnasium ``Box`` (numbers the recipes feed to
+    their networks), of one shape for all (they are stacked into one group), and each action
+    space a ``Box`` or a ``Discrete``."""
+    shapes = {}
+    for agent in parallel_env.possible_agents:
+        space = parallel_env.observation_space(agent)
+        if not isinstance(space, spaces.Box):
+            raise ValueError(
+                f"observation_space({agent!r}) must be a gymnasium Box (the recipes read an "
+                f"array of numbers per agent), got {space!r}"
+            )
+        action = parallel_env.action_space(agent)
+        if not isinstance(action, spaces.Box | spaces.Discrete):
+            raise ValueError(
+                f"action_space({agent!r}) must be a gymnasium Box or Discrete, got {action!r}"
+            )
+        shapes[agent] = tuple(space.shape)
+    if len(set(shapes.values())) > 1:
+        raise ValueError(
+            "every agent's observation_space must have one shape (the agents form one group), "
+            f"got {shapes}"
+        )
+    return shapes
 
 
 class AgentsPettingZooWrapper(PettingZooWrapper):
@@ -89,7 +132,78 @@ class AgentsPettingZooWrapper(PettingZooWrapper):
 
     def __init__(self, env: ParallelEnv, position: Position, **kwargs: Any) -> None:
         self.position = position
-        super().__init__(env=env, **kwargs)
+        self._obs_shapes = check_spaces(env)
+        self._info_keys: dict[str, set[str]] | None = None
+        super().__init__(env=env, **kwargs)  # its first reset is checked here (_reset_parallel)
+
+    def _reset_parallel(self, **kwargs: Any) -> tuple[dict, dict]:
+        """The ``ParallelEnv``'s reset, checked (:meth:`_check_output`); the first one (at
+        construction) records each agent's info keys, which every later output must repeat."""
+        out = self._env.reset(**kwargs)
+        if not (isinstance(out, tuple) and len(out) == 2 and all(isinstance(d, dict) for d in out)):
+            raise ValueError(
+                "the env's reset must return (observations, infos), two dicts keyed by agent "
+                f"(PettingZoo's ParallelEnv API since 1.22), got {_described(out)}"
+            )
+        observations, infos = out
+        missing = [a for a in self._env.possible_agents if a not in observations]
+        if missing:
+            raise ValueError(
+                f"the env's reset gives no observation of agent {missing[0]!r}: every agent of "
+                "possible_agents starts an episode"
+            )
+        if self._info_keys is None:
+            self._info_keys = {a: _info_keys(infos.get(a)) for a in self._env.possible_agents}
+        self._check_output("reset", {"observations": observations, "infos": infos})
+        return out
+
+    def _step_parallel(self, tensordict: TensorDictBase) -> tuple[dict, dict, dict, dict, dict]:
+        """The ``ParallelEnv``'s step, checked (:meth:`_check_output`)."""
+        out = super()._step_parallel(tensordict)
+        if not (isinstance(out, tuple) and len(out) == 5 and all(isinstance(d, dict) for d in out)):
+            raise ValueError(
+                f"the env's step must return ({', '.join(STEP_PARTS)}), five dicts keyed by "
+                f"agent (PettingZoo's ParallelEnv API since 1.22), got {_described(out)}"
+            )
+        self._check_output("step", dict(zip(STEP_PARTS, out, strict=True)))
+        return out
+
+    def _check_output(self, call: str, parts: dict[str, dict]) -> None:
+        """ValueError (one line, naming the agent and the key) unless every agent that ``call``
+        (``"reset"`` or ``"step"``) observed is one of ``possible_agents``, has an observation
+        of its space's shape and an entry in every other part, and the info keys of the first
+        reset."""
+        observations = parts["observations"]
+        for agent, observation in observations.items():
+            if agent not in self._obs_shapes:
+                raise ValueError(
+                    f"the env's {call} observes agent {agent!r}, which is not in possible_agents "
+                    f"{list(self._obs_shapes)}"
+                )
+            if np.shape(observation) != self._obs_shapes[agent]:
+                raise ValueError(
+                    f"the env's {call} gives agent {agent!r} an observation of shape "
+                    f"{list(np.shape(observation))}, its observation_space has "
+                    f"{list(self._obs_shapes[agent])}"
+                )
+            for part, values in parts.items():
+                if agent not in values:
+                    raise ValueError(
+                        f"the env's {call} gives agent {agent!r} an observation but no entry in "
+                        f"its {part}"
+                    )
+            keys = _info_keys(parts["infos"][agent])
+            if not isinstance(parts["infos"][agent], dict):
+                raise ValueError(
+                    f"the env's {call} gives agent {agent!r} an info that is no dict but "
+                    f"{_described(parts['infos'][agent])}"
+                )
+            if keys != self._info_keys[agent]:
+                raise ValueError(
+                    f"the env's {call} gives agent {agent!r} the info keys {sorted(keys)}, its "
+                    f"first reset gave {sorted(self._info_keys[agent])}: the per-agent info keys "
+                    "must be the same at every reset and step"
+                )
 
     def _build_env(self, env: ParallelEnv) -> ParallelEnv:
         """torchrl's, without its warning that it was tested with another PettingZoo version
@@ -306,6 +420,9 @@ def wrap_pettingzoo(
             "position must be a per-agent info key (str), a callable "
             f"position(parallel_env) -> [I, 2] or None, got {type(position).__name__}"
         )
+    check_device(device)
+    seed = check_seed(seed)
+    categorical_actions = check_flag(categorical_actions, "categorical_actions")
     kwargs = {
         "group_map": {"agents": list(parallel_env.possible_agents)},
         "use_mask": True,

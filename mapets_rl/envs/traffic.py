@@ -32,6 +32,10 @@ from mapets_rl.envs.rendering import (
 from mapets_rl.envs.road import SortedNeighbourRoad
 from mapets_rl.envs.validation import is_integer, require_number, require_rendering
 
+MAX_SIMULATION_FREQUENCY = 1000
+"""The highest ``simulation_frequency`` a scenario accepts [Hz]: 100 times the scenarios'
+10 Hz, 1000 simulation steps per second of traffic (a policy step costs as many)."""
+
 
 def require(condition: bool, message: str) -> None:
     """Raise ``ValueError(message)`` unless ``condition`` holds."""
@@ -154,9 +158,10 @@ class MultiAgentTrafficEnv(AbstractEnv):
             f"policy_frequency must be an integer >= 1 [Hz], got {policy!r}",
         )
         require(
-            is_integer(sim) and sim >= policy and sim % policy == 0,
-            f"simulation_frequency must be a positive multiple of policy_frequency={policy} "
-            f"[Hz] (otherwise simulated time is silently lost), got {sim!r}",
+            is_integer(sim) and policy <= sim <= MAX_SIMULATION_FREQUENCY and sim % policy == 0,
+            f"simulation_frequency must be a multiple of policy_frequency={policy} in [{policy}, "
+            f"{MAX_SIMULATION_FREQUENCY}] [Hz] (otherwise simulated time is silently lost), "
+            f"got {sim!r}",
         )
         require_rendering(config)
 

@@ -9,6 +9,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from mapets_rl.config import MAX_SEED
+
 PHYSICAL_MAX_SPEED = 60.0
 """The highest speed limit a scenario accepts [m/s] (216 km/h): anything above is a typo."""
 
@@ -25,6 +27,48 @@ def is_real(value: Any) -> bool:
 def is_integer(value: Any) -> bool:
     """True for an int (numpy integers included), False for bools and others."""
     return isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_)
+
+
+def check_seed(seed: object, name: str = "seed") -> int | None:
+    """``seed`` as an int (numpy integers included), or None; ValueError naming ``name`` unless
+    it is None or an integer in ``[0, MAX_SEED]`` (a bool is no seed)."""
+    if seed is None:
+        return None
+    if not (is_integer(seed) and 0 <= seed <= MAX_SEED):
+        raise ValueError(f"{name} must be None or an integer in [0, 2**62 - 1], got {seed!r}")
+    return int(seed)
+
+
+def check_flag(value: object, name: str) -> bool:
+    """``value`` as a bool; ValueError naming ``name`` unless it is True or False (``"no"``
+    would read as true)."""
+    if not isinstance(value, bool | np.bool_):
+        raise ValueError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
+def check_device(device: object) -> torch.device:
+    """``device`` as a ``torch.device``; ValueError (one line, naming ``device``) unless it is
+    the CPU, a CUDA device this machine has (``"cuda"`` / ``"cuda:N"``) or ``"mps"`` where
+    torch has it: ``"meta"`` and the other device types hold no data the envs can step."""
+    if isinstance(device, bool) or not isinstance(device, str | torch.device):
+        raise ValueError(f"device must be a device name such as 'cpu' or 'cuda:0', got {device!r}")
+    try:
+        parsed = torch.device(device)
+    except RuntimeError:
+        parsed = None
+    if parsed is None or parsed.type not in ("cpu", "cuda", "mps"):
+        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'mps', got {device!r}")
+    if parsed.type == "cuda" and (
+        not torch.cuda.is_available() or (parsed.index or 0) >= torch.cuda.device_count()
+    ):
+        raise ValueError(
+            f"device={device!r}: no such CUDA device here ({torch.cuda.device_count()} GPUs)"
+        )
+    mps = getattr(torch.backends, "mps", None)
+    if parsed.type == "mps" and not (mps is not None and mps.is_available()):
+        raise ValueError(f"device={device!r}: this machine has no MPS device")
+    return parsed
 
 
 def _bounds(low: float | None, high: float | None, low_open: bool) -> str:
@@ -140,6 +184,8 @@ def check_one_hot(action: torch.Tensor) -> None:
     :data:`ONE_HOT_TOLERANCE`), naming the first CAV whose action is not (and its road, for a
     batch of roads)."""
     tol = ONE_HOT_TOLERANCE
+    if action.dtype == torch.bool:  # a one-hot of bools is one too (``abs`` has no bool kernel)
+        action = action.to(torch.int8)
     near_binary = ((action.abs() <= tol) | ((action - 1).abs() <= tol)).all(-1)
     valid = near_binary & ((action.sum(-1) - 1).abs() <= tol)
     if bool(valid.all()):

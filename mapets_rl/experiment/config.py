@@ -131,6 +131,12 @@ class RunConfig(ConfigFields):
         check_env_name(self.env)
         check_device(self.device)
         check(0 <= self.seed <= MAX_SEED, "seed", f"in [0, {MAX_SEED}] (2**62 - 1)", self.seed)
+        check(
+            "seed" not in self.env_config,
+            "env_config.seed",
+            "left out (the run's seed seeds every env it builds: set seed= instead)",
+            self.env_config.get("seed"),
+        )
         check(self.eval_episodes >= 1, "eval_episodes", ">= 1", self.eval_episodes)
         check(self.keep_last >= 1, "keep_last", ">= 1", self.keep_last)
         check(self.logger in LOGGERS, "logger", f"one of {list(LOGGERS)}", self.logger)

@@ -35,6 +35,7 @@ from mapets_rl._entry_points import check_name
 from mapets_rl.config import ConfigError, parse_override, read_yaml_mapping
 from mapets_rl.envs import scenario_config
 from mapets_rl.envs.registry import build_env
+from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway, check_roads_fit
 from mapets_rl.experiment.checkpoint import (
     first_line,
     list_checkpoints,
@@ -342,6 +343,7 @@ class Experiment:
         self.env = build_env(config.env, config.unbatched_env_config()) if env is None else env
         try:
             self.refuse_action_kind(self.env, config.env)
+            check_batch_fits(self.env, config.env_batch_size)
         except ValueError:
             self.env.close()
             raise
@@ -517,7 +519,8 @@ class Experiment:
         common.update(kwargs)
         if kind == "single":
             return Collector(env_fn, policy, **common)
-        return MultiSyncCollector([env_fn] * cfg.collector_workers, policy, **common)
+        with _stop_signals_ignored():  # by the workers it starts: the run stops them
+            return MultiSyncCollector([env_fn] * cfg.collector_workers, policy, **common)
 
     def train_step(self, batch: TensorDictBase) -> dict[str, float]:
         """Consume one collected batch (extend buffers, optimise); return scalar losses."""
@@ -1274,12 +1277,28 @@ def simulator_program(env: EnvBase) -> str | None:
     elsewhere; ``None`` for another env. The two programs are different experiments (their
     trajectories part after some steps), so a run records which one ran (``run.json``,
     ``results.json``)."""
+    sim = _freeway_simulator(env)
+    if sim is None:
+        return None
+    return "native" if sim.kernel is not None else "torch"
+
+
+def _freeway_simulator(env: EnvBase) -> BatchedFreeway | None:
+    """The batched freeway's simulator of ``env`` (transformed or not), None for another env."""
     while isinstance(env, TransformedEnv):
         env = env.base_env
     sim = getattr(env, "sim", None)
-    if sim is None or not hasattr(sim, "kernel"):
-        return None
-    return "native" if sim.kernel is not None else "torch"
+    return sim if isinstance(sim, BatchedFreeway) else None
+
+
+def check_batch_fits(env: EnvBase, roads: int | None) -> None:
+    """ValueError (one line, naming ``env_config.num_envs``) when ``roads`` roads of the batched
+    freeway ``env`` (one road of the run's scenario) would not fit in its device's memory while
+    they step: a run checks it before it makes its run directory (the collector builds the
+    batched env later). Nothing for another env or without ``roads``."""
+    sim = _freeway_simulator(env)
+    if sim is not None and roads is not None:
+        check_roads_fit(sim.config, sim.merge, roads, sim.device, sim.dtype, "env_config.num_envs")
 
 
 def _refuse_another_simulator(run_dir: Path, simulator: str | None) -> None:
@@ -1369,6 +1388,25 @@ def _shape_mismatches(saved: Any, fresh: Any) -> list[tuple[str, list[int], list
         and isinstance(fresh_flat[key], torch.Tensor)
         and saved_flat[key].shape != fresh_flat[key].shape
     ]
+
+
+@contextlib.contextmanager
+def _stop_signals_ignored() -> Iterator[None]:
+    """While the block runs, the stop signals (:data:`STOP_SIGNALS`) are ignored, and so they
+    are by the processes it starts (an ignored signal stays ignored in a child, forked or
+    spawned): a collector's worker processes outlive the SIGTERM that ``timeout`` or Slurm
+    send to every process of the run, and the run's training loop, which takes the signal,
+    ends the batch under way with a checkpoint and shuts them down (no worker killed
+    mid-batch, no traceback, no leaked semaphore). Outside the main thread nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {signum: signal.signal(signum, signal.SIG_IGN) for signum in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
 
 
 @contextlib.contextmanager

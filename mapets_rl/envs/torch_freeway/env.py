@@ -50,9 +50,15 @@ from torchrl.envs import EnvBase
 from mapets_rl.envs.freeway import KL, FreewayEnv
 from mapets_rl.envs.freeway_merge import BEHAVIOUR_COUNTS, FreewayMergeEnv
 from mapets_rl.envs.torch_freeway.highway_state import draw_scene
-from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway, StepResult
+from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway, StepResult, check_roads_fit
 from mapets_rl.envs.traffic import require
-from mapets_rl.envs.validation import check_one_hot
+from mapets_rl.envs.validation import (
+    check_device,
+    check_flag,
+    check_one_hot,
+    check_seed,
+    is_integer,
+)
 
 UNSUPPORTED = {"stock_neighbour_search": False}
 """highway-env keys the torch backend cannot honour, with the one value it accepts."""
@@ -121,10 +127,13 @@ class TorchFreewayEnv(EnvBase):
         kernel: str = "auto",
     ) -> None:
         require(
-            num_envs is None or (isinstance(num_envs, int) and not isinstance(num_envs, bool)
-                                 and num_envs >= 1),
+            num_envs is None or (is_integer(num_envs) and num_envs >= 1),
             f"num_envs must be an integer >= 1 (or None for one unbatched road), got {num_envs!r}",
-        )  # fmt: skip
+        )
+        num_envs = None if num_envs is None else int(num_envs)
+        device = check_device(device)
+        seed = check_seed(seed)
+        categorical_actions = check_flag(categorical_actions, "categorical_actions")
         require(
             dtype in (torch.float32, torch.float64),
             f"dtype must be torch.float32 or torch.float64, got {dtype!r}",
@@ -138,11 +147,13 @@ class TorchFreewayEnv(EnvBase):
         self.scenario_class = env_class
         self.config = scenario_config(env_class, config)
         self.render_mode = render_mode
+        merge = issubclass(env_class, FreewayMergeEnv)
+        check_roads_fit(self.config, merge, num_envs or 1, device, dtype, "num_envs")
         batch = torch.Size([] if num_envs is None else [num_envs])
         super().__init__(device=device, batch_size=batch)
         self.sim = BatchedFreeway(
             self.config,
-            merge=issubclass(env_class, FreewayMergeEnv),
+            merge=merge,
             num_roads=num_envs or 1,
             device=self.device,
             dtype=dtype,
@@ -251,9 +262,16 @@ class TorchFreewayEnv(EnvBase):
             raise ValueError(
                 f"('agents', 'action') must have shape {list(spec.shape)}, got {list(action.shape)}"
             )
-        if not self.categorical_actions:
+        if self.categorical_actions:
+            require(
+                not action.dtype.is_floating_point and action.dtype != torch.bool,
+                f"('agents', 'action') must hold integer indices (KL, CL, CR, ES), got "
+                f"dtype {action.dtype}",
+            )
+            index = action
+        else:
             check_one_hot(action)
-        index = action if self.categorical_actions else action.argmax(-1)
+            index = (action.to(torch.int8) if action.dtype == torch.bool else action).argmax(-1)
         require(
             bool(((index >= 0) & (index <= 3)).all()),
             "('agents', 'action') values must be integers in [0, 3] (KL, CL, CR, ES)",

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import torch
 from highway_env.vehicle.behavior import IDMVehicle
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 
 from mapets_rl.envs.freeway import CL, CR, ES, KL
 from mapets_rl.envs.freeway import OBS_DIM as FREEWAY_OBS_DIM
@@ -56,7 +56,9 @@ from mapets_rl.envs.torch_freeway.physics import (
     Bodies,
     RoadPhysics,
 )
+from mapets_rl.envs.validation import check_device, check_seed, is_integer, is_real
 from mapets_rl.envs.vehicles import ACC_MIN
+from mapets_rl.memory import available_memory
 
 DELTA_RANGE = tuple(IDMVehicle.DELTA_RANGE)
 """Range of a human driver's IDM exponent (``IDMVehicle.randomize_behavior``)."""
@@ -76,6 +78,85 @@ STATE_FLOAT = (
 timer ``"timer"`` is float64 whatever the dtype: highway-env adds 0.1 s to it every simulation
 step and decides when it exceeds 1 s, and 0.1 added ten times is 0.99999... in float64 but
 1.0000001 in float32, which would make every MOBIL decision one simulation step early)."""
+
+
+STEP_WORKING_SET = 24
+"""A road's memory while it steps, in multiples of its state's: the copies, neighbour tables
+and outputs of a policy step (measured at 17-21x, the torch program with the shield the
+most)."""
+
+
+def empty_state(
+    roads: int,
+    n_bodies: int,
+    n_cavs: int,
+    merge: bool,
+    device: torch.device | str = "cpu",
+    dtype: torch.dtype = torch.float32,
+) -> TensorDict:
+    """The zeroed state of ``roads`` roads: bodies ``[roads, n_bodies]``, agents
+    ``[roads, n_cavs]`` and the per-road counters (with the behaviour counts where ``merge``)."""
+    b, n, i = roads, n_bodies, n_cavs
+    bodies = {key: torch.zeros(b, n, dtype=dtype, device=device) for key in STATE_FLOAT}
+    bodies["timer"] = torch.zeros(b, n, dtype=torch.float64, device=device)
+    for key in ("lane", "target", "decision"):
+        bodies[key] = torch.zeros(b, n, dtype=torch.long, device=device)
+    for key in ("crashed", "present", "has_impact", "cav"):
+        bodies[key] = torch.zeros(b, n, dtype=torch.bool, device=device)
+    agents = {
+        "slot": torch.zeros(b, i, dtype=torch.long, device=device),
+        "alive": torch.zeros(b, i, dtype=torch.bool, device=device),
+    }
+    roads_state = {
+        "steps": torch.zeros(b, dtype=torch.long, device=device),
+        "speed_sum": torch.zeros(b, dtype=torch.float64, device=device),
+        "comfort_sum": torch.zeros(b, dtype=torch.float64, device=device),
+        "samples": torch.zeros(b, dtype=torch.float64, device=device),
+        "shielded": torch.zeros(b, dtype=torch.long, device=device),
+    }
+    if merge:  # the behaviour counts (FreewayMergeEnv's)
+        agents["forcing"] = torch.zeros(b, i, dtype=torch.bool, device=device)
+        roads_state.update({key: torch.zeros(b, dtype=torch.long, device=device)
+                            for key in BEHAVIOUR_COUNTS})  # fmt: skip
+    return TensorDict(
+        {
+            "bodies": TensorDict(bodies, batch_size=[b, n], device=device),
+            "agents": TensorDict(agents, batch_size=[b, i], device=device),
+            **roads_state,
+        },
+        batch_size=[b],
+        device=device,
+    )
+
+
+def road_bytes(config: dict, merge: bool, dtype: torch.dtype = torch.float32) -> int:
+    """The bytes one road of scenario ``config`` takes while it steps: its state tensors
+    (:func:`empty_state`) times :data:`STEP_WORKING_SET`."""
+    bodies = int(config["n_vehicles"]) + (1 if merge else 0)
+    state = empty_state(1, bodies, int(config["n_cavs"]), merge, "cpu", dtype)
+    return STEP_WORKING_SET * sum(t.numel() * t.element_size() for t in state.values(True, True))
+
+
+def check_roads_fit(
+    config: dict,
+    merge: bool,
+    roads: int,
+    device: torch.device | str,
+    dtype: torch.dtype,
+    name: str,
+) -> None:
+    """ValueError (one line, naming ``name``) when ``roads`` roads of scenario ``config`` would
+    take more memory while they step (:func:`road_bytes`) than ``device`` has available
+    (:func:`~mapets_rl.memory.available_memory`: the host, ``ulimit -v`` and the process's
+    own cgroup; CUDA's free memory): before a road is allocated."""
+    free = available_memory(device)
+    per_road = road_bytes(config, merge, dtype)
+    if free is not None and roads * per_road > free:
+        raise ValueError(
+            f"{name}={roads} roads need about {roads * per_road / 2**30:.1f} GiB on {device} "
+            f"({per_road / 1024:.0f} KiB each while they step), more than the "
+            f"{free / 2**30:.1f} GiB available: {name} must be at most {free // per_road}"
+        )
 
 
 @dataclass
@@ -137,10 +218,14 @@ class BatchedFreeway:
     ) -> None:
         if kernel not in KERNELS:
             raise ValueError(f"kernel must be one of {list(KERNELS)}, got {kernel!r}")
+        if not (is_integer(num_roads) and num_roads >= 1):
+            raise ValueError(f"num_roads must be an integer >= 1, got {num_roads!r}")
+        seed = check_seed(seed) or 0
         self.config = dict(config)
         self.kernel_choice = kernel
         self.merge = merge
-        self.device = torch.device(device)
+        self.device = check_device(device)
+        check_roads_fit(self.config, merge, int(num_roads), self.device, dtype, "num_roads")
         self.dtype = dtype
         self.geometry = FreewayGeometry.from_config(config, merge, self.device, dtype)
         self.n_roads = int(num_roads)
@@ -153,7 +238,7 @@ class BatchedFreeway:
         self.dt = 1.0 / float(config["simulation_frequency"])
         self.speed_limit = float(config["speed_limit"])
         self.generator = torch.Generator(device=self.device)
-        self.generator.manual_seed(int(seed))
+        self.generator.manual_seed(seed)
         self.physics = RoadPhysics(
             self.geometry, self.n_vehicles, self.n_bodies, self.speed_limit, self.dt
         )
@@ -164,44 +249,12 @@ class BatchedFreeway:
             if self.kernel is None and kernel == "native":
                 raise RuntimeError(f"the fused CPU kernel cannot be built: {kernel_unavailable()}")
             self._kernel_args = self._native_constants() if self.kernel is not None else None
-        self.state = self._empty_state()
+        self.state = empty_state(
+            self.n_roads, self.n_bodies, self.n_cavs, merge, self.device, self.dtype
+        )
         self.reset(torch.ones(self.n_roads, dtype=torch.bool, device=self.device))
 
     # --- state ---------------------------------------------------------------------------------
-    def _empty_state(self) -> TensorDict:
-        b, n, i = self.n_roads, self.n_bodies, self.n_cavs
-        dev, dt = self.device, self.dtype
-        bodies = {key: torch.zeros(b, n, dtype=dt, device=dev) for key in STATE_FLOAT}
-        bodies["timer"] = torch.zeros(b, n, dtype=torch.float64, device=dev)
-        for key in ("lane", "target", "decision"):
-            bodies[key] = torch.zeros(b, n, dtype=torch.long, device=dev)
-        for key in ("crashed", "present", "has_impact", "cav"):
-            bodies[key] = torch.zeros(b, n, dtype=torch.bool, device=dev)
-        agents = {
-            "slot": torch.zeros(b, i, dtype=torch.long, device=dev),
-            "alive": torch.zeros(b, i, dtype=torch.bool, device=dev),
-        }
-        roads = {
-            "steps": torch.zeros(b, dtype=torch.long, device=dev),
-            "speed_sum": torch.zeros(b, dtype=torch.float64, device=dev),
-            "comfort_sum": torch.zeros(b, dtype=torch.float64, device=dev),
-            "samples": torch.zeros(b, dtype=torch.float64, device=dev),
-            "shielded": torch.zeros(b, dtype=torch.long, device=dev),
-        }
-        if self.merge:  # the behaviour counts (FreewayMergeEnv's)
-            agents["forcing"] = torch.zeros(b, i, dtype=torch.bool, device=dev)
-            roads.update({key: torch.zeros(b, dtype=torch.long, device=dev)
-                          for key in BEHAVIOUR_COUNTS})  # fmt: skip
-        return TensorDict(
-            {
-                "bodies": TensorDict(bodies, batch_size=[b, n], device=dev),
-                "agents": TensorDict(agents, batch_size=[b, i], device=dev),
-                **roads,
-            },
-            batch_size=[b],
-            device=dev,
-        )
-
     def snapshot(self) -> TensorDict:
         """A copy of the whole state of every road, the random generator's included
         (``"rng"``); :meth:`restore` brings it back bit for bit."""
@@ -214,10 +267,11 @@ class BatchedFreeway:
         """A new simulator of ``copies`` roads, each the current state of road ``road`` (same
         config, device, dtype and kernel): a rollout branches, and every copy can play other
         actions from here."""
-        if not 0 <= road < self.n_roads:
-            raise ValueError(f"road must be in [0, {self.n_roads - 1}], got {road}")
-        if copies < 1:
-            raise ValueError(f"copies must be >= 1, got {copies}")
+        if not (is_integer(road) and 0 <= road < self.n_roads):
+            raise ValueError(f"road must be in [0, {self.n_roads - 1}] (an integer), got {road!r}")
+        if not (is_integer(copies) and copies >= 1):
+            raise ValueError(f"copies must be an integer >= 1, got {copies!r}")
+        check_roads_fit(self.config, self.merge, int(copies), self.device, self.dtype, "copies")
         return self.take(torch.full((copies,), road, dtype=torch.long))
 
     def take(self, roads: torch.Tensor) -> BatchedFreeway:
@@ -253,8 +307,8 @@ class BatchedFreeway:
         the CAVs' rewards summed over CAVs and steps, the step ``k`` steps from now weighted by
         ``gamma ** k``; with ``payoff`` (bool or float ``[B, I]``) only the CAVs it selects (or
         weights) count. Default: the undiscounted system return. Roads are not reset."""
-        if not 0.0 <= gamma <= 1.0:
-            raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+        if not (is_real(gamma) and 0.0 <= gamma <= 1.0):
+            raise ValueError(f"gamma must be in [0, 1] (a number), got {gamma!r}")
         if payoff is not None and tuple(payoff.shape) != (self.n_roads, self.n_cavs):
             raise ValueError(
                 f"payoff must have shape [{self.n_roads}, {self.n_cavs}], got {tuple(payoff.shape)}"
@@ -282,6 +336,11 @@ class BatchedFreeway:
     def restore(self, snapshot: TensorDict) -> None:
         """Return every road to ``snapshot`` (from :meth:`snapshot` of a simulator with the
         same config, number of roads, device and dtype); ValueError otherwise."""
+        if not isinstance(snapshot, TensorDictBase):
+            raise ValueError(
+                "snapshot must be a TensorDict taken with snapshot() of an identical simulator, "
+                f"got {type(snapshot).__name__}"
+            )
         expected = self.snapshot()
         if set(snapshot.keys(True, True)) != set(expected.keys(True, True)) or any(
             snapshot.get(k).shape != expected.get(k).shape
@@ -297,13 +356,34 @@ class BatchedFreeway:
         self.state = state.to(self.device)
         self.generator.set_state(snapshot.get("rng").cpu())
 
+    def _decisions(self, action: object) -> torch.Tensor:
+        """The CAVs' decisions ``action`` as a long tensor ``[B, I]`` on the simulator's device;
+        ValueError (one line) unless it is an integer tensor of that shape with values in
+        ``[0, 3]`` (KL, CL, CR, ES)."""
+        shape = [self.n_roads, self.n_cavs]
+        if not isinstance(action, torch.Tensor) or list(action.shape) != shape:
+            got = list(action.shape) if isinstance(action, torch.Tensor) else type(action).__name__
+            raise ValueError(f"action must be a tensor of the CAVs' decisions {shape}, got {got}")
+        if action.dtype.is_floating_point or action.dtype.is_complex or action.dtype == torch.bool:
+            raise ValueError(
+                f"action must hold integer decisions in [0, 3] (KL, CL, CR, ES), got dtype "
+                f"{action.dtype}"
+            )
+        action = action.to(self.device).long()
+        if bool(((action < KL) | (action > ES)).any()):
+            raise ValueError(
+                "action must hold integer decisions in [0, 3] (KL, CL, CR, ES), got values in "
+                f"[{int(action.min())}, {int(action.max())}]"
+            )
+        return action
+
     def predicted_crashes(self, action: torch.Tensor) -> torch.Tensor:
         """The shield's check: which CAVs crash, ``[shield_horizon, B, I]`` (bool, one row per
         policy step), when a copy of every road is stepped with the decisions ``action [B, I]``
         and then ``shield_horizon - 1`` more steps in which every CAV keeps its lane (the backup
         policy). The roads' state is the same afterwards. Stepping is deterministic, so row 0
         is exactly the crashes that ``action`` would cause in the real step."""
-        action = action.to(self.device).long()
+        action = self._decisions(action)
         saved = self.state.clone()
         keep = torch.full_like(action, KL)
         rows = [self._advance(action).collided]
@@ -325,7 +405,7 @@ class BatchedFreeway:
         decisions are checked again, and so on until a pass replaces nothing (at most that many
         passes): a move that was safe beside a neighbour's checked move may not be safe beside
         the Keep Lane that replaced it."""
-        action = action.to(self.device).long()
+        action = self._decisions(action)
         passes = int(self.config["shield_passes"])
         safe = action
         for done in range(1, passes + 1):
@@ -430,7 +510,7 @@ class BatchedFreeway:
         """Apply the CAVs' decisions ``[B, I]`` (0..3: KL, CL, CR, ES; ignored for CAVs no
         longer driving), corrected by :meth:`shield` where ``config["shield"]`` is set, and
         advance every road by one policy step."""
-        action = action.to(self.device).long()
+        action = self._decisions(action)
         if not self.config["shield"]:
             result = self._advance(action)
             result.shielded = torch.zeros_like(result.acting)
