@@ -6,7 +6,10 @@ the intervals change); sweeps that take ``progress=false``, keep every trial the
 their summary options first; no training on NaN and no run without an update; SIGTERM stops a
 run with a checkpoint; the memory bound of the process's own cgroup; which simulator ran; and
 the smaller cases (a bad metric in ``compare``, a full disk before the first checkpoint, two
-sweeps into one ``--out``, a run that fails to start).
+sweeps into one ``--out``, a run that fails to start); the inputs of the batched freeway, its
+simulator, ``make_env`` and ``wrap_pettingzoo`` (and the wrapped env's API), each refused in
+one line naming it; the memory estimate of the batched freeway's roads; collector workers that
+leave a SIGTERM to the run.
 """
 
 from __future__ import annotations

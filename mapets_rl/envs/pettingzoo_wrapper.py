@@ -407,7 +407,15 @@ def wrap_pettingzoo(
 
     Raises:
         ValueError: ``parallel_env`` is not a ``ParallelEnv``; ``position`` is not a string, a
-            callable or None, names no per-agent info, or gives no ``[I, 2]`` positions.
+            callable or None, names no per-agent info, or gives no ``[I, 2]`` positions;
+            ``device``, ``seed`` or ``categorical_actions`` is not one; an observation space is
+            not a ``Box`` (or the agents' differ in shape), an action space neither a ``Box``
+            nor a ``Discrete`` (:func:`check_spaces`); and, at the reset the construction does
+            and at every later reset and step, an output off PettingZoo's ``ParallelEnv`` API
+            (naming the agent and the key: a reward, termination, truncation or info missing
+            for an observed agent, info keys other than the first reset's, an observation
+            unlike its space, an agent not in ``possible_agents``, an old-API ``reset`` or a
+            ``step`` of other than five dicts).
     """
     if not isinstance(parallel_env, ParallelEnv):
         raise ValueError(
