@@ -64,8 +64,14 @@ from mapets_rl.config import (
 from mapets_rl.experiment.files import atomic_write_text
 
 LOGGERS = ("csv", "tensorboard", "wandb", "mlflow", "none")
-LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb", "mlflow": "mlflow"}
-"""Logger kind -> the package it needs (checked when a config is built)."""
+LOGGER_PACKAGES = {
+    "tensorboard": ("tensorboard",),
+    "wandb": ("wandb",),
+    "mlflow": ("mlflow", "sqlalchemy", "alembic"),
+}
+"""Logger kind -> the packages it needs (checked when a config is built): MLflow's SQLite
+store, where ``logger=mlflow`` logs without a tracking server, needs SQLAlchemy and Alembic
+(``pip install 'mapets-rl[mlflow]'`` installs the three)."""
 DEVICE_TYPES = ("cpu", "cuda", "mps")
 COLLECTORS = ("auto", "single", "multi_sync", "ray")
 MAX_EVAL_ROADS = 65_536
@@ -513,10 +519,16 @@ def check_device(device: str) -> None:
 
 
 def check_logger_package(kind: str) -> None:
-    """ConfigError when logger ``kind`` needs a package that is not installed."""
-    package = LOGGER_PACKAGES.get(kind)
-    if package is not None and importlib.util.find_spec(package) is None:
+    """ConfigError when logger ``kind`` needs a package that is not installed (naming every
+    missing one)."""
+    missing = [p for p in LOGGER_PACKAGES.get(kind, ()) if importlib.util.find_spec(p) is None]
+    if len(missing) == 1:
         raise ConfigError(
-            f"logger={kind!r} needs the {package} package, which is not "
-            "installed; install it or use logger=csv"
+            f"logger={kind!r} needs the {missing[0]} package, which is not installed; install "
+            "it or use logger=csv"
+        )
+    if missing:
+        raise ConfigError(
+            f"logger={kind!r} needs the {' and '.join(missing)} packages, which are not "
+            f"installed (pip install 'mapets-rl[{kind}]') or use logger=csv"
         )

@@ -50,8 +50,10 @@ def test_an_mlflow_run_is_read_back_by_mlflow(tmp_path, toy_scenario, monkeypatc
 
 
 def test_the_mlflow_logger_is_refused_without_mlflow(toy_scenario, monkeypatch):
-    monkeypatch.setitem(LOGGER_PACKAGES, "mlflow", "no_such_mlflow_package")
-    with pytest.raises(ConfigError, match="logger='mlflow' needs the no_such_mlflow_package"):
+    monkeypatch.setitem(LOGGER_PACKAGES, "mlflow", ("no_such_mlflow", "no_such_alembic"))
+    with pytest.raises(
+        ConfigError, match="logger='mlflow' needs the no_such_mlflow and no_such_alembic packages"
+    ):
         ToyConfig(logger="mlflow")
 
 
