@@ -9,12 +9,14 @@ The env: highway-env's ``highway-v0`` in its multi-agent configuration (``contro
 highway-env; the neighbours relative to it) and sets its acceleration (``[-1, 1]`` ->
 ``[-5, 5]`` m/s^2).
 
-highway-env has no PettingZoo API (its multi-agent envs return tuples, and ``highway-v0`` scores
-and terminates the first controlled vehicle only), nor does PettingZoo adapt gymnasium
-multi-agent envs, so :class:`HighwayParallelEnv` is the small adapter: agents ``vehicle_0 ..``,
-per-agent flattened observations, per-agent rewards (highway-v0's speed term, ``collision_reward``
-in a crash step) and terminations (a crashed vehicle leaves ``agents``), per-agent infos
-(``speed``, m/s) and ``last_episode_metrics`` (``speed``: the controlled vehicles' mean speed,
+The library turns highway-env's multi-agent configurations into ``ParallelEnv`` classes
+(:class:`~mapets_rl.envs.HighwayMultiAgentParallelEnv`; four of them are registered scenarios,
+``highway-multi`` among them, with highway-v0's own reward). This study wants another reward and
+its own settings under a name nobody registered, so :class:`HighwayParallelEnv` subclasses the
+adapter and rescores its ``step``: each vehicle's forward speed term of highway-v0 (no lane
+term, no normalisation), ``COLLISION_REWARD`` in a crash step. Agents are ``cav_0 ..``; the
+adapter gives the per-agent terminations (a crashed vehicle leaves ``agents``), infos
+(``position``, ``speed``, ``collided``) and ``last_episode_metrics`` (``speed``,
 ``collisions``), the conventions of :mod:`mapets_rl.envs.pettingzoo_wrapper`.
 
 The two lines that make it the torchrl env of every recipe (positions from a callable of the
@@ -38,15 +40,11 @@ import argparse
 import tempfile
 from typing import Any
 
-import gymnasium
-import highway_env  # noqa: F401 - registers highway-v0 with gymnasium
 import numpy as np
 import torch
-from gymnasium import spaces
-from pettingzoo import ParallelEnv
 from torchrl.envs import EnvBase
 
-from mapets_rl.envs import register_env, wrap_pettingzoo
+from mapets_rl.envs import HighwayMultiAgentParallelEnv, register_env, wrap_pettingzoo
 from mapets_rl.recipes.mapets import MAPETS, MAPETSConfig
 from mapets_rl.recipes.mappo import MAPPO, MAPPOConfig
 
@@ -62,10 +60,11 @@ COLLISION_REWARD = -1.0
 """highway-v0's ``collision_reward``."""
 
 
-# ----------------------------------------------------------------------- 1. the adapter
-class HighwayParallelEnv(ParallelEnv):
+# ------------------------------------------------------------- 1. the ParallelEnv
+class HighwayParallelEnv(HighwayMultiAgentParallelEnv):
     """highway-env's ``highway-v0`` with ``n_agents`` controlled vehicles as a PettingZoo
-    ``ParallelEnv`` (see the module docstring).
+    ``ParallelEnv`` with this study's own reward (see the module docstring): the library's
+    adapter, whose ``step`` this subclass rescores.
 
     Args:
         n_agents: controlled vehicles (agents), >= 1.
@@ -75,8 +74,6 @@ class HighwayParallelEnv(ParallelEnv):
         observed: vehicles each agent observes (itself included), >= 1.
         render_mode: ``None`` or ``"rgb_array"``.
     """
-
-    metadata = {"render_modes": ["rgb_array"], "name": "highway_v0", "is_parallelizable": True}
 
     def __init__(
         self,
@@ -117,77 +114,19 @@ class HighwayParallelEnv(ParallelEnv):
                 "action_config": {"type": "ContinuousAction", "lateral": False},
             },
         }
-        self.env = gymnasium.make("highway-v0", config=config, render_mode=render_mode).unwrapped
-        self.render_mode = render_mode
+        super().__init__("highway-v0", config, render_mode)
         self.lanes = lanes
-        self.possible_agents = [f"vehicle_{i}" for i in range(n_agents)]
-        self.agents: list[str] = []
-        self.last_episode_metrics: dict[str, float] = {}
-        obs_space = self.env.observation_space[0]
-        self.observation_spaces = {
-            agent: spaces.Box(-1.0, 1.0, shape=(int(np.prod(obs_space.shape)),), dtype=np.float32)
-            for agent in self.possible_agents
-        }
-        self.action_spaces = dict(zip(self.possible_agents, self.env.action_space, strict=True))
-
-    def observation_space(self, agent: str) -> spaces.Box:
-        return self.observation_spaces[agent]
-
-    def action_space(self, agent: str) -> spaces.Box:
-        return self.action_spaces[agent]
-
-    @property
-    def vehicles(self) -> list[Any]:
-        """The controlled vehicles, in the order of ``possible_agents``."""
-        return self.env.controlled_vehicles
-
-    def _observations(
-        self, obs: tuple[np.ndarray, ...], agents: list[str]
-    ) -> dict[str, np.ndarray]:
-        index = {agent: i for i, agent in enumerate(self.possible_agents)}
-        return {agent: obs[index[agent]].reshape(-1).astype(np.float32) for agent in agents}
-
-    def _infos(self, agents: list[str]) -> dict[str, dict[str, float]]:
-        speeds = dict(zip(self.possible_agents, (v.speed for v in self.vehicles), strict=True))
-        return {agent: {"speed": float(speeds[agent])} for agent in agents}
-
-    def reset(
-        self, seed: int | None = None, options: dict | None = None
-    ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, float]]]:
-        obs, _ = self.env.reset(seed=seed, options=options)
-        self.agents = list(self.possible_agents)
-        self._speeds: list[float] = []
-        return self._observations(obs, self.agents), self._infos(self.agents)
 
     def step(self, actions: dict[str, np.ndarray]) -> tuple[dict, dict, dict, dict, dict]:
-        acting = list(self.agents)
-        zero = np.zeros(self.action_spaces[self.possible_agents[0]].shape, dtype=np.float32)
-        joint = tuple(np.asarray(actions.get(agent, zero)) for agent in self.possible_agents)
-        obs, _, _, truncated, _ = self.env.step(joint)
-        rewards, terminations, truncations = {}, {}, {}
-        for agent, vehicle in zip(self.possible_agents, self.vehicles, strict=True):
-            if agent not in acting:
-                continue
+        """The adapter's step, each acting vehicle rescored: ``COLLISION_REWARD`` in a crash
+        step, else its forward speed mapped from ``SPEED_RANGE`` onto [0, 1]."""
+        observations, rewards, terminations, truncations, infos = super().step(actions)
+        for agent in rewards:
+            vehicle = self.vehicles[self.possible_agents.index(agent)]
             forward = vehicle.speed * np.cos(vehicle.heading)
             speed = np.clip((forward - SPEED_RANGE[0]) / (SPEED_RANGE[1] - SPEED_RANGE[0]), 0, 1)
             rewards[agent] = COLLISION_REWARD if vehicle.crashed else float(speed)
-            terminations[agent] = bool(vehicle.crashed)
-            truncations[agent] = bool(truncated) and not vehicle.crashed
-            self._speeds.append(float(vehicle.speed))
-        self.agents = [a for a in acting if not (terminations[a] or truncations[a])]
-        if not self.agents:
-            self.last_episode_metrics = {
-                "speed": float(np.mean(self._speeds)),
-                "collisions": float(sum(v.crashed for v in self.vehicles)),
-            }
-        observations, infos = self._observations(obs, acting), self._infos(acting)
         return observations, rewards, terminations, truncations, infos
-
-    def render(self) -> np.ndarray | None:
-        return self.env.render()
-
-    def close(self) -> None:
-        self.env.close()
 
 
 def vehicle_positions(parallel_env: HighwayParallelEnv) -> np.ndarray:

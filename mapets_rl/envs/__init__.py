@@ -15,6 +15,10 @@ from mapets_rl.envs.figure_eight import (
 )
 from mapets_rl.envs.freeway import ACTION_NAMES, FreewayEnv
 from mapets_rl.envs.freeway_merge import FreewayMergeEnv, FreewayMergeParallelEnv
+from mapets_rl.envs.highway_multi_agent import (
+    HighwayMultiAgentParallelEnv,
+    HighwayPlannerReward,
+)
 from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, TrafficParallelEnv
 from mapets_rl.envs.pettingzoo_wrapper import (
     AgentsPettingZooWrapper,
@@ -47,6 +51,8 @@ __all__ = [
     "FreewayMergeEnv",
     "FreewayMergeParallelEnv",
     "FreewayParallelEnv",
+    "HighwayMultiAgentParallelEnv",
+    "HighwayPlannerReward",
     "MultiAgentTrafficEnv",
     "TrafficParallelEnv",
     "TrafficPettingZooWrapper",

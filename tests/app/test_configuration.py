@@ -30,8 +30,11 @@ def test_a_recipe_trains_the_scenario_s_own_agent_count(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("name", builtin_envs())
 def test_unknown_scenario_keys_are_refused_with_the_accepted_ones(name: str) -> None:
-    # the freeways derive n_cavs from n_vehicles x cav_ratio: n_vehicles is what a user sets
-    size_key = "n_vehicles" if name.startswith("freeway") else "n_cavs"
+    # the freeways derive n_cavs from n_vehicles x cav_ratio: n_vehicles is what a user sets;
+    # highway-env's multi-agent scenarios count controlled_vehicles
+    size_key = {"freeway": "n_vehicles", "highway": "controlled_vehicles"}.get(
+        name.split("-")[0], "n_cavs"
+    )
     with pytest.raises(
         ValueError,
         match=rf"unknown config key\(s\) \['bogus'\].*accepted keys.*'{size_key}'",

@@ -116,7 +116,16 @@ def test_the_sweep_resolves_the_registered_scenario(toy_recipe, tmp_path: Path) 
 
 def test_builtin_names_registry_names_and_gym_ids_agree() -> None:
     builtin = envs.builtin_envs()
-    assert builtin == ["figure-eight", "figure-eight-multilane", "freeway", "freeway-merge"]
+    assert builtin == [
+        "figure-eight",
+        "figure-eight-multilane",
+        "freeway",
+        "freeway-merge",
+        "highway-intersection",
+        "highway-merge",
+        "highway-multi",
+        "highway-roundabout",
+    ]
     assert set(builtin) <= set(envs.available_envs())
     assert sorted(envs.GYM_IDS) == builtin
     for name in builtin:

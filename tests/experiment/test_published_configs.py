@@ -56,7 +56,31 @@ TINY_MAPETS = [
     "progress=false",
 ]
 
+TINY_HIGHWAY = [
+    "frames_per_batch=20",
+    "total_frames=40",
+    "eval_interval=0",
+    "checkpoint_interval=0",
+    "eval_episodes=1",
+    "logger=none",
+    "progress=false",
+]
+"""The highway-env multi-agent scenarios (``highway-*``): their small defaults, a tiny budget."""
+TINY_HIGHWAY_MAPETS = [
+    *(item for item in TINY_MAPETS if not item.startswith("env_config.")),
+    "eval_episodes=1",
+    "env_config.duration=3",
+]
+
 NAMES = [c.name for c in available_configs()]
+
+
+def tiny_overrides(recipe: str, env: str) -> list[str]:
+    """The overrides that shrink a published config of ``recipe`` on ``env`` to a tiny run."""
+    if env.startswith("highway-"):
+        return TINY_HIGHWAY_MAPETS if recipe == "mapets" else [*TINY_HIGHWAY,
+                                                              *TINY_RECIPE[recipe]]  # fmt: skip
+    return TINY_MAPETS if recipe == "mapets" else [*TINY_FREEWAY, *TINY_RECIPE[recipe]]
 
 
 def test_the_headline_arms_are_published() -> None:
@@ -82,8 +106,7 @@ def test_the_headline_arms_are_published() -> None:
 def test_a_published_config_trains_a_tiny_run(name: str, tmp_path: Path) -> None:
     published = load_published(name)
     cls = load_recipe(published.recipe)
-    tiny = TINY_MAPETS if published.recipe == "mapets" else [
-        *TINY_FREEWAY, *TINY_RECIPE[published.recipe]]  # fmt: skip
+    tiny = tiny_overrides(published.recipe, published.fields.get("env", ""))
     config = cls.Config.from_fields(published.fields, tiny)
     exp = cls(config, tmp_path / "run")
     exp.train()
