@@ -156,9 +156,11 @@ class MADDPGConfig(DiscreteExplorationConfig):
     @classmethod
     def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
         """A config written before ``critic_share_params`` existed trained one shared critic:
-        it resumes with ``critic_share_params=True``, not today's default."""
+        it resumes with ``critic_share_params=True``, not today's default; one written before
+        ``critic_view`` existed had the centralised critic (``"all"``)."""
         data = super().upgrade_dict(data)
         data.setdefault("critic_share_params", True)
+        data.setdefault("critic_view", "all")
         return data
 
     def __post_init__(self) -> None:

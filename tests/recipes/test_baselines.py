@@ -143,9 +143,11 @@ def test_a_maddpg_config_written_before_critic_share_params_keeps_its_shared_cri
 ) -> None:
     data = MADDPGConfig(env="toy").to_dict()
     assert data.pop("critic_share_params") is False  # today's default
+    assert data.pop("critic_view") == "all"
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(data))
-    assert MADDPGConfig.from_yaml(path).critic_share_params is True
+    loaded = MADDPGConfig.from_yaml(path)
+    assert loaded.critic_share_params is True and loaded.critic_view == "all"
 
 
 def test_ippo_value_is_decentralised(tmp_path: Path) -> None:
