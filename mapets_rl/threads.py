@@ -3,36 +3,42 @@
 torch's default intra-op thread count is the number of cores, and its OpenMP runtime lets idle
 threads spin (busy-wait) between parallel regions. On a machine that other jobs already keep
 busy, the spinning threads steal the cores the working ones need: a 2-episode MA-PETS run on 2
-busy cores took 3.3x longer with 2 threads than with 1 (issue 14). The policy here:
+busy cores took 3.3x longer with 2 threads than with 1 (issue 14), and the README's ten-line
+example 9.8x longer (issue 52). The policy here, the same for the ``mapets-rl`` command and the
+Python API (:class:`~mapets_rl.experiment.Experiment` applies it when it is built):
 
 1. OpenMP wait policy ``PASSIVE`` (idle threads sleep) unless ``OMP_WAIT_POLICY`` is set. The
    runtime reads it once, when torch is imported, so :func:`prepare_process` must run before
    the first ``import torch`` (the ``mapets-rl`` entry point calls it first thing); later, the
-   choice is only reported.
+   choice is only reported. With one thread nothing spins, whatever the policy.
 2. Thread count, first that applies:
 
    - an explicit request: a config's ``threads`` field (MA-PETS: ``num_threads``), else the
      ``MAPETS_RL_THREADS`` environment variable;
    - ``OMP_NUM_THREADS`` set by the user: torch already follows it, left alone;
-   - in a process started by the ``mapets-rl`` command (:func:`prepare_process` ran before
-     torch was imported): the cores not already busy, ``round(cpus - load)`` clamped to
-     ``[1, torch's default]``, with ``load`` the 1-minute load average (one thread on a busy
-     machine, all cores on a quiet one);
-   - otherwise (the Python API, tests) torch's default: a library import does not change the
-     thread count behind its caller's back.
+   - a worker process started by a launcher (a ``multiprocessing`` child such as the local
+     sweep's workers, a submitit job; Ray sets ``OMP_NUM_THREADS`` in its workers): the
+     count its launcher gave it, left alone;
+   - otherwise (a user's script or notebook, the ``mapets-rl`` command): the cores not already
+     busy, ``round(cpus - load)`` clamped to ``[1, torch's count]``, with ``load`` the 1-minute
+     load average (one thread on a busy machine, all cores on a quiet one). This choice is
+     made once per process and kept by every later experiment of the process: by then the
+     load average counts the process's own training.
 
 The count changes the order of floating-point reductions, so a run resumed under another load
 can differ in the last bits from an uninterrupted one; set ``threads`` or ``MAPETS_RL_THREADS``
 where bitwise-identical resumes matter.
 
 Every choice is logged (level INFO) on the ``mapets_rl.threads`` logger with its reason, and
-kept on the experiment as ``Experiment.threads`` (a :class:`ThreadChoice`).
+kept on the experiment as ``Experiment.threads`` (a :class:`ThreadChoice`); the first training
+of a process that shows progress prints it once on stderr (:func:`announce_threads`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import multiprocessing
 import os
 import sys
 from collections.abc import MutableMapping
@@ -42,8 +48,14 @@ THREADS_ENV = "MAPETS_RL_THREADS"
 
 log = logging.getLogger("mapets_rl.threads")
 
-_automatic = False
-"""Whether :func:`prepare_process` ran before torch was imported (a ``mapets-rl`` process)."""
+SUBMITIT_ENV = "SUBMITIT_EXECUTOR"
+"""Set by submitit in the processes of its jobs (the sweep's ``submitit`` backend)."""
+
+_load_choice: ThreadChoice | None = None
+"""The load's choice in this process, made by the first :func:`configure_threads` that chose."""
+
+_announced = False
+"""Whether :func:`announce_threads` has printed in this process."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,10 +66,12 @@ class ThreadChoice:
         threads: torch intra-op threads, ``None`` to leave torch's own choice (it follows
             ``OMP_NUM_THREADS``).
         reason: why, in words.
+        by_load: whether the load average chose it (nothing was requested).
     """
 
     threads: int | None
     reason: str
+    by_load: bool = False
 
 
 def available_cpus() -> int:
@@ -74,6 +88,13 @@ def load_average() -> float | None:
         return os.getloadavg()[0]
     except (AttributeError, OSError):
         return None
+
+
+def launched_worker(environ: MutableMapping[str, str] | None = None) -> bool:
+    """Whether this process is a worker its launcher gave a thread count: a ``multiprocessing``
+    child (the local sweep's spawned workers) or a submitit job (``SUBMITIT_EXECUTOR`` set)."""
+    environ = os.environ if environ is None else environ
+    return multiprocessing.parent_process() is not None or bool(environ.get(SUBMITIT_ENV))
 
 
 def _parse_threads(value: object, source: str) -> int:
@@ -104,8 +125,9 @@ def choose_threads(
         cpus: CPUs available (default :func:`available_cpus`).
         load: 1-minute load average of other processes (default :func:`load_average`).
         default: torch's default count (default ``cpus``).
-        automatic: choose by the load when nothing is requested; otherwise keep torch's
-            default (``threads=None``).
+        automatic: choose by the load when nothing is requested; ``False`` in a launcher's
+            worker (:func:`launched_worker`), which keeps the count it was given
+            (``threads=None``).
 
     Raises:
         ValueError: ``requested`` or ``MAPETS_RL_THREADS`` is not an integer >= 1.
@@ -120,15 +142,15 @@ def choose_threads(
     if omp:
         return ThreadChoice(None, f"OMP_NUM_THREADS={omp} (torch follows it)")
     if not automatic:
-        return ThreadChoice(None, "torch's default (chosen by the load only in mapets-rl)")
+        return ThreadChoice(None, "a launcher's worker keeps the count it was given")
     cpus = available_cpus() if cpus is None else cpus
     load = load_average() if load is None else load
     default = cpus if default is None else default
     if load is None:
-        return ThreadChoice(default, f"{cpus} CPUs, load average unknown")
+        return ThreadChoice(default, f"{cpus} CPUs, load average unknown", by_load=True)
     threads = max(1, min(default, round(cpus - load)))
     busy = "busy" if threads < default else "quiet"
-    return ThreadChoice(threads, f"load average {load:.2f} on {cpus} CPUs: {busy}")
+    return ThreadChoice(threads, f"load average {load:.2f} on {cpus} CPUs: {busy}", by_load=True)
 
 
 def prepare_process(environ: MutableMapping[str, str] | None = None) -> str:
@@ -140,9 +162,7 @@ def prepare_process(environ: MutableMapping[str, str] | None = None) -> str:
     Returns the wait policy in effect: ``"PASSIVE"``, the user's value, or
     ``"runtime default"`` when torch was imported first and no policy was set.
     """
-    global _automatic
     environ = os.environ if environ is None else environ
-    _automatic = _automatic or "torch" not in sys.modules
     explicit = environ.get(THREADS_ENV, "").strip()
     if explicit.isdigit() and int(explicit) >= 1 and not environ.get("OMP_NUM_THREADS"):
         environ["OMP_NUM_THREADS"] = explicit
@@ -169,11 +189,18 @@ def configure_threads(requested: int | None = None) -> ThreadChoice:
     """Apply :func:`choose_threads` to torch (``torch.set_num_threads``) and log the choice.
 
     ``requested``: an explicit count (a config field); ``None`` or 0 leaves the choice to the
-    environment and the load. The load average counts this process too once it runs, so call
-    this early (the runner does, when an experiment is built)."""
+    environment and the load. The load's choice is made at the first call of the process and
+    reused by every later one (the load average counts this process too once it runs, so the
+    runner calls this early, when an experiment is built)."""
     import torch
 
-    choice = choose_threads(requested, default=torch.get_num_threads(), automatic=_automatic)
+    global _load_choice
+    choice = choose_threads(
+        requested, default=torch.get_num_threads(), automatic=not launched_worker()
+    )
+    if choice.by_load:
+        _load_choice = _load_choice or choice
+        choice = _load_choice
     if choice.threads is not None and choice.threads != torch.get_num_threads():
         torch.set_num_threads(choice.threads)
     policy = os.environ.get("OMP_WAIT_POLICY", "").strip() or "runtime default"
@@ -184,3 +211,22 @@ def configure_threads(requested: int | None = None) -> ThreadChoice:
         policy,
     )
     return choice
+
+
+def announce_threads(choice: ThreadChoice) -> bool:
+    """Print the torch thread count and ``choice``'s reason as one line on stderr, the first
+    time in the process (the runner calls it when a training that shows progress starts).
+    Returns whether it printed."""
+    global _announced
+    if _announced:
+        return False
+    import torch
+
+    _announced = True
+    print(
+        f"torch threads: {torch.get_num_threads()} ({choice.reason}; "
+        f"{THREADS_ENV}=N or a config's num_threads sets them)",
+        file=sys.stderr,
+        flush=True,
+    )
+    return True

@@ -181,8 +181,8 @@ class MAPETSConfig(RunConfig):
             a scenario without one its reward from the shell
             (``mapets-rl train mapets --env my-road reward_fn=my_pkg.rewards:speed``).
             Planned trajectories never terminate with it. Empty: the scenario's own.
-        num_threads: torch intra-op threads (0: leave torch's default). On a CPU shared with
-            other jobs, 1 is often the fastest.
+        num_threads: torch intra-op threads (0: chosen by the machine's load, one thread on
+            a busy machine; see :mod:`mapets_rl.threads`).
 
     MA-PETS has no frame budget (``total_frames``, ``frames_per_batch``, ``num_envs``,
     ``eval_interval``, ``checkpoint_interval`` are unknown keys; resuming a run whose

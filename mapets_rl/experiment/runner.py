@@ -72,7 +72,7 @@ from mapets_rl.experiment.results import (
 )
 from mapets_rl.modules import AgentGroupSpec, masked_mean
 from mapets_rl.modules.tensor_checks import check_finite_many
-from mapets_rl.threads import config_threads, configure_threads
+from mapets_rl.threads import announce_threads, config_threads, configure_threads
 
 log = logging.getLogger(__name__)
 
@@ -635,7 +635,8 @@ class Experiment:
         deferred is written after its first iteration (and at the end, when nothing was left
         to do). The run directory's lock is taken on entry (another writer is refused before
         anything runs) and released on exit, normally or not (see :meth:`close`); ValueError
-        for a negative interval.
+        for a negative interval. With ``config.progress``, the first training loop of the
+        process prints the torch thread count and why, once (:mod:`mapets_rl.threads`).
 
         A stop signal (:data:`STOP_SIGNALS`: SIGTERM, as Slurm's preemption and ``timeout``
         send it) received while the loop runs in the main thread ends the iteration under way
@@ -651,6 +652,8 @@ class Experiment:
             raise ValueError(f"checkpoint_interval must be >= 0, got {checkpoint_interval}")
         self._hold_lock()
         try:
+            if self.config.progress:
+                announce_threads(self.threads)
             done, total = self.progress()
             bar = tqdm(
                 total=total,
