@@ -91,8 +91,9 @@ def test_a_sigterm_to_the_sweep_stops_its_trial_with_a_checkpoint(tmp_path):
     assert not orphan, "the trial's worker outlived the sweep"
     assert "stopped by SIGTERM" in text and "Traceback" not in text
     record = json.loads((trial / "trial.json").read_text())
-    assert record["state"] == "stopped" and record["frames"] == 20
-    assert [p.name for p in list_checkpoints(trial)][-1].endswith("20.pt")
+    # stopped before its budget of 40 frames, with a checkpoint of the frames it reached
+    assert record["state"] == "stopped" and 10 < record["frames"] < 40
+    assert list_checkpoints(trial)[-1].name.endswith(f"{record['frames']}.pt")
     manifest = json.loads((out / "sweep.json").read_text())
     assert [t["state"] for t in manifest["trials"]] == ["stopped"]
 
@@ -106,6 +107,7 @@ def test_submitit_backend_runs_a_grid_and_a_rerun_skips_and_resumes(
     extending = tests.parent / "examples" / "extending"
     # submitit's local jobs are new interpreters: they find the toy recipe on PYTHONPATH
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(extending), str(tests.parent)]))
+    monkeypatch.setattr(sweep, "SUBMITIT_POLL_S", 0.2)
     out = tmp_path / "sweep"
 
     def run(overrides: list[str]) -> SweepResult:
