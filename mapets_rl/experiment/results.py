@@ -180,9 +180,15 @@ class _RunMLFlowLogger(MLFlowLogger):
     def _create_experiment(self) -> Any:
         from mlflow import MlflowClient
 
-        self._client = MlflowClient(tracking_uri=self._tracking_uri)
-        name = self._mlflow_kwargs["name"]
-        experiment = self._client.get_experiment_by_name(name)
+        store = logging.getLogger("mlflow.store.db.utils")
+        level = store.level
+        store.setLevel(logging.WARNING)  # not the INFO lines of a new store's tables
+        try:
+            self._client = MlflowClient(tracking_uri=self._tracking_uri)
+            name = self._mlflow_kwargs["name"]
+            experiment = self._client.get_experiment_by_name(name)
+        finally:
+            store.setLevel(level)
         if experiment is None:
             self.id = self._client.create_experiment(
                 name, artifact_location=self._mlflow_kwargs["artifact_location"]

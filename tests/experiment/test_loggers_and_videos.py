@@ -25,7 +25,7 @@ def _needs(package: str) -> None:
     pytest.importorskip(package, reason=f"logger test: the {package} package is not installed")
 
 
-def test_an_mlflow_run_is_read_back_by_mlflow(tmp_path, toy_scenario, monkeypatch):
+def test_an_mlflow_run_is_read_back_by_mlflow(tmp_path, toy_scenario, monkeypatch, capfd):
     _needs("mlflow")
     from mlflow import MlflowClient
 
@@ -33,6 +33,7 @@ def test_an_mlflow_run_is_read_back_by_mlflow(tmp_path, toy_scenario, monkeypatc
     run_dir = tmp_path / "run"
     config = ToyConfig(total_frames=20, frames_per_batch=10, eval_interval=10, logger="mlflow")
     ToyLearner(config, run_dir).train()
+    assert "INFO mlflow" not in capfd.readouterr().err  # no word of MLflow's new store
     store = run_dir / "logs" / MLFLOW_STORE
     assert store.is_file()
     client = MlflowClient(tracking_uri=f"sqlite:///{store}")
