@@ -140,3 +140,24 @@ def test_submitit_backend_runs_a_grid_and_a_rerun_skips_and_resumes(
     assert again.records["lr=0.2__seed=0"]["resumed"] is True
     assert [e["frames"] for e in read_results(cut)["evaluations"]] == [10, 20]
     assert [p.name for p in list_checkpoints(cut)] == [p.name for p in list_checkpoints(done)]
+
+
+def test_submitit_options_are_parsed_and_checked_before_any_trial(tmp_path, toy_recipe):
+    pytest.importorskip("submitit", reason="the submitit backend needs submitit installed")
+    from mapets_rl.app.cli import build_parser
+    from mapets_rl.app.sweep import spec_from_args
+
+    out = tmp_path / "sweep"
+    argv = ["sweep", "toy", "--env", "toy", "--out", str(out), "--backend", "submitit"]
+    params = ["--executor-param", "cluster=local", "--executor-param", "timeout_min=5"]
+    args, _ = build_parser().parse_known_args([*argv, *params])
+    assert spec_from_args(args).executor_params == {"cluster": "local", "timeout_min": 5}
+    base = {"recipe": "toy", "env": "toy", "seeds": [0], "out": out}
+    with pytest.raises(ValueError, match="executor_params must be empty without the submitit"):
+        SweepSpec(**base, executor_params={"timeout_min": 5})
+    with pytest.raises(ValueError, match="cpus_per_trial must be a whole number >= 1"):
+        SweepSpec(**base, backend="submitit", cpus_per_trial=0.5)
+    spec = SweepSpec(**base, backend="submitit", executor_params={"cluster": "local", "bogus": 1})
+    with pytest.raises(ValueError, match="executor_params .*bogus"):
+        run_sweep(spec, echo=lambda _: None)
+    assert not (out / "trials").exists() and not (out / "sweep.json").exists()
