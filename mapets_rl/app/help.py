@@ -1,6 +1,8 @@
 """``mapets-rl train RECIPE --help``: RECIPE's config documented field by field, with the values
-of the preset and ``key=value`` options given on the command line (else the defaults), and the
-scenarios whose actions RECIPE takes.
+of the preset and ``key=value`` options given on the command line (else the defaults), the
+scenarios whose actions RECIPE takes, and the ``env_config`` keys of the chosen scenario
+(``--env NAME``, else the config's) with what each accepts
+(:func:`mapets_rl.envs.factory.env_config_help`).
 
 Each description is the first whole sentence of the field's entry in the ``Attributes:``
 section of its config class (or of a base class), rid of its Sphinx markup (````x```` becomes
@@ -42,7 +44,7 @@ WIDTH = 100
 """Columns the descriptions are wrapped at."""
 CACHE_ENTRIES = 64
 """Help texts the cache keeps (the newest)."""
-_FORMAT = 1
+_FORMAT = 2
 """Version of the text's layout, part of the cache key."""
 
 _ROLE = re.compile(r":[a-z]+:`(~?)([^`]+)`")
@@ -200,6 +202,27 @@ def supported_scenarios(cls: type, config: object) -> list[str]:
     return lines
 
 
+def env_config_lines(env_name: str) -> list[str]:
+    """Help lines of scenario ``env_name``'s ``env_config`` keys, each with what it accepts and
+    its default (a built-in scenario); one line for another scenario, whose keys are its
+    factory's keyword arguments."""
+    from mapets_rl.envs.factory import env_config_help
+    from mapets_rl.envs.registry import builtin_envs
+
+    if env_name not in builtin_envs():
+        return [f"env_config keys of {env_name}: the keyword arguments of its factory"]
+    lines = [f"env_config keys of {env_name} (set as env_config.KEY=VALUE):"]
+    for key, words in env_config_help(env_name).items():
+        lines += textwrap.wrap(
+            f"{key}: {words}",
+            WIDTH,
+            initial_indent="  ",
+            subsequent_indent=" " * 6,
+            break_on_hyphens=False,
+        )
+    return lines
+
+
 def help_overrides(options: Sequence[str]) -> list[str]:
     """The config overrides among the options after ``train RECIPE``: its ``key=value`` items
     and ``--env SCENARIO`` (as ``env=SCENARIO``); other options are ignored."""
@@ -233,7 +256,7 @@ def render_recipe_help(name: str, overrides: Sequence[str]) -> str:
         "",
     ]
     if config is not None:
-        lines += [*supported_scenarios(cls, config), ""]
+        lines += [*supported_scenarios(cls, config), "", *env_config_lines(config.env), ""]
     lines += _wrapped(
         f"fields of {config_cls.__name__} (set as key=value, a section's fields as "
         "section.field=value; values parsed as YAML; [unit]):"

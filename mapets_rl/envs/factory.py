@@ -50,6 +50,23 @@ BACKENDS = ("highway-env", "torch")
 """Simulators of the built-in scenarios: highway-env (every scenario; the reference) and the
 batched torch freeway (``freeway``, ``freeway-merge``)."""
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
+KERNELS = ("auto", "native", "torch")
+"""``kernel`` of the batched freeway on a CPU (see :func:`make_env`)."""
+FACTORY_KEYS = {
+    "seed": "None or an integer in [0, 2**62 - 1] (the first reset's seed)",
+    "device": "a device name such as 'cpu' or 'cuda:0' (of the output tensors)",
+    "categorical_actions": "True or False (discrete actions as indices, not one-hot)",
+    "render_mode": "None or 'rgb_array'",
+}
+""":func:`make_env`'s own keys of every built-in scenario (besides ``backend``), in words."""
+TORCH_KEYS = {
+    "num_envs": "None (one road) or an integer >= 1: roads simulated as one batch (torch)",
+    "dtype": f"one of {list(DTYPES)}: the simulation's precision (torch)",
+    "kernel": f"one of {list(KERNELS)}: the fused C++ kernel or torch ops on a CPU (torch)",
+}
+""":func:`make_env`'s keys of the batched freeway (``backend="torch"``), in words."""
+PROBE = "?"
+"""A value no scenario key accepts: the scenario's refusal of it says what the key accepts."""
 
 
 def make_env(
@@ -93,6 +110,12 @@ def make_env(
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {list(BACKENDS)}, got {backend!r}")
+    unknown = sorted(set(config) - set(scenario_keys(name)) - {"render_mode"})
+    if unknown:
+        raise ValueError(
+            f"unknown config key(s) {unknown} for scenario {name!r}; accepted keys: "
+            f"{env_config_keys(name)}"
+        )
     check_device(device)
     seed = check_seed(seed)
     categorical_actions = check_flag(categorical_actions, "categorical_actions")
@@ -128,6 +151,71 @@ def make_env(
         render_mode=render_mode,
         kernel=kernel,
     )
+
+
+def _builtin(name: str) -> Any:
+    """The registry's entry of built-in scenario ``name``; ValueError for another name."""
+    scenario = registered_scenario(name)
+    if scenario is None or scenario.parallel_env is None:
+        raise ValueError(f"unknown scenario name {name!r}; choose one of {builtin_envs()}")
+    return scenario
+
+
+def scenario_keys(name: str) -> list[str]:
+    """The config keys of built-in scenario ``name``'s own env class, sorted: a traffic
+    scenario's ``user_keys()``; for highway-env's multi-agent scenes, the keys of the
+    highway-env env's ``default_config()`` and ``controlled_vehicles`` (what the adapter
+    accepts). ValueError for a name that is no built-in scenario."""
+    env_class = _builtin(name).parallel_env.env_class
+    if hasattr(env_class, "user_keys"):
+        return list(env_class.user_keys())
+    return sorted({*env_class.default_config(), "controlled_vehicles"})
+
+
+def env_config_keys(name: str) -> list[str]:
+    """Every key ``make_env(name, **config)`` (a run's ``env_config``) accepts, sorted:
+    ``backend``, :data:`FACTORY_KEYS`, :data:`TORCH_KEYS` where the scenario runs batched,
+    and :func:`scenario_keys`."""
+    keys = {"backend", *FACTORY_KEYS, *scenario_keys(name)}
+    return sorted(keys | (set(TORCH_KEYS) if has_batched_backend(name) else set()))
+
+
+def _short(value: Any, width: int = 60) -> str:
+    """``repr(value)``, cut to ``width`` characters with ``...``."""
+    text = repr(value)
+    return text if len(text) <= width else f"{text[: width - 3]}..."
+
+
+def env_config_help(name: str) -> dict[str, str]:
+    """Key -> what it accepts, in words, for every key of :func:`env_config_keys` (``name``'s
+    defaults included). A scenario key's words are the scenario's own refusal of
+    :data:`PROBE` (its ``validate_config``: one line naming the key and the allowed values),
+    without the value; a key the scenario does not check (highway-env's own keys of its
+    multi-agent scenes) shows its default only. ValueError for a name that is no built-in
+    scenario."""
+    scenario = _builtin(name)
+    env_class = scenario.parallel_env.env_class
+    own = scenario_keys(name)
+    changes = {k: v for k, v in scenario.changes.items() if k in own}
+    checked = hasattr(env_class, "resolved_config")
+    defaults = (
+        env_class.resolved_config(changes) if checked else {**env_class.default_config(), **changes}
+    )
+    backends = list(BACKENDS) if has_batched_backend(name) else ["highway-env"]
+    words = {"backend": f"one of {backends} (default 'highway-env')", **FACTORY_KEYS}
+    if has_batched_backend(name):
+        words.update(TORCH_KEYS)
+    for key in own:
+        allowed = ""
+        if checked:
+            try:
+                env_class.resolved_config({**changes, key: PROBE})
+            except (ValueError, TypeError) as err:
+                message, head = str(err), f"{key} must be "
+                if message.startswith(head) and ", got " in message:
+                    allowed = f"{message[len(head) : message.rindex(', got ')]}; "
+        words[key] = f"{allowed}default {_short(defaults.get(key))}"
+    return dict(sorted(words.items()))
 
 
 def has_batched_backend(name: str) -> bool:

@@ -3,6 +3,7 @@ text, and a warm start without torch (the text is cached under a key of what it 
 
 from __future__ import annotations
 
+import ast
 import json
 import os
 import re
@@ -121,3 +122,64 @@ def test_a_warm_recipe_help_imports_no_torch(tmp_path: Path) -> None:
     warm, warm_heavy = run()
     assert "torch" in cold_heavy and warm_heavy == []
     assert warm == cold and "planner.population: int = 8" in warm
+
+
+def _env_config_keys(out: str) -> dict[str, str]:
+    """The help's ``env_config`` keys -> what each accepts (wrapped lines joined)."""
+    section = out.split("env_config keys of ", 1)[1].split("\n\n", 1)[0].splitlines()[1:]
+    keys: dict[str, str] = {}
+    key = ""
+    for line in section:
+        if line.startswith("      "):
+            keys[key] += " " + line.strip()
+        else:
+            key, _, words = line.strip().partition(": ")
+            keys[key] = words
+    return keys
+
+
+def test_help_lists_the_chosen_scenarios_env_config_keys_with_their_values(
+    help_cache, capsys
+) -> None:
+    """``--env freeway``: make_env's keys (backend, num_envs) and the scenario's, each with what
+    it accepts, in the words of the scenario's own refusal of a wrong value."""
+    code, out, err = run_cli(["train", "mappo", "--env", "freeway", "--help"], capsys)
+    assert code == 0 and err == ""
+    assert "env_config keys of freeway (set as env_config.KEY=VALUE):" in out
+    keys = _env_config_keys(out)
+    assert keys["backend"] == "one of ['highway-env', 'torch'] (default 'highway-env')"
+    assert keys["num_envs"].startswith("None (one road) or an integer >= 1")
+    assert keys["shield"] == "True or False; default False"
+    assert keys["team_reward"] == "True or False; default False"
+    assert keys["velocity_weight"] == "a finite number; default 0.1"
+    assert keys["lane_change_comfort"] == "a finite number >= 0 and <= 3; default 1.0"
+    assert keys["n_vehicles"] == "an integer >= 1; default 30"
+    # the figure-eight (the default scenario of MA-PETS) has no batched backend
+    code, out, _ = run_cli(["train", "mapets", "--help"], capsys)
+    keys = _env_config_keys(out)
+    assert code == 0 and "num_envs" not in keys
+    assert keys["backend"] == "one of ['highway-env'] (default 'highway-env')"
+    assert keys["lanes"] == "1 or 2; default 1"
+
+
+def test_help_of_a_plugin_scenario_names_its_factory(help_cache, toy_recipe, capsys) -> None:
+    code, out, _ = run_cli(["train", "toy", "--env", "toy", "--help"], capsys)
+    assert code == 0
+    assert "env_config keys of toy: the keyword arguments of its factory" in out.splitlines()
+
+
+def test_the_refusal_of_an_unknown_env_config_key_lists_every_accepted_key(
+    tmp_path, capsys
+) -> None:
+    """It listed the scenario's 35 keys but not backend or num_envs, which work."""
+    argv = ["train", "mappo", "--env", "freeway", "--run-dir", str(tmp_path / "run")]
+    code, _, err = run_cli([*argv, "env_config.bogus=1"], capsys)
+    assert code == 2 and err.count("\n") == 1
+    assert "unknown config key(s) ['bogus'] for scenario 'freeway'; accepted keys:" in err
+    accepted = ast.literal_eval(err.split("accepted keys: ", 1)[1].strip())
+    from mapets_rl.envs.factory import env_config_keys
+
+    assert accepted == env_config_keys("freeway")
+    assert {"backend", "num_envs", "dtype", "kernel", "seed", "render_mode"} <= set(accepted)
+    assert {"shield", "team_reward", "velocity_weight", "n_vehicles"} <= set(accepted)
+    assert not (tmp_path / "run").exists()
