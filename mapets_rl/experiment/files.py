@@ -295,6 +295,17 @@ class RunDirLock:
     two processes lock two different files of the same name).
 
     Use :meth:`acquire`; ``with RunDirLock.acquire(run_dir): ...`` releases at the end.
+
+    Why ``fcntl`` and not ``filelock`` (installed with torch; issue 52 asked): on Unix
+    ``filelock.FileLock`` takes this same ``flock`` on a file it keeps, so it would add a layer,
+    not a guarantee, and the lock needs what its API does not expose: the descriptor itself,
+    opened with ``O_NOFOLLOW`` and checked before it is locked or written (a regular file of
+    this user's own with one link: a ``.lock`` planted in a shared run directory must not make
+    the pid record write into another file), and the holder's pid written into and read back
+    from the locked file, so that a refused writer is told who holds the directory (a
+    ``filelock.Timeout`` names only the path). The project runs on Linux and macOS (``flock``
+    there); ``flock`` on NFS is emulated with ``fcntl`` byte-range locks by Linux >= 2.6.12, as
+    for ``filelock``.
     """
 
     def __init__(self, run_dir: Path, fd: int) -> None:
