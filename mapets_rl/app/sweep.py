@@ -524,13 +524,17 @@ def run_trial(payload: Mapping[str, Any]) -> dict[str, Any]:
     :data:`ERROR_TAIL_LINES` lines in ``run_dir/error.txt``, its last line in the result and
     ``trial.json``. ``"stopped"``: a SIGTERM stopped the run with a checkpoint
     (:class:`~mapets_rl.experiment.runner.RunStopped`), or reached a local-backend worker
-    before the run's training loop started (see :func:`_init_worker`); a re-run resumes it.
+    before the run's training loop started (see :func:`_init_worker`); a re-run resumes it. A
+    local-backend worker that was told to stop before this call returns ``"pending"`` (with
+    ``"ran": False``) and writes nothing.
     """
     from mapets_rl import quiet_dependencies
 
     quiet_dependencies()  # a trial's process is an application of its own, as the CLI is
     run_dir = Path(payload["run_dir"])
     start = time.perf_counter()
+    if _stop_requested:  # a worker told to stop starts no trial: it stays pending, unwritten
+        return {"state": "pending", "ran": False, "frames": None, "error": None, "seconds": 0.0}
     from mapets_rl.experiment.files import RunDirLock, RunDirLocked
     from mapets_rl.experiment.runner import RunStopped
 
@@ -577,6 +581,8 @@ def run_trial(payload: Mapping[str, Any]) -> dict[str, Any]:
     except RunDirLocked as err:  # taken by another writer since the check above
         return _locked(err, time.perf_counter() - start)
     except RunStopped as err:  # SIGTERM: the training loop wrote a checkpoint and stopped
+        if _local_worker:  # and the worker starts no further trial
+            _note_stop(err.signum, None)
         result = {"state": STOPPED, "frames": int(err.frames), "error": None}
     except Exception:
         lines = traceback.format_exc().rstrip().splitlines()
@@ -637,6 +643,8 @@ def _die_with_parent(parent: int) -> None:
         threading.Thread(target=watch, name="sweep-parent-watch", daemon=True).start()
 
 
+_local_worker = False
+"""Whether this process is a worker of the local backend (see :func:`_init_worker`)."""
 _stop_requested = False
 """In a local-backend worker: a stop signal arrived (see :func:`_init_worker`)."""
 
@@ -654,8 +662,10 @@ def _init_worker(parent: int) -> None:
     :class:`~mapets_rl.experiment.runner.RunStopped`) and puts this handler back after it, so
     a second copy of the signal (``timeout`` and Slurm signal every process of the group, and
     the sweep forwards the one it got) cannot end the worker before its checkpoint; a trial
-    that had not reached its training loop, or that the worker is handed later, stops
-    before training (:func:`run_trial`)."""
+    that had not reached its training loop stops before training, and one that the worker
+    is handed after the signal does not start (:func:`run_trial`)."""
+    global _local_worker
+    _local_worker = True
     _die_with_parent(parent)
     for signum in STOP_SIGNALS:
         signal.signal(signum, _note_stop)
@@ -1193,6 +1203,9 @@ def run_sweep(spec: SweepSpec, echo: Callable[[str], None] = print) -> SweepResu
                 atomic_write_text(
                     manifest, json.dumps(_manifest_data(spec, trials, records, earlier), indent=1)
                 )
+                if result["state"] == "pending":
+                    echo(f"trial {trial.id}: not started (the sweep is stopping)")
+                    continue
                 how = "resumed, " if result.get("resumed") else ""
                 seconds = result.get("seconds")
                 took = f"{seconds:.1f} s" if seconds is not None else "?"

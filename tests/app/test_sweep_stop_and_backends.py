@@ -58,7 +58,9 @@ def test_a_sigterm_to_the_sweep_stops_its_trial_with_a_checkpoint(tmp_path):
     out = tmp_path / "sweep"
     log = tmp_path / "sweep.log"
     budget = ["total_frames=40", "frames_per_batch=10", "checkpoint_interval=10"]
-    argv = ["sweep", "slowtoy", "--env", "toy", "--seeds", "0", *budget, "--out", str(out)]
+    one_worker = ["--cpus-per-trial", str(os.cpu_count() or 1)]  # seed 1 waits for seed 0
+    argv = ["sweep", "slowtoy", "--env", "toy", "--seeds", "0", "1", *budget, *one_worker]
+    argv += ["--out", str(out)]
     tests = Path(__file__).resolve().parents[1]
     script = _SWEEP_SCRIPT.format(
         tests=str(tests), extending=str(tests.parent / "examples" / "extending"), argv=argv
@@ -95,7 +97,9 @@ def test_a_sigterm_to_the_sweep_stops_its_trial_with_a_checkpoint(tmp_path):
     assert record["state"] == "stopped" and 10 < record["frames"] < 40
     assert list_checkpoints(trial)[-1].name.endswith(f"{record['frames']}.pt")
     manifest = json.loads((out / "sweep.json").read_text())
-    assert [t["state"] for t in manifest["trials"]] == ["stopped"]
+    assert [t["state"] for t in manifest["trials"]] == ["stopped", "pending"]
+    assert not (out / "trials" / "seed=1" / "trial.json").exists()  # never started
+    assert "trial seed=1: not started" in text
 
 
 # ------------------------------------------------------------------ the submitit backend
