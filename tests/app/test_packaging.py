@@ -23,8 +23,14 @@ def test_the_wheel_holds_every_package_and_no_top_level_recipes() -> None:
         ".".join(init.parent.relative_to(ROOT).parts)
         for init in ROOT.glob("mapets_rl/**/__init__.py")
     }
+    data = {  # folders of YAML files whose names Python could import, listed (no warning)
+        ".".join(d.relative_to(ROOT).parts)
+        for d in ROOT.glob("mapets_rl/configs/**/")
+        if all(part.isidentifier() for part in d.relative_to(ROOT).parts)
+    }
     config = _setuptools()
-    assert set(config["packages"]) == folders | {"mapets_rl.recipes"}
+    assert set(config["packages"]) == folders | data | {"mapets_rl.recipes"}
+    assert data == {"mapets_rl.configs", "mapets_rl.configs.fragments"}
     assert config["package-dir"] == {"mapets_rl.recipes": "recipes"}
     assert {name.split(".")[0] for name in config["packages"]} == {"mapets_rl"}
 
