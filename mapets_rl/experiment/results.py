@@ -201,7 +201,8 @@ class _RunMLFlowLogger(MLFlowLogger):
             earlier = self._client.search_runs(
                 [self.id], filter_string=f"tags.`{MLFLOW_RUN_TAG}` = '{run_dir}'", max_results=1
             )
-        if earlier:
+        if earlier:  # a resumed run: running again
+            self._client.update_run(earlier[0].info.run_id, status="RUNNING")
             return earlier[0]
         return self._client.create_run(
             self.id, run_name=self._run_dir.name, tags={MLFLOW_RUN_TAG: run_dir}
@@ -214,6 +215,11 @@ class _RunMLFlowLogger(MLFlowLogger):
 
     def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
         self._client.log_metric(self.run_id, name, value, step=step)
+
+    def finish(self) -> None:
+        """Mark the MLflow run finished (a run stopped or failed stays running, as MLflow shows
+        a run whose process ended without a word; its resume continues it)."""
+        self._client.set_terminated(self.run_id)
 
     def log_video(
         self, name: str, video: torch.Tensor, step: int | None = None, fps: float = 4, **kwargs: Any
@@ -366,6 +372,12 @@ class RunLogger:
             self.logger.log_video(name, video, step=step, **kwargs)
         except OSError as err:
             raise write_failed(self.log_dir, err) from None
+
+    def finish(self) -> None:
+        """The run has trained its whole budget: an MLflow run is marked finished (the other
+        loggers have nothing to mark)."""
+        if self.is_open and isinstance(self.logger, _RunMLFlowLogger):
+            self.logger.finish()
 
     def state_dict(self) -> dict[str, int]:
         """Scalar name -> last step logged (for checkpoints)."""

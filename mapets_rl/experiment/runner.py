@@ -679,6 +679,8 @@ class Experiment:
             self._start_writing()
             if loop.stop_signal is not None and loop.done < loop.total:
                 raise RunStopped(loop.stop_signal, self.run_dir, self.frames)
+            if self.logger is not None:
+                self.logger.finish()
         finally:
             self.close()
 

@@ -43,9 +43,11 @@ def test_an_mlflow_run_is_read_back_by_mlflow(tmp_path, toy_scenario, monkeypatc
     history = client.get_metric_history(run.info.run_id, "eval/return")
     assert [m.step for m in history] == [10, 20]
     assert "train/reward" in run.data.metrics
+    assert run.info.status == "FINISHED"  # the run trained its whole budget
     # a resume logs to the same MLflow run
     ToyLearner.from_run_dir(run_dir, ["total_frames=30"]).train()
-    assert len(client.search_runs([experiment.experiment_id])) == 1
+    [resumed] = client.search_runs([experiment.experiment_id])
+    assert resumed.info.run_id == run.info.run_id and resumed.info.status == "FINISHED"
     history = client.get_metric_history(run.info.run_id, "eval/return")
     assert [m.step for m in history] == [10, 20, 30]
 
