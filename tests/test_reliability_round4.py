@@ -949,3 +949,28 @@ def test_collector_workers_are_started_ignoring_sigterm(tmp_path, toy_scenario, 
         learner.collector.shutdown()
         learner.close()
         worker.wait()
+
+
+@pytest.mark.parametrize(
+    "key, reset",
+    [
+        ("_reset", torch.tensor([0.1, 0.0, 0.0])),
+        ("_reset", torch.tensor([float("nan")] * 3)),
+        ("_reset", torch.zeros(3, 2, dtype=torch.bool)),
+        ("_reset", torch.tensor([1, 0, 0])),
+        (("agents", "_reset"), torch.ones(3, 5, 1)),
+    ],
+)
+def test_a_partial_reset_that_is_no_bool_mask_of_the_roads_is_refused(key, reset):
+    """A ``_reset`` of another dtype or shape used to reset the wrong roads (or raise an
+    IndexError): now one line naming the key, the shape wanted and what came."""
+    from mapets_rl.envs import make_env
+
+    env = make_env("freeway", backend="torch", num_envs=3, n_vehicles=5)
+    td = env.reset()
+    td[key] = reset
+    with pytest.raises(ValueError, match=r"_reset'?\)? must be a bool tensor \[3"):
+        env.reset(td)
+    td[key] = torch.zeros((3, 5, 1) if key == ("agents", "_reset") else (3,), dtype=torch.bool)
+    td[key][0] = True
+    assert env.reset(td).batch_size == (3,)

@@ -236,12 +236,10 @@ class TorchFreewayEnv(EnvBase):
         mask = torch.ones(self.sim.n_roads, dtype=torch.bool, device=self.device)
         if tensordict is not None:
             reset = tensordict.get("_reset", None)
-            if reset is None:
-                reset = tensordict.get(("agents", "_reset"), None)
-                if reset is not None:
-                    reset = reset.reshape(*self.batch_size, -1).any(-1)
             if reset is not None:
-                mask = reset.reshape(-1).to(self.device)
+                mask = self._roads_to_reset(reset, "_reset", 1)
+            elif (reset := tensordict.get(("agents", "_reset"), None)) is not None:
+                mask = self._roads_to_reset(reset, "('agents', '_reset')", self.sim.n_cavs)
         self.sim.reset(mask)
         acting = self.sim.state["agents"].get("alive")
         false = torch.zeros_like(acting)
@@ -250,6 +248,29 @@ class TorchFreewayEnv(EnvBase):
         info = {key: zeros for key in self.info_keys}
         info["speed"] = speed.float()
         return self._output(self.sim.observe(acting), info, acting, false, false)
+
+    def _roads_to_reset(self, reset: Any, key: str, per_road: int) -> torch.Tensor:
+        """The roads ``[B]`` that a partial reset's ``key`` asks for: a bool tensor of
+        ``B * per_road`` entries (``[B]`` or ``[B, 1]`` at the root, ``[B, I]`` or ``[B, I, 1]``
+        per agent; a road resets where any of its entries is True)."""
+        roads = self.sim.n_roads
+        if (
+            not isinstance(reset, torch.Tensor)
+            or reset.dtype != torch.bool
+            or reset.numel() != roads * per_road
+            or reset.shape[:1] != (roads,)
+        ):
+            shape = f"[{roads}]" if per_road == 1 else f"[{roads}, {per_road}]"
+            got = (
+                f"dtype {reset.dtype}, shape {list(reset.shape)}"
+                if isinstance(reset, torch.Tensor)
+                else type(reset).__name__
+            )
+            raise ValueError(
+                f"{key} must be a bool tensor {shape} (one entry per road"
+                f"{'' if per_road == 1 else ' and CAV'}, True where it resets), got {got}"
+            )
+        return reset.reshape(roads, -1).any(-1).to(self.device)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(ACTION, None)
