@@ -33,7 +33,7 @@ import logging
 import os
 import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, NoReturn
 
 from mapets_rl import quiet_dependencies
@@ -116,16 +116,17 @@ def _check_flag_conflicts(args: argparse.Namespace, overrides: Sequence[str]) ->
         _fail("--run-dir must be a non-empty path, got ''")
 
 
-def _check_action_kind(cls: type, env_name: str) -> None:
+def _check_action_kind(cls: type, env_name: str, env_config: Mapping[str, Any]) -> None:
     """Refuse (exit 2, one line) a recipe on a scenario whose actions it cannot take, before
     its config is read (a recipe's default ``env_config`` is written for the scenarios it
-    supports)."""
+    supports); the scenario is built with ``env_config``, a published file's (which may choose
+    the actions, e.g. highway-env's continuous ones)."""
     from mapets_rl.app.help import recipe_action_kinds, scenario_group
 
     kinds = recipe_action_kinds(cls)
     if {"continuous", "discrete"} <= set(kinds):
         return
-    _, kind = scenario_group(env_name, {})
+    _, kind = scenario_group(env_name, dict(env_config))
     if kind not in kinds:
         _fail(
             f"{cls.name} needs {' or '.join(kinds)} actions; scenario {env_name!r} has {kind} "
@@ -504,7 +505,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     user_overrides = _overrides(args.overrides)
     args.env = env
     _check_flag_conflicts(args, user_overrides)
-    _check_action_kind(cls, env)
+    _check_action_kind(cls, env, published.fields.get("env_config", {}) if published else {})
     from mapets_rl.experiment.files import check_writable_dir
     from mapets_rl.experiment.runner import default_run_dir
 

@@ -81,7 +81,9 @@ def make_env(
     **config: Any,
 ) -> EnvBase:
     """A TorchRL env of scenario ``name``: ``"figure-eight"``, ``"figure-eight-multilane"``,
-    ``"freeway"`` or ``"freeway-merge"`` (the freeway with an on-ramp).
+    ``"freeway"``, ``"freeway-merge"`` (the freeway with an on-ramp), highway-env's own
+    multi-agent scenes ``"highway-intersection"``, ``"highway-roundabout"``, ``"highway-merge"``
+    and ``"highway-multi"`` (:mod:`mapets_rl.envs.highway_multi_agent`), or a registered one.
 
     Keys (group ``"agents"``, ``I`` CAVs): ``("agents","observation")`` ``[*, I, obs]``,
     ``("agents","action")`` ``[*, I, act]`` (figure-eight: target speed [+ lane flag];

@@ -26,9 +26,9 @@ from typing import TYPE_CHECKING, Any
 from mapets_rl._entry_points import check_name, entry_points, load_entry_point
 
 if TYPE_CHECKING:
+    from pettingzoo import ParallelEnv
     from torchrl.envs import EnvBase
 
-    from mapets_rl.envs.parallel import TrafficParallelEnv
     from mapets_rl.envs.planner_reward import PlannerReward
 
 SCENARIO_GROUP = "mapets_rl.scenarios"
@@ -56,7 +56,7 @@ class Scenario:
     """
 
     factory: Callable[..., EnvBase]
-    parallel_env: type[TrafficParallelEnv] | None = None
+    parallel_env: type[ParallelEnv] | None = None
     changes: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
     gym_id: str | None = None
     planner_reward: type[PlannerReward] | None = None
@@ -75,7 +75,7 @@ _SCENARIOS: dict[str, Scenario] = {}
 def register_builtin(
     name: str,
     factory: Callable[..., EnvBase],
-    parallel_env: type[TrafficParallelEnv],
+    parallel_env: type[ParallelEnv],
     gym_id: str,
     changes: Mapping[str, Any] | None = None,
     planner_reward: type[PlannerReward] | None = None,

@@ -206,3 +206,18 @@ def test_read_only_run_dir_is_refused_before_anything_starts(tmp_path: Path, mon
         "run_dir .* cannot be written: .* is not writable",
     )
     assert built == [] and list(read_only.iterdir()) == []
+
+
+def test_the_action_check_builds_the_scenario_with_a_published_files_env_config():
+    """highway-multi has discrete actions by default; its published MA-PETS config chooses
+    highway-env's continuous ones, so `train --config highway-multi/mapets` passes the action
+    check (it was refused as 'mapets needs continuous actions')."""
+    from mapets_rl.app.cli import _check_action_kind
+    from mapets_rl.app.plugins import load_recipe
+    from mapets_rl.experiment.published import load_published
+
+    mapets = load_recipe("mapets")
+    published = load_published("highway-multi/mapets")
+    _check_action_kind(mapets, "highway-multi", published.fields["env_config"])
+    with pytest.raises(SystemExit):
+        _check_action_kind(mapets, "highway-multi", {})
