@@ -102,7 +102,6 @@ import os
 import re
 import signal
 import sys
-import threading
 import time
 import traceback
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -121,7 +120,7 @@ from mapets_rl.experiment.files import (
     check_writable_dir,
     make_writable_dir,
 )
-from mapets_rl.experiment.runner import STOP_SIGNALS
+from mapets_rl.experiment.runner import STOP_SIGNALS, on_stop_signal
 from mapets_rl.ray_runtime import (
     check_ray_address,
     import_ray,
@@ -742,36 +741,21 @@ def run_local(payloads: Sequence[Mapping[str, Any]], cpus_per_trial: float) -> O
         raise SweepStopped(stop[0])
 
 
-@contextlib.contextmanager
-def _forward_stop_signals(stop: list[int]) -> Iterator[None]:
+def _forward_stop_signals(stop: list[int]) -> contextlib.AbstractContextManager[None]:
     """While the block runs in the main thread, the first stop signal is appended to
     ``stop`` and forwarded to this process's children (the pool's workers, which stop their
     trial, see :func:`_init_worker`); a second one puts the previous handler back and
-    signals again (by default this ends the process). The previous handlers are put back
-    after the block."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
+    signals again (by default this ends the process); see
+    :func:`~mapets_rl.experiment.runner.on_stop_signal`."""
 
-    def handle(signum: int, frame: Any) -> None:
-        if stop:
-            signal.signal(signum, previous[signum] or signal.SIG_DFL)
-            signal.raise_signal(signum)
-            return
+    def forward(signum: int) -> None:
         stop.append(signum)
         for child in multiprocessing.active_children():
             if child.pid is not None:
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(child.pid, signum)
 
-    previous = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
-    for signum in STOP_SIGNALS:
-        signal.signal(signum, handle)
-    try:
-        yield
-    finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler or signal.SIG_DFL)
+    return on_stop_signal(forward)
 
 
 def run_ray(

@@ -672,7 +672,7 @@ class Experiment:
                 train_entries=train_entries,
             )
             try:
-                with _stop_signals_to(loop):
+                with on_stop_signal(functools.partial(setattr, loop, "stop_signal")):
                     yield loop
             finally:
                 bar.close()
@@ -1415,21 +1415,23 @@ def _stop_signals_ignored() -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def _stop_signals_to(loop: TrainingLoop) -> Iterator[None]:
-    """While the block runs, a stop signal (:data:`STOP_SIGNALS`) sets ``loop.stop_signal``
-    (a second one restores the previous handler and signals again: the default ends the
-    process); the previous handlers are put back after it. Outside the main thread, where
-    Python cannot handle signals, nothing changes."""
+def on_stop_signal(first: Callable[[int], None]) -> Iterator[None]:
+    """While the block runs, the first stop signal (:data:`STOP_SIGNALS`) calls
+    ``first(signum)``; a second one restores the previous handler and signals again (the
+    default ends the process). The previous handlers are put back after the block. Outside the
+    main thread, where Python cannot handle signals, nothing changes."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    received: list[int] = []
 
     def handle(signum: int, frame: Any) -> None:
-        if loop.stop_signal is not None:
+        if received:
             signal.signal(signum, previous[signum] or signal.SIG_DFL)
             signal.raise_signal(signum)
             return
-        loop.stop_signal = signum
+        received.append(signum)
+        first(signum)
 
     previous = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
     for signum in STOP_SIGNALS:
