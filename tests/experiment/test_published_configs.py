@@ -202,5 +202,3 @@ def test_the_dilemma_twins_differ_in_what_their_comments_say() -> None:
     }
     assert all(shapley[k] == v for k, v in individual.items())
     assert shapley["actor_view"] == "own" and shapley["normalize_obs"] is True
-    # the schedule under which the positive control merges (fragments/dilemma-schedule)
-    assert (individual["gamma"], individual["update_interval"]) == (0.99, 25)
