@@ -162,16 +162,15 @@ def effect_row(label: str, found: dict[str, np.ndarray], roads: int) -> str:
     )
 
 
-def critic_rows(label: str, found: dict[str, np.ndarray], j: int, team: bool) -> str:
+def critic_rows(label: str, found: dict[str, np.ndarray], j: int, team_of: int | None) -> str:
     """One markdown row for run ``j``: over the decisions that ran, the exact effect on the
-    critic's target (``system / I`` under the team reward, else ``own``) and the critic's
-    advantage, each a mean with a bootstrap 95% interval, the share of each above zero and
-    their correlation."""
+    critic's target (``system / team_of`` under a team reward of ``team_of`` CAVs, else
+    ``own`` for ``team_of=None``) and the critic's advantage, each a mean with a bootstrap 95%
+    interval, the share of each above zero and their correlation."""
     ran = found["moved"].astype(bool)
     if not ran.any():
         return f"| {label} | | | | | |"
-    cavs = found["cavs"][ran]
-    exact = found["system"][ran] / cavs if team else found["own"][ran]
+    exact = found["own"][ran] if team_of is None else found["system"][ran] / team_of
     critic = found[f"critic{j}"][ran]
     cells = []
     for values in (exact, critic):
@@ -224,14 +223,15 @@ def main(argv: list[str] | None = None) -> str:
         env.set_seed(config.seed + ROAD_EVAL_SEED_OFFSET)
         env.reset()
         found = alternatives(env.sim, args.gamma, [run.critic for run in runs])
-        found["cavs"] = np.full(len(found["kind"]), env.sim.n_cavs)
+        cavs = env.sim.n_cavs
     finally:
         env.close()
         for run in runs:
             run.close()
     rows = [HEADER]
-    for kind, label in enumerate(KINDS):
-        part = {key: value[found["kind"] == kind] for key, value in found.items()}
+    parts = [{key: value[found["kind"] == kind] for key, value in found.items()} for kind in
+             range(len(KINDS))]  # fmt: skip
+    for label, part in zip(KINDS, parts, strict=True):
         rows.append(effect_row(label, part, args.roads))
     near = {key: value[found["kind"] < KINDS.index("forcing")] for key, value in found.items()}
     rows.append(effect_row("every mainline move near the merge", near, args.roads))
@@ -239,9 +239,8 @@ def main(argv: list[str] | None = None) -> str:
         team = bool(run.config.env_config.get("team_reward", False))
         rows += ["", f"{args.runs[j]} (team reward: {team}, gamma {run.config.gamma}):",
                  CRITIC_HEADER]  # fmt: skip
-        for kind, label in enumerate(KINDS):
-            part = {key: value[found["kind"] == kind] for key, value in found.items()}
-            rows.append(critic_rows(label, part, j, team))
+        for label, part in zip(KINDS, parts, strict=True):
+            rows.append(critic_rows(label, part, j, cavs if team else None))
     lanes = int(config.env_config.get("lanes", 3))
     policies = {
         "cooperative rule": lambda env: make_reference(config.env, "cooperative-merge", env),
