@@ -434,22 +434,6 @@ def test_cli_compare_options(tmp_path: Path, capsys) -> None:
 
 
 # ------------------------------------------------------------------ what a researcher reads
-@pytest.fixture
-def figures(monkeypatch) -> list:
-    """The matplotlib figures ``compare`` saves, in order."""
-    from mapets_rl.app import comparison
-
-    saved: list = []
-    original = comparison.atomic_savefig
-
-    def savefig(fig, path, **kwargs) -> None:
-        saved.append(fig)
-        original(fig, path, **kwargs)
-
-    monkeypatch.setattr(comparison, "atomic_savefig", savefig)
-    return saved
-
-
 def _panels(fig) -> dict[str, object]:
     """Metric name (the panel title up to its unit) -> the visible axes of that panel."""
     return {ax.get_title().split(" [")[0]: ax for ax in fig.axes if ax.get_visible()}

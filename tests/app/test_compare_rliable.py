@@ -15,23 +15,6 @@ from mapets_rl.app.comparison import compare
 from tests.experiment.test_results import fake_run
 
 
-@pytest.fixture
-def figures(monkeypatch) -> list:
-    """The matplotlib figures ``compare`` saves, in order (learning curves, then profiles)."""
-    from mapets_rl.app import comparison, rliable_report
-
-    saved: list = []
-    original = comparison.atomic_savefig
-
-    def savefig(fig, path, **kwargs) -> None:
-        saved.append(fig)
-        original(fig, path, **kwargs)
-
-    monkeypatch.setattr(comparison, "atomic_savefig", savefig)
-    monkeypatch.setattr(rliable_report, "atomic_savefig", savefig)
-    return saved
-
-
 def _methods(tmp_path: Path, finals: dict[str, list[float]]) -> list[Path]:
     """One run per final return, ``recipe`` the method, each run evaluated at frames 100 and
     200 (the final value at 200; collisions 0 throughout)."""
@@ -50,7 +33,9 @@ def _methods(tmp_path: Path, finals: dict[str, list[float]]) -> list[Path]:
     ]
 
 
-def test_probability_of_improvement_and_profiles_of_two_methods(tmp_path: Path, figures) -> None:
+def test_probability_of_improvement_and_profiles_of_two_methods(
+    tmp_path: Path, all_figures
+) -> None:
     """X's final returns (1, 2, 3), Y's (2, 2, 0): of the 9 pairs X ends above Y in 5 (1 > 0,
     2 > 0, 3 > 2 twice, 3 > 0) and ties in 2 (2 = 2), so P(X > Y) = (5 + 2/2) / 9 = 2/3 and
     P(Y > X) = 1/3. Thresholds run from 0 to 3: above tau = 0 are all 3 runs of X and 2 of Y;
@@ -77,18 +62,18 @@ def test_probability_of_improvement_and_profiles_of_two_methods(tmp_path: Path, 
     assert f"| x |  | 0.667 [{low:.3g}, {high:.3g}] |" in table
     assert "| y | 0.333 [" in table
     assert out["profiles_plot"].is_file()
-    panel = figures[-1].axes[0]
+    panel = all_figures[-1].axes[0]
     assert panel.get_ylim() == (0.0, 1.0) and len(panel.collections) == 2  # a band per method
     assert [line.get_label() for line in panel.get_lines()] == ["x (n=3)", "y (n=3)"]
 
 
-def test_two_runs_show_their_points_and_no_interval(tmp_path: Path, figures) -> None:
+def test_two_runs_show_their_points_and_no_interval(tmp_path: Path, all_figures) -> None:
     """Two seeds: the learning curve is their mean and each run's values as points, with no
     band; the rliable numbers stand without intervals (P(X > Y) with X = (1, 4), Y = (2, 3):
     2 of 4 pairs). One run: its line alone."""
     runs = _methods(tmp_path, {"x": [1.0, 4.0], "y": [2.0, 3.0]})
     out = compare(runs, tmp_path / "cmp", ["return", "collisions"])
-    curves_fig = figures[0]
+    curves_fig = all_figures[0]
     (ax,) = [a for a in curves_fig.axes if a.get_title().startswith("return")]
     assert not [c for c in ax.collections if isinstance(c, matplotlib.collections.PolyCollection)]
     points = [c for c in ax.collections if isinstance(c, matplotlib.collections.PathCollection)]
@@ -105,7 +90,7 @@ def test_two_runs_show_their_points_and_no_interval(tmp_path: Path, figures) -> 
     assert "| x |  | 0.5 |" in out["rliable_table"].read_text()
     one = _methods(tmp_path / "one", {"z": [5.0]})
     compare(one, tmp_path / "cmp1", ["return"])
-    (ax,) = [a for a in figures[-2].axes if a.get_title().startswith("return")]
+    (ax,) = [a for a in all_figures[-2].axes if a.get_title().startswith("return")]
     assert not ax.collections and len(ax.get_lines()) == 1
     assert "Probability of improvement" not in (tmp_path / "cmp1" / "rliable.md").read_text()
     flat = json.loads(out["rliable"].read_text())  # collisions 0 in every run: one threshold
@@ -113,7 +98,7 @@ def test_two_runs_show_their_points_and_no_interval(tmp_path: Path, figures) -> 
     assert flat["collisions"]["profiles"]["x"]["fraction"] == [0.0]
 
 
-def test_count_axes_stay_above_zero_and_speeds_read_m_per_s(tmp_path: Path, figures) -> None:
+def test_count_axes_stay_above_zero_and_speeds_read_m_per_s(tmp_path: Path, all_figures) -> None:
     """Collisions 0 in every run: the axis starts at 0, not below; a speed's title is
     'average_velocity [m/s]' (no 'x 2.237 = mph'), its mph on a second axis."""
     runs = [
@@ -125,7 +110,7 @@ def test_count_axes_stay_above_zero_and_speeds_read_m_per_s(tmp_path: Path, figu
         for s in range(3)
     ]
     compare(runs, tmp_path / "cmp", ["collisions", "average_velocity"])
-    axes = {a.get_title(): a for a in figures[0].axes if a.get_title()}
+    axes = {a.get_title(): a for a in all_figures[0].axes if a.get_title()}
     assert set(axes) == {"collisions [CAVs]", "average_velocity [m/s]"}
     assert axes["collisions [CAVs]"].get_ylim()[0] == 0.0
     speed = axes["average_velocity [m/s]"]
