@@ -30,16 +30,7 @@ def make_stochastic_policy(
     ``("agents","action_log_prob")`` [*, I]."""
     obs_key = OBS if obs_norm is None else OBS_NORM
     n_out = spec.action_dim if spec.discrete else 2 * spec.action_dim
-    mlp = MultiAgentMLP(
-        n_agent_inputs=spec.obs_dim,
-        n_agent_outputs=n_out,
-        n_agents=spec.n_agents,
-        centralized=False,
-        share_params=share_params,
-        depth=len(num_cells),
-        num_cells=num_cells,
-        activation_class=nn.Tanh,
-    )
+    mlp = make_decentralised_mlp(spec, num_cells, share_params, n_out, nn.Tanh)
     if spec.discrete:
         module = TensorDictModule(mlp, in_keys=[obs_key], out_keys=[(GROUP, "logits")])
         dist_keys, dist_cls, dist_kwargs = [(GROUP, "logits")], OneHotCategorical, {}
@@ -101,19 +92,24 @@ def make_q_critic(
 
 
 def make_decentralised_mlp(
-    spec: AgentGroupSpec, num_cells: list[int], share_params: bool
+    spec: AgentGroupSpec,
+    num_cells: list[int],
+    share_params: bool,
+    n_out: int | None = None,
+    activation: type[nn.Module] = nn.ReLU,
 ) -> MultiAgentMLP:
-    """Each agent's own observation ``[*, I, obs]`` -> one output per action ``[*, I, act]``,
-    a ReLU ``MultiAgentMLP`` (MADDPG's actors, SAC's discrete Q(o, .))."""
+    """Each agent's own observation ``[*, I, obs]`` -> ``n_out`` outputs ``[*, I, n_out]``
+    (default one per action), a ``MultiAgentMLP`` with ``activation`` (ReLU: MADDPG's actors,
+    SAC's discrete Q(o, .); Tanh: the stochastic policies)."""
     return MultiAgentMLP(
         n_agent_inputs=spec.obs_dim,
-        n_agent_outputs=spec.action_dim,
+        n_agent_outputs=spec.action_dim if n_out is None else n_out,
         n_agents=spec.n_agents,
         centralized=False,
         share_params=share_params,
         depth=len(num_cells),
         num_cells=num_cells,
-        activation_class=nn.ReLU,
+        activation_class=activation,
     )
 
 
