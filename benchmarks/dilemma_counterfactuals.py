@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from functools import partial
 
 import numpy as np
 import torch
@@ -44,16 +45,9 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from mapets_rl.app.plugins import load_recipe
-from mapets_rl.envs.freeway import CL, CR, KL
-from mapets_rl.envs.references import ACTION, OBSERVATION, CooperativeMerge, make_reference
-from mapets_rl.envs.torch_freeway.counterfactuals import (
-    branches,
-    cav_lanes,
-    deciding,
-    near_merge,
-    on_mainline,
-)
-from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway
+from mapets_rl.envs.freeway import CL, KL
+from mapets_rl.envs.references import ACTION, OBSERVATION, make_reference
+from mapets_rl.envs.torch_freeway.counterfactuals import MERGE_DECISIONS, merge_decisions
 from mapets_rl.experiment import RunConfig
 from mapets_rl.experiment.protocol import (
     ROAD_EVAL_SEED_OFFSET,
@@ -66,8 +60,6 @@ from mapets_rl.experiment.runner import run_recipe_name
 from mapets_rl.machine import machine_line
 from mapets_rl.modules.critic_probe import critic_advantages
 from mapets_rl.statistics import bootstrap_interval
-
-KINDS = ("rule's yields", "other Change Left", "Change Right", "forcing")
 
 
 class ForceMerge(TensorDictModuleBase):
@@ -87,59 +79,6 @@ class ForceMerge(TensorDictModuleBase):
         index = torch.where(lane == self.lanes, CL, KL)
         tensordict.set(ACTION, torch.nn.functional.one_hot(index, 4).to(torch.int64))
         return tensordict
-
-
-def keep_lane(observation: torch.Tensor) -> torch.Tensor:
-    """Keep Lane for every CAV: ``[K, I, obs_dim] -> [K, I]``."""
-    return torch.full(observation.shape[:2], KL, dtype=torch.long)
-
-
-def alternatives(
-    sim: BatchedFreeway, gamma: float, critics: list[TensorDictModuleBase] = ()
-) -> dict[str, np.ndarray]:
-    """Every alternative decision (module docstring) of every CAV on every road of ``sim``
-    (just reset) as every CAV keeps its lane; one entry per decision: ``kind`` (index into
-    :data:`KINDS`), ``road``, ``moved``, ``own``, ``system`` and ``critic{j}``, the advantage
-    ``critics[j]`` gives the move over Keep Lane."""
-    lanes = int(sim.config["lanes"])
-    rule = deciding(CooperativeMerge(lanes))
-    keys = ("kind", "road", "moved", "own", "system", *(f"critic{j}" for j in range(len(critics))))
-    out: dict[str, list] = {key: [] for key in keys}
-    observation = sim.observe()
-    for _ in range(int(sim.config["horizon"])):
-        action = keep_lane(observation)
-        lane, x = cav_lanes(sim)
-        number = sim.geometry.number[lane]
-        driving = sim.state["agents"].get("alive") & on_mainline(sim, lane) & near_merge(sim, x)
-        yields = driving & (rule(observation) == CL)
-        moves = (
-            (yields, CL),
-            (driving & ~yields & (number >= 1), CL),
-            (driving & (number <= lanes - 2), CR),
-            (sim.state["agents"].get("alive") & (lane == lanes), CL),
-        )
-        roads, cavs, replacement, kinds = [], [], [], []
-        for kind, (chosen, move) in enumerate(moves):
-            road, cav = chosen.nonzero(as_tuple=True)
-            roads.append(road), cavs.append(cav)
-            replacement.append(torch.full_like(cav, move))
-            kinds.append(torch.full_like(cav, kind))
-        road, cav = torch.cat(roads), torch.cat(cavs)
-        if road.numel():
-            returns, _, y, base, branch = branches(
-                sim, action, road, cav, torch.cat(replacement), keep_lane, gamma
-            )
-            out["kind"] += torch.cat(kinds).tolist()
-            out["road"] += road.tolist()
-            out["moved"] += (y[base] != y[branch]).any(-1).tolist()
-            out["own"] += (returns[branch, cav] - returns[base, cav]).tolist()
-            out["system"] += (returns[branch].sum(-1) - returns[base].sum(-1)).tolist()
-            for j, critic in enumerate(critics):
-                out[f"critic{j}"] += critic_advantages(
-                    critic, observation, action, road, cav, torch.cat(replacement), 4
-                ).tolist()
-        observation = sim.step(action).observation
-    return {key: np.asarray(value) for key, value in out.items()}
 
 
 def effect_row(label: str, found: dict[str, np.ndarray], roads: int) -> str:
@@ -171,7 +110,7 @@ def critic_rows(label: str, found: dict[str, np.ndarray], j: int, team_of: int |
     if not ran.any():
         return f"| {label} | | | | | |"
     exact = found["own"][ran] if team_of is None else found["system"][ran] / team_of
-    critic = found[f"critic{j}"][ran]
+    critic = found[f"probe{j}"][ran]
     cells = []
     for values in (exact, critic):
         mean, low, high = bootstrap_interval(values)
@@ -222,7 +161,9 @@ def main(argv: list[str] | None = None) -> str:
     try:
         env.set_seed(config.seed + ROAD_EVAL_SEED_OFFSET)
         env.reset()
-        found = alternatives(env.sim, args.gamma, [run.critic for run in runs])
+        probes = [partial(critic_advantages, run.critic, n_actions=4) for run in runs]
+        found = {key: value.numpy() for key, value in
+                 merge_decisions(env.sim, args.gamma, probes).items()}  # fmt: skip
         cavs = env.sim.n_cavs
     finally:
         env.close()
@@ -230,16 +171,17 @@ def main(argv: list[str] | None = None) -> str:
             run.close()
     rows = [HEADER]
     parts = [{key: value[found["kind"] == kind] for key, value in found.items()} for kind in
-             range(len(KINDS))]  # fmt: skip
-    for label, part in zip(KINDS, parts, strict=True):
+             range(len(MERGE_DECISIONS))]  # fmt: skip
+    for label, part in zip(MERGE_DECISIONS, parts, strict=True):
         rows.append(effect_row(label, part, args.roads))
-    near = {key: value[found["kind"] < KINDS.index("forcing")] for key, value in found.items()}
+    mainline = found["kind"] < MERGE_DECISIONS.index("forcing")
+    near = {key: value[mainline] for key, value in found.items()}
     rows.append(effect_row("every mainline move near the merge", near, args.roads))
     for j, run in enumerate(runs):
         team = bool(run.config.env_config.get("team_reward", False))
         rows += ["", f"{args.runs[j]} (team reward: {team}, gamma {run.config.gamma}):",
                  CRITIC_HEADER]  # fmt: skip
-        for label, part in zip(KINDS, parts, strict=True):
+        for label, part in zip(MERGE_DECISIONS, parts, strict=True):
             rows.append(critic_rows(label, part, j, cavs if team else None))
     lanes = int(config.env_config.get("lanes", 3))
     policies = {

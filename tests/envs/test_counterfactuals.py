@@ -7,13 +7,15 @@ import pytest
 import torch
 
 from mapets_rl.envs import make_env
-from mapets_rl.envs.freeway import CL, KL
+from mapets_rl.envs.freeway import CL, CR, KL
 from mapets_rl.envs.references import make_reference
 from mapets_rl.envs.torch_freeway.counterfactuals import (
+    MERGE_DECISIONS,
     branches,
     cav_lanes,
     deciding,
     lane_change_effects,
+    merge_decisions,
     near_merge,
     on_mainline,
     returns_per_cav,
@@ -126,3 +128,35 @@ def test_opting_out_for_the_rest_of_the_episode_forgoes_every_later_change() -> 
     still = [i for i, moved in enumerate(always["moved"]) if not moved]
     assert still and all(always["own"][i] <= once["own"][i] + 1e-9 for i in still)
     assert any(always["own"][i] < once["own"][i] - 0.5 for i in still)
+
+
+def test_merge_decisions_ask_each_kind_its_own_move() -> None:
+    """Every decision's probe sees the move of its kind (Change Right for moves right, Change
+    Left otherwise); on the dilemma variant (``ramp_forcing`` off) no forcing move runs; a move
+    that did not run changes no return."""
+
+    def replacement(observation, action, road, cav, moves):
+        return moves.double()
+
+    env, sim = _sim(roads=4, ramp_forcing=False)
+    found = merge_decisions(sim, 0.99, [replacement])
+    kind = found["kind"]
+    assert set(kind.tolist()) <= set(range(len(MERGE_DECISIONS)))
+    right = kind == MERGE_DECISIONS.index("Change Right")
+    assert torch.equal(found["probe0"], torch.where(right, CR, CL).double())
+    still = ~found["moved"]
+    assert torch.equal(found["own"][still], torch.zeros_like(found["own"][still]))
+    assert torch.equal(found["system"][still], torch.zeros_like(found["system"][still]))
+    forcing_ran = found["moved"][kind == MERGE_DECISIONS.index("forcing")]
+    assert forcing_ran.numel() > 0
+    assert not forcing_ran.any()
+    assert found["moved"].any()
+    env.close()
+
+
+def test_merge_decisions_refuse_a_road_without_a_merge() -> None:
+    env = make_env("freeway", backend="torch", num_envs=2, n_vehicles=6, horizon=HORIZON)
+    env.reset()
+    with pytest.raises(ValueError, match="freeway-merge"):
+        merge_decisions(env.sim, 0.99)
+    env.close()

@@ -13,7 +13,7 @@ move that lets the ramp traffic in also the move that pays the CAV that makes it
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDict
@@ -21,11 +21,21 @@ from tensordict.nn import TensorDictModuleBase
 
 from mapets_rl.envs.freeway import CL, CR, KL
 from mapets_rl.envs.freeway_merge import NEAR_MERGE
-from mapets_rl.envs.references import ACTION, OBSERVATION
+from mapets_rl.envs.references import ACTION, OBSERVATION, CooperativeMerge
 from mapets_rl.envs.torch_freeway.simulator import BatchedFreeway
 
 Decide = Callable[[torch.Tensor], torch.Tensor]
 """``observation [K, I, obs_dim] -> decisions [K, I]`` (0..3: KL, CL, CR, ES)."""
+
+Probe = Callable[
+    [torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor
+]
+"""``(observation [R, I, obs], action [R, I], road [K], cav [K], replacement [K]) -> [K]``:
+what some model says decision ``k`` is worth (a critic's advantage,
+:func:`mapets_rl.modules.critic_probe.critic_advantages`)."""
+
+MERGE_DECISIONS = ("rule's yields", "other Change Left", "Change Right", "forcing")
+"""The kinds of decision :func:`merge_decisions` asks about, in the order of its ``kind``."""
 
 
 def deciding(policy: TensorDictModuleBase) -> Decide:
@@ -37,6 +47,11 @@ def deciding(policy: TensorDictModuleBase) -> Decide:
         return policy(td).get(ACTION).argmax(-1)
 
     return decide
+
+
+def keep_lane(observation: torch.Tensor) -> torch.Tensor:
+    """Keep Lane for every CAV: ``[K, I, obs_dim] -> [K, I]``."""
+    return torch.full(observation.shape[:2], KL, dtype=torch.long)
 
 
 def cav_lanes(sim: BatchedFreeway) -> tuple[torch.Tensor, torch.Tensor]:
@@ -162,3 +177,66 @@ def lane_change_effects(
             out["system"] += (returns[base].sum(-1) - returns[kept].sum(-1)).tolist()
         observation = sim.step(action).observation
     return out
+
+
+@torch.no_grad()
+def merge_decisions(
+    sim: BatchedFreeway, gamma: float, probes: Sequence[Probe] = ()
+) -> dict[str, torch.Tensor]:
+    """Every alternative decision of every CAV on every road of ``sim`` (a merge road, just
+    reset) as every CAV keeps its lane to the horizon. At every step each alternative is
+    replayed on a copy of its road where that CAV alone plays it for the step, then keeps its
+    lane again, everything else the same (:func:`branches`). The kinds
+    (:data:`MERGE_DECISIONS`): the Change Left that the cooperative merge rule would play (a
+    CAV in the rightmost lane before the merge point, a ramp vehicle beside it, room on the
+    left); every other Change Left and every Change Right of a CAV on a mainline lane near the
+    merge (:func:`near_merge`), where the lane exists; a ramp CAV's Change Left on the
+    acceleration lane (forcing).
+
+    Returns one entry per decision ``[D]``: ``kind`` (index into :data:`MERGE_DECISIONS`),
+    ``road``; ``moved`` (bool: some vehicle's lateral position differs after the step; a move
+    the shield refuses runs as Keep Lane); ``own``, the mover's return with the move minus
+    without it, and ``system``, the CAVs' summed returns with minus without (discounted by
+    ``gamma``, float64); ``probe{j}``, what ``probes[j]`` says of the decision."""
+    if not sim.merge:
+        raise ValueError("merge_decisions needs a freeway-merge road (sim.merge is False)")
+    lanes = int(sim.config["lanes"])
+    rule = deciding(CooperativeMerge(lanes))
+    keys = ("kind", "road", "moved", "own", "system", *(f"probe{j}" for j in range(len(probes))))
+    out: dict[str, list[torch.Tensor]] = {key: [] for key in keys}
+    observation = sim.observe()
+    for _ in range(int(sim.config["horizon"])):
+        action = keep_lane(observation)
+        lane, x = cav_lanes(sim)
+        number = sim.geometry.number[lane]
+        alive = sim.state["agents"].get("alive")
+        driving = alive & on_mainline(sim, lane) & near_merge(sim, x)
+        yields = driving & (rule(observation) == CL)
+        chosen = (
+            (yields, CL),
+            (driving & ~yields & (number >= 1), CL),
+            (driving & (number <= lanes - 2), CR),
+            (alive & (lane == lanes), CL),
+        )
+        found = [(kind, *mask.nonzero(as_tuple=True), move)
+                 for kind, (mask, move) in enumerate(chosen)]  # fmt: skip
+        road = torch.cat([r for _, r, _, _ in found])
+        if road.numel():
+            cav = torch.cat([c for _, _, c, _ in found])
+            replacement = torch.cat([torch.full_like(c, move) for _, _, c, move in found])
+            returns, _, y, base, branch = branches(
+                sim, action, road, cav, replacement, keep_lane, gamma
+            )
+            out["kind"].append(torch.cat([torch.full_like(c, kind) for kind, _, c, _ in found]))
+            out["road"].append(road)
+            out["moved"].append((y[base] != y[branch]).any(-1))
+            out["own"].append(returns[branch, cav] - returns[base, cav])
+            out["system"].append(returns[branch].sum(-1) - returns[base].sum(-1))
+            for j, probe in enumerate(probes):
+                out[f"probe{j}"].append(probe(observation, action, road, cav, replacement))
+        observation = sim.step(action).observation
+    empty = {"kind": torch.long, "road": torch.long, "moved": torch.bool}
+    return {
+        key: torch.cat(value) if value else torch.zeros(0, dtype=empty.get(key, torch.float64))
+        for key, value in out.items()
+    }
