@@ -24,9 +24,9 @@ A comparison says what it compares and refuses what would mislead:
   (``results.json``'s ``simulator``: its C++ kernel or its torch program), each group a mean
   and an interquartile mean (IQM) over its runs (seeds) with bootstrap 95% intervals
   (:mod:`mapets_rl.statistics`: the rliable protocol), clipped to each metric's range; a group
-  of one run shows its values, ``n = 1``, and no interval; the plot draws a band only for a
-  group of at least three runs (the interval of two is their range: their values are drawn
-  as points instead);
+  of one run shows its values, ``n = 1``, and no interval; neither the tables nor the plot
+  give an interval for a group of fewer than three runs (the interval of two is their range:
+  their values are shown instead, as points in the plot, in braces in the tables);
 - *at what point*: the table compares the runs of a group at the last ``x`` all of them
   reached, and its header says so when they end at different ``x``;
 - *which metrics*: by default the task metrics (:data:`mapets_rl.metrics.TASK_METRICS`), every
@@ -252,17 +252,19 @@ def compare(
       of the group reached; the y axis inside the metric's range, speeds also in mph on a
       second axis; the title names the source;
     - ``final_metrics.md``: two markdown tables of each run's final numbers, ``mean [low,
-      high] (n=runs)`` and the interquartile mean ``iqm [low, high] (n=runs)`` (``value
-      (n=1)`` for a group of one run: one run has no interval), with the source of every group
-      and its ``frames`` (the fewest of its runs' compared entries);
+      high] (n=runs)`` and the interquartile mean ``iqm [low, high] (n=runs)``, with the source
+      of every group and its ``frames`` (the fewest of its runs' compared entries); a group of
+      two runs has no interval but each run's value, ``mean {run, run} (n=2)`` (the bootstrap
+      interval of two runs is their range; a note under the header says so), one run its
+      value, ``value (n=1)``;
     - ``summary.json``: those numbers, ``{group: {metric: {"mean", "mean_ci95", "iqm",
-      "iqm_ci95", "std", "n", "frames", "source"}}}`` (each ``*_ci95`` ``[low, high]``; the
-      intervals and ``std`` null for ``n = 1``);
+      "iqm_ci95", "std", "values", "n", "frames", "source"}}}`` (each ``*_ci95`` ``[low,
+      high]``, null below three runs; ``std`` null for ``n = 1``; ``values`` each run's);
     - ``curves.json``: ``{"source": the requested source, "x": x, "groups": {group: ...}}``,
       per group its recipe, ``group_by`` values, scenario, source, runs and, at every ``x``
       value any of its runs reached (``x``, ``n`` runs), ``mean`` / ``std`` / ``mean_ci95``
-      / ``iqm`` / ``iqm_ci95`` of every metric (``std`` and the intervals null where
-      ``n = 1``);
+      / ``iqm`` / ``iqm_ci95`` of every metric (``std`` null where ``n = 1``, the intervals
+      where ``n < 3``);
     - ``rliable.md``, ``rliable.json`` and ``performance_profiles.png``: the rliable
       protocol over the same final numbers (:mod:`mapets_rl.app.rliable_report`): per metric
       each group's performance profile (fraction of its runs above ``tau``, with a
@@ -523,6 +525,7 @@ def compare(
             final = _interval_stats(m, [finals[label][m]])
             summary[label][m] = {
                 **{key: values[0] for key, values in final.items()},
+                "values": finals[label][m],
                 "n": len(last),
                 "frames": min(e["frames"] for e in last),
                 "source": "evaluate" if group["final"] is not None else group["source"],
@@ -572,9 +575,15 @@ def compare(
         if any(group["final"] is not None for group in groups.values())
         else ""
     )
+    few = (
+        f" Groups of fewer than {MIN_RUNS_FOR_INTERVAL} runs have no interval (the bootstrap "
+        "interval of two runs is their range): each run's value in braces, {run, run}."
+        if any(1 < len(group["runs"]) < MIN_RUNS_FOR_INTERVAL for group in groups.values())
+        else ""
+    )
     lines = [
         f"Last entry of each run: {described}{evaluated}; over runs, intervals clipped to "
-        f"each metric's range (n = runs).{aligned}",
+        f"each metric's range (n = runs).{few}{aligned}",
     ]
     for statistic, name in STATISTIC_NAMES.items():
         lines += [
@@ -621,8 +630,9 @@ def compare(
 def _interval_stats(metric: str, points: Sequence[Sequence[float]]) -> dict[str, list[Any]]:
     """At every point (one value per run, a run missing from a point left out): the mean and
     the IQM with their bootstrap 95% intervals clipped to the metric's range (``[low, high]``,
-    ``None`` for one value) and the sample standard deviation (``None`` for one value); each
-    key a list over the points. Points with as many values are bootstrapped together
+    ``None`` below :data:`~mapets_rl.statistics.MIN_RUNS_FOR_INTERVAL` values: the interval of
+    two is their range) and the sample standard deviation (``None`` for one value); each key a
+    list over the points. Points with as many values are bootstrapped together
     (:func:`~mapets_rl.statistics.bootstrap_curve`: the same intervals as one at a time)."""
     out: dict[str, list[Any]] = {
         key: [None] * len(points) for key in ("mean", "mean_ci95", "iqm", "iqm_ci95", "std")
@@ -636,7 +646,7 @@ def _interval_stats(metric: str, points: Sequence[Sequence[float]]) -> dict[str,
             estimate, low, high = bootstrap_curve(runs, statistic, bounds=metric_range(metric))
             for j, i in enumerate(where):
                 out[statistic][i] = float(estimate[j])
-                if count > 1:
+                if count >= MIN_RUNS_FOR_INTERVAL:
                     out[f"{statistic}_ci95"][i] = [float(low[j]), float(high[j])]
         if count > 1:
             for j, std in zip(where, runs.std(axis=0, ddof=1), strict=True):
@@ -707,13 +717,16 @@ def _marl_eval(groups: Mapping[str, Mapping[str, Any]], metrics: Sequence[str]) 
 
 def _cell(metric: str, stats: Mapping[str, Any], statistic: str) -> str:
     """A table cell: the ``statistic`` (``"mean"`` or ``"iqm"``) with its 95% interval
-    ``[low, high]`` (n), speeds in m/s also in mph; the value alone for one run (``n=1``),
-    which has no interval."""
+    ``[low, high]`` (n), speeds in m/s also in mph; below
+    :data:`~mapets_rl.statistics.MIN_RUNS_FOR_INTERVAL` runs no interval but each run's value,
+    ``value {run, run} (n=2)``, and the value alone for one run (``n=1``)."""
     value, interval = stats[statistic], stats[f"{statistic}_ci95"]
+    runs = stats["values"] if stats["n"] > 1 else []
 
     def text(scale: float) -> str:
         if interval is None:
-            return f"{scale * value:.4g}"
+            points = ", ".join(f"{scale * v:.4g}" for v in runs)
+            return f"{scale * value:.4g} {{{points}}}" if points else f"{scale * value:.4g}"
         return f"{scale * value:.4g} [{scale * interval[0]:.4g}, {scale * interval[1]:.4g}]"
 
     out = text(1.0)

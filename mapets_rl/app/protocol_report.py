@@ -4,7 +4,8 @@
 
 Per group of runs (the groups of ``compare``) and reference policy: each seed's gain over the
 reference on its own evaluation roads, their mean with a percentile-bootstrap 95% interval and
-their interquartile mean with a stratified-bootstrap one; the mean system reward per episode;
+their interquartile mean with a stratified-bootstrap one (no interval below three seeds: each
+seed's gain is shown instead); the mean system reward per episode;
 the training return (the Shapley paper's Fig. 2 quantity: the mean system return of the
 training episodes in the last :data:`TRAINING_WINDOW` of each run's frames); the behaviour
 metrics (the scenario's episode metrics, mean over seeds). Each reference's own row (mean over
@@ -20,7 +21,7 @@ import numpy as np
 
 from mapets_rl.experiment.episodes import read_train_episodes
 from mapets_rl.experiment.protocol import read_protocol
-from mapets_rl.statistics import bootstrap_interval
+from mapets_rl.statistics import MIN_RUNS_FOR_INTERVAL, bootstrap_interval, interquartile_mean
 
 TRAINING_WINDOW = 0.1
 """The share of a run's frames, at its end, whose training episodes give its training return."""
@@ -59,10 +60,15 @@ def _gains(results: Sequence[Mapping[str, Any]], reference: str) -> np.ndarray:
 
 def _interval(values: np.ndarray) -> dict[str, Any]:
     """Mean and IQM of ``values`` (one per seed), each with its bootstrap 95% interval (null
-    for one seed)."""
-    if len(values) < 2:
-        value = float(values[0])
-        return {"mean": value, "mean_ci95": None, "iqm": value, "iqm_ci95": None}
+    below :data:`~mapets_rl.statistics.MIN_RUNS_FOR_INTERVAL` seeds: the interval of two is
+    their range; with fewer than 4 seeds the IQM is the mean)."""
+    if len(values) < MIN_RUNS_FOR_INTERVAL:
+        return {
+            "mean": float(np.mean(values)),
+            "mean_ci95": None,
+            "iqm": interquartile_mean(values),
+            "iqm_ci95": None,
+        }
     mean, low, high = bootstrap_interval(values)
     iqm, iqm_low, iqm_high = bootstrap_interval(values, statistic="iqm")
     return {"mean": mean, "mean_ci95": [low, high], "iqm": iqm, "iqm_ci95": [iqm_low, iqm_high]}
@@ -128,7 +134,9 @@ def protocol_table(summary: Mapping[str, Any], roads: int) -> str:
         f"Greedy policies on {roads} evaluation roads per seed (each seed's own roads, the same "
         "for every policy); gain = system reward over the reference's on the same roads, in "
         "percent; training return = mean system return of the training episodes in the last "
-        f"{TRAINING_WINDOW:.0%} of each run's frames.",
+        f"{TRAINING_WINDOW:.0%} of each run's frames. A group of fewer than "
+        f"{MIN_RUNS_FOR_INTERVAL} seeds has no interval (the bootstrap interval of two seeds is "
+        "their range): its mean gain, then each seed's in parentheses.",
         "",
         head,
         "|" + "---|" * (4 + len(names) + len(metric_names)),

@@ -277,9 +277,8 @@ def test_group_by_splits_a_sweep_with_bands_per_value(tmp_path: Path) -> None:
     d100 = curves["toy comm_range=100"]
     assert d100["group"] == {"comm_range": 100.0} and d100["x"] == [100, 200]
     assert d100["n"] == [2, 2]
-    mean, low, high = bootstrap_interval([3.0, 5.0])
-    assert d100["metrics"]["return"]["mean"][1] == pytest.approx(mean)
-    assert d100["metrics"]["return"]["mean_ci95"][1] == pytest.approx([low, high])
+    assert d100["metrics"]["return"]["mean"][1] == pytest.approx(4.0)
+    assert d100["metrics"]["return"]["mean_ci95"] == [None, None]  # two runs: no interval
     assert d100["metrics"]["return"]["std"][1] == pytest.approx(2**0.5)
     with pytest.raises(ValueError, match="group_by field 'nope' is not in the config"):
         compare(runs, tmp_path / "cmp2", group_by="nope")
@@ -470,6 +469,48 @@ def test_a_single_run_shows_n_1_and_no_interval(tmp_path: Path, figures) -> None
     assert [line.get_label() for line in fig.axes[0].get_lines()] == ["toy (n=1)"]
 
 
+@pytest.mark.parametrize(
+    ("returns", "mean_cell", "iqm_cell"),
+    [
+        ([4.0], "4 (n=1)", "4 (n=1)"),
+        ([1.0, 4.0], "2.5 {{1, 4}} (n=2)", "2.5 {{1, 4}} (n=2)"),
+        (
+            [1.0, 4.0, 7.0],
+            "4 [{low:.4g}, {high:.4g}] (n=3)",
+            "4 [{iqm_low:.4g}, {iqm_high:.4g}] (n=3)",
+        ),
+    ],
+)
+def test_the_tables_give_an_interval_from_three_runs_and_each_runs_value_below(
+    tmp_path: Path, returns: list[float], mean_cell: str, iqm_cell: str
+) -> None:
+    """Final returns 4 / (1, 4) / (1, 4, 7): one run shows its value, two their mean (2.5; the
+    IQM of fewer than 4 runs is their mean) and each run's value in braces with no interval,
+    three the mean 4 with its bootstrap interval (that of bootstrap_interval); summary.json
+    agrees (intervals null below 3 runs, each run's value listed)."""
+    runs = [
+        fake_run(tmp_path / f"s{seed}", seed=seed, evaluations=eval_entries(0.0, value))
+        for seed, value in enumerate(returns)
+    ]
+    out = compare(runs, tmp_path / "cmp", ["return"])
+    low, high = bootstrap_interval(returns)[1:]
+    iqm_low, iqm_high = bootstrap_interval(returns, statistic="iqm")[1:]
+    known = {"low": low, "high": high, "iqm_low": iqm_low, "iqm_high": iqm_high}
+    table = out["table"].read_text()
+    rows = [line for line in table.splitlines() if line.startswith("| toy |")]
+    assert rows == [
+        f"| toy | deterministic evaluations | 200 | {mean_cell.format(**known)} |",
+        f"| toy | deterministic evaluations | 200 | {iqm_cell.format(**known)} |",
+    ]
+    assert ("in braces" in table.splitlines()[0]) == (len(returns) == 2)
+    summary = json.loads(out["summary"].read_text())["toy"]["return"]
+    assert summary["values"] == returns and summary["n"] == len(returns)
+    banded = len(returns) >= 3
+    assert (summary["mean_ci95"] is not None) == banded == (summary["iqm_ci95"] is not None)
+    if banded:
+        assert summary["mean_ci95"] == pytest.approx([low, high]) and low < 4.0 < high
+
+
 def test_runs_of_different_lengths_are_compared_at_the_last_x_all_reached(tmp_path: Path) -> None:
     long = fake_run(tmp_path / "long", evaluations=eval_entries(1.0, 2.0, 3.0))
     short = fake_run(tmp_path / "short", seed=1, evaluations=eval_entries(1.0, 4.0))
@@ -488,7 +529,7 @@ def test_runs_of_different_lengths_are_compared_at_the_last_x_all_reached(tmp_pa
     ]
     out = compare(runs, tmp_path / "cmp2", ["episode", "safety"], source="train")
     assert (
-        "| toy | training entries | 41 | 2 [2, 2] (n=2) | 0.6 [0.4, 0.8] (n=2) |"
+        "| toy | training entries | 41 | 2 {2, 2} (n=2) | 0.6 {0.4, 0.8} (n=2) |"
         in out["table"].read_text()
     )
     out = compare(runs, tmp_path / "cmp3", ["safety"], source="train", x="episode")
@@ -498,7 +539,9 @@ def test_runs_of_different_lengths_are_compared_at_the_last_x_all_reached(tmp_pa
     out = compare([short, same], tmp_path / "cmp4", ["return"])
     assert out["table"].read_text().splitlines()[0] == (
         "Last entry of each run: deterministic evaluations; over runs, intervals clipped to "
-        "each metric's range (n = runs)."
+        "each metric's range (n = runs). Groups of fewer than 3 runs have no interval (the "
+        "bootstrap interval of two runs is their range): each run's value in braces, "
+        "{run, run}."
     )
 
 
