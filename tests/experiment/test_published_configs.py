@@ -36,6 +36,7 @@ TINY_RECIPE: dict[str, list[str]] = {
     ],  # fmt: skip
     "mappo": ["minibatch_size=10"],
     "coma": ["minibatch_size=10"],
+    "svmix": ["minibatch_size=10"],
 }
 TINY_MAPETS = [
     "episodes=1",
@@ -72,6 +73,14 @@ TINY_HIGHWAY_MAPETS = [
     "env_config.duration=3",
 ]
 
+TINY_LOOP = [
+    "env_config.n_cavs=3",
+    "env_config.n_hvs=2",
+    "env_config.horizon=20",
+    *(item for item in TINY_FREEWAY if not item.startswith("env_config.")),
+]
+"""The figure-eights (``figure-eight*``) for a model-free recipe: 3 CAVs, a tiny budget."""
+
 NAMES = [c.name for c in available_configs()]
 
 
@@ -80,7 +89,11 @@ def tiny_overrides(recipe: str, env: str) -> list[str]:
     if env.startswith("highway-"):
         return TINY_HIGHWAY_MAPETS if recipe == "mapets" else [*TINY_HIGHWAY,
                                                               *TINY_RECIPE[recipe]]  # fmt: skip
-    return TINY_MAPETS if recipe == "mapets" else [*TINY_FREEWAY, *TINY_RECIPE[recipe]]
+    if recipe == "mapets":
+        return TINY_MAPETS
+    if env.startswith("figure-eight"):
+        return [*TINY_LOOP, *TINY_RECIPE[recipe]]
+    return [*TINY_FREEWAY, *TINY_RECIPE[recipe]]
 
 
 def test_the_headline_arms_are_published() -> None:
