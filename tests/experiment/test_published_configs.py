@@ -37,6 +37,8 @@ TINY_RECIPE: dict[str, list[str]] = {
     "mappo": ["minibatch_size=10"],
     "coma": ["minibatch_size=10"],
     "svmix": ["minibatch_size=10"],
+    "dqn": ["batch_size=8", "init_random_frames=0", "update_interval=20"],
+    "firl": ["minibatch_size=10"],
 }
 TINY_MAPETS = [
     "episodes=1",
