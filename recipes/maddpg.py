@@ -56,6 +56,7 @@ from mapets_rl.modules import (
     make_q_critic,
     sync_target_statistics,
 )
+from mapets_rl.modules.advantage_critic import make_advantage_q_critic
 from mapets_rl.modules.storage import FilledTensorStorage
 from mapets_rl.objectives.ddpg import PreactivationRegularisedDDPGLoss
 from mapets_rl.objectives.m3ddpg import M3DDPGLoss
@@ -142,6 +143,12 @@ class MADDPGConfig(DiscreteExplorationConfig):
             ``"own"``: its own, ``Q_i(o_i, a_i)`` (independent DDPG critics: a CAV's own move is
             4 of its critic's 28 inputs instead of 4 of 810 with 30 CAVs, and the other CAVs'
             actions become noise in its targets).
+        critic_head: ``"joint"`` (default): one network of the critic's inputs,
+            ``Q_i(o, a)``; ``"advantage"`` (discrete actions): a value of the critic's view
+            plus an advantage head of the agent's own observation and action anchored at action
+            0 (Keep Lane on the freeways), ``Q_i = V_i(o) + A_i(o_i, a_i) - A_i(o_i, 0)``
+            (:mod:`mapets_rl.modules.advantage_critic`): the agent's own move enters only
+            through its advantage, apart from the state's value.
     """
 
     sigma_init: float = 0.3
@@ -152,6 +159,7 @@ class MADDPGConfig(DiscreteExplorationConfig):
     n_steps: int = 1
     critic_share_params: bool = False
     critic_view: str = "all"
+    critic_head: str = "joint"
 
     @classmethod
     def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
@@ -173,6 +181,12 @@ class MADDPGConfig(DiscreteExplorationConfig):
         )
         check(self.n_steps >= 1, "n_steps", ">= 1", self.n_steps)
         check(self.critic_view in ("all", "own"), "critic_view", "'all' or 'own'", self.critic_view)
+        check(
+            self.critic_head in ("joint", "advantage"),
+            "critic_head",
+            "'joint' or 'advantage'",
+            self.critic_head,
+        )
         check(
             0 <= self.sigma_end <= self.sigma_init,
             "sigma_end",
@@ -237,13 +251,28 @@ class MADDPG(Experiment):
             )
             collection_policy = TensorDictSequential(self.actor, self.exploration)
         # centralised critic Q_i(o_1..o_I, a_1..a_I) (or Q_i(o_i, a_i)), one output per agent
-        self.critic = make_q_critic(
-            spec,
-            cells,
-            centralized=config.critic_view == "all",
-            share_params=config.critic_share_params,
-            obs_norm=norm_module,
-        )
+        if config.critic_head == "advantage":
+            if not spec.discrete:
+                raise ValueError(
+                    f"critic_head='advantage' needs discrete actions; {config.env!r} has "
+                    "continuous ones"
+                )
+            self.critic = make_advantage_q_critic(
+                spec,
+                cells,
+                centralized=config.critic_view == "all",
+                share_params=config.critic_share_params,
+                baseline_action=0,
+                obs_norm=norm_module,
+            )
+        else:
+            self.critic = make_q_critic(
+                spec,
+                cells,
+                centralized=config.critic_view == "all",
+                share_params=config.critic_share_params,
+                obs_norm=norm_module,
+            )
 
         # collector
         self.collector = self.make_collector(

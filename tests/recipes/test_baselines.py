@@ -138,6 +138,12 @@ def test_maddpg_critic_view_own_reads_each_agents_own_observation_and_action(
         MADDPGConfig(env="toy", critic_view="mine")
 
 
+def test_maddpg_advantage_critic_head_is_refused_on_continuous_actions(tmp_path: Path) -> None:
+    config = MADDPGConfig(env="toy", logger="none", progress=False, critic_head="advantage")
+    with pytest.raises(ValueError, match="critic_head='advantage' needs discrete actions"):
+        MADDPG(config, tmp_path)
+
+
 def test_a_maddpg_config_written_before_critic_share_params_keeps_its_shared_critic(
     tmp_path: Path,
 ) -> None:

@@ -239,3 +239,30 @@ def test_the_replay_buffer_keeps_only_what_the_loss_reads(recipe: str, tmp_path:
     sample = exp.buffer.sample()
     kept = set(sample.exclude("index").keys(include_nested=True, leaves_only=True))
     assert kept == set(TRANSITION_KEYS)
+
+
+def test_maddpg_with_the_advantage_critic_head_trains_and_moves_only_its_own_advantage(
+    tmp_path: Path,
+) -> None:
+    """``critic_head="advantage"``: the critic is V(o) + A(o_i, a_i) - A(o_i, Keep Lane), so an
+    agent's Q at Keep Lane is its value, another agent's action changes nothing of it, and
+    the run trains its parameters; an unknown head is refused."""
+    exp = MADDPG(MADDPGConfig(**COMMON, **OFF_POLICY, critic_head="advantage"), tmp_path)
+    td = exp.env.rollout(2)[0].select(*exp.critic.in_keys)
+    keep = td.clone()
+    keep["agents", "action"] = torch.nn.functional.one_hot(
+        torch.zeros(keep["agents", "action"].shape[:-1], dtype=torch.long), 4
+    ).to(keep["agents", "action"].dtype)
+    out = exp.critic(keep.clone())
+    torch.testing.assert_close(out["agents", "state_action_value"], out["agents", "state_value"])
+    other = keep.clone()
+    other["agents", "action"][1:] = torch.nn.functional.one_hot(torch.tensor(1), 4).to(
+        other["agents", "action"].dtype
+    )
+    q = exp.critic(other)["agents", "state_action_value"]
+    torch.testing.assert_close(q[0], out["agents", "state_action_value"][0])
+    before = _params(exp)
+    exp.train()
+    assert not torch.equal(before, _params(exp))
+    with pytest.raises(ConfigError, match="critic_head must be 'joint' or 'advantage'"):
+        MADDPGConfig(env="freeway-merge", critic_head="dueling")
