@@ -16,6 +16,7 @@ from mapets_rl.envs.figure_eight import (
 from mapets_rl.envs.freeway import ACTION_NAMES, FreewayEnv
 from mapets_rl.envs.freeway_merge import FreewayMergeEnv, FreewayMergeParallelEnv
 from mapets_rl.envs.highway_multi_agent import (
+    HighwayMergePlannerReward,
     HighwayMultiAgentParallelEnv,
     HighwayPlannerReward,
 )
@@ -52,6 +53,7 @@ __all__ = [
     "FreewayMergeParallelEnv",
     "FreewayParallelEnv",
     "HighwayMultiAgentParallelEnv",
+    "HighwayMergePlannerReward",
     "HighwayPlannerReward",
     "MultiAgentTrafficEnv",
     "TrafficParallelEnv",

@@ -65,6 +65,7 @@ from highway_env.envs.intersection_env import (
 )
 from highway_env.envs.merge_env import MergeEnv
 from highway_env.envs.roundabout_env import RoundaboutEnv
+from highway_env.road.lane import StraightLane
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.kinematics import Vehicle
 from pettingzoo import ParallelEnv
@@ -75,6 +76,7 @@ from mapets_rl.envs.registry import register_builtin
 from mapets_rl.envs.validation import check_seed
 
 __all__ = [
+    "HighwayMergePlannerReward",
     "HighwayMultiAgentParallelEnv",
     "HighwayPlannerReward",
     "IntersectionIDMVehicle",
@@ -121,19 +123,34 @@ def _hand_over(env: AbstractEnv, count: int, order: Sequence[int]) -> None:
 class MultiAgentMergeEnv(MergeEnv):
     """highway-env's ``merge-v0`` scene with up to 5 controlled vehicles, in this order: the ego
     on the highway, the vehicle on the access ramp (it must merge before the ramp's end), then
-    the three other highway vehicles. ``duration`` [s] truncates an episode (``merge-v0`` has no
-    time limit: a vehicle ends when it crashes or passes x = 370 m)."""
+    the three other highway vehicles. With ``ramp_agent: false`` the ramp vehicle stays
+    highway-env's IDM/MOBIL driver and up to 4 controlled vehicles are the highway's (ego
+    first): the agents then only follow their straight lanes, as merge-v0's ego does, and make
+    room for the merging driver (merge-v0's ``merging_speed_reward`` charges every agent for the
+    ramp vehicle's slowdown). ``duration`` [s] truncates an episode (``merge-v0`` has no time
+    limit: a vehicle ends when it crashes or passes x = 370 m)."""
 
     HAND_OVER_ORDER = (0, 4, 1, 2, 3)
     """Indices in ``road.vehicles`` after ``MergeEnv._make_vehicles``: ego, ramp, highway."""
+    HIGHWAY_ORDER = (0, 1, 2, 3)
+    """The same indices without the ramp vehicle (``ramp_agent: false``)."""
 
     @classmethod
     def default_config(cls) -> dict:
-        return {**super().default_config(), "controlled_vehicles": 2, "duration": 20}
+        return {
+            **super().default_config(),
+            "controlled_vehicles": 2,
+            "duration": 20,
+            "ramp_agent": True,
+        }
 
     def _make_vehicles(self) -> None:
+        ramp_agent = self.config["ramp_agent"]
+        if not isinstance(ramp_agent, bool):
+            raise ValueError(f"ramp_agent must be true or false, got {ramp_agent!r}")
         super()._make_vehicles()
-        _hand_over(self, self.config["controlled_vehicles"], self.HAND_OVER_ORDER)
+        order = self.HAND_OVER_ORDER if ramp_agent else self.HIGHWAY_ORDER
+        _hand_over(self, self.config["controlled_vehicles"], order)
 
     def _is_truncated(self) -> bool:
         return self.time >= self.config["duration"]
@@ -436,6 +453,8 @@ KINEMATICS_RANGE = {
 }
 """Normalisation of the highway's and the merge's observations (to ``[-1, 1]``, clipped): fixed,
 so that the planner reward reads metres and m/s whatever the number of lanes."""
+LANE_WIDTH = float(StraightLane.DEFAULT_WIDTH)
+"""highway-env's lane width [m] on the highway and the merge (4 m)."""
 
 
 def _kinematics(vehicles: int) -> dict[str, Any]:
@@ -549,6 +568,74 @@ class HighwayPlannerReward(PlannerReward):
         return self.crash
 
 
+MERGE_LANE_Y = 8.0
+"""Lateral position [m] of merge-v0's merging lane ``("b", "c", 2)`` (the highway's lanes at 0
+and 4 m, lanes 4 m wide)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class HighwayMergePlannerReward(HighwayPlannerReward):
+    """merge-v0's per-vehicle reward on a predicted step of ``highway-merge`` with highway
+    agents (``ramp_agent: false``) and continuous longitudinal actions (the observation as
+    :class:`HighwayPlannerReward`'s, without obstacles): ``lmap(collision_reward * crash +
+    right_lane_reward * lane + high_speed_reward * s + merging_speed_reward * m,
+    [collision_reward + merging_speed_reward, high_speed_reward + right_lane_reward], [0, 1])``
+    with ``lane`` the observer's lane index (its ``y`` over the 4 m lane width), ``s`` its
+    forward speed mapped from ``[speed_low, speed_high]`` onto ``[0, 1]`` (not clipped, as
+    merge-v0) and ``m`` the merging vehicles' slowdown, ``sum (ramp_target_speed - speed) /
+    ramp_target_speed`` over the observed vehicles within 2 m of the merging lane. merge-v0's
+    ``lane_change_reward`` (``action in [0, 2]``: for a continuous action, an acceleration of
+    exactly 0 or 2) is left out, so set it to 0 in ``env_config``; merge-v0 sums the slowdown
+    of every vehicle on the merging lane, observed or not, so the two differ when the merging
+    vehicle is out of view.
+
+    Attributes:
+        collision_reward, high_speed_reward, speed_low, speed_high, gap_x, gap_y: as
+            :class:`HighwayPlannerReward`, at merge-v0's values.
+        right_lane_reward: merge-v0's ``right_lane_reward``, per lane index.
+        merging_speed_reward: merge-v0's ``merging_speed_reward`` (<= 0).
+        ramp_target_speed: the merging vehicle's target speed [m/s] (merge-v0 sets 30), > 0.
+    """
+
+    high_speed_reward: float = 0.2
+    right_lane_reward: float = 0.1
+    merging_speed_reward: float = -0.5
+    ramp_target_speed: float = 30.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.merging_speed_reward <= 0:
+            raise ValueError(f"merging_speed_reward must be <= 0, got {self.merging_speed_reward}")
+        if not self.ramp_target_speed > 0:
+            raise ValueError(f"ramp_target_speed must be > 0, got {self.ramp_target_speed}")
+
+    def reward(
+        self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor
+    ) -> torch.Tensor:
+        rows = next_obs.unflatten(-1, (-1, len(KINEMATICS_FEATURES)))  # [..., V, 5]
+        scale = next_obs.new_tensor(
+            [1.0, *(KINEMATICS_RANGE[k][1] for k in ("x", "y", "vx", "vy"))]
+        )
+        rows = rows * scale  # metres and m/s; row 0 absolute, the others relative to it
+        own, others = rows[..., 0, :], rows[..., 1:, :]
+        lane = (own[..., 2] / LANE_WIDTH).round().clamp(min=0.0)
+        scaled = (own[..., 3] - self.speed_low) / (self.speed_high - self.speed_low)
+        y = own[..., 2:3] + others[..., 2]  # [..., V - 1] the neighbours' y [m]
+        speed = torch.hypot(own[..., 3:4] + others[..., 3], own[..., 4:5] + others[..., 4])
+        merging = (others[..., 0] > 0.5) & ((y - MERGE_LANE_Y).abs() < LANE_WIDTH / 2)
+        slowdown = ((self.ramp_target_speed - speed) / self.ramp_target_speed * merging).sum(-1)
+        crash = self.crash(obs, action, next_obs).to(scaled.dtype)
+        raw = (
+            self.collision_reward * crash
+            + self.right_lane_reward * lane
+            + self.high_speed_reward * scaled
+            + self.merging_speed_reward * slowdown
+        )
+        low = self.collision_reward + self.merging_speed_reward
+        high = self.high_speed_reward + self.right_lane_reward
+        return (raw - low) / (high - low)
+
+
 # ------------------------------------------------------------------------ registration
 SCENARIOS: dict[str, tuple[type[HighwayScenarioParallelEnv], str, dict[str, Any]]] = {
     "highway-intersection": (
@@ -605,6 +692,13 @@ SCENARIOS: dict[str, tuple[type[HighwayScenarioParallelEnv], str, dict[str, Any]
 the scenario's config; ``mapets_rl.envs.GYM_IDS``) and what it changes from the env's
 defaults."""
 
+PLANNER_REWARDS: dict[str, type[HighwayPlannerReward]] = {
+    "highway-multi": HighwayPlannerReward,
+    "highway-merge": HighwayMergePlannerReward,
+}
+"""The scenarios MA-PETS plans on (straight lanes, continuous longitudinal actions) and their
+planner rewards."""
+
 # the generalised scenes at highway-env's defaults (the scenarios' ids, with their changes, are
 # registered by mapets_rl.envs with the other built-in scenarios')
 for _id, _cls in (
@@ -621,5 +715,5 @@ for _name, (_cls, _gym_id, _changes) in SCENARIOS.items():
         _cls,
         _gym_id,
         _changes,
-        HighwayPlannerReward if _name == "highway-multi" else None,
+        PLANNER_REWARDS.get(_name),
     )

@@ -2,7 +2,8 @@
 registered ones pass PettingZoo's API and seed tests and torchrl's spec check, rewards and
 terminations are highway-env's per agent, the intersection's one crash ends the episode,
 positions reach the communication graph, the intersection leaves the other scenarios' IDM
-drivers alone, the planner reward is the env's reward on observed steps, bad input is refused
+drivers alone, the merge can keep its ramp driver, the planner rewards (highway-multi's,
+highway-merge's) are the env's reward on observed steps, bad input is refused
 naming the parameter, and MAPPO trains on a scenario through the CLI."""
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from torchrl.envs.utils import check_env_specs
 
 from mapets_rl.envs import (
     GYM_IDS,
+    HighwayMergePlannerReward,
     HighwayMultiAgentParallelEnv,
     HighwayPlannerReward,
     make_env,
@@ -26,6 +28,7 @@ from mapets_rl.envs import (
     scenario_defaults,
 )
 from mapets_rl.envs.highway_multi_agent import SCENARIOS
+from mapets_rl.experiment.published import load_published
 from tests.cli_run import run_cli
 
 NAMES = list(SCENARIOS)
@@ -54,6 +57,7 @@ def test_the_scenarios_are_registered_with_their_defaults() -> None:
         assert defaults["controlled_vehicles"] == changes["controlled_vehicles"] >= 2
         assert defaults["observation"]["type"] == "MultiAgentObservation"
     assert registered_scenario("highway-multi").planner_reward is HighwayPlannerReward
+    assert registered_scenario("highway-merge").planner_reward is HighwayMergePlannerReward
 
 
 def test_rewards_and_terminations_are_highway_envs_per_agent() -> None:
@@ -162,6 +166,57 @@ def test_the_planner_reward_is_the_envs_reward_on_observed_steps() -> None:
         crashes += int(crash.sum())
         flagged_crashes += int((flagged & crash).sum())
     assert flagged_crashes >= 0.8 * crashes
+
+
+def test_the_merge_planner_reward_is_merge_v0s_reward_on_observed_steps() -> None:
+    """On real steps of ``highway-merge`` with highway agents (the published MA-PETS config's
+    env_config), the merge planner reward equals every agent's merge-v0 reward where neither
+    sees a crash, no vehicle is on the ramp's curve and the vehicles on the merging lane are
+    those the agent observes near it; the merging vehicle's slowdown is among the steps
+    compared; a crash ends a planned trajectory."""
+    config = load_published("highway-merge/mapets").fields["env_config"]
+    env = make_parallel_env("highway-merge", **config)
+    planner = HighwayMergePlannerReward()
+    compared = slowed = 0
+    for seed in range(6):
+        obs, _ = env.reset(seed=seed)
+        rng = np.random.default_rng(seed)
+        while env.agents:
+            actions = {a: rng.uniform(-1, 1, 1).astype(np.float32) for a in env.agents}
+            next_obs, rewards, _, _, infos = env.step(actions)
+            vehicles = env.env.road.vehicles
+            curve = any(v.lane_index[:2] == ("k", "b") for v in vehicles)
+            merging = sum(v.lane_index == ("b", "c", 2) for v in vehicles)
+            for agent, reward in rewards.items():
+                step = [torch.as_tensor(x) for x in (obs[agent], actions[agent], next_obs[agent])]
+                rows = step[2].view(-1, 5)
+                y = 12 * (rows[0, 2] + rows[1:, 2])
+                seen = int(((rows[1:, 0] > 0.5) & ((y - 8).abs() < 2)).sum())
+                crash = bool(planner.crash(*step)) or infos[agent]["collided"]
+                assert bool(planner.termination_fn(*step)) == bool(planner.crash(*step))
+                if crash or curve or seen != merging:
+                    continue
+                assert float(planner.reward(*step)) == pytest.approx(reward, abs=1e-4)
+                compared += 1
+                slowed += merging > 0
+            obs = next_obs
+    assert compared >= 60 and slowed >= 5, (compared, slowed)
+    with pytest.raises(ValueError, match="ramp_target_speed must be > 0"):
+        HighwayMergePlannerReward(ramp_target_speed=0.0)
+    with pytest.raises(ValueError, match="ramp_agent must be true or false"):
+        make_parallel_env("highway-merge", ramp_agent=1)
+
+
+def test_the_merge_can_keep_its_ramp_driver() -> None:
+    """``ramp_agent: false``: the agents are the highway's vehicles (ego first), the ramp
+    vehicle stays highway-env's IDM driver; at most 4 agents."""
+    env = make_parallel_env("highway-merge", controlled_vehicles=4, ramp_agent=False)
+    env.reset(seed=0)
+    assert all(v.lane_index[:2] == ("a", "b") for v in env.vehicles)
+    (ramp,) = [v for v in env.env.road.vehicles if v.lane_index[:2] == ("j", "k")]
+    assert type(ramp) is IDMVehicle and ramp not in env.vehicles
+    with pytest.raises(ValueError, match=r"controlled_vehicles must be in \[1, 4\]"):
+        make_parallel_env("highway-merge", controlled_vehicles=5, ramp_agent=False)
 
 
 @pytest.mark.parametrize(
