@@ -29,6 +29,7 @@ import dataclasses
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
+from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import OneHot, TensorDictReplayBuffer
 from torchrl.modules import EGreedyModule, QValueModule
@@ -111,14 +112,32 @@ class DQNConfig(OffPolicyConfig):
         )
 
 
-def make_dqn_loss(value_network: TensorDictModule, choice_spec: OneHot, gamma: float) -> DQNLoss:
+def greedy_choice(choice_key: NestedKey = ACTION_CHOICE) -> QValueModule:
+    """torchrl's ``QValueModule`` on the group: ``ACTION_VALUE`` ``[*, I, K]`` -> the greedy
+    one-hot choice at ``choice_key`` ``[*, I, K]`` and its value ``CHOSEN_VALUE``
+    ``[*, I, 1]``."""
+    return QValueModule(
+        action_space="one-hot",
+        action_value_key=ACTION_VALUE,
+        out_keys=[choice_key, ACTION_VALUE, CHOSEN_VALUE],
+    )
+
+
+def make_dqn_loss(
+    value_network: TensorDictModule,
+    choice_spec: OneHot,
+    gamma: float,
+    choice_key: NestedKey = ACTION_CHOICE,
+) -> DQNLoss:
     """torchrl's double-DQN loss on the ``"agents"`` group: TD(0) targets
     ``r_i + gamma * (1 - terminated_i) * Q_target(o'_i, argmax_a Q(o'_i, a))`` per agent,
-    squared error against ``Q(o_i, a_i)`` of the replayed choice ``ACTION_CHOICE``.
+    squared error against ``Q(o_i, a_i)`` of the replayed choice at ``choice_key`` (one-hot;
+    ``ACTION`` on scenarios with one-hot actions), averaged over transitions and agents.
 
     Args:
-        value_network: ``OBS`` -> ``ACTION_VALUE`` ``[*, I, K]``, ``ACTION_CHOICE`` (greedy
-            one-hot) and ``CHOSEN_VALUE`` ``[*, I, 1]``.
+        value_network: ``OBS`` -> ``ACTION_VALUE`` ``[*, I, K]``, ``choice_key`` (greedy
+            one-hot) and ``CHOSEN_VALUE`` ``[*, I, 1]`` (e.g. a Q network followed by
+            :func:`greedy_choice`).
         choice_spec: the one-hot spec ``[I, K]`` of the choice.
         gamma: discount in [0, 1].
     """
@@ -162,12 +181,7 @@ class DQN(Experiment):
             in_keys=[OBS if norm_module is None else OBS_NORM],
             out_keys=[ACTION_VALUE],
         )
-        greedy = QValueModule(
-            action_space="one-hot",
-            action_value_key=ACTION_VALUE,
-            out_keys=[choice_key, ACTION_VALUE, CHOSEN_VALUE],
-        )
-        self.value_network = TensorDictSequential(*front, q_net, greedy)
+        self.value_network = TensorDictSequential(*front, q_net, greedy_choice(choice_key))
         self.exploration: EGreedyModule = restricted_epsilon_greedy(
             choice_spec,
             [],
@@ -192,9 +206,7 @@ class DQN(Experiment):
         )
 
         # loss: double DQN, TD(0) targets, soft target updates
-        self.loss = make_dqn_loss(self.value_network, choice_spec, config.gamma)
-        if choice_key == ACTION:
-            self.loss.set_keys(action=ACTION)
+        self.loss = make_dqn_loss(self.value_network, choice_spec, config.gamma, choice_key)
         self.target_updater = SoftUpdate(self.loss, tau=config.tau)
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=config.lr_critic)
 
