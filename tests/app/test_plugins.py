@@ -72,7 +72,18 @@ def test_pyproject_declares_exactly_the_recipes_of_the_recipes_package() -> None
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     declared = project["entry-points"][RECIPE_GROUP]
     assert declared == _recipe_classes()
-    assert set(declared) == {"coma", "m3ddpg", "maddpg", "mapets", "mappo", "sac", "shapley_ac"}
+    assert set(declared) == {
+        "coma",
+        "dqn",
+        "firl",
+        "m3ddpg",
+        "maddpg",
+        "mapets",
+        "mappo",
+        "sac",
+        "shapley_ac",
+        "svmix",
+    }
     for name, value in declared.items():
         assert metadata.EntryPoint(name=name, value=value, group=RECIPE_GROUP).load().name == name
 
