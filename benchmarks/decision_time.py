@@ -15,9 +15,11 @@ the timed decisions) and per agent-step (the joint decision / I), next to the pa
 
 Methods: MA-PETS with the ``cpu`` and ``paper`` presets (figure-eight), MADDPG, MAPPO, SAC
 (figure-eight, continuous target speed; ``--loop figure-eight-multilane`` for the paper's
-multi-lane row), Shapley AC (freeway with ``I`` CAVs among ``2 I`` vehicles: it needs discrete
-actions). ``--device cuda`` runs the policies on a GPU (the env
-stays on the CPU; observations are moved, and the clock waits for the GPU).
+multi-lane row), DQN (the figure-eight's greedy choice among its discrete actions, mapped to the
+target speed), FIRL (one PPO policy per CAV, their parameters stacked), Shapley AC (freeway
+with ``I`` CAVs among ``2 I`` vehicles: it needs discrete actions). ``--device cuda`` runs the
+policies on a GPU (the env stays on the CPU; observations are moved, and the clock waits for the
+GPU).
 
 Examples::
 
@@ -44,12 +46,16 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from mapets_rl.machine import machine_line
 
 PAPER_TABLE_IV_MS = {
-    "figure-eight": {"mapets": (88.51, 3.105), "mappo": (80.07, 5.486)},
-    "figure-eight-multilane": {"mapets": (97.26, 2.615), "mappo": (87.79, 4.607)},
+    "figure-eight": {"mapets": (88.51, 3.105), "firl": (76.04, 3.034), "mappo": (80.07, 5.486)},
+    "figure-eight-multilane": {
+        "mapets": (97.26, 2.615),
+        "firl": (81.04, 4.519),
+        "mappo": (87.79, 4.607),
+    },
 }
-"""The paper's Table IV, ms per step (mean, std): single-lane loop MA-PETS 8.851e-2 s, MAPPO
-8.007e-2 s; multi-lane loop MA-PETS 9.726e-2 s, MAPPO 8.779e-2 s (FIRL and SVMIX have no
-counterpart here)."""
+"""The paper's Table IV, ms per step (mean, std): single-lane loop MA-PETS 8.851e-2 s, FIRL
+7.604e-2 s, MAPPO 8.007e-2 s; multi-lane loop MA-PETS 9.726e-2 s, FIRL 8.104e-2 s, MAPPO
+8.779e-2 s (SVMIX has no counterpart here)."""
 
 
 def _mapets(preset: str, **planner: Any) -> Callable[[argparse.Namespace], Any]:
@@ -93,6 +99,8 @@ METHODS: dict[str, tuple[str, Callable[[argparse.Namespace], Any]]] = {
     "maddpg": ("maddpg", _model_free("maddpg", "loop")),
     "mappo": ("mappo", _model_free("mappo", "loop")),
     "sac": ("sac", _model_free("sac", "loop")),
+    "dqn": ("dqn", _model_free("dqn", "loop")),
+    "firl": ("firl", _model_free("firl", "loop")),
     "shapley_ac": ("shapley_ac", _model_free("shapley_ac", "freeway")),
 }
 """Method name -> (paper key, builder of the recipe's Experiment). The ``-graph`` methods plan
@@ -185,7 +193,8 @@ def main() -> None:
         "--loop",
         default="figure-eight",
         choices=["figure-eight", "figure-eight-multilane"],
-        help="scenario of MA-PETS, MADDPG, MAPPO, SAC (the paper's single- or multi-lane loop)",
+        help="scenario of MA-PETS, MADDPG, MAPPO, SAC, DQN, FIRL (the paper's single- or "
+        "multi-lane loop)",
     )
     parser.add_argument("--agents", type=int, default=8, help="CAVs I (paper: 8; multi-lane 22)")
     parser.add_argument("--decisions", type=int, default=30, help="timed decisions per method")

@@ -47,3 +47,12 @@ def test_bad_arguments_fail_before_any_work() -> None:
     proc = _run("--agents", "0")
     assert proc.returncode == 2 and "--agents must be >= 1, got 0" in proc.stderr
     assert proc.stdout == ""
+
+
+def test_dqn_and_firl_rows_with_the_papers_firl_cell() -> None:
+    proc = _run("--methods", "dqn", "firl", "--agents", "2", "--decisions", "3")
+    assert proc.returncode == 0, proc.stderr
+    table = proc.stdout.split("|---|---|---|---|---|---|---|\n")[1]
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in table.splitlines()]
+    assert [r[:3] for r in rows] == [["dqn", "figure-eight", "3"], ["firl", "figure-eight", "3"]]
+    assert [r[6] for r in rows] == ["—", "76.04 ± 3.03"]  # the paper's Table IV has FIRL
