@@ -25,6 +25,7 @@ from mapets_rl.envs.parallel import FigureEightParallelEnv, FreewayParallelEnv, 
 from mapets_rl.envs.pettingzoo_wrapper import wrap_pettingzoo
 from mapets_rl.envs.planner_reward import PlannerReward
 from mapets_rl.envs.registry import builtin_envs, register_builtin, registered_scenario
+from mapets_rl.envs.sumo_figure_eight import SumoFigureEightParallelEnv, import_sumo
 from mapets_rl.envs.torch_freeway.env import TorchFreewayEnv
 from mapets_rl.envs.validation import check_device, check_flag, check_seed
 
@@ -46,9 +47,12 @@ def make_parallel_env(name: str, **config: Any) -> TrafficParallelEnv:
     return scenario.parallel_env(**{**scenario.changes, **config})
 
 
-BACKENDS = ("highway-env", "torch")
-"""Simulators of the built-in scenarios: highway-env (every scenario; the reference) and the
-batched torch freeway (``freeway``, ``freeway-merge``)."""
+BACKENDS = ("highway-env", "torch", "sumo")
+"""Simulators of the built-in scenarios: highway-env (every scenario; the reference), the
+batched torch freeway (``freeway``, ``freeway-merge``) and SUMO (the figure-eights; the extra
+``mapets-rl[sumo]``, :mod:`mapets_rl.envs.sumo_figure_eight`)."""
+SUMO_NAMES = ("figure-eight", "figure-eight-multilane")
+"""The scenarios ``backend="sumo"`` simulates."""
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 KERNELS = ("auto", "native", "torch")
 """``kernel`` of the batched freeway on a CPU (see :func:`make_env`)."""
@@ -99,9 +103,11 @@ def make_env(
         device: torch device of the output tensors (and, with ``backend="torch"``, of the
             simulation).
         categorical_actions: discrete actions as indices instead of one-hot (freeway).
-        backend: ``"highway-env"`` (default, every scenario) or ``"torch"`` (``freeway`` and
+        backend: ``"highway-env"`` (default, every scenario), ``"torch"`` (``freeway`` and
             ``freeway-merge``: ``num_envs`` roads simulated as one tensor program,
-            :class:`~mapets_rl.envs.torch_freeway.env.TorchFreewayEnv`).
+            :class:`~mapets_rl.envs.torch_freeway.env.TorchFreewayEnv`) or ``"sumo"`` (the
+            figure-eights on SUMO, :mod:`mapets_rl.envs.sumo_figure_eight`; needs
+            ``pip install 'mapets-rl[sumo]'``).
         num_envs: with ``backend="torch"``, the number of roads ``B`` (env ``batch_size=[B]``);
             None: one road without a batch dimension.
         dtype: with ``backend="torch"``, the simulation's precision (``"float32"`` or
@@ -112,6 +118,8 @@ def make_env(
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {list(BACKENDS)}, got {backend!r}")
+    if backend == "sumo":
+        import_sumo()  # without the extra: one line naming it, before any work
     unknown = sorted(set(config) - set(scenario_keys(name)) - {"render_mode"})
     if unknown:
         raise ValueError(
@@ -121,14 +129,24 @@ def make_env(
     check_device(device)
     seed = check_seed(seed)
     categorical_actions = check_flag(categorical_actions, "categorical_actions")
-    if backend == "highway-env":
+    if backend in ("highway-env", "sumo"):
         if num_envs is not None or dtype != "float32" or kernel != "auto":
             raise ValueError(
-                "num_envs, dtype and kernel need backend='torch' (the highway-env backend "
+                f"num_envs, dtype and kernel need backend='torch' (the {backend} backend "
                 "simulates one road; batch it with torchrl's SerialEnv / ParallelEnv)"
             )
+        if backend == "sumo" and name not in SUMO_NAMES:
+            raise ValueError(
+                f"backend='sumo' simulates {list(SUMO_NAMES)}, not {name!r}; use "
+                "backend='highway-env'"
+            )
+        parallel_env = (
+            SumoFigureEightParallelEnv(**{**registered_scenario(name).changes, **config})
+            if backend == "sumo"
+            else make_parallel_env(name, **config)
+        )
         return wrap_pettingzoo(
-            make_parallel_env(name, **config),
+            parallel_env,
             seed=seed,
             device=device,
             categorical_actions=categorical_actions,
@@ -203,7 +221,13 @@ def env_config_help(name: str) -> dict[str, str]:
     defaults = (
         env_class.resolved_config(changes) if checked else {**env_class.default_config(), **changes}
     )
-    backends = list(BACKENDS) if has_batched_backend(name) else ["highway-env"]
+    backends = (
+        ["highway-env", "torch"]
+        if has_batched_backend(name)
+        else ["highway-env", "sumo"]
+        if name in SUMO_NAMES
+        else ["highway-env"]
+    )
     words = {"backend": f"one of {backends} (default 'highway-env')", **FACTORY_KEYS}
     if has_batched_backend(name):
         words.update(TORCH_KEYS)

@@ -158,7 +158,7 @@ def test_help_lists_the_chosen_scenarios_env_config_keys_with_their_values(
     code, out, _ = run_cli(["train", "mapets", "--help"], capsys)
     keys = _env_config_keys(out)
     assert code == 0 and "num_envs" not in keys
-    assert keys["backend"] == "one of ['highway-env'] (default 'highway-env')"
+    assert keys["backend"] == "one of ['highway-env', 'sumo'] (default 'highway-env')"
     assert keys["lanes"] == "1 or 2; default 1"
 
 
