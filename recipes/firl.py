@@ -86,6 +86,9 @@ class FIRLConfig(OnPolicyConfig):
         consensus_rounds: gradient-exchange rounds with the neighbours per local update (>= 0;
             0: periodic averaging alone, plain federated averaging).
         averaging_period: local updates between the server's parameter averagings (>= 1).
+
+    One road per run (no ``env_config.num_envs``, ``collector_workers = 1``): learner ``i``
+    drives CAV ``i``, and the consensus graph is that road's.
     """
 
     share_params: bool = False
@@ -113,6 +116,19 @@ class FIRLConfig(OnPolicyConfig):
             "comm.share_plans",
             "false (FIRL exchanges gradients and parameters, no plans)",
             self.comm.share_plans,
+        )
+        one_road = "(firl's learner i drives CAV i of one road, whose graph the consensus uses)"
+        check(
+            self.env_batch_size is None,
+            "env_config.num_envs",
+            f"left out {one_road}",
+            self.env_batch_size,
+        )
+        check(
+            self.collector_workers == 1,
+            "collector_workers",
+            f"1 {one_road}",
+            self.collector_workers,
         )
         check(self.consensus_rounds >= 0, "consensus_rounds", ">= 0", self.consensus_rounds)
         check(self.averaging_period >= 1, "averaging_period", ">= 1", self.averaging_period)

@@ -165,6 +165,7 @@ def test_firl_learners_are_equal_after_an_averaging_and_its_bytes_are_logged(
         (FIRLConfig, ["averaging_period=0"], "averaging_period must be >= 1"),
         (FIRLConfig, ["consensus_rounds=-1"], "consensus_rounds must be >= 0"),
         (FIRLConfig, ["comm.share_plans=true"], "comm.share_plans must be false"),
+        (FIRLConfig, ["collector_workers=2"], "collector_workers must be 1 .firl's learner i"),
     ],
 )
 def test_bad_config_is_refused_naming_the_field(config_cls, overrides, match: str) -> None:
