@@ -1,6 +1,6 @@
 """Interval estimates over independent runs (seeds): the mean with a percentile-bootstrap 95%
 interval, the interquartile mean (IQM) with a stratified-bootstrap 95% interval, performance
-profiles and the probability of improvement, on :mod:`scipy.stats`.
+profiles, the optimality gap and the probability of improvement, on :mod:`scipy.stats`.
 
 The protocol is that of Agarwal et al. (2021), "Deep Reinforcement Learning at the Edge of the
 Statistical Precipice" (NeurIPS). Their ``rliable`` package pins ``arch == 5.3.0`` and
@@ -20,6 +20,9 @@ pulls in seaborn (with pandas) and absl-py for a few statistics, which stand her
   bootstrap over runs);
 - the *performance profile* (:func:`performance_profile`) is the fraction of all scores above
   each threshold ``tau``, with the stratified bootstrap's band;
+- the *optimality gap* (:func:`optimality_gap`) is the mean over all scores of how far each
+  falls short of a threshold ``gamma``, ``max(gamma - score, 0)``, with the stratified
+  bootstrap's interval;
 - the *probability of improvement* (:func:`probability_of_improvement`) P(X > Y) is, per task,
   the Mann-Whitney U statistic of X's runs over Y's divided by the number of pairs (ties count
   one half), averaged over tasks; its interval resamples X's and Y's runs independently.
@@ -42,6 +45,7 @@ that report it.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
@@ -254,6 +258,40 @@ def performance_profile(
         raise ValueError(f"taus must be a non-empty finite [points] array, got {taus!r}")
     above = (x.reshape(x.shape[0], -1, 1) > t).astype(np.float64)  # [runs, tasks, points]
     return _stratified_bootstrap(above, STATISTICS["mean"], (0.0, 1.0), confidence, resamples, seed)
+
+
+def optimality_gap(
+    scores: ArrayLike,
+    threshold: float,
+    *,
+    confidence: float = CONFIDENCE,
+    resamples: int = BOOTSTRAP_RESAMPLES,
+    seed: int = BOOTSTRAP_SEED,
+) -> IntervalEstimate:
+    """The optimality gap of Agarwal et al. (2021): the mean over all runs' scores (runs and
+    tasks) of ``max(threshold - score, 0)``, how far the scores fall short of ``threshold``
+    (rliable's ``gamma``; a score above it counts as reaching it, not as making up for
+    another's shortfall), with its stratified-bootstrap interval.
+
+    Args:
+        scores: ``[runs]`` (one task) or ``[runs, tasks]``, finite.
+        threshold: ``gamma``, the score counted as good enough, finite.
+        confidence, resamples, seed: as :func:`bootstrap_interval`.
+
+    Returns:
+        Floats ``(estimate, low, high)``, each ``>= 0``; one run gives ``low == high ==``
+        the estimate.
+    """
+    _check_options("mean", (0.0, math.inf), confidence, resamples)
+    x = _scores(scores, {1: "[runs]", 2: "[runs, tasks]"})
+    real = isinstance(threshold, numbers.Real) and not isinstance(threshold, bool)
+    if not (real and math.isfinite(threshold)):
+        raise ValueError(f"threshold must be a finite number, got {threshold!r}")
+    shortfall = np.maximum(threshold - x, 0.0).reshape(x.shape[0], -1, 1)  # [runs, tasks, 1]
+    estimate, low, high = _stratified_bootstrap(
+        shortfall, STATISTICS["mean"], (0.0, math.inf), confidence, resamples, seed
+    )
+    return IntervalEstimate(float(estimate[0]), float(low[0]), float(high[0]))
 
 
 def _improvement(x: Sequence[np.ndarray], y: Sequence[np.ndarray], axis: int) -> np.ndarray:

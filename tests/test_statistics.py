@@ -1,7 +1,7 @@
 """Known answers of the interval estimates: the IQM of constructed samples, the coverage of the
 bootstrap interval on simulated normal samples, stratification, clipping, reproducibility, the
-Student-t interval's quantiles, and the rliable protocol's performance profiles and
-probability of improvement on scores whose answers are counted by hand."""
+Student-t interval's quantiles, and the rliable protocol's performance profiles, optimality gap
+and probability of improvement on scores whose answers are counted by hand."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from mapets_rl.statistics import (
     bootstrap_interval,
     interquartile_mean,
     mean_ci95,
+    optimality_gap,
     performance_profile,
     probability_of_improvement,
 )
@@ -172,3 +173,26 @@ def test_the_probability_of_improvement_counts_pairs_and_half_ties() -> None:
     assert tuple(probability_of_improvement([4.0], [1.0, 5.0])) == (0.5, 0.5, 0.5)
     with pytest.raises(ValueError, match="same tasks"):
         probability_of_improvement(np.zeros((3, 2)), np.zeros((3, 1)))
+
+
+def test_the_optimality_gap_is_the_mean_shortfall_below_the_threshold() -> None:
+    """Runs x tasks ``[[0.5, 1.2], [0.8, 0.0], [1.0, 0.6]]`` below gamma = 1 fall short by
+    0.5, 0, 0.2, 1, 0, 0.4: the gap is 2.1 / 6 = 0.35, rliable's ``gamma - mean(min(scores,
+    gamma))``; a score above gamma does not make up for another's shortfall; the interval is
+    the stratified bootstrap of the shortfalls."""
+    scores = np.array([[0.5, 1.2], [0.8, 0.0], [1.0, 0.6]])
+    gap, low, high = optimality_gap(scores, 1.0)
+    assert gap == pytest.approx(0.35)
+    assert gap == pytest.approx(1.0 - np.minimum(scores, 1.0).mean())
+    shortfalls = np.maximum(1.0 - scores, 0.0)
+    assert (low, high) == pytest.approx(tuple(bootstrap_interval(shortfalls)[1:]))
+    assert 0.0 <= low < gap < high
+    assert tuple(optimality_gap([2.0, 0.0], 1.0)) == pytest.approx((0.5, 0.0, 1.0))
+    assert tuple(optimality_gap([0.25], 1.0)) == (0.75, 0.75, 0.75)  # one run: no width
+    assert tuple(optimality_gap([3.0, 4.0, 5.0], 2.0)) == (0.0, 0.0, 0.0)  # all above gamma
+    # stratified: task 0 falls short by 0.3 on every run, task 1 by 0.7: every replicate 0.5
+    even = np.array([[0.7, 0.3]] * 4)
+    assert tuple(optimality_gap(even, 1.0)) == pytest.approx((0.5, 0.5, 0.5))
+    for bad in (math.nan, math.inf, "1", True):
+        with pytest.raises(ValueError, match="threshold must be a finite number"):
+            optimality_gap(scores, bad)

@@ -353,6 +353,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="also write marl_eval.json, every run's entries in InstaDeep's marl-eval format",
     )
+    compare.add_argument(
+        "--optimality-gap",
+        default=None,
+        metavar="METRIC=GAMMA[,...]",
+        help="gamma of the rliable report's optimality gap (mean over runs of max(gamma - "
+        "value, 0)) per compared metric, e.g. return=10; default: the top of the metric's "
+        "range where it has one (safety=1), else no gap",
+    )
     _add_sweep_parser(sub)
     return parser
 
@@ -713,6 +721,13 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         group_by = [f.strip() for f in args.group_by.split(",") if f.strip()]
         if not group_by:
             _fail(f"--group-by must name at least one config field, got {args.group_by!r}")
+    thresholds: dict[str, float] = {}
+    for item in filter(None, (i.strip() for i in (args.optimality_gap or "").split(","))):
+        name, _, value = item.partition("=")
+        try:
+            thresholds[name.strip()] = float(value)
+        except ValueError:
+            _fail(f"--optimality-gap must be METRIC=GAMMA[,...] (GAMMA a number), got {item!r}")
     try:
         out = compare(
             args.run_dirs,
@@ -725,6 +740,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             allow_mixed_env=args.allow_mixed_env,
             legacy_as=args.legacy_as,
             marl_eval=args.marl_eval,
+            optimality_thresholds=thresholds,
         )
     except ValueError as err:
         _fail(str(err))

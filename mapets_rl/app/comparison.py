@@ -48,7 +48,12 @@ from typing import Any
 import numpy as np
 
 from mapets_rl.app.protocol_report import protocol_summary, protocol_table, read_protocols
-from mapets_rl.app.rliable_report import plot_profiles, rliable_summary, rliable_table
+from mapets_rl.app.rliable_report import (
+    gap_thresholds,
+    plot_profiles,
+    rliable_summary,
+    rliable_table,
+)
 from mapets_rl.experiment.files import (
     atomic_savefig,
     atomic_write_text,
@@ -242,6 +247,7 @@ def compare(
     legacy_as: str = "eval",
     title: str | None = None,
     marl_eval: bool = False,
+    optimality_thresholds: Mapping[str, float] | None = None,
 ) -> dict[str, Path]:
     """Group runs by recipe (and the values of ``group_by`` fields), and write to ``out_dir``:
 
@@ -268,7 +274,8 @@ def compare(
     - ``rliable.md``, ``rliable.json`` and ``performance_profiles.png``: the rliable
       protocol over the same final numbers (:mod:`mapets_rl.app.rliable_report`): per metric
       each group's performance profile (fraction of its runs above ``tau``, with a
-      stratified-bootstrap 95% band) and the probability of improvement P(X > Y) of every
+      stratified-bootstrap 95% band), its optimality gap below ``gamma``
+      (``optimality_thresholds``) and the probability of improvement P(X > Y) of every
       ordered pair of groups (with a bootstrap 95% interval), intervals only where the groups
       have at least three runs;
     - with ``marl_eval``, ``marl_eval.json``: every run's entries in InstaDeep's marl-eval
@@ -332,6 +339,10 @@ def compare(
             such runs are named in a logged note.
         title: prefix of the plot title (e.g. the experiment's name).
         marl_eval: also write ``marl_eval.json`` (the input of InstaDeep's marl-eval tools).
+        optimality_thresholds: metric -> ``gamma`` of its optimality gap in the rliable report;
+            a compared metric left out takes the top of its range where it has one (safety
+            1), else has no gap; a metric not compared, or a value that is not a finite
+            number, is refused.
     Returns:
         ``{"plot": Path, "table": Path, "summary": Path, "curves": Path, "rliable": Path,
         "rliable_table": Path, "profiles_plot": Path}``, and ``"marl_eval": Path`` with
@@ -468,6 +479,7 @@ def compare(
     if unknown:
         raise ValueError(f"metrics {unknown} are not in every run (available: {sorted(common)})")
     _check_numbers(groups, [*metrics, *([x] if x != "frames" else [])])
+    gammas = gap_thresholds(metrics, optimality_thresholds)
 
     # per group, each run's entries by x, and the entries the table compares
     for label, group in groups.items():
@@ -607,7 +619,7 @@ def compare(
     curves_path = out_dir / "curves.json"
     atomic_write_text(curves_path, json.dumps(curves, indent=1))
     written = {"plot": plot, "table": table, "summary": summary_path, "curves": curves_path}
-    rliable = rliable_summary(finals, metrics)
+    rliable = rliable_summary(finals, metrics, gammas)
     written["rliable"] = out_dir / "rliable.json"
     atomic_write_text(written["rliable"], json.dumps(rliable, indent=1))
     written["rliable_table"] = out_dir / "rliable.md"

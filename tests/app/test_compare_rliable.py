@@ -1,7 +1,7 @@
-"""``compare`` writes the rliable protocol's performance profiles and probabilities of
-improvement (checked against values counted by hand), draws no interval below three runs (two
-runs: their values as points), keeps a count's axis above zero and labels speeds in m/s with a
-second axis in mph."""
+"""``compare`` writes the rliable protocol's performance profiles, optimality gaps and
+probabilities of improvement (checked against values counted by hand), draws no interval below
+three runs (two runs: their values as points), keeps a count's axis above zero and labels
+speeds in m/s with a second axis in mph."""
 
 from __future__ import annotations
 
@@ -12,6 +12,8 @@ import matplotlib.collections
 import pytest
 
 from mapets_rl.app.comparison import compare
+from mapets_rl.app.rliable_report import gap_thresholds
+from tests.cli_run import run_cli
 from tests.experiment.test_results import fake_run
 
 
@@ -117,3 +119,50 @@ def test_count_axes_stay_above_zero_and_speeds_read_m_per_s(tmp_path: Path, all_
     (mph,) = [c for c in speed.child_axes if c.get_ylabel() == "mph"]
     low, high = speed.get_ylim()
     assert mph.get_ylim() == pytest.approx((low * 2.23694, high * 2.23694), rel=1e-4)
+
+
+def test_the_optimality_gap_of_two_methods(tmp_path: Path, capsys) -> None:
+    """gamma = 2.5 on the final returns: X's (1, 2, 3) fall short by 1.5, 0.5 and 0, a gap of
+    2/3; Y's (2, 2, 0) by 0.5, 0.5 and 2.5, a gap of 7/6. collisions (range [0, inf)) has no
+    gamma by default, safety's is 1 (the top of its range). The CLI takes --optimality-gap
+    METRIC=GAMMA and refuses a metric not compared or a value that is no number."""
+    runs = _methods(tmp_path, {"x": [1.0, 2.0, 3.0], "y": [2.0, 2.0, 0.0]})
+    out = compare(
+        runs, tmp_path / "cmp", ["return", "collisions"], optimality_thresholds={"return": 2.5}
+    )
+    report = json.loads(out["rliable"].read_text())
+    gap = report["return"]["optimality_gap"]
+    assert gap["gamma"] == 2.5
+    x, y = gap["groups"]["x"], gap["groups"]["y"]
+    assert x["gap"] == pytest.approx(2 / 3) and y["gap"] == pytest.approx(7 / 6)
+    assert x["n"] == 3 and 0.0 <= x["ci95"][0] < 2 / 3 < x["ci95"][1] <= 1.5
+    assert report["collisions"]["optimality_gap"] is None
+    table = out["rliable_table"].read_text()
+    assert "Optimality gap of return [per CAV] below gamma = 2.5" in table
+    assert f"| x | 3 | 0.667 [{x['ci95'][0]:.3g}, {x['ci95'][1]:.3g}] |" in table
+    assert "| y | 3 | 1.17 [" in table
+    assert gap_thresholds(["safety", "return", "collisions"]) == {"safety": 1.0}
+    two = _methods(tmp_path / "two", {"z": [1.0, 4.0]})
+    out = compare(two, tmp_path / "cmp2", ["return"], optimality_thresholds={"return": 3.0})
+    (row,) = json.loads(out["rliable"].read_text())["return"]["optimality_gap"]["groups"].values()
+    assert row == {"n": 2, "gap": pytest.approx(1.0), "ci95": None}  # 2 and 0: no interval
+    code, _, err = run_cli(
+        ["compare", *map(str, runs), "--out", str(tmp_path / "cli"), "--metrics", "return",
+         "--optimality-gap", "return=2.5"],
+        capsys,
+    )  # fmt: skip
+    assert code == 0, err
+    cli_gap = json.loads((tmp_path / "cli" / "rliable.json").read_text())["return"]
+    assert cli_gap["optimality_gap"] == gap
+    for bad, message in (
+        ("return=high", "--optimality-gap must be METRIC=GAMMA"),
+        ("safety=1", "optimality_thresholds names ['safety'], which are not compared"),
+        ("return=inf", "optimality_thresholds['return'] must be a finite number"),
+    ):
+        code, _, err = run_cli(
+            ["compare", *map(str, runs), "--out", str(tmp_path / "bad"), "--metrics", "return",
+             "--optimality-gap", bad],
+            capsys,
+        )  # fmt: skip
+        assert code == 2 and message in err, err
+        assert not (tmp_path / "bad").exists()
