@@ -628,6 +628,14 @@ class SumoFigureEightEnv:
         is_cav = self.veh_number < n
         self.cav_row[self.veh_number[is_cav]] = np.flatnonzero(is_cav)
 
+    def _per_cav(self, values: np.ndarray, fill: float = 0.0) -> np.ndarray:
+        """``[I]`` each CAV's entry of the vehicle array ``values [N]``; ``fill`` for CAVs not
+        on the road."""
+        out = np.full(len(self.cav_row), fill, dtype=values.dtype)
+        on_road = self.cav_row >= 0
+        out[on_road] = values[self.cav_row[on_road]]
+        return out
+
     def human_speeds(self) -> np.ndarray:
         """``[H]`` speeds [m/s] of the human drivers on the road now."""
         return self.veh_speed[self.veh_number >= self.config["n_cavs"]]
@@ -668,6 +676,7 @@ class SumoFigureEightEnv:
         ids = np.full((n, 2 + 2 * (self.obs_dim > 7) + 2 * (self.obs_dim == 15)), -1, np.int64)
         cavs = np.flatnonzero(self.alive & (self.cav_row >= 0))
         rows = self.cav_row[cavs]
+        self._positions[cavs] = self.veh_centre[rows]  # a crashed CAV's stays at the crash
         if len(rows):
             lane = self.veh_lane[rows]
             v_ahead, gap_ahead, id_ahead = self._neighbours(rows, lane, True)
@@ -721,9 +730,7 @@ class SumoFigureEightEnv:
 
     def _info(self, obs: np.ndarray) -> dict:
         n = self.config["n_cavs"]
-        on_road = self.cav_row >= 0
-        self._positions[on_road] = self.veh_centre[self.cav_row[on_road]]
-        speed = np.where(on_road & self.alive, self.veh_speed[np.maximum(self.cav_row, 0)], 0.0)
+        speed = np.where(self.alive, self._per_cav(self.veh_speed), 0.0)
         current, previous = self._observed_ids, self._previous_ids
         changed = np.zeros(n, dtype=bool)
         if previous is not None:
@@ -795,9 +802,7 @@ class SumoFigureEightEnv:
             crashed = self._collisions()
             self._read()
             moved = self.alive & ~self._crashed_now & (self.cav_row >= 0)
-            self._distance_step += np.where(
-                moved, self.veh_speed[np.maximum(self.cav_row, 0)] * dt, 0.0
-            )
+            self._distance_step += np.where(moved, self._per_cav(self.veh_speed) * dt, 0.0)
             self._crashed_now |= crashed & self.alive
         self.steps_taken += 1
         obs = self.observe_agents()
@@ -819,12 +824,12 @@ class SumoFigureEightEnv:
     def _request_lane_changes(self, flags: np.ndarray) -> None:
         """``changeLane`` to the other lane for the driving CAVs whose flag ``[I]`` is above
         0.5 and that are settled within ``SETTLED`` metres of their lane's centre."""
-        rows = np.maximum(self.cav_row, 0)
-        settled = np.abs(self.veh_lateral[rows] - self.veh_lane[rows]) * self.geometry.lane_width
-        wants = (flags > LANE_CHANGE_THRESHOLD) & self.alive & (self.cav_row >= 0)
-        wants &= settled <= TargetSpeedVehicle.SETTLED
+        lane = self._per_cav(self.veh_lane, -1)
+        off_centre = np.abs(self._per_cav(self.veh_lateral) - lane) * self.geometry.lane_width
+        wants = (flags > LANE_CHANGE_THRESHOLD) & self.alive & (lane >= 0)
+        wants &= off_centre <= TargetSpeedVehicle.SETTLED
         for i in np.flatnonzero(wants):
-            target = int(1 - self.veh_lane[rows[i]])
+            target = int(1 - lane[i])
             self._sim.vehicle.changeLane(self.cav_ids[i], target, LANE_CHANGE_DURATION)
 
     def _collisions(self) -> np.ndarray:
