@@ -135,8 +135,9 @@ class SVMIXConfig(OnPolicyConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         check(not self.comm.share_plans, "comm.share_plans", "false (SVMIX plans nothing)", True)
-        check_layer_sizes("gnn_hidden", [self.gnn_hidden], self.device)
+        check(self.gnn_hidden >= 1, "gnn_hidden", ">= 1", self.gnn_hidden)
         check(self.gnn_layers >= 1, "gnn_layers", ">= 1", self.gnn_layers)
+        check_layer_sizes("gnn_hidden", [self.gnn_hidden] * (self.gnn_layers + 1), self.device)
         check(self.mixing_embed >= 1, "mixing_embed", ">= 1", self.mixing_embed)
         check(self.clip_epsilon > 0, "clip_epsilon", "> 0", self.clip_epsilon)
         check(self.entropy_coeff >= 0, "entropy_coeff", ">= 0", self.entropy_coeff)

@@ -111,6 +111,7 @@ def test_the_critic_links_the_cavs_within_range_and_drops_failed_links(
         ("comm.p_fail=2", "comm.p_fail must be in [0, 1]"),
         ("comm.comm_range=-1", "comm.comm_range must be >= 0"),
         ("comm.share_plans=true", "comm.share_plans must be false"),
+        ("gnn_hidden=0", "gnn_hidden must be >= 1"),
         ("gnn_layers=0", "gnn_layers must be >= 1"),
         ("mixing_embed=0", "mixing_embed must be >= 1"),
         ("clip_epsilon=0", "clip_epsilon must be > 0"),
