@@ -148,7 +148,7 @@ def make_dqn_loss(
         double_dqn=True,
         loss_function="l2",
     )
-    loss.set_keys(**LOSS_KEYS, action=ACTION_CHOICE, action_value=ACTION_VALUE, value=CHOSEN_VALUE)
+    loss.set_keys(**LOSS_KEYS, action=choice_key, action_value=ACTION_VALUE, value=CHOSEN_VALUE)
     loss.make_value_estimator(ValueEstimators.TD0, gamma=gamma)
     return loss
 

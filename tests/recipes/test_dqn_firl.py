@@ -87,6 +87,29 @@ def test_mapets_rl_train_runs_the_recipe(recipe: str, env: str, tmp_path: Path, 
     assert all(torch.isfinite(torch.tensor(v)) for v in final["metrics"].values())
 
 
+def test_dqn_learns_on_one_hot_actions_as_they_are(tmp_path: Path) -> None:
+    """On the freeway (one-hot lane changes) the choice is the scenario's action itself."""
+    config = DQNConfig(
+        env="freeway",
+        env_config={"n_vehicles": 4, "cav_ratio": 0.5},
+        total_frames=60,
+        frames_per_batch=20,
+        batch_size=16,
+        init_random_frames=20,
+        updates_per_batch=2,
+        eval_interval=0,
+        checkpoint_interval=0,
+        progress=False,
+        logger="none",
+    )
+    exp = DQN(config, tmp_path / "run")
+    before = _params(exp)
+    exp.train()
+    assert exp.loss.tensor_keys.action == ("agents", "action")
+    assert ACTION_CHOICE not in exp.buffer.sample().keys(True)
+    assert not torch.equal(before, _params(exp))
+
+
 def _params(exp) -> torch.Tensor:
     return torch.cat([p.detach().flatten().clone() for p in exp.loss.parameters()])
 
