@@ -1,5 +1,6 @@
-"""The svmix recipe: ``mapets-rl train svmix`` on both figure-eights (tiny runs), exact resume
-with link failures drawn, the critic's graph within range ``d``, bad input refused."""
+"""The svmix recipe: ``mapets-rl train svmix`` on both figure-eights and the freeway (tiny
+runs), exact resume with link failures drawn, the critic's graph within range ``d``, bad input
+refused."""
 
 from __future__ import annotations
 
@@ -14,9 +15,6 @@ from mapets_rl.recipes.svmix import NEIGHBOURS, SVMIX, SVMIXConfig
 from tests.cli_run import run_cli
 
 TINY = [
-    "env_config.n_cavs=3",
-    "env_config.n_hvs=2",
-    "env_config.horizon=20",
     "total_frames=40",
     "frames_per_batch=20",
     "minibatch_size=10",
@@ -26,17 +24,26 @@ TINY = [
     "logger=none",
     "progress=false",
 ]
+LOOP = ["env_config.n_cavs=3", "env_config.n_hvs=2", "env_config.horizon=20"]
+SCENARIOS = {
+    "figure-eight": (LOOP, ("agility", "safety")),
+    "figure-eight-multilane": (LOOP, ("agility", "safety")),
+    "freeway": (["env_config.n_vehicles=4", "env_config.cav_ratio=0.5"], ("average_velocity",)),
+}
+"""Scenario -> (its tiny env_config, its metrics): the figure-eights' continuous target speeds
+and the freeway's one-hot lane moves (the categorical policy)."""
 
 
-@pytest.mark.parametrize("scenario", ["figure-eight", "figure-eight-multilane"])
-def test_mapets_rl_train_svmix_on_a_figure_eight(scenario: str, tmp_path: Path, capsys) -> None:
+@pytest.mark.parametrize("scenario", sorted(SCENARIOS))
+def test_mapets_rl_train_svmix(scenario: str, tmp_path: Path, capsys) -> None:
+    env_config, metrics = SCENARIOS[scenario]
     run_dir = tmp_path / "run"
-    argv = ["train", "svmix", "--env", scenario, "--run-dir", str(run_dir), *TINY]
+    argv = ["train", "svmix", "--env", scenario, "--run-dir", str(run_dir), *env_config, *TINY]
     code, out, err = run_cli(argv, capsys)
     assert code == 0, err
     final = json.loads(out.splitlines()[-1])
     assert final["frames"] == 40
-    for name in ("agility", "safety", "reward"):
+    for name in (*metrics, "reward"):
         assert torch.isfinite(torch.tensor(final["metrics"][name]))
     assert (run_dir / "results.json").is_file()
 
