@@ -272,8 +272,10 @@ class LaneMap:
     is interpolated from its lane and its position along it, all vehicles at once.
 
     Attributes:
-        lane_ids: ``[K]`` the network's lane ids.
+        lane_ids: ``[K]`` the network's lane ids (``index``: id -> its position there).
         lane_of: ``[K]`` the figure-eight lane (0 or 1: the lateral slot) of each.
+        lane_length: ``[K]`` their lengths in SUMO's lane positions [m].
+        span: ``[K]`` the route metres each covers.
     """
 
     def __init__(self, net: Path, geometry: FigureEightGeometry) -> None:
@@ -302,7 +304,6 @@ class LaneMap:
         self._keys = np.concatenate(keys)
         self._coords = np.concatenate(coords)
         self._base = np.array(bases)
-        self._length = np.array(lengths)
         self.lane_ids = ids
         self.lane_of = np.array(lanes, dtype=np.int64)
         self.index = {lane: k for k, lane in enumerate(ids)}
@@ -310,6 +311,7 @@ class LaneMap:
         self.span = np.array([c[-1] - c[0] for c in coords])
 
     def _lane_slot(self, lateral: float) -> int:
+        """The figure-eight lane (0 or 1) at ``lateral`` metres left of the reference line."""
         g = self.geometry
         return int(np.clip(round(lateral / g.lane_width + (g.lanes - 1) / 2), 0, g.lanes - 1))
 
@@ -356,7 +358,7 @@ class LaneMap:
         """Route coordinates ``[N]`` [m] (unwrapped along each lane) of the points at
         ``positions [N]`` (SUMO's lane positions) along the lanes ``lanes [N]`` (indices into
         :attr:`lane_ids`)."""
-        key = self._base[lanes] + np.clip(positions, 0.0, self._length[lanes])
+        key = self._base[lanes] + np.clip(positions, 0.0, self.lane_length[lanes])
         return np.interp(key, self._keys, self._coords)
 
     def coordinates(self, lanes: np.ndarray, positions: np.ndarray) -> np.ndarray:
@@ -456,7 +458,6 @@ class SumoFigureEightEnv:
         self.np_random = np.random.default_rng()
         self._workdir = Path(tempfile.mkdtemp(prefix="mapets_rl_sumo_"))
         self._sim: Any = None
-        self._label: str | None = None
         self._finalizer = weakref.finalize(self, shutil.rmtree, self._workdir, True)
         self.alive = np.zeros(n, dtype=bool)
         self.steps_taken = 0
