@@ -44,9 +44,8 @@ from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.multiagent import IPPOLoss
 
-from mapets_rl.comm import CommConfig
+from mapets_rl.comm import CommConfig, FederatedConsensus
 from mapets_rl.comm.consensus import (
-    FederatedConsensus,
     average_agents,
     set_stacked_gradients,
     stacked_gradients,

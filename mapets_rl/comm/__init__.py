@@ -7,6 +7,8 @@
 - :func:`group_regret_bound`: Theorem 1, eq. (21).
 - :func:`plan_schedule`: the neighbours' broadcast plans as known future speeds
   (``comm.share_plans``).
+- :class:`FederatedConsensus`: FIRL's gradient consensus over the graph and periodic parameter
+  averaging of independent learners, with their bytes.
 """
 
 from mapets_rl.comm.clique import (
@@ -16,6 +18,7 @@ from mapets_rl.comm.clique import (
     clique_cover_number,
 )
 from mapets_rl.comm.config import CommConfig
+from mapets_rl.comm.consensus import FederatedConsensus
 from mapets_rl.comm.datasets import ExchangeStats, NeighbourDatasets
 from mapets_rl.comm.plans import plan_schedule
 from mapets_rl.comm.regret import group_regret_bound
@@ -27,6 +30,7 @@ __all__ = [
     "CliqueCover",
     "CommunicationRange",
     "ExchangeStats",
+    "FederatedConsensus",
     "NeighbourDatasets",
     "clique_cover",
     "clique_cover_number",
