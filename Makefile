@@ -11,7 +11,7 @@ $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,ray,tensorboard,mlflow]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,ray,tensorboard,mlflow,sumo]"
 	touch $(STAMP)
 
 demo: $(STAMP)
