@@ -16,7 +16,8 @@ the timed decisions) and per agent-step (the joint decision / I), next to the pa
 Methods: MA-PETS with the ``cpu`` and ``paper`` presets (figure-eight), MADDPG, MAPPO, SAC
 (figure-eight, continuous target speed; ``--loop figure-eight-multilane`` for the paper's
 multi-lane row), DQN (the figure-eight's greedy choice among its discrete actions, mapped to the
-target speed), FIRL (one PPO policy per CAV, their parameters stacked), Shapley AC (freeway
+target speed), FIRL (one PPO policy per CAV, their parameters stacked), SVMIX (its
+decentralised actor: the graph mixer is the critic's, not part of a decision), Shapley AC (freeway
 with ``I`` CAVs among ``2 I`` vehicles: it needs discrete actions). ``--device cuda`` runs the
 policies on a GPU (the env stays on the CPU; observations are moved, and the clock waits for the
 GPU).
@@ -46,16 +47,23 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from mapets_rl.machine import machine_line
 
 PAPER_TABLE_IV_MS = {
-    "figure-eight": {"mapets": (88.51, 3.105), "firl": (76.04, 3.034), "mappo": (80.07, 5.486)},
+    "figure-eight": {
+        "mapets": (88.51, 3.105),
+        "firl": (76.04, 3.034),
+        "mappo": (80.07, 5.486),
+        "svmix": (102.8, 2.668),
+    },
     "figure-eight-multilane": {
         "mapets": (97.26, 2.615),
         "firl": (81.04, 4.519),
         "mappo": (87.79, 4.607),
+        "svmix": (110.6, 3.025),
     },
 }
-"""The paper's Table IV, ms per step (mean, std): single-lane loop MA-PETS 8.851e-2 s, FIRL
-7.604e-2 s, MAPPO 8.007e-2 s; multi-lane loop MA-PETS 9.726e-2 s, FIRL 8.104e-2 s, MAPPO
-8.779e-2 s (SVMIX has no counterpart here)."""
+"""The paper's Table IV, ms per step (mean, std; the paper's unit is 1e-2 s): single-lane loop
+MA-PETS 8.851 ± 0.3105, FIRL 7.604 ± 0.3034, MAPPO 8.007 ± 0.5486, SVMIX 10.28 ± 0.2668;
+multi-lane loop MA-PETS 9.726 ± 0.2615, FIRL 8.104 ± 0.4519, MAPPO 8.779 ± 0.4607, SVMIX
+11.06 ± 0.3025. Every method of the table has its row here."""
 
 
 def _mapets(preset: str, **planner: Any) -> Callable[[argparse.Namespace], Any]:
@@ -101,6 +109,7 @@ METHODS: dict[str, tuple[str, Callable[[argparse.Namespace], Any]]] = {
     "sac": ("sac", _model_free("sac", "loop")),
     "dqn": ("dqn", _model_free("dqn", "loop")),
     "firl": ("firl", _model_free("firl", "loop")),
+    "svmix": ("svmix", _model_free("svmix", "loop")),
     "shapley_ac": ("shapley_ac", _model_free("shapley_ac", "freeway")),
 }
 """Method name -> (paper key, builder of the recipe's Experiment). The ``-graph`` methods plan
@@ -193,8 +202,8 @@ def main() -> None:
         "--loop",
         default="figure-eight",
         choices=["figure-eight", "figure-eight-multilane"],
-        help="scenario of MA-PETS, MADDPG, MAPPO, SAC, DQN, FIRL (the paper's single- or "
-        "multi-lane loop)",
+        help="scenario of MA-PETS, MADDPG, MAPPO, SAC, DQN, FIRL, SVMIX (the paper's single- "
+        "or multi-lane loop)",
     )
     parser.add_argument("--agents", type=int, default=8, help="CAVs I (paper: 8; multi-lane 22)")
     parser.add_argument("--decisions", type=int, default=30, help="timed decisions per method")

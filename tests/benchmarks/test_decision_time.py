@@ -56,3 +56,16 @@ def test_dqn_and_firl_rows_with_the_papers_firl_cell() -> None:
     rows = [[c.strip() for c in line.strip("|").split("|")] for line in table.splitlines()]
     assert [r[:3] for r in rows] == [["dqn", "figure-eight", "3"], ["firl", "figure-eight", "3"]]
     assert [r[6] for r in rows] == ["—", "76.04 ± 3.03"]  # the paper's Table IV has FIRL
+
+
+def test_svmix_row_with_the_papers_svmix_cells_on_both_loops() -> None:
+    for loop, cell in (
+        ("figure-eight", "102.80 ± 2.67"),
+        ("figure-eight-multilane", "110.60 ± 3.02"),
+    ):
+        proc = _run("--methods", "svmix", "--loop", loop, "--agents", "2", "--decisions", "3")
+        assert proc.returncode == 0, proc.stderr
+        table = proc.stdout.split("|---|---|---|---|---|---|---|\n")[1]
+        rows = [[c.strip() for c in line.strip("|").split("|")] for line in table.splitlines()]
+        assert [r[:3] for r in rows] == [["svmix", loop, "3"]]
+        assert rows[0][6] == cell  # the paper's Table IV, single- and multi-lane loop
