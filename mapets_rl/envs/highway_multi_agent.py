@@ -29,6 +29,11 @@ env every recipe trains on. Agents ``cav_0 .. cav_{I-1}`` are highway-env's
 ``last_episode_metrics`` (after the step that ends an episode): ``speed`` (the agents' mean
 speed over the episode, m/s) and ``collisions`` (agents that crashed).
 
+MA-PETS plans with highway-env's longitudinal ``ContinuousAction`` (``lateral: false``, steering
+0), so only where every agent's route is straight: ``highway-multi`` and ``highway-merge`` with
+``ramp_agent: false`` (:data:`PLANNER_REWARDS`: highway-v0's and merge-v0's rewards on
+predicted steps).
+
 highway-env 1.12's ``merge-v0`` and ``roundabout-v0`` spawn one controlled vehicle whatever
 ``controlled_vehicles`` says; :class:`MultiAgentMergeEnv` and :class:`MultiAgentRoundaboutEnv`
 build the same scene and hand its first ``controlled_vehicles`` vehicles to agents. highway-env's
