@@ -165,10 +165,12 @@ class MADDPGConfig(DiscreteExplorationConfig):
     def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
         """A config written before ``critic_share_params`` existed trained one shared critic:
         it resumes with ``critic_share_params=True``, not today's default; one written before
-        ``critic_view`` existed had the centralised critic (``"all"``)."""
+        ``critic_view`` existed had the centralised critic (``"all"``), one written before
+        ``critic_head`` the joint one (``"joint"``)."""
         data = super().upgrade_dict(data)
         data.setdefault("critic_share_params", True)
         data.setdefault("critic_view", "all")
+        data.setdefault("critic_head", "joint")
         return data
 
     def __post_init__(self) -> None:

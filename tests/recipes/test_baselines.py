@@ -150,10 +150,12 @@ def test_a_maddpg_config_written_before_critic_share_params_keeps_its_shared_cri
     data = MADDPGConfig(env="toy").to_dict()
     assert data.pop("critic_share_params") is False  # today's default
     assert data.pop("critic_view") == "all"
+    assert data.pop("critic_head") == "joint"
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(data))
     loaded = MADDPGConfig.from_yaml(path)
     assert loaded.critic_share_params is True and loaded.critic_view == "all"
+    assert loaded.critic_head == "joint"
 
 
 def test_ippo_value_is_decentralised(tmp_path: Path) -> None:
