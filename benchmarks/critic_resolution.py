@@ -9,7 +9,8 @@ every CAV keeps its lane, except that with probability ``--epsilon`` it plays a 
 Keep Lane / Change Left / Change Right (the learners' exploration after annealing,
 ``fragments/epsilon-lane-moves``). Each CAV-step's discounted return to the end of its episode
 (``--gamma``) is the regression target: the CAV's own return, or the CAVs' mean (the team
-reward). The stored action is the one that ran (a move the shield replaced is Keep Lane). Each
+reward). The stored action is the one that ran (a move the shield replaced is Keep Lane), as the
+learners store it, or with ``--store proposed`` the one proposed. Each
 critic of ``--critics`` (the MADDPG critic: every agent's Q reads every observation and action,
 one network per agent; ``own``: each Q reads its own observation and action, one shared
 network; ``-wide``: 2 x 256 units instead of 2 x 64; ``advantage``: a value of every
@@ -82,10 +83,12 @@ class Behaviour:
 
 
 def collect(
-    config: RunConfig, roads: int, episodes: int, epsilon: float, gamma: float, seed: int
-) -> Behaviour:
+    config: RunConfig, roads: int, episodes: int, epsilon: float, gamma: float, seed: int,
+    store: str = "executed",
+) -> Behaviour:  # fmt: skip
     """``episodes`` episodes of keep lane with ``epsilon`` random lane moves on ``roads``
-    training roads (seed ``seed``), every road run to the horizon."""
+    training roads (seed ``seed``), every road run to the horizon; the stored action is the
+    one that ran (``store="executed"``) or the one proposed (``"proposed"``)."""
     env = evaluation_env(config, roads)
     generator = torch.Generator().manual_seed(seed)
     moves = torch.tensor([KL, CL, CR])
@@ -104,9 +107,9 @@ def collect(
                 drawn = moves[torch.randint(len(moves), shape, generator=generator)]
                 proposed = torch.where(explore, drawn, KL)
                 result = sim.step(proposed)
-                ran = proposed if result.shielded is None else torch.where(
-                    result.shielded, KL, proposed
-                )  # fmt: skip
+                ran = proposed
+                if store == "executed" and result.shielded is not None:
+                    ran = torch.where(result.shielded, KL, proposed)
                 paid = result.acting.to(result.reward.dtype)
                 team = (result.reward * paid).sum(1, keepdim=True) / paid.sum(
                     1, keepdim=True
@@ -226,6 +229,8 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--episodes", type=int, default=16, help="episodes per training road")
     parser.add_argument("--epsilon", type=float, default=0.05, help="random lane-move rate")
     parser.add_argument("--gamma", type=float, default=0.99)
+    parser.add_argument("--store", choices=["executed", "proposed"], default="executed",
+                        help="the action stored where the shield replaced a move")  # fmt: skip
     parser.add_argument("--probe-roads", type=int, default=64)
     parser.add_argument("--steps", type=int, default=4000, help="regression steps per critic")
     parser.add_argument("--batch", type=int, default=256, help="road-steps per regression step")
@@ -244,9 +249,11 @@ def main(argv: list[str] | None = None) -> str:
         published.fields, overrides
     )
     print(f"# {machine_line()}")
-    print(f"# {args.config} {' '.join(args.set)}; behaviour: keep lane, epsilon {args.epsilon}")
+    print(f"# {args.config} {' '.join(args.set)}; behaviour: keep lane, epsilon {args.epsilon}; "
+          f"stored: the {args.store} action")  # fmt: skip
     started = time.perf_counter()
-    data = collect(config, args.roads, args.episodes, args.epsilon, args.gamma, config.seed)
+    data = collect(config, args.roads, args.episodes, args.epsilon, args.gamma, config.seed,
+                   args.store)  # fmt: skip
     train = len(data.action) * (args.episodes - 1) // args.episodes
     moves = (data.action != KL) & data.acting
     print(f"# {len(data.action)} road-steps ({train} for fitting), {int(moves.sum())} moves that "

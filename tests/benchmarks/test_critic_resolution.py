@@ -30,8 +30,30 @@ def test_every_critic_and_target_is_fitted_and_probed(load_script: Callable) -> 
     assert len(exact) == 1  # both critics are probed on the same decisions
 
 
+def test_stored_proposals_keep_the_moves_the_shield_replaced(
+    load_script: Callable, capsys: pytest.CaptureFixture
+) -> None:
+    """With every CAV moving at random, some moves are replaced by the shield: stored as Keep
+    Lane by default (as the learners store them), as proposed with ``--store proposed``."""
+    study = load_script("benchmarks/critic_resolution.py")
+    moves = {}
+    for store in ("executed", "proposed"):
+        study.main([*TINY, "--critics", "own", "--targets", "own", "--epsilon", "1",
+                    "--store", store])  # fmt: skip
+        line = next(x for x in capsys.readouterr().out.splitlines() if "moves that" in x)
+        moves[store] = int(line.split("), ")[1].split(" moves")[0])
+    assert moves["proposed"] > moves["executed"] > 0
+
+
 @pytest.mark.parametrize(
-    "bad", [["--roads", "0"], ["--episodes", "1"], ["--epsilon", "1.5"], ["--gamma", "-0.1"]]
+    "bad",
+    [
+        ["--roads", "0"],
+        ["--episodes", "1"],
+        ["--epsilon", "1.5"],
+        ["--gamma", "-0.1"],
+        ["--store", "both"],
+    ],
 )
 def test_bad_settings_are_refused_first(load_script: Callable, bad: list[str]) -> None:
     study = load_script("benchmarks/critic_resolution.py")
