@@ -23,7 +23,8 @@ from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value.functional import td_lambda_return_estimate
 
 from mapets_rl.modules.arguments import finite_number, hidden_sizes, require_positive_ints
-from mapets_rl.modules.tensor_checks import as_mask, check_finite_many, get_tensor
+from mapets_rl.modules.tensor_checks import as_mask, check_finite_many
+from mapets_rl.objectives._tensor_reads import CheckedReads
 
 __all__ = ["COMACritic", "COMALoss", "counterfactual_advantage"]
 
@@ -112,7 +113,7 @@ class COMACritic(nn.Module):
         return self.mlp(torch.cat([state, others.flatten(-2), agent_id], dim=-1))
 
 
-class COMALoss(LossModule):
+class COMALoss(CheckedReads, LossModule):
     """COMA actor and critic losses.
 
     Critic: ``Q(s, u)_a`` (read at agent ``a``'s taken action) regresses onto the TD(lambda)
@@ -222,14 +223,6 @@ class COMALoss(LossModule):
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         """The TD(lambda) target is built into the loss; there is no value estimator."""
-
-    def _get(self, tensordict: TensorDictBase, key: NestedKey, expected: str) -> torch.Tensor:
-        """``tensordict[key]``; a one-line ValueError naming ``key`` when it is missing."""
-        return get_tensor(tensordict, key, expected, type(self).__name__)
-
-    def _flags(self, tensordict: TensorDictBase, key: NestedKey, expected: str) -> torch.Tensor:
-        """``tensordict[key]`` as bool; ValueError if missing or holding values other than 0/1."""
-        return as_mask(repr(unravel_key(key)), self._get(tensordict, key, expected), expected)
 
     def _logits(self, observation: torch.Tensor) -> torch.Tensor:
         keys = self.tensor_keys

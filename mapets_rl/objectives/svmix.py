@@ -30,12 +30,13 @@ from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value.functional import generalized_advantage_estimate
 
 from mapets_rl.modules.arguments import finite_number
-from mapets_rl.modules.tensor_checks import as_mask, check_finite_many, get_tensor
+from mapets_rl.modules.tensor_checks import as_mask, check_finite_many
+from mapets_rl.objectives._tensor_reads import CheckedReads
 
 __all__ = ["SVMIXLoss"]
 
 
-class SVMIXLoss(LossModule):
+class SVMIXLoss(CheckedReads, LossModule):
     """SVMIX's actor and mixed-critic losses (equations in the module docstring).
 
     Args:
@@ -148,14 +149,6 @@ class SVMIXLoss(LossModule):
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         """GAE is built into the loss (:meth:`value_targets`); there is no value estimator."""
-
-    def _get(self, tensordict: TensorDictBase, key: NestedKey, expected: str) -> torch.Tensor:
-        """``tensordict[key]``; a one-line ValueError naming ``key`` when it is missing."""
-        return get_tensor(tensordict, key, expected, type(self).__name__)
-
-    def _flags(self, tensordict: TensorDictBase, key: NestedKey, expected: str) -> torch.Tensor:
-        """``tensordict[key]`` as bool; ValueError if missing or holding values other than 0/1."""
-        return as_mask(repr(unravel_key(key)), self._get(tensordict, key, expected), expected)
 
     def joint_value(self, tensordict: TensorDictBase) -> torch.Tensor:
         """The critic's mixed value ``V_tot [*, 1]`` of the steps of ``tensordict [*]`` (its
