@@ -26,14 +26,11 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.data import TensorDictReplayBuffer
-from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.objectives import SoftUpdate
 
 from mapets_rl.experiment import Experiment, SystemRewardMetrics, check
 from mapets_rl.experiment.training import OnPolicyConfig, check_layer_sizes
 from mapets_rl.modules import ACTION, ACTION_VALUE, OBS, AgentGroupSpec, make_stochastic_policy
-from mapets_rl.modules.storage import FilledTensorStorage
 from mapets_rl.objectives import COMACritic, COMALoss
 
 TARGET = ("agents", "coma_target")
@@ -121,11 +118,7 @@ class COMA(SystemRewardMetrics, Experiment):
         self.eval_policy = self.policy
 
         # buffer: the latest batch, minibatches without replacement
-        self.buffer = TensorDictReplayBuffer(
-            storage=FilledTensorStorage(config.frames_per_batch, device=self.device),
-            sampler=SamplerWithoutReplacement(),
-            batch_size=config.minibatch_size,
-        )
+        self.buffer = config.latest_batch_buffer(self.device)
 
         # loss + soft target-critic updates
         self.loss = COMALoss(
@@ -150,9 +143,7 @@ class COMA(SystemRewardMetrics, Experiment):
         sees a detached critic: one backward)."""
         cfg = self.config
         batch = self.loss.value_targets(batch)
-        self.buffer.empty()
-        self.buffer.extend(batch.reshape(-1))
-        steps = cfg.epochs * max(batch.numel() // cfg.minibatch_size, 1)
+        steps = cfg.load_latest_batch(self.buffer, batch)
         keys = ("loss_actor", "loss_value", "loss_entropy", "advantage", "pred_value")
         logs = dict.fromkeys(keys, 0.0)
         for _ in range(steps):

@@ -39,8 +39,6 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
-from torchrl.data import TensorDictReplayBuffer
-from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.multiagent import IPPOLoss
 
@@ -65,7 +63,6 @@ from mapets_rl.modules import (
     make_obs_norm,
     make_stochastic_policy,
 )
-from mapets_rl.modules.storage import FilledTensorStorage
 
 LOSS_TERMS = ("loss_objective", "loss_critic", "loss_entropy")
 
@@ -169,11 +166,7 @@ class FIRL(Experiment):
         self.eval_policy = self.policy
 
         # buffer: the latest batch, minibatches without replacement
-        self.buffer = TensorDictReplayBuffer(
-            storage=FilledTensorStorage(config.frames_per_batch, device=self.device),
-            sampler=SamplerWithoutReplacement(),
-            batch_size=config.minibatch_size,
-        )
+        self.buffer = config.latest_batch_buffer(self.device)
 
         # loss: each agent's clipped surrogate + value + entropy on its own data (IPPO)
         self.loss = IPPOLoss(
@@ -211,10 +204,8 @@ class FIRL(Experiment):
                 params=self.loss.critic_network_params,
                 target_params=self.loss.target_critic_network_params,
             )
-        self.buffer.empty()
-        self.buffer.extend(batch.reshape(-1))
         logs = dict.fromkeys((*LOSS_TERMS, "bytes_consensus", "bytes_averaging"), 0.0)
-        steps = self.config.epochs * max(batch.numel() // self.config.minibatch_size, 1)
+        steps = self.config.load_latest_batch(self.buffer, batch)
         for _ in range(steps):
             out = self.loss(self.buffer.sample())
             self.optim.zero_grad()

@@ -16,8 +16,6 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
-from torchrl.data import TensorDictReplayBuffer
-from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.modules import MultiAgentMLP
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.multiagent import IPPOLoss, MAPPOLoss
@@ -36,7 +34,6 @@ from mapets_rl.modules import (
     make_obs_norm,
     make_stochastic_policy,
 )
-from mapets_rl.modules.storage import FilledTensorStorage
 
 
 @dataclasses.dataclass
@@ -104,11 +101,7 @@ class MAPPO(Experiment):
         self.eval_policy = self.policy
 
         # buffer: the latest batch, minibatches without replacement
-        self.buffer = TensorDictReplayBuffer(
-            storage=FilledTensorStorage(config.frames_per_batch, device=self.device),
-            sampler=SamplerWithoutReplacement(),
-            batch_size=config.minibatch_size,
-        )
+        self.buffer = config.latest_batch_buffer(self.device)
 
         # loss: clipped surrogate + value + entropy, advantages by MultiAgentGAE
         loss_cls = IPPOLoss if config.ippo else MAPPOLoss
@@ -134,10 +127,8 @@ class MAPPO(Experiment):
                 params=self.loss.critic_network_params,
                 target_params=self.loss.target_critic_network_params,
             )
-        self.buffer.empty()
-        self.buffer.extend(batch.reshape(-1))
         logs: dict[str, float] = {}
-        steps = self.config.epochs * max(batch.numel() // self.config.minibatch_size, 1)
+        steps = self.config.load_latest_batch(self.buffer, batch)
         for _ in range(steps):
             out = self.loss(self.buffer.sample())
             total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]

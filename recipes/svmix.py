@@ -59,8 +59,6 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
-from torchrl.data import TensorDictReplayBuffer
-from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.modules import MultiAgentMLP
 
 from mapets_rl.comm import CommConfig, communication_graph
@@ -77,7 +75,6 @@ from mapets_rl.modules import (
     make_stochastic_policy,
 )
 from mapets_rl.modules.graph_mixer import GraphValueMixer
-from mapets_rl.modules.storage import FilledTensorStorage
 from mapets_rl.objectives.svmix import SVMIXLoss
 
 POSITION = (GROUP, "position")
@@ -222,11 +219,7 @@ class SVMIX(Experiment):
         self.eval_policy = self.policy
 
         # buffer: the latest batch, minibatches without replacement
-        self.buffer = TensorDictReplayBuffer(
-            storage=FilledTensorStorage(config.frames_per_batch, device=self.device),
-            sampler=SamplerWithoutReplacement(),
-            batch_size=config.minibatch_size,
-        )
+        self.buffer = config.latest_batch_buffer(self.device)
 
         # loss: GAE of the team reward on V_tot, clipped policy gradient, critic regression
         self.loss = SVMIXLoss(
@@ -248,9 +241,7 @@ class SVMIX(Experiment):
         passes of minibatch updates of the policy and the mixed critic."""
         cfg = self.config
         batch = self.loss.value_targets(batch)
-        self.buffer.empty()
-        self.buffer.extend(batch.reshape(-1))
-        steps = cfg.epochs * max(batch.numel() // cfg.minibatch_size, 1)
+        steps = cfg.load_latest_batch(self.buffer, batch)
         keys = ("loss_objective", "loss_critic", "loss_entropy", "pred_value")
         logs = dict.fromkeys(keys, 0.0)
         for _ in range(steps):

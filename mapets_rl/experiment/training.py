@@ -16,12 +16,16 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
-from torchrl.data import TensorSpec
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import TensorDictReplayBuffer, TensorSpec
+from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.modules import EGreedyModule
 
 from mapets_rl.config import check
 from mapets_rl.experiment.config import ExperimentConfig
 from mapets_rl.modules import restricted_epsilon_greedy
+from mapets_rl.modules.storage import FilledTensorStorage
 from mapets_rl.planning.memory import available_memory
 
 
@@ -272,3 +276,22 @@ class OnPolicyConfig(ModelFreeConfig):
             f"in [1, frames_per_batch={self.frames_per_batch}]",
             self.minibatch_size,
         )
+
+    def latest_batch_buffer(self, device: torch.device | str | None) -> TensorDictReplayBuffer:
+        """The on-policy buffer: room for the latest collected batch (``frames_per_batch``
+        transitions, on ``device``), sampled in minibatches of ``minibatch_size`` without
+        replacement (fill it with :meth:`load_latest_batch`)."""
+        return TensorDictReplayBuffer(
+            storage=FilledTensorStorage(self.frames_per_batch, device=device),
+            sampler=SamplerWithoutReplacement(),
+            batch_size=self.minibatch_size,
+        )
+
+    def load_latest_batch(self, buffer: TensorDictReplayBuffer, batch: TensorDictBase) -> int:
+        """Replaces the contents of ``buffer`` (from :meth:`latest_batch_buffer`) by the
+        transitions of ``batch [*]`` (flattened) and returns the number of minibatch gradient
+        steps of ``epochs`` passes over them: ``epochs * max(batch.numel() // minibatch_size,
+        1)``."""
+        buffer.empty()
+        buffer.extend(batch.reshape(-1))
+        return self.epochs * max(batch.numel() // self.minibatch_size, 1)

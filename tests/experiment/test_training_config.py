@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
+from tensordict import TensorDict
 
 from mapets_rl.experiment import ConfigError
 from mapets_rl.experiment.training import ModelFreeConfig, OffPolicyConfig, OnPolicyConfig
@@ -182,3 +183,22 @@ def test_sac_loads_a_one_group_optimizer_state(tmp_path: Path) -> None:
     for p_old, p_new in zip(old.loss.parameters(), new.loss.parameters(), strict=True):
         assert torch.equal(p_old, p_new)
         assert torch.equal(old.optim.state[p_old]["exp_avg"], new.optim.state[p_new]["exp_avg"])
+
+
+def test_the_latest_batch_buffer_holds_one_batch_and_counts_the_minibatch_steps() -> None:
+    """``latest_batch_buffer`` + ``load_latest_batch``: the buffer holds exactly the last batch
+    (the previous one dropped), minibatches of ``minibatch_size`` cover it without replacement,
+    and the step count is ``epochs * max(numel // minibatch_size, 1)``."""
+    config = MAPPOConfig(frames_per_batch=12, minibatch_size=4, epochs=3)
+    buffer = config.latest_batch_buffer("cpu")
+    old = TensorDict({"x": -torch.ones(2, 6)}, batch_size=[2, 6])
+    assert config.load_latest_batch(buffer, old) == 3 * 3
+    batch = TensorDict({"x": torch.arange(12.0).reshape(2, 6)}, batch_size=[2, 6])
+    assert config.load_latest_batch(buffer, batch) == 3 * 3
+    assert len(buffer) == 12
+    seen = torch.cat([buffer.sample()["x"] for _ in range(3)])
+    assert seen.shape == (12,)
+    assert sorted(seen.tolist()) == list(range(12))
+    small = TensorDict({"x": torch.zeros(3)}, batch_size=[3])
+    assert config.load_latest_batch(buffer, small) == 3
+    assert len(buffer) == 3
