@@ -206,7 +206,7 @@ class FigureEightParallelEnv(TrafficParallelEnv):
         render_mode: str | None = None,
         **config: Any,
     ) -> None:
-        env = FigureEightEnv(
+        env = self.env_class(
             {"n_cavs": n_cavs, "n_hvs": n_hvs, "lanes": lanes, **config}, render_mode=render_mode
         )
         super().__init__(env, render_mode)

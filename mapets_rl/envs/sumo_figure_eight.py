@@ -63,7 +63,7 @@ from mapets_rl.envs.figure_eight import (
     observation_size,
 )
 from mapets_rl.envs.figure_eight_road import FigureEightGeometry
-from mapets_rl.envs.parallel import TrafficParallelEnv
+from mapets_rl.envs.parallel import FigureEightParallelEnv, TrafficParallelEnv
 from mapets_rl.envs.traffic import require
 from mapets_rl.envs.vehicles import ACC_MAX, ACC_MIN, TargetSpeedVehicle
 from mapets_rl.metrics import agility, safety
@@ -898,22 +898,10 @@ class SumoFigureEightEnv:
         self._finalizer()
 
 
-class SumoFigureEightParallelEnv(TrafficParallelEnv):
+class SumoFigureEightParallelEnv(FigureEightParallelEnv):
     """The SUMO figure-eight as a PettingZoo ``ParallelEnv`` (:class:`~mapets_rl.envs.parallel.
-    FigureEightParallelEnv`'s arguments; ``render_mode`` must be None)."""
+    FigureEightParallelEnv`'s arguments and constructor, on :class:`SumoFigureEightEnv`;
+    ``render_mode`` must be None)."""
 
     metadata = {**TrafficParallelEnv.metadata, "name": "sumo_figure_eight_v0"}
-    env_class = SumoFigureEightEnv
-
-    def __init__(
-        self,
-        n_cavs: int = 8,
-        n_hvs: int | tuple[int, int] = (8, 20),
-        lanes: int = 1,
-        render_mode: str | None = None,
-        **config: Any,
-    ) -> None:
-        env = SumoFigureEightEnv(
-            {"n_cavs": n_cavs, "n_hvs": n_hvs, "lanes": lanes, **config}, render_mode=render_mode
-        )
-        super().__init__(env, render_mode)  # type: ignore[arg-type]
+    env_class = SumoFigureEightEnv  # type: ignore[assignment]
