@@ -36,7 +36,7 @@ from torchrl.modules import EGreedyModule, QValueModule
 from torchrl.objectives import DQNLoss, SoftUpdate, ValueEstimators
 
 from mapets_rl.experiment import Experiment, check
-from mapets_rl.experiment.training import OffPolicyConfig
+from mapets_rl.experiment.training import OffPolicyConfig, check_epsilon_schedule
 from mapets_rl.modules import (
     ACTION,
     ACTION_VALUE,
@@ -97,19 +97,7 @@ class DQNConfig(OffPolicyConfig):
             self.lr_actor,
         )
         check(self.speed_levels >= 2, "speed_levels", ">= 2", self.speed_levels)
-        check(0 <= self.epsilon_init <= 1, "epsilon_init", "in [0, 1]", self.epsilon_init)
-        check(
-            0 <= self.epsilon_end <= self.epsilon_init,
-            "epsilon_end",
-            "in [0, epsilon_init]",
-            self.epsilon_end,
-        )
-        check(
-            self.epsilon_anneal_frames >= 1,
-            "epsilon_anneal_frames",
-            ">= 1",
-            self.epsilon_anneal_frames,
-        )
+        check_epsilon_schedule(self.epsilon_init, self.epsilon_end, self.epsilon_anneal_frames)
 
 
 def greedy_choice(choice_key: NestedKey = ACTION_CHOICE) -> QValueModule:

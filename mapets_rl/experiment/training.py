@@ -51,6 +51,14 @@ def check_layer_sizes(field: str, widths: list[int], device: str = "cpu") -> Non
     )
 
 
+def check_epsilon_schedule(epsilon_init: float, epsilon_end: float, anneal_frames: int) -> None:
+    """``ConfigError`` unless the epsilon-greedy schedule is valid: ``epsilon_init`` in
+    [0, 1], ``epsilon_end`` in [0, epsilon_init], ``epsilon_anneal_frames`` >= 1."""
+    check(0 <= epsilon_init <= 1, "epsilon_init", "in [0, 1]", epsilon_init)
+    check(0 <= epsilon_end <= epsilon_init, "epsilon_end", "in [0, epsilon_init]", epsilon_end)
+    check(anneal_frames >= 1, "epsilon_anneal_frames", ">= 1", anneal_frames)
+
+
 @dataclasses.dataclass
 class ModelFreeConfig(ExperimentConfig):
     """Fields every model-free recipe shares (plus :class:`ExperimentConfig`).
@@ -212,19 +220,7 @@ class DiscreteExplorationConfig(OffPolicyConfig):
             "'gumbel' or 'epsilon'",
             self.exploration,
         )
-        check(0 <= self.epsilon_init <= 1, "epsilon_init", "in [0, 1]", self.epsilon_init)
-        check(
-            0 <= self.epsilon_end <= self.epsilon_init,
-            "epsilon_end",
-            "in [0, epsilon_init]",
-            self.epsilon_end,
-        )
-        check(
-            self.epsilon_anneal_frames >= 1,
-            "epsilon_anneal_frames",
-            ">= 1",
-            self.epsilon_anneal_frames,
-        )
+        check_epsilon_schedule(self.epsilon_init, self.epsilon_end, self.epsilon_anneal_frames)
         check(
             all(a >= 0 for a in self.exploration_actions)
             and len(set(self.exploration_actions)) == len(self.exploration_actions),
