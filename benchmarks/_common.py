@@ -3,6 +3,8 @@
 - the episode loop of the two-lane figure-eight studies (``multilane_diagnosis.py``,
   ``safety_agility_frontier.py``): the policies that separate the causes of a crash, one
   episode of each, every CAV crash classified;
+- a published config with ``--set`` scenario settings over it (``critic_resolution.py``,
+  ``dilemma_counterfactuals.py``);
 - mbrl-lib as an in-process reference (``planner.py`` and ``ensemble_training.py``
   ``--reference mbrl-lib``), below.
 
@@ -18,6 +20,7 @@ How mbrl-lib is configured here and what differs from our planner at the same si
 
 from __future__ import annotations
 
+import argparse
 import functools
 import sys
 import time
@@ -31,10 +34,13 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from mapets_rl.app.plugins import load_recipe
 from mapets_rl.comm import CommunicationRange
 from mapets_rl.envs import ScriptedCAVPolicy, make_env, traffic_env
 from mapets_rl.envs.figure_eight import FigureEightPlannerReward, neighbour_speed_columns
 from mapets_rl.envs.figure_eight_kinematics import FigureEightKinematicModel
+from mapets_rl.experiment import RunConfig
+from mapets_rl.experiment.published import load_published
 from mapets_rl.planning import CPU_PRESET, TrajectorySamplingCEM
 from mapets_rl.planning.shared_plans import PlanSharingPlanner
 
@@ -57,6 +63,22 @@ NEAR_CROSSING = 10.0
 BETWEEN_LANES = 0.6
 """A vehicle more than this far from its lane's centre [m], or steering to another lane, is
 changing lanes."""
+
+
+def add_published_config_args(parser: argparse.ArgumentParser, default: str) -> None:
+    """``--config`` (a published config's name, ``default`` unless given) and ``--set
+    KEY=VALUE ...`` (scenario settings over the config's), read by :func:`published_config`."""
+    parser.add_argument("--config", default=default)
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="scenario settings over the config's (env_config keys)")  # fmt: skip
+
+
+def published_config(args: argparse.Namespace) -> RunConfig:
+    """The run config of the published config ``args.config`` with the scenario settings
+    ``args.set`` (``KEY=VALUE``, each an ``env_config`` key) over its own."""
+    published = load_published(args.config)
+    overrides = [f"env_config.{item}" for item in args.set]
+    return load_recipe(published.recipe).Config.from_fields(published.fields, overrides)
 
 
 class RandomPolicy(TensorDictModuleBase):

@@ -40,16 +40,15 @@ from functools import partial
 
 import numpy as np
 import torch
+from _common import add_published_config_args, published_config
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.objectives.value.functional import reward2go
 
-from mapets_rl.app.plugins import load_recipe
 from mapets_rl.envs.freeway import CL, CR, KL
 from mapets_rl.envs.torch_freeway.counterfactuals import MERGE_DECISIONS, merge_decisions
 from mapets_rl.experiment import RunConfig
 from mapets_rl.experiment.protocol import ROAD_EVAL_SEED_OFFSET, evaluation_env
-from mapets_rl.experiment.published import load_published
 from mapets_rl.machine import machine_line
 from mapets_rl.modules import AgentGroupSpec, make_obs_norm, make_q_critic
 from mapets_rl.modules.advantage_critic import make_advantage_q_critic
@@ -222,9 +221,7 @@ def probe_rows(label: str, found: dict[str, np.ndarray], j: int, team_of: int | 
 
 def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", default="freeway-merge-dilemma/maddpg-individual")
-    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
-                        help="scenario settings over the config's (env_config keys)")  # fmt: skip
+    add_published_config_args(parser, "freeway-merge-dilemma/maddpg-individual")
     parser.add_argument("--roads", type=int, default=256, help="training roads of the data")
     parser.add_argument("--episodes", type=int, default=16, help="episodes per training road")
     parser.add_argument("--epsilon", type=float, default=0.05, help="random lane-move rate")
@@ -243,11 +240,7 @@ def main(argv: list[str] | None = None) -> str:
         parser.error("--epsilon and --gamma must be in [0, 1]")
     if args.episodes < 2:
         parser.error("--episodes must be >= 2 (the last one is held out)")
-    published = load_published(args.config)
-    overrides = [f"env_config.{item}" for item in args.set]
-    config: RunConfig = load_recipe(published.recipe).Config.from_fields(
-        published.fields, overrides
-    )
+    config = published_config(args)
     print(f"# {machine_line()}")
     print(f"# {args.config} {' '.join(args.set)}; behaviour: keep lane, epsilon {args.epsilon}; "
           f"stored: the {args.store} action")  # fmt: skip

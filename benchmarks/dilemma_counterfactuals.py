@@ -41,6 +41,7 @@ from functools import partial
 
 import numpy as np
 import torch
+from _common import add_published_config_args, published_config
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
@@ -48,14 +49,12 @@ from mapets_rl.app.plugins import load_recipe
 from mapets_rl.envs.freeway import CL, KL
 from mapets_rl.envs.references import ACTION, OBSERVATION, make_reference
 from mapets_rl.envs.torch_freeway.counterfactuals import MERGE_DECISIONS, merge_decisions
-from mapets_rl.experiment import RunConfig
 from mapets_rl.experiment.protocol import (
     ROAD_EVAL_SEED_OFFSET,
     evaluation_env,
     gain_percent,
     score_roads,
 )
-from mapets_rl.experiment.published import load_published
 from mapets_rl.experiment.runner import run_recipe_name
 from mapets_rl.machine import machine_line
 from mapets_rl.modules.critic_probe import critic_advantages
@@ -136,9 +135,7 @@ HEADER = (
 
 def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", default="freeway-merge-dilemma/maddpg-individual")
-    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
-                        help="scenario settings over the config's (env_config keys)")  # fmt: skip
+    add_published_config_args(parser, "freeway-merge-dilemma/maddpg-individual")
     parser.add_argument("--roads", type=int, default=64, help="roads of the counterfactuals")
     parser.add_argument("--score-roads", type=int, default=256, help="roads per seed, scores")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -148,11 +145,7 @@ def main(argv: list[str] | None = None) -> str:
     args = parser.parse_args(argv)
     if args.roads < 1 or args.score_roads < 1 or not 0.0 <= args.gamma <= 1.0:
         parser.error("need --roads >= 1, --score-roads >= 1 and --gamma in [0, 1]")
-    published = load_published(args.config)
-    overrides = [f"env_config.{item}" for item in args.set]
-    config: RunConfig = load_recipe(published.recipe).Config.from_fields(
-        published.fields, overrides
-    )
+    config = published_config(args)
     print(f"# {machine_line()}")
     print(f"# {args.config} {' '.join(args.set)}: {config.unbatched_env_config()}")
     started = time.perf_counter()

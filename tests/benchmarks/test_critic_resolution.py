@@ -5,11 +5,18 @@ before any work."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 
+ROOT = Path(__file__).resolve().parents[2]
 TINY = ["--set", "n_vehicles=12", "--roads", "4", "--episodes", "2", "--probe-roads", "3",
         "--steps", "5", "--batch", "8"]  # fmt: skip
+
+
+@pytest.fixture(autouse=True)
+def _benchmarks_on_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))  # the script imports _common
 
 
 def test_every_critic_and_target_is_fitted_and_probed(load_script: Callable) -> None:

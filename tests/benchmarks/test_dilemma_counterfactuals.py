@@ -6,10 +6,17 @@ refused before any work."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 
+ROOT = Path(__file__).resolve().parents[2]
 SMALL = ["--roads", "3", "--score-roads", "3", "--seeds", "0"]
+
+
+@pytest.fixture(autouse=True)
+def _benchmarks_on_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))  # the script imports _common
 
 
 def _row(table: str, label: str) -> list[str]:
