@@ -1,6 +1,6 @@
 """The published SUMO configurations of the figure-eights (the MA-PETS paper's Figs. 3-4 on
-SUMO, issue 54): each is its scenario's MA-PETS setting on the SUMO back end, and the ones that
-include a highway-env twin differ from it in the back end only."""
+SUMO, issue 54): each is its scenario's MA-PETS setting on the SUMO back end, and differs from
+its highway-env twin in the back end only."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ SCENARIOS = ("figure-eight", "figure-eight-multilane")
 BUDGET = {"figure-eight": 3000, "figure-eight-multilane": 6000}
 """MA-PETS's 15 episodes of 200 (one lane) and 400 (two lanes) steps, in frames."""
 MODEL_FREE = ("dqn", "firl", "maddpg", "mappo", "sac", "svmix")
-TWINNED = ("mapets", "dqn", "firl", "svmix")
-"""The recipes whose highway-env figure-eight config the SUMO one includes."""
+TWINNED = ("mapets", *MODEL_FREE)
+"""The recipes whose highway-env figure-eight config the SUMO one includes: all of them."""
 
 
 def sumo_name(scenario: str, recipe: str) -> str:
