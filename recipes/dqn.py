@@ -100,11 +100,22 @@ class DQNConfig(OffPolicyConfig):
         check_epsilon_schedule(self.epsilon_init, self.epsilon_end, self.epsilon_anneal_frames)
 
 
+class FirstMaxQValueModule(QValueModule):
+    """torchrl's ``QValueModule`` whose one-hot choice is the first action of highest value.
+    torchrl's marks every action tied for the highest value, so a tie would choose several at
+    once: their summed target speeds on the figure-eights (an action out of range) and their
+    summed values in the double-DQN target."""
+
+    @staticmethod
+    def _one_hot(value: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.one_hot(value.argmax(-1), value.shape[-1])
+
+
 def greedy_choice(choice_key: NestedKey = ACTION_CHOICE) -> QValueModule:
-    """torchrl's ``QValueModule`` on the group: ``ACTION_VALUE`` ``[*, I, K]`` -> the greedy
-    one-hot choice at ``choice_key`` ``[*, I, K]`` and its value ``CHOSEN_VALUE``
-    ``[*, I, 1]``."""
-    return QValueModule(
+    """torchrl's ``QValueModule`` on the group (:class:`FirstMaxQValueModule`):
+    ``ACTION_VALUE`` ``[*, I, K]`` -> the greedy one-hot choice at ``choice_key`` ``[*, I, K]``
+    (one action, the first of the best) and its value ``CHOSEN_VALUE`` ``[*, I, 1]``."""
+    return FirstMaxQValueModule(
         action_space="one-hot",
         action_value_key=ACTION_VALUE,
         out_keys=[choice_key, ACTION_VALUE, CHOSEN_VALUE],

@@ -17,7 +17,7 @@ from torchrl.data import OneHot
 from mapets_rl.experiment import ConfigError
 from mapets_rl.modules import ACTION_VALUE, DONE, OBS, REWARD, TERMINATED
 from mapets_rl.modules.action_map import ACTION_CHOICE
-from mapets_rl.recipes.dqn import DQN, DQNConfig, greedy_choice, make_dqn_loss
+from mapets_rl.recipes.dqn import CHOSEN_VALUE, DQN, DQNConfig, greedy_choice, make_dqn_loss
 from mapets_rl.recipes.firl import FIRL, FIRLConfig
 from tests.cli_run import run_cli
 
@@ -194,3 +194,14 @@ def test_firl_learners_are_equal_after_an_averaging_and_its_bytes_are_logged(
 def test_bad_config_is_refused_naming_the_field(config_cls, overrides, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
         config_cls().with_overrides(overrides)
+
+
+def test_tied_action_values_choose_one_action_the_first_of_the_best() -> None:
+    """torchrl's one-hot QValueModule marks every tied action; the greedy choice here marks
+    one, so the figure-eight's action map never sums two target speeds and the chosen value is
+    the best value, not a sum."""
+    values = torch.tensor([[[1.0, 3.0, 3.0, 0.0], [2.0, 2.0, 2.0, 2.0]]])
+    td = greedy_choice()(TensorDict({ACTION_VALUE: values}, batch_size=[1]))
+    choice = td.get(ACTION_CHOICE)
+    assert torch.equal(choice, torch.tensor([[[0, 1, 0, 0], [1, 0, 0, 0]]]))
+    assert torch.equal(td.get(CHOSEN_VALUE), torch.tensor([[[3.0], [2.0]]]))
