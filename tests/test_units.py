@@ -57,8 +57,8 @@ def test_compare_table_and_plot_labels_carry_units(tmp_path: Path, monkeypatch) 
     out = compare(runs, tmp_path / "cmp", ["agility", "average_velocity"])
     table = out["table"].read_text()
     assert "| agility [m/step] | average_velocity [m/s] |" in table
-    # mean 21 m/s = 46.98 mph; the bootstrap interval of two runs spans them: 20 to 22 m/s
-    assert "| 21 [20, 22] (46.98 [44.74, 49.21] mph) (n=2) |" in table
+    # mean 21 m/s = 46.98 mph; two runs get no interval, their values instead: 20 and 22 m/s
+    assert "| 21 {20, 22} (46.98 {44.74, 49.21} mph) (n=2) |" in table
     assert titles == ["agility [m/step]", "average_velocity [m/s]"]
 
 
