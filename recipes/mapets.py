@@ -47,7 +47,7 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.objectives import LossModule
 
 from mapets_rl.comm import CommConfig, CommunicationRange, NeighbourDatasets, clique_cover_number
-from mapets_rl.config import ConfigError, coerce_section
+from mapets_rl.config import ConfigError, coerce_section, parse_override
 from mapets_rl.envs import (
     FigureEightPlannerReward,
     PlannerReward,
@@ -297,7 +297,7 @@ class MAPETSConfig(RunConfig):
         scenario with another planner-reward section (or none) starts ``planner_reward`` from
         that scenario's (the ``planner_reward.*`` overrides given with it apply on top)."""
         overrides = list(overrides)
-        given = {k.strip(): v.strip() for k, _, v in (o.partition("=") for o in overrides)}
+        given = dict(parse_override(o) for o in overrides)  # values as YAML: preset="cpu" is cpu
         new = given.get("preset", self.preset)
         data = self.to_dict()
         if "env" in given and _reward_section(given["env"]) is not _reward_section(self.env):

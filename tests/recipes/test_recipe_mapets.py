@@ -174,6 +174,15 @@ def test_presets_resolve_and_explicit_fields_win():
     assert cpu.with_overrides(["model.lr=3e-4"]).planner.horizon == 15
 
 
+@pytest.mark.parametrize("value", ["cpu", '"cpu"', "'cpu'"])
+def test_a_preset_override_resizes_however_its_value_is_quoted(value: str) -> None:
+    """``mapets-rl sweep --config`` passes a file's fields as JSON (``preset="cpu"``); a quoted
+    preset must resize the planner and the model as the bare one does, not leave the paper's."""
+    config = MAPETSConfig().with_overrides([f"preset={value}"])
+    assert config.preset == "cpu"
+    assert (config.planner.population, config.model.hidden) == (8, [64, 64, 64])
+
+
 @pytest.mark.parametrize(
     ("field", "value"),
     [
