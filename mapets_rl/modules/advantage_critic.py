@@ -20,6 +20,7 @@ from torchrl.modules import MultiAgentMLP
 
 from mapets_rl.modules.agents import AgentGroupSpec
 from mapets_rl.modules.keys import ACTION, OBS, OBS_NORM, Q_VALUE, VALUE
+from mapets_rl.modules.policies import make_decentralised_mlp
 
 ADVANTAGE = ("agents", "action_advantage")
 """``A_i(o_i, .) - A_i(o_i, b)`` over the discrete actions [*, I, n] (zero at ``b``)."""
@@ -75,26 +76,23 @@ def make_advantage_q_critic(
         )
     obs_key = OBS if obs_norm is None else OBS_NORM
 
-    def head(n_out: int, central: bool) -> MultiAgentMLP:
-        return MultiAgentMLP(
-            n_agent_inputs=spec.obs_dim,
-            n_agent_outputs=n_out,
-            n_agents=spec.n_agents,
-            centralized=central,
-            share_params=share_params,
-            depth=len(num_cells),
-            num_cells=num_cells,
-            activation_class=nn.ReLU,
-        )
-
+    value = MultiAgentMLP(
+        n_agent_inputs=spec.obs_dim,
+        n_agent_outputs=1,
+        n_agents=spec.n_agents,
+        centralized=centralized,
+        share_params=share_params,
+        depth=len(num_cells),
+        num_cells=num_cells,
+        activation_class=nn.ReLU,
+    )
+    advantage = make_decentralised_mlp(spec, num_cells, share_params, n_out=spec.action_dim)
     front = [] if obs_norm is None else [obs_norm]
     return TensorDictSequential(
         *front,
-        TensorDictModule(head(1, centralized), in_keys=[obs_key], out_keys=[VALUE]),
+        TensorDictModule(value, in_keys=[obs_key], out_keys=[VALUE]),
         TensorDictModule(
-            AnchoredAdvantage(head(spec.action_dim, False), baseline_action),
-            in_keys=[obs_key],
-            out_keys=[ADVANTAGE],
+            AnchoredAdvantage(advantage, baseline_action), in_keys=[obs_key], out_keys=[ADVANTAGE]
         ),
         TensorDictModule(
             value_plus_advantage, in_keys=[VALUE, ADVANTAGE, ACTION], out_keys=[Q_VALUE]
