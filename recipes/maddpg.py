@@ -253,28 +253,20 @@ class MADDPG(Experiment):
             )
             collection_policy = TensorDictSequential(self.actor, self.exploration)
         # centralised critic Q_i(o_1..o_I, a_1..a_I) (or Q_i(o_i, a_i)), one output per agent
+        critic_view = {
+            "centralized": config.critic_view == "all",
+            "share_params": config.critic_share_params,
+            "obs_norm": norm_module,
+        }
         if config.critic_head == "advantage":
             if not spec.discrete:
                 raise ValueError(
                     f"critic_head='advantage' needs discrete actions; {config.env!r} has "
                     "continuous ones"
                 )
-            self.critic = make_advantage_q_critic(
-                spec,
-                cells,
-                centralized=config.critic_view == "all",
-                share_params=config.critic_share_params,
-                baseline_action=0,
-                obs_norm=norm_module,
-            )
+            self.critic = make_advantage_q_critic(spec, cells, baseline_action=0, **critic_view)
         else:
-            self.critic = make_q_critic(
-                spec,
-                cells,
-                centralized=config.critic_view == "all",
-                share_params=config.critic_share_params,
-                obs_norm=norm_module,
-            )
+            self.critic = make_q_critic(spec, cells, **critic_view)
 
         # collector
         self.collector = self.make_collector(
