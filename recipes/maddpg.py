@@ -226,12 +226,18 @@ class MADDPG(Experiment):
                 head,
                 logits_key=PREACTIVATION,
                 obs_norm=norm_module,
+                initial_logits=config.actor_initial_logits,
             )
             self.exploration = config.epsilon_greedy(self.env.full_action_spec_unbatched[ACTION])
             collection_policy = (
                 TensorDictSequential(self.actor, self.exploration) if epsilon else self.actor
             )
         else:
+            if config.actor_initial_logits:
+                raise ValueError(
+                    f"actor_initial_logits is for discrete actions; {config.env!r} has "
+                    "continuous ones"
+                )
             if config.exploration != "gumbel":
                 raise ValueError(
                     f"exploration={config.exploration!r} is for discrete actions; "

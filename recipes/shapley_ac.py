@@ -222,6 +222,12 @@ class ShapleyACConfig(DiscreteExplorationConfig):
             "one of coalition, own",
             self.actor_view,
         )
+        check(
+            self.actor_view == "own" or not self.actor_initial_logits,
+            "actor_initial_logits",
+            "empty unless actor_view='own' (the coalition actor has no such output layer)",
+            self.actor_initial_logits,
+        )
         check(self.logits_reg >= 0, "logits_reg", ">= 0", self.logits_reg)
         check(self.reward_scale > 0, "reward_scale", "> 0", self.reward_scale)
         check(
@@ -270,6 +276,7 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
                 head,
                 logits_key=LOGITS,
                 obs_norm=norm_module,
+                initial_logits=config.actor_initial_logits,
             ).to(device)
         else:
             coalition_actor = make_coalition_actor(

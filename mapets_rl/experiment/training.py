@@ -13,6 +13,7 @@ changes a shared default by re-declaring the field (e.g. ``gamma: float = 0.99``
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -202,6 +203,11 @@ class DiscreteExplorationConfig(OffPolicyConfig):
         epsilon_anneal_frames: frames (>= 1) over which epsilon goes from init to end.
         exploration_actions: the action indices an epsilon-greedy draw picks from (empty:
             all; the freeways' are 0 KL, 1 CL, 2 CR, 3 ES).
+        actor_initial_logits: the actor's output biases at construction, one per action
+            (empty: the random initialisation). ``[3, 0, 0, 0]`` on the freeways starts the
+            greedy actor at Keep Lane in every state, so with a small epsilon the first data
+            come from keep lane with random moves, the behaviour under which a critic's
+            advantage head resolves a CAV's move (issue 50; ``docs/results/shapley.md``).
     """
 
     gumbel_tau: float = 1.0
@@ -210,10 +216,17 @@ class DiscreteExplorationConfig(OffPolicyConfig):
     epsilon_end: float = 0.05
     epsilon_anneal_frames: int = dataclasses.field(default=100_000, metadata={"unit": "frames"})
     exploration_actions: list[int] = dataclasses.field(default_factory=list)
+    actor_initial_logits: list[float] = dataclasses.field(default_factory=list)
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check(self.gumbel_tau > 0, "gumbel_tau", "> 0", self.gumbel_tau)
+        check(
+            all(math.isfinite(v) for v in self.actor_initial_logits),
+            "actor_initial_logits",
+            "finite numbers, one per action (or empty)",
+            self.actor_initial_logits,
+        )
         check(
             self.exploration in ("gumbel", "epsilon"),
             "exploration",

@@ -121,15 +121,31 @@ def make_discrete_actor(
     *,
     logits_key: NestedKey,
     obs_norm: TensorDictModule | None = None,
+    initial_logits: list[float] | None = None,
 ) -> TensorDictSequential:
     """Decentralised deterministic actor of one-hot actions (MADDPG's): (``obs_norm`` ->) each
     agent's own observation ``[*, I, obs]`` -> a ReLU ``MultiAgentMLP`` -> logits
     ``logits_key [*, I, n]`` -> ``head`` (logits -> ``(logits, action)``, e.g.
     :class:`~mapets_rl.modules.heads.GumbelSoftmaxHead` with ``return_logits=True``) ->
-    ``("agents","action")`` ``[*, I, n]``."""
+    ``("agents","action")`` ``[*, I, n]``.
+
+    ``initial_logits`` (``n`` values, every agent's): the bias of the MLP's output layer at
+    construction, in place of its random one, so a greedy choice starts where the biases
+    point (e.g. ``[3, 0, 0, 0]``: Keep Lane in every state on the freeways, the keep-lane
+    reference, on standardised observations, where the random weights' logits are smaller
+    than the margin; raw observations of 100 m can outweigh it)."""
     obs_key = OBS if obs_norm is None else OBS_NORM
     front = [] if obs_norm is None else [obs_norm]
     mlp = make_decentralised_mlp(spec, num_cells, share_params)
+    if initial_logits:
+        if len(initial_logits) != spec.action_dim:
+            raise ValueError(
+                f"initial_logits must hold one value per action ({spec.action_dim}), "
+                f"got {len(initial_logits)}: {initial_logits}"
+            )
+        output_bias = mlp.params[str(2 * len(num_cells)), "bias"]  # [(I,) n]
+        with torch.no_grad():
+            output_bias.copy_(torch.as_tensor(initial_logits, dtype=output_bias.dtype))
     return TensorDictSequential(
         *front,
         TensorDictModule(

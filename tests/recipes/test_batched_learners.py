@@ -266,3 +266,39 @@ def test_maddpg_with_the_advantage_critic_head_trains_and_moves_only_its_own_adv
     assert not torch.equal(before, _params(exp))
     with pytest.raises(ConfigError, match="critic_head must be 'joint' or 'advantage'"):
         MADDPGConfig(env="freeway-merge", critic_head="dueling")
+
+
+@pytest.mark.parametrize("recipe", ["maddpg", "shapley_ac"])
+@pytest.mark.parametrize("share_params", [True, False])
+def test_actor_initial_logits_start_the_greedy_actor_at_keep_lane(
+    tmp_path: Path, recipe: str, share_params: bool
+) -> None:
+    """``actor_initial_logits=[3, 0, 0, 0]``: every agent's greedy action is Keep Lane (0) on
+    every state of a rollout before any update (MADDPG's actor and the Shapley arm's, one
+    network or one per agent, observations normalised as in the dilemma arms, the
+    normaliser fitted to the states as after a run's first batch); without it the random
+    actor chooses other actions too; a wrong length or a non-finite value is refused, and so
+    is the coalition actor."""
+    cls, config_cls, extra = RECIPES[recipe]
+    extra = {**extra, "share_params": share_params, "exploration": "epsilon", "normalize_obs": True}
+    if recipe == "shapley_ac":
+        extra["actor_view"] = "own"  # the Shapley arm's actor: MADDPG's
+    states = None
+    chosen = {}
+    for logits in ([], [3.0, 0.0, 0.0, 0.0]):
+        config = config_cls(**COMMON, **extra, actor_initial_logits=logits)
+        exp = cls(config, tmp_path / str(len(logits)))
+        if states is None:
+            states = exp.env.rollout(6).reshape(-1)
+        exp.obs_norm.update(states["agents", "observation"], states["agents", "mask"])
+        chosen[len(logits)] = exp.actor(states.clone())["agents", "action"].argmax(-1)
+    assert (chosen[4] == 0).all()
+    assert (chosen[0] != 0).any()
+    with pytest.raises(ValueError, match="initial_logits must hold one value per action"):
+        cls(config_cls(**COMMON, **extra, actor_initial_logits=[3.0, 0.0]), tmp_path / "short")
+    with pytest.raises(ConfigError, match="actor_initial_logits"):
+        config_cls(env="freeway-merge", actor_initial_logits=[float("nan"), 0, 0, 0])
+    with pytest.raises(ConfigError, match="actor_initial_logits must be empty unless"):
+        ShapleyACConfig(
+            env="freeway-merge", actor_view="coalition", actor_initial_logits=[1, 0, 0, 0]
+        )
