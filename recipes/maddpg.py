@@ -208,6 +208,7 @@ class MADDPG(Experiment):
 
     def __init__(self, config: MADDPGConfig, run_dir=None) -> None:
         super().__init__(config, run_dir)  # seeds, run dir, self.env
+        config.check_shield_penalty(self.env)
         spec = AgentGroupSpec.from_env(self.env)
         cells = config.num_cells
 
@@ -323,6 +324,7 @@ class MADDPG(Experiment):
         """Store the batch ``[*, T]`` (time last: ``[T]``, or ``[B, T]`` from ``B`` roads);
         the gradient steps due (:meth:`OffPolicyConfig.gradient_steps`), each a critic + actor
         step and a soft target update."""
+        batch = self.config.stored_transitions(batch)
         if self.config.n_steps > 1:
             batch = n_step_transitions(batch, self.config.gamma, self.config.n_steps)
         self.buffer.extend(batch.reshape(-1).select(*REPLAY_KEYS, strict=False))

@@ -253,6 +253,7 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
 
     def __init__(self, config: ShapleyACConfig, run_dir: Any = None) -> None:
         super().__init__(config, run_dir)
+        config.check_shield_penalty(self.env)
         group = AgentGroupSpec.from_env(self.env)
         n, device = group.n_agents, self.device
 
@@ -346,6 +347,7 @@ class ShapleyAC(SystemRewardMetrics, Experiment):
         gradient steps due (:meth:`OffPolicyConfig.gradient_steps`), each a critic step, an
         actor step on the Shapley values and a soft target update."""
         cfg = self.config
+        batch = cfg.stored_transitions(batch)
         self.buffer.extend(batch.reshape(-1).select(*REPLAY_KEYS).to(self.device))
         if self.obs_norm is not None:
             self.obs_norm.update(batch.get(OBS), batch.get(MASK, None))

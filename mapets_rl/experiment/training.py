@@ -21,10 +21,13 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.data import TensorDictReplayBuffer, TensorSpec
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
+from torchrl.envs import EnvBase
 from torchrl.modules import EGreedyModule
 
-from mapets_rl.config import check
+from mapets_rl.config import ConfigError, check
+from mapets_rl.envs.torch_freeway.env import PROPOSED_ACTION
 from mapets_rl.experiment.config import ExperimentConfig
+from mapets_rl.experiment.shield_punishment import punish_shielded_moves
 from mapets_rl.modules import restricted_epsilon_greedy
 from mapets_rl.modules.storage import FilledTensorStorage
 from mapets_rl.planning.memory import available_memory
@@ -208,6 +211,10 @@ class DiscreteExplorationConfig(OffPolicyConfig):
             greedy actor at Keep Lane in every state, so with a small epsilon the first data
             come from keep lane with random moves, the behaviour under which a critic's
             advantage head resolves a CAV's move (issue 50; ``docs/results/shapley.md``).
+        shield_penalty: under the freeways' shield, what the learner stores where the shield
+            replaced a move: None (default) the transition that ran (Keep Lane); a number
+            ``p >= 0`` the proposed move with the agent's reward lowered by ``p`` (post-posed
+            shielding with punishment, :mod:`mapets_rl.experiment.shield_punishment`).
     """
 
     gumbel_tau: float = 1.0
@@ -217,6 +224,7 @@ class DiscreteExplorationConfig(OffPolicyConfig):
     epsilon_anneal_frames: int = dataclasses.field(default=100_000, metadata={"unit": "frames"})
     exploration_actions: list[int] = dataclasses.field(default_factory=list)
     actor_initial_logits: list[float] = dataclasses.field(default_factory=list)
+    shield_penalty: float | None = None
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -226,6 +234,12 @@ class DiscreteExplorationConfig(OffPolicyConfig):
             "actor_initial_logits",
             "finite numbers, one per action (or empty)",
             self.actor_initial_logits,
+        )
+        check(
+            self.shield_penalty is None or self.shield_penalty >= 0,
+            "shield_penalty",
+            "None or a number >= 0",
+            self.shield_penalty,
         )
         check(
             self.exploration in ("gumbel", "epsilon"),
@@ -241,6 +255,25 @@ class DiscreteExplorationConfig(OffPolicyConfig):
             "distinct action indices >= 0",
             self.exploration_actions,
         )
+
+    def check_shield_penalty(self, env: EnvBase) -> None:
+        """Refuse ``shield_penalty`` (before any training) where ``env`` keeps no proposal
+        under ``("agents", "proposed_action")``: an env without the shield."""
+        if self.shield_penalty is not None and PROPOSED_ACTION not in env.full_state_spec.keys(
+            include_nested=True
+        ):
+            raise ConfigError(
+                f"shield_penalty={self.shield_penalty} needs the shield's proposals: "
+                f"{self.env!r} must be the torch freeway with env_config shield: true"
+            )
+
+    def stored_transitions(self, batch: TensorDictBase) -> TensorDictBase:
+        """The collected ``batch [*]`` as the learner stores it: with ``shield_penalty`` set,
+        every move the shield replaced restored and punished
+        (:func:`~mapets_rl.experiment.shield_punishment.punish_shielded_moves`)."""
+        if self.shield_penalty is None:
+            return batch
+        return punish_shielded_moves(batch, self.shield_penalty)
 
     def epsilon_greedy(self, action_spec: TensorSpec) -> EGreedyModule | None:
         """The epsilon-greedy module that follows the actor while collecting

@@ -15,6 +15,7 @@ from mapets_rl.envs import make_env
 from mapets_rl.envs.freeway import CL, KL
 from mapets_rl.envs.torch_freeway.env import ACTION, PROPOSED_ACTION
 from mapets_rl.envs.torch_freeway.geometry import RAMP_SEGMENT
+from mapets_rl.experiment.shield_punishment import punish_shielded_moves
 
 SHIELDED = ("next", "agents", "info", "shielded")
 
@@ -105,3 +106,33 @@ def test_without_the_shield_the_action_is_left_as_proposed() -> None:
     td.set(ACTION, action)
     td = env.step(td)
     assert td.get(ACTION) is action and PROPOSED_ACTION not in td.keys(True, True)
+
+
+@pytest.mark.parametrize("categorical", [False, True])
+def test_punished_transitions_hold_the_proposal_and_the_lowered_reward(categorical: bool) -> None:
+    """``punish_shielded_moves`` (post-posed shielding with punishment): where the shield
+    replaced a move the transition holds the proposal and the reward minus the penalty; the
+    other agents' rows, the next state and the input batch are unchanged; a negative penalty
+    and a batch without proposals are refused."""
+    env = _env(categorical)
+    td = env.reset()
+    td.set(ACTION, ChangeLeft(categorical)(td.get(("agents", "observation"))))
+    batch = env.step(td)
+    before = batch.clone()
+    out = punish_shielded_moves(batch, 2.5)
+    replaced = batch.get(SHIELDED) > 0  # [roads, I]
+    assert 0 < int(replaced.sum()) < replaced.numel()
+    assert torch.equal(out.get(ACTION), batch.get(PROPOSED_ACTION))
+    reward, punished = (
+        batch.get(("next", "agents", "reward")),
+        out.get(("next", "agents", "reward")),
+    )
+    torch.testing.assert_close(punished[replaced], reward[replaced] - 2.5)
+    assert torch.equal(punished[~replaced], reward[~replaced])
+    key = ("next", "agents", "observation")
+    assert torch.equal(out.get(key), batch.get(key))
+    assert (batch == before).all()
+    with pytest.raises(ValueError, match="shield_penalty must be >= 0"):
+        punish_shielded_moves(batch, -1.0)
+    with pytest.raises(ValueError, match="needs the shield's proposals"):
+        punish_shielded_moves(batch.exclude(PROPOSED_ACTION), 1.0)

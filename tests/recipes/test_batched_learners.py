@@ -302,3 +302,34 @@ def test_actor_initial_logits_start_the_greedy_actor_at_keep_lane(
         ShapleyACConfig(
             env="freeway-merge", actor_view="coalition", actor_initial_logits=[1, 0, 0, 0]
         )
+
+
+@pytest.mark.parametrize("recipe", ["maddpg", "shapley_ac"])
+def test_shield_penalty_stores_the_punished_proposal(tmp_path: Path, recipe: str) -> None:
+    """``shield_penalty=p``: the replay buffer holds the proposed move and the reward minus
+    ``p`` where the shield replaced a move (post-posed shielding with punishment), the
+    transition that ran elsewhere; without the shield the field is refused before training."""
+    cls, config_cls, extra = RECIPES[recipe]
+    shielded = {**COMMON, "env_config": {**ENV_CONFIG, "n_vehicles": 30, "shield": True}}
+    exp = cls(config_cls(**shielded, **extra, shield_penalty=10.0), tmp_path / "run")
+    td = exp.env.reset()
+    if recipe == "shapley_ac":
+        td = exp.coalition(td)  # the replayed coalition, as the collection policy writes it
+    moves = torch.full(td.get(("agents", "observation")).shape[:-1], 1)  # Change Left
+    td.set(("agents", "action"), torch.nn.functional.one_hot(moves, 4).float())
+    batch = exp.env.step(td)
+    replaced = batch.get(("next", "agents", "info", "shielded")) > 0  # [roads, I]
+    assert 0 < int(replaced.sum()) < replaced.numel()
+    exp.frames = batch.numel()
+    exp.train_step(batch)
+    stored, batch = exp.buffer[:], batch.reshape(-1)  # [transitions]
+    assert torch.equal(stored.get(("agents", "action")), batch.get(("agents", "proposed_action")))
+    reward = batch.get(("next", "agents", "reward"))
+    torch.testing.assert_close(
+        stored.get(("next", "agents", "reward")),
+        reward - 10.0 * replaced.reshape(reward.shape).float(),
+    )
+    with pytest.raises(ConfigError, match="shield_penalty=10.0 needs the shield's proposals"):
+        cls(config_cls(**COMMON, **extra, shield_penalty=10.0), tmp_path / "plain")
+    with pytest.raises(ConfigError, match="shield_penalty must be None or a number >= 0"):
+        config_cls(env="freeway-merge", shield_penalty=-1.0)
