@@ -256,6 +256,15 @@ class DiscreteExplorationConfig(OffPolicyConfig):
             self.exploration_actions,
         )
 
+    @classmethod
+    def upgrade_dict(cls, data: Mapping[str, Any]) -> dict[str, Any]:
+        """A config written before ``actor_initial_logits`` or ``shield_penalty`` existed had
+        the random initialisation (``[]``) and stored the transition that ran (``None``)."""
+        data = super().upgrade_dict(data)
+        data.setdefault("actor_initial_logits", [])
+        data.setdefault("shield_penalty", None)
+        return data
+
     def check_shield_penalty(self, env: EnvBase) -> None:
         """Refuse ``shield_penalty`` (before any training) where ``env`` keeps no proposal
         under ``("agents", "proposed_action")``: an env without the shield."""

@@ -152,6 +152,18 @@ def test_legacy_config_without_update_interval_reads_as_per_batch_updates() -> N
     assert MADDPGConfig.from_dict(MADDPGConfig.upgrade_dict(data)).update_interval == 0
 
 
+@pytest.mark.parametrize("config_cls", [MADDPGConfig, ShapleyACConfig])
+def test_legacy_config_without_initial_logits_or_shield_penalty_reads_as_before(
+    config_cls: type,
+) -> None:
+    """A run saved before ``actor_initial_logits`` and ``shield_penalty`` existed resumes and
+    evaluates with the random initialisation and the transition that ran."""
+    data = config_cls(env="freeway-merge").to_dict()
+    del data["actor_initial_logits"], data["shield_penalty"]
+    config = config_cls.from_dict(config_cls.upgrade_dict(data))
+    assert config.actor_initial_logits == [] and config.shield_penalty is None
+
+
 # ----------------------------------------------------------------------- one sequence per road
 def _batch(exp) -> TensorDictBase:
     batch = exp.collector.next()
