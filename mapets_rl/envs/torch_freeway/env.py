@@ -23,8 +23,9 @@ input tensordict, which torchrl's ``EnvBase.step`` passes to it and returns with
 ``("agents", "proposed_action")`` (:data:`PROPOSED_ACTION`, in the action spec's form, declared
 in the state spec), so an off-policy critic is fitted to the action whose reward it sees, and a
 learner may still read what was proposed (with ``("agents", "info", "shielded")``). The
-paper's other option, a second update of the unsafe proposal with a punishment, is left to the
-learner: a penalty added to the reward here would be charged to Keep Lane, the action stored.
+paper's other option, an update with the unsafe proposal and a punishment, is the learner's
+(``shield_penalty`` of MADDPG and Shapley AC, :mod:`mapets_rl.experiment.shield_punishment`): a
+penalty added to the reward here would be charged to Keep Lane, the action stored.
 Only the tensordict that ``step`` is given is rewritten: ``env.step``, ``env.rollout`` and a
 torchrl ``Collector`` whose policy and env share a device (the experiment runner's) store the
 executed action; a ``TransformedEnv``, or a collector that moves its data to the env's device,
