@@ -16,7 +16,6 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
-from torchrl.modules import MultiAgentMLP
 from torchrl.objectives import ValueEstimators
 from torchrl.objectives.multiagent import IPPOLoss, MAPPOLoss
 
@@ -33,6 +32,7 @@ from mapets_rl.modules import (
     AgentGroupSpec,
     make_obs_norm,
     make_stochastic_policy,
+    make_value_mlp,
 )
 
 
@@ -80,15 +80,12 @@ class MAPPO(Experiment):
         self.policy = make_stochastic_policy(
             spec, config.num_cells, config.share_params, obs_norm=norm_module
         )
-        value_mlp = MultiAgentMLP(
-            n_agent_inputs=spec.obs_dim,
-            n_agent_outputs=1,
-            n_agents=spec.n_agents,
+        value_mlp = make_value_mlp(
+            spec,
+            config.num_cells,
             centralized=not config.ippo,
             share_params=True,
-            depth=len(config.num_cells),
-            num_cells=config.num_cells,
-            activation_class=nn.Tanh,
+            activation=nn.Tanh,
         )
         self.critic = TensorDictModule(
             value_mlp, in_keys=[OBS if norm_module is None else OBS_NORM], out_keys=[VALUE]

@@ -59,7 +59,6 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
-from torchrl.modules import MultiAgentMLP
 
 from mapets_rl.comm import CommConfig, communication_graph
 from mapets_rl.experiment import Experiment, check
@@ -73,6 +72,7 @@ from mapets_rl.modules import (
     AgentGroupSpec,
     make_obs_norm,
     make_stochastic_policy,
+    make_value_mlp,
 )
 from mapets_rl.modules.graph_mixer import GraphValueMixer
 from mapets_rl.objectives.svmix import SVMIXLoss
@@ -183,15 +183,8 @@ class SVMIX(Experiment):
         self.policy = make_stochastic_policy(
             spec, config.num_cells, config.share_params, obs_norm=norm_module
         )
-        values = MultiAgentMLP(
-            n_agent_inputs=spec.obs_dim,
-            n_agent_outputs=1,
-            n_agents=spec.n_agents,
-            centralized=False,
-            share_params=True,
-            depth=len(config.num_cells),
-            num_cells=config.num_cells,
-            activation_class=nn.Tanh,
+        values = make_value_mlp(
+            spec, config.num_cells, centralized=False, share_params=True, activation=nn.Tanh
         )
         mixer = GraphValueMixer(
             spec.obs_dim,

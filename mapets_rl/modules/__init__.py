@@ -32,6 +32,7 @@ from mapets_rl.modules.policies import (
     make_discrete_actor,
     make_q_critic,
     make_stochastic_policy,
+    make_value_mlp,
 )
 from mapets_rl.modules.tile_coding import (
     TileCodedObservation,
@@ -70,6 +71,7 @@ __all__ = [
     "make_discrete_actor",
     "make_q_critic",
     "make_stochastic_policy",
+    "make_value_mlp",
     "restricted_epsilon_greedy",
     "masked_mean",
     "one_hot_argmax",

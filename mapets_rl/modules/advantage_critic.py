@@ -16,11 +16,10 @@ from __future__ import annotations
 import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
-from torchrl.modules import MultiAgentMLP
 
 from mapets_rl.modules.agents import AgentGroupSpec
 from mapets_rl.modules.keys import ACTION, OBS, OBS_NORM, Q_VALUE, VALUE
-from mapets_rl.modules.policies import make_decentralised_mlp
+from mapets_rl.modules.policies import make_decentralised_mlp, make_value_mlp
 
 ADVANTAGE = ("agents", "action_advantage")
 """``A_i(o_i, .) - A_i(o_i, b)`` over the discrete actions [*, I, n] (zero at ``b``)."""
@@ -76,16 +75,7 @@ def make_advantage_q_critic(
         )
     obs_key = OBS if obs_norm is None else OBS_NORM
 
-    value = MultiAgentMLP(
-        n_agent_inputs=spec.obs_dim,
-        n_agent_outputs=1,
-        n_agents=spec.n_agents,
-        centralized=centralized,
-        share_params=share_params,
-        depth=len(num_cells),
-        num_cells=num_cells,
-        activation_class=nn.ReLU,
-    )
+    value = make_value_mlp(spec, num_cells, centralized=centralized, share_params=share_params)
     advantage = make_decentralised_mlp(spec, num_cells, share_params, n_out=spec.action_dim)
     front = [] if obs_norm is None else [obs_norm]
     return TensorDictSequential(

@@ -56,6 +56,31 @@ def make_stochastic_policy(
     )
 
 
+def make_value_mlp(
+    spec: AgentGroupSpec,
+    num_cells: list[int],
+    *,
+    centralized: bool,
+    share_params: bool,
+    activation: type[nn.Module] = nn.ReLU,
+    n_inputs: int | None = None,
+) -> MultiAgentMLP:
+    """One scalar per agent: inputs ``[*, I, n_inputs]`` (default the observation,
+    ``spec.obs_dim``: a state value ``V(o)``; with the action appended, a ``Q(o, a)``) ->
+    ``[*, I, 1]``, a ``MultiAgentMLP`` with ``activation``; ``centralized``: every agent's
+    output reads all agents' inputs, else only its own."""
+    return MultiAgentMLP(
+        n_agent_inputs=spec.obs_dim if n_inputs is None else n_inputs,
+        n_agent_outputs=1,
+        n_agents=spec.n_agents,
+        centralized=centralized,
+        share_params=share_params,
+        depth=len(num_cells),
+        num_cells=num_cells,
+        activation_class=activation,
+    )
+
+
 def make_q_critic(
     spec: AgentGroupSpec,
     num_cells: list[int],
@@ -75,15 +100,12 @@ def make_q_critic(
         *front,
         TensorDictModule(concat_last, in_keys=[obs_key, ACTION], out_keys=[OBS_ACTION]),
         TensorDictModule(
-            MultiAgentMLP(
-                n_agent_inputs=spec.obs_dim + spec.action_dim,
-                n_agent_outputs=1,
-                n_agents=spec.n_agents,
+            make_value_mlp(
+                spec,
+                num_cells,
                 centralized=centralized,
                 share_params=share_params,
-                depth=len(num_cells),
-                num_cells=num_cells,
-                activation_class=nn.ReLU,
+                n_inputs=spec.obs_dim + spec.action_dim,
             ),
             in_keys=[OBS_ACTION],
             out_keys=[Q_VALUE],
